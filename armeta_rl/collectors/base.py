@@ -1,0 +1,22 @@
+"""The collector protocol: how a batch of tasks becomes data (ARCHITECTURE.md, "plug-in seams")."""
+
+from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
+
+from tensordict import TensorDict
+
+
+@runtime_checkable
+class Collector(Protocol):
+    """Turns ``K`` task identifiers into data with a leading task dimension.
+
+    ``tasks`` is a TensorDict ``[K]`` with ``"params"`` ``[K, d]``. Regression and system
+    identification return ``{"support": {"x", "y"}, "query": {"x", "y"}}`` with batch ``[K]`` and
+    tensors ``[K, points, features]``; episode collectors return trajectories ``[K, episodes, T]``
+    gathered with ``policy_params`` (per-task parameters with a leading ``K``, or shared ones).
+    """
+
+    def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
+        """Data for every task, batched over the task dimension."""
+        ...

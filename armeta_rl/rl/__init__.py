@@ -1,0 +1,1 @@
+"""armeta_rl.rl."""

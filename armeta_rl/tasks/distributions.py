@@ -1,0 +1,112 @@
+"""Initial task distributions p0 on the identifier box (paper, appendix benchmark table).
+
+Every distribution here, and the flow adversary built on top of one, shares one interface:
+``sample(n)`` returns a TensorDict ``{"params": [n, d], "log_prob": [n]}`` and ``log_prob(params)``
+is the exact, normalized log-density on the box (``-inf`` outside it). Sampling uses torch's global
+generator, so ``torch.manual_seed`` fixes it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+
+from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.space import TaskSpace
+
+
+class TaskDistribution(nn.Module):
+    """Base class: a distribution over the task box with an exact log-density."""
+
+    def __init__(self, space: TaskSpace) -> None:
+        super().__init__()
+        self.space = space
+        low, high = space.bounds(torch.float64)
+        self.register_buffer("low", low, persistent=False)
+        self.register_buffer("high", high, persistent=False)
+
+    def sample_params(self, n: int) -> Tensor:
+        """``n`` identifiers ``[n, d]`` in float64."""
+        raise NotImplementedError
+
+    def log_prob(self, params: Tensor) -> Tensor:
+        """Exact log-density ``[n]`` at any ``params [n, d]``; ``-inf`` outside the box."""
+        raise NotImplementedError
+
+    def sample(self, n: int) -> TensorDict:
+        """``n`` tasks as ``{"params": [n, d], "log_prob": [n]}`` in the default dtype."""
+        params = self.sample_params(n)
+        dtype = torch.get_default_dtype()
+        return TensorDict(
+            {"params": params.to(dtype), "log_prob": self.log_prob(params).to(dtype)}, batch_size=[n]
+        )
+
+    def entropy(self, n: int = 4096) -> Tensor:
+        """Entropy H[p] = -E_p[ln p(τ)] (Monte Carlo unless a subclass knows it exactly)."""
+        return -self.log_prob(self.sample_params(n)).mean()
+
+    def _inside(self, params: Tensor) -> Tensor:
+        return ((params >= self.low) & (params <= self.high)).all(-1)
+
+
+class BoxUniform(TaskDistribution):
+    """Uniform distribution on the box: ln p(τ) = -ln vol(box)."""
+
+    def sample_params(self, n: int) -> Tensor:
+        return self.low + torch.rand(n, self.space.dim, dtype=torch.float64) * (self.high - self.low)
+
+    def log_prob(self, params: Tensor) -> Tensor:
+        params = params.to(torch.float64)
+        inside = self._inside(params)
+        return torch.where(inside, -self.space.log_volume, -math.inf)
+
+    def entropy(self, n: int = 0) -> Tensor:
+        return torch.tensor(self.space.log_volume, dtype=torch.float64)
+
+
+class TruncatedNormal(TaskDistribution):
+    """Diagonal normal N(loc, diag(scale²)) truncated to the box, sampled by inverse CDF.
+
+    ln p(τ) = Σ_i [ln φ((τ_i − μ_i)/σ_i) − ln σ_i − ln(Φ(β_i) − Φ(α_i))] inside the box, with
+    α_i, β_i the standardized box edges.
+    """
+
+    def __init__(self, space: TaskSpace, loc: Sequence[float], scale: Sequence[float]) -> None:
+        super().__init__(space)
+        if len(loc) != space.dim:
+            raise ConfigError("benchmark.initial.loc", list(loc), f"needs {space.dim} values")
+        if len(scale) != space.dim or not all(s > 0 for s in scale):
+            raise ConfigError("benchmark.initial.scale", list(scale), f"needs {space.dim} values > 0")
+        self.register_buffer("loc", torch.tensor(loc, dtype=torch.float64), persistent=False)
+        self.register_buffer("scale", torch.tensor(scale, dtype=torch.float64), persistent=False)
+        self.register_buffer("cdf_low", torch.special.ndtr((self.low - self.loc) / self.scale), persistent=False)
+        self.register_buffer("cdf_high", torch.special.ndtr((self.high - self.loc) / self.scale), persistent=False)
+
+    def sample_params(self, n: int) -> Tensor:
+        u = torch.rand(n, self.space.dim, dtype=torch.float64)
+        z = torch.special.ndtri(self.cdf_low + u * (self.cdf_high - self.cdf_low))
+        return (self.loc + self.scale * z).clamp(self.low, self.high)
+
+    def log_prob(self, params: Tensor) -> Tensor:
+        params = params.to(torch.float64)
+        z = (params - self.loc) / self.scale
+        log_density = -0.5 * z**2 - 0.5 * math.log(2 * math.pi) - self.scale.log()
+        log_mass = (self.cdf_high - self.cdf_low).log()
+        total = (log_density - log_mass).sum(-1)
+        return torch.where(self._inside(params), total, -math.inf)
+
+
+def make_initial(space: TaskSpace, kind: str, loc: Sequence[float] | None = None,
+                 scale: Sequence[float] | None = None) -> TaskDistribution:
+    """Build p0 from a config: ``kind`` is ``uniform`` or ``normal`` (truncated to the box)."""
+    if kind == "uniform":
+        return BoxUniform(space)
+    if kind == "normal":
+        if loc is None or scale is None:
+            raise ConfigError("benchmark.initial", kind, "'normal' needs 'loc' and 'scale'")
+        return TruncatedNormal(space, loc, scale)
+    raise ConfigError("benchmark.initial.kind", kind, "allowed: uniform, normal")

@@ -1,0 +1,85 @@
+"""The box of task identifiers (paper, appendix table "A Summary of Benchmarks")."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from armeta_rl.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class TaskSpace:
+    """A named, axis-aligned box ``[low, high]`` of task identifiers τ ∈ R^d.
+
+    Args:
+        names: one name per identifier, e.g. ``("amplitude", "phase")``.
+        low: lower corner of the box.
+        high: upper corner of the box; every ``high[i]`` must exceed ``low[i]``.
+    """
+
+    names: tuple[str, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+
+    def __init__(self, names: Sequence[str], low: Sequence[float], high: Sequence[float]) -> None:
+        names, low, high = tuple(str(n) for n in names), tuple(map(float, low)), tuple(map(float, high))
+        if not names:
+            raise ConfigError("benchmark.space.names", list(names), "needs at least one identifier")
+        for key, value in (("low", low), ("high", high)):
+            if len(value) != len(names):
+                raise ConfigError(
+                    f"benchmark.space.{key}", list(value), f"needs {len(names)} values, one per name"
+                )
+            if not all(math.isfinite(v) for v in value):
+                raise ConfigError(f"benchmark.space.{key}", list(value), "must be finite")
+        for name, lo, hi in zip(names, low, high):
+            if not lo < hi:
+                raise ConfigError(
+                    "benchmark.space.low", list(low), f"must be < high for every identifier ({name}: {lo} >= {hi})"
+                )
+        object.__setattr__(self, "names", names)
+        object.__setattr__(self, "low", low)
+        object.__setattr__(self, "high", high)
+
+    @property
+    def dim(self) -> int:
+        """Number of identifiers d."""
+        return len(self.names)
+
+    def bounds(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+        """``(low, high)`` as tensors of shape ``[d]``."""
+        kwargs = {"dtype": dtype or torch.get_default_dtype(), "device": device}
+        return torch.tensor(self.low, **kwargs), torch.tensor(self.high, **kwargs)
+
+    @property
+    def log_volume(self) -> float:
+        """ln of the box volume; the entropy of the uniform distribution on the box."""
+        return sum(math.log(hi - lo) for lo, hi in zip(self.low, self.high))
+
+    def to_unit(self, params: Tensor) -> Tensor:
+        """Affine map of the box onto ``[0, 1]^d`` (its Jacobian is constant)."""
+        low, high = self.bounds(params.dtype, params.device)
+        return (params - low) / (high - low)
+
+    def from_unit(self, unit: Tensor) -> Tensor:
+        """Inverse of :meth:`to_unit`."""
+        low, high = self.bounds(unit.dtype, unit.device)
+        return low + unit * (high - low)
+
+    def contains(self, params: Tensor) -> Tensor:
+        """Boolean ``[n]``: whether each row of ``params`` lies in the closed box."""
+        low, high = self.bounds(params.dtype, params.device)
+        return ((params >= low) & (params <= high)).all(-1)
+
+    def grid(self, points_per_axis: int, dtype: torch.dtype = torch.float64) -> tuple[Tensor, float]:
+        """Midpoints of a regular grid over the box and the area of one cell (for quadrature)."""
+        low, high = self.bounds(dtype)
+        width = (high - low) / points_per_axis
+        axes = [lo + w * (torch.arange(points_per_axis, dtype=dtype) + 0.5) for lo, w in zip(low, width)]
+        mesh = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
+        return mesh, float(width.prod())
