@@ -42,7 +42,8 @@ class TaskDistribution(nn.Module):
         params = self.sample_params(n)
         dtype = torch.get_default_dtype()
         return TensorDict(
-            {"params": params.to(dtype), "log_prob": self.log_prob(params).to(dtype)}, batch_size=[n]
+            {"params": params.to(dtype), "log_prob": self.log_prob(params).to(dtype)},
+            batch_size=[n],
         )
 
     def entropy(self, n: int = 4096) -> Tensor:
@@ -57,7 +58,9 @@ class BoxUniform(TaskDistribution):
     """Uniform distribution on the box: ln p(τ) = -ln vol(box)."""
 
     def sample_params(self, n: int) -> Tensor:
-        return self.low + torch.rand(n, self.space.dim, dtype=torch.float64) * (self.high - self.low)
+        return self.low + torch.rand(n, self.space.dim, dtype=torch.float64) * (
+            self.high - self.low
+        )
 
     def log_prob(self, params: Tensor) -> Tensor:
         params = params.to(torch.float64)
@@ -80,11 +83,17 @@ class TruncatedNormal(TaskDistribution):
         if len(loc) != space.dim:
             raise ConfigError("benchmark.initial.loc", list(loc), f"needs {space.dim} values")
         if len(scale) != space.dim or not all(s > 0 for s in scale):
-            raise ConfigError("benchmark.initial.scale", list(scale), f"needs {space.dim} values > 0")
+            raise ConfigError(
+                "benchmark.initial.scale", list(scale), f"needs {space.dim} values > 0"
+            )
         self.register_buffer("loc", torch.tensor(loc, dtype=torch.float64), persistent=False)
         self.register_buffer("scale", torch.tensor(scale, dtype=torch.float64), persistent=False)
-        self.register_buffer("cdf_low", torch.special.ndtr((self.low - self.loc) / self.scale), persistent=False)
-        self.register_buffer("cdf_high", torch.special.ndtr((self.high - self.loc) / self.scale), persistent=False)
+        self.register_buffer(
+            "cdf_low", torch.special.ndtr((self.low - self.loc) / self.scale), persistent=False
+        )
+        self.register_buffer(
+            "cdf_high", torch.special.ndtr((self.high - self.loc) / self.scale), persistent=False
+        )
 
     def sample_params(self, n: int) -> Tensor:
         u = torch.rand(n, self.space.dim, dtype=torch.float64)
@@ -100,8 +109,12 @@ class TruncatedNormal(TaskDistribution):
         return torch.where(self._inside(params), total, -math.inf)
 
 
-def make_initial(space: TaskSpace, kind: str, loc: Sequence[float] | None = None,
-                 scale: Sequence[float] | None = None) -> TaskDistribution:
+def make_initial(
+    space: TaskSpace,
+    kind: str,
+    loc: Sequence[float] | None = None,
+    scale: Sequence[float] | None = None,
+) -> TaskDistribution:
     """Build p0 from a config: ``kind`` is ``uniform`` or ``normal`` (truncated to the box)."""
     if kind == "uniform":
         return BoxUniform(space)

@@ -27,20 +27,28 @@ class TaskSpace:
     high: tuple[float, ...]
 
     def __init__(self, names: Sequence[str], low: Sequence[float], high: Sequence[float]) -> None:
-        names, low, high = tuple(str(n) for n in names), tuple(map(float, low)), tuple(map(float, high))
+        names, low, high = (
+            tuple(str(n) for n in names),
+            tuple(map(float, low)),
+            tuple(map(float, high)),
+        )
         if not names:
             raise ConfigError("benchmark.space.names", list(names), "needs at least one identifier")
         for key, value in (("low", low), ("high", high)):
             if len(value) != len(names):
                 raise ConfigError(
-                    f"benchmark.space.{key}", list(value), f"needs {len(names)} values, one per name"
+                    f"benchmark.space.{key}",
+                    list(value),
+                    f"needs {len(names)} values, one per name",
                 )
             if not all(math.isfinite(v) for v in value):
                 raise ConfigError(f"benchmark.space.{key}", list(value), "must be finite")
         for name, lo, hi in zip(names, low, high):
             if not lo < hi:
                 raise ConfigError(
-                    "benchmark.space.low", list(low), f"must be < high for every identifier ({name}: {lo} >= {hi})"
+                    "benchmark.space.low",
+                    list(low),
+                    f"must be < high for every identifier ({name}: {lo} >= {hi})",
                 )
         object.__setattr__(self, "names", names)
         object.__setattr__(self, "low", low)
@@ -51,7 +59,9 @@ class TaskSpace:
         """Number of identifiers d."""
         return len(self.names)
 
-    def bounds(self, dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> tuple[Tensor, Tensor]:
+    def bounds(
+        self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+    ) -> tuple[Tensor, Tensor]:
         """``(low, high)`` as tensors of shape ``[d]``."""
         kwargs = {"dtype": dtype or torch.get_default_dtype(), "device": device}
         return torch.tensor(self.low, **kwargs), torch.tensor(self.high, **kwargs)
@@ -76,10 +86,14 @@ class TaskSpace:
         low, high = self.bounds(params.dtype, params.device)
         return ((params >= low) & (params <= high)).all(-1)
 
-    def grid(self, points_per_axis: int, dtype: torch.dtype = torch.float64) -> tuple[Tensor, float]:
+    def grid(
+        self, points_per_axis: int, dtype: torch.dtype = torch.float64
+    ) -> tuple[Tensor, float]:
         """Midpoints of a regular grid over the box and the area of one cell (for quadrature)."""
         low, high = self.bounds(dtype)
         width = (high - low) / points_per_axis
-        axes = [lo + w * (torch.arange(points_per_axis, dtype=dtype) + 0.5) for lo, w in zip(low, width)]
+        axes = [
+            lo + w * (torch.arange(points_per_axis, dtype=dtype) + 0.5) for lo, w in zip(low, width)
+        ]
         mesh = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
         return mesh, float(width.prod())

@@ -1,0 +1,42 @@
+"""Run checkpoints through ``torchrl.checkpoint``: leader, principle, RNG state and iteration."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+
+from armeta_rl.learners.base import Leader
+from armeta_rl.risk.base import RiskPrinciple
+
+
+class RunCheckpoint:
+    """Saves and restores everything a run needs to continue bit-for-bit.
+
+    Components: the leader (parameters and optimizer), the risk principle (adversary, its
+    optimizer and scheduler, group weights), the process-global RNG states and the number of
+    completed iterations. Payloads are TensorDict directories, loadable without pickle.
+    """
+
+    def __init__(
+        self, directory: str | Path, leader: Leader, principle: RiskPrinciple, keep_last: int = 2
+    ) -> None:
+        self.progress = {"iteration": 0}
+        self.checkpoint = Checkpoint(
+            leader=leader, principle=principle, rng=GlobalRNGState(), progress=self.progress
+        )
+        self.rotation = CheckpointRotation(directory, keep_last=keep_last)
+
+    def save(self, iteration: int) -> Path:
+        """Write a checkpoint after ``iteration`` completed iterations."""
+        self.progress["iteration"] = iteration
+        return self.rotation.save(self.checkpoint, step=iteration)
+
+    def latest(self) -> Path | None:
+        """The newest checkpoint on disk, if any."""
+        return self.rotation.latest()
+
+    def restore(self, components: tuple[str, ...] | None = None) -> int:
+        """Load the newest checkpoint (all components, or ``components``); returns its iteration."""
+        self.rotation.load_latest(self.checkpoint, components=components)
+        return int(self.progress["iteration"])

@@ -1,0 +1,90 @@
+"""Meta-test metrics: average and CVaR_α over tasks (paper Section 5, "Evaluation Metrics")."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from armeta_rl.collectors.base import Collector
+from armeta_rl.learners.base import Leader
+from armeta_rl.tasks import TaskDistribution
+
+
+def higher_is_better(metric: str) -> bool:
+    """Whether larger values of ``metric`` are better (returns) or worse (errors)."""
+    return metric == "return"
+
+
+def cvar(values: Tensor, alpha: float, higher_better: bool = False) -> float:
+    """CVaR_α: the mean of the worst ``(1 − α)`` fraction of ``values``.
+
+    "Worst" is the largest values for a loss (``higher_better=False``) and the smallest for a
+    return. The tail holds ``ceil((1 − α)·n)`` values (at least one).
+    """
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    flat = values.detach().flatten().to(torch.float64)
+    tail = max(1, math.ceil(round((1.0 - alpha) * flat.numel(), 9)))
+    worst = flat.topk(tail, largest=not higher_better).values
+    return float(worst.mean())
+
+
+def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str, Any]:
+    """``{"mean", "cvar": {α: …}, "n_tasks"}`` of per-task losses, in the units of ``metric``.
+
+    For ``metric == "return"`` the per-task loss is the negative return, so the summary reports
+    returns and CVaR over the lowest returns.
+    """
+    higher_better = higher_is_better(metric)
+    values = -losses if higher_better else losses
+    return {
+        "mean": float(values.to(torch.float64).mean()),
+        "cvar": {str(alpha): cvar(values, alpha, higher_better) for alpha in alphas},
+        "n_tasks": int(values.numel()),
+    }
+
+
+def evaluate_on(
+    leader: Leader,
+    distribution: TaskDistribution,
+    collector: Collector,
+    n_tasks: int,
+    alphas: Sequence[float],
+    seed: int,
+) -> dict[str, Any]:
+    """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``.
+
+    Runs under its own seed inside a forked RNG, so every method (and a resumed run) is scored on
+    the same tasks and data, and training's random stream is left untouched.
+    """
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        tasks = distribution.sample(n_tasks)
+        losses = leader.evaluate(tasks, collector)
+    return summarize(losses, leader.metric, alphas)
+
+
+def format_table(report: dict[str, Any]) -> str:
+    """The ``eval.json`` figures as a fixed-width text table."""
+    alphas = None
+    rows = []
+    for name, section in report.items():
+        if not isinstance(section, dict) or "mean" not in section:
+            continue
+        alphas = alphas or list(section["cvar"])
+        rows.append(
+            (name, section["mean"], [section["cvar"][a] for a in alphas], section["n_tasks"])
+        )
+    header = f"{'distribution':<16}{'mean':>10}" + "".join(
+        f"{'cvar_' + a:>11}" for a in alphas or []
+    )
+    lines = [f"metric: {report.get('metric')}", header + f"{'tasks':>8}"]
+    for name, mean, cvars, n in rows:
+        lines.append(
+            f"{name:<16}{mean:>10.4f}" + "".join(f"{c:>11.4f}" for c in cvars) + f"{n:>8d}"
+        )
+    return "\n".join(lines)

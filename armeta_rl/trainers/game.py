@@ -1,0 +1,120 @@
+"""The one game loop (ARCHITECTURE.md; paper Algorithm 1 and the GDA updates of Eq.
+stochastic_grad_opt): the leader steps on tasks proposed by the risk principle, then the follower
+steps on the same tasks' losses at θ_{t+1}.
+
+The loop knows nothing about regression or RL: the leader owns collection, adaptation and its
+update; the principle owns task proposal, task weights and the follower update.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+
+import torch
+from tqdm.auto import tqdm
+
+from armeta_rl.errors import TrainingDiverged
+from armeta_rl.learners.base import Leader
+from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.trainers.checkpoint import RunCheckpoint
+
+LogFn = Callable[[dict[str, float], int], None]
+
+
+class GameTrainer:
+    """Alternating Stackelberg updates of leader θ and follower φ.
+
+    Args:
+        leader: the meta-learner (MAML, CNP, MAML-TRPO).
+        principle: where tasks come from and how their losses are weighted (ERM, AR, DR, ...).
+        iterations: total meta-iterations of the run.
+        meta_batch: tasks per meta-iteration K.
+        log: called with the scalars of an iteration and its number, every ``log_every``.
+        checkpoint: where to save every ``checkpoint_every`` iterations (``None``: never).
+        progress: show a tqdm bar with the iteration and current losses.
+    """
+
+    def __init__(
+        self,
+        leader: Leader,
+        principle: RiskPrinciple,
+        *,
+        iterations: int,
+        meta_batch: int,
+        log: LogFn | None = None,
+        log_every: int = 50,
+        checkpoint: RunCheckpoint | None = None,
+        checkpoint_every: int = 500,
+        progress: bool = True,
+    ) -> None:
+        self.leader, self.principle = leader, principle
+        self.iterations, self.meta_batch = iterations, meta_batch
+        self.log, self.log_every = log, log_every
+        self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
+        self.progress = progress
+        self.iteration = 0
+
+    def train_iteration(self) -> dict[str, float]:
+        """One meta-iteration t → t+1; returns its scalars."""
+        start = time.perf_counter()
+        tasks = self.principle.propose(self.meta_batch)
+        if not torch.isfinite(tasks["params"]).all() or torch.isnan(tasks["log_prob"]).any():
+            raise TrainingDiverged(
+                f"non-finite task identifiers proposed at iteration {self.iteration + 1}"
+            )
+        out = self.leader.step(tasks, self.principle.weights)
+        losses = out["loss"]
+        if not torch.isfinite(losses).all():
+            raise TrainingDiverged(
+                f"the leader loss is not finite at iteration {self.iteration + 1}"
+            )
+        logs = {
+            "train/leader_loss": float((self.principle.weights(losses) * losses).sum()),
+            "train/task_loss_mean": float(losses.mean()),
+        }
+        logs.update(
+            {f"train/{key}": float(value.mean()) for key, value in out.items() if key != "loss"}
+        )
+        self.iteration += 1
+        every = self.principle.update_every
+        if every and self.iteration % every == 0:
+            logs.update(self.principle.update(tasks, self.leader.evaluate(tasks)))
+        logs["time/iteration_ms"] = 1000.0 * (time.perf_counter() - start)
+        return logs
+
+    def run(self, stop_at: int | None = None) -> int:
+        """Train until ``iterations`` (or ``stop_at``, checkpointing there); returns the iteration
+        reached. A :class:`TrainingDiverged` propagates and leaves the last good checkpoint."""
+        end = self.iterations if stop_at is None else min(stop_at, self.iterations)
+        bar = tqdm(
+            total=end,
+            initial=self.iteration,
+            disable=not self.progress,
+            desc="meta-iterations",
+            dynamic_ncols=True,
+        )
+        with bar:
+            while self.iteration < end:
+                logs = self.train_iteration()
+                bar.update(1)
+                if self.iteration % self.log_every == 0 or self.iteration == end:
+                    bar.set_postfix(
+                        {
+                            k.split("/")[-1]: f"{v:.3g}"
+                            for k, v in logs.items()
+                            if k in ("train/leader_loss", "adversary/objective")
+                        }
+                    )
+                    if self.log is not None:
+                        self.log(logs, self.iteration)
+                if self.checkpoint is not None and (
+                    self.iteration % self.checkpoint_every == 0 or self.iteration == end
+                ):
+                    if not all(math.isfinite(v) for v in logs.values()):
+                        raise TrainingDiverged(
+                            f"non-finite training scalars at iteration {self.iteration}"
+                        )
+                    self.checkpoint.save(self.iteration)
+        return self.iteration

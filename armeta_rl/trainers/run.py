@@ -1,0 +1,192 @@
+"""A training run end to end: build, (resume,) train, evaluate, write the run directory."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torchrl.record.loggers import CSVLogger, Logger
+
+from armeta_rl.config import CONFIG_FILE, check_config
+from armeta_rl.errors import ConfigError
+from armeta_rl.trainers.checkpoint import RunCheckpoint
+from armeta_rl.trainers.evaluation import evaluate_on, format_table
+from armeta_rl.trainers.game import GameTrainer
+from armeta_rl.trainers.runs import Players, build_players, load_players
+
+EVAL_FILE = "eval.json"
+DENSITY_FILE = "density.png"
+
+
+def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
+    """CSV (default), wandb (offline unless ``WANDB_MODE=online``) or none."""
+    kind = cfg.logger.kind
+    if kind == "none":
+        return None
+    if kind == "csv":
+        return CSVLogger(exp_name="logs", log_dir=str(run_dir))
+    if kind == "wandb":
+        from torchrl.record.loggers import WandbLogger
+
+        run_id = "armeta-" + hashlib.sha1(str(run_dir.resolve()).encode()).hexdigest()[:12]
+        offline = os.environ.get("WANDB_MODE", "offline") != "online"
+        logger = WandbLogger(
+            exp_name=run_dir.name,
+            offline=offline,
+            save_dir=str(run_dir),
+            id=run_id,
+            project=cfg.logger.project,
+            log_env_packages=False,
+        )
+        logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+        return logger
+    raise ConfigError("logger.kind", kind, "allowed: csv, wandb, none")
+
+
+def evaluate_players(
+    cfg: DictConfig, players: Players, adversary: Any | None = None
+) -> dict[str, Any]:
+    """``eval.json``'s content: the leader on p0 and on an adversarial distribution.
+
+    ``adversary`` defaults to the run's own p_φ (AR methods); ERM-style runs have none unless one
+    is given (``armeta-eval`` scores any learner on any saved adversary).
+    """
+    from armeta_rl.collectors.regression import NoisySupport
+
+    ev = cfg.eval
+    adversary = adversary if adversary is not None else players.adversary
+    distributions = {"initial": players.initial}
+    if adversary is not None:
+        distributions["adversarial"] = adversary
+    report: dict[str, Any] = {
+        "metric": players.leader.metric,
+        "benchmark": cfg.benchmark.name,
+        "method": cfg.method.name,
+    }
+    for offset, (name, distribution) in enumerate(distributions.items()):
+        report[name] = evaluate_on(
+            players.leader,
+            distribution,
+            players.eval_collector,
+            ev.n_tasks,
+            list(ev.alphas),
+            ev.seed + offset,
+        )
+    if ev.support_noise > 0:
+        noisy = NoisySupport(players.eval_collector, ev.support_noise)
+        report["support_noise"] = ev.support_noise
+        for offset, (name, distribution) in enumerate(distributions.items()):
+            report[f"{name}_noisy"] = evaluate_on(
+                players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset
+            )
+    return report
+
+
+def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
+    """Dashboard names ``eval/<distribution>/mean`` and ``eval/<distribution>/cvar_<α>``."""
+    scalars = {}
+    for name, section in report.items():
+        if isinstance(section, dict) and "mean" in section:
+            scalars[f"eval/{name}/mean"] = section["mean"]
+            scalars.update({f"eval/{name}/cvar_{a}": v for a, v in section["cvar"].items()})
+    return scalars
+
+
+def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) -> dict | None:
+    """Train ``cfg`` in ``run_dir`` (resuming from its checkpoint if ``cfg.resume`` is set).
+
+    Returns the evaluation report, or ``None`` when the run stopped early at ``trainer.stop_at``.
+    """
+    run_dir = Path(run_dir)
+    check_config(cfg)
+    torch.set_num_threads(cfg.threads)
+    players = build_players(cfg)
+    checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle)
+    start = 0
+    if cfg.resume:
+        if checkpoint.latest() is None:
+            raise ConfigError("resume", str(cfg.resume), "has no checkpoint to resume from")
+        start = checkpoint.restore()
+    else:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        OmegaConf.save(cfg, run_dir / CONFIG_FILE, resolve=True)
+    logger = make_logger(cfg, run_dir)
+    trainer = GameTrainer(
+        players.leader,
+        players.principle,
+        iterations=cfg.trainer.iterations,
+        meta_batch=cfg.trainer.meta_batch,
+        log_every=cfg.trainer.log_every,
+        checkpoint=checkpoint,
+        checkpoint_every=cfg.trainer.checkpoint_every,
+        log=None if logger is None else (lambda s, step: logger.log_metrics(s, step)),
+        progress=progress and cfg.trainer.progress,
+    )
+    trainer.iteration = start
+    if trainer.run(stop_at=cfg.trainer.stop_at) < cfg.trainer.iterations:
+        print(
+            f"stopped at iteration {trainer.iteration}; continue with: "
+            f"armeta-train resume={run_dir}"
+        )
+        return None
+    report = evaluate_players(cfg, players)
+    (run_dir / EVAL_FILE).write_text(json.dumps(report, indent=2) + "\n")
+    print(format_table(report))
+    if players.adversary is not None and players.space.dim == 2:
+        _save_density(players, run_dir / DENSITY_FILE, logger)
+    if logger is not None:
+        logger.log_metrics(eval_scalars(report), cfg.trainer.iterations)
+    return report
+
+
+def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
+    import matplotlib.pyplot as plt
+
+    from armeta_rl.plots import plot_density
+
+    figure = plot_density(players.adversary, players.initial, path)
+    if (
+        logger is not None
+        and hasattr(logger, "experiment")
+        and type(logger).__name__ == "WandbLogger"
+    ):
+        import wandb
+
+        logger.experiment.log({"adversary/density": wandb.Image(str(path))})
+    plt.close(figure)
+
+
+def cross_evaluate(
+    learner_dir: str | Path, adversary_dir: str | Path | None, overrides: DictConfig
+) -> dict[str, Any]:
+    """Score the learner saved in ``learner_dir`` on p0 and on the adversary saved in
+    ``adversary_dir`` (same benchmark), with evaluation settings from ``overrides.eval``."""
+    cfg, players = load_players(learner_dir, "learner")
+    adversary = None
+    if adversary_dir is not None:
+        adv_cfg, adv_players = load_players(adversary_dir, "adversary")
+        if adv_players.adversary is None:
+            raise ConfigError(
+                "adversary",
+                str(adversary_dir),
+                f"was trained with method {adv_cfg.method.name}, which has no adversary",
+            )
+        if adv_players.space != players.space:
+            raise ConfigError(
+                "adversary",
+                str(adversary_dir),
+                f"its identifier box {adv_players.space} differs from the learner's "
+                f"{players.space}",
+            )
+        adversary = adv_players.adversary
+    cfg = OmegaConf.merge(cfg, {"eval": overrides.eval})
+    check_config(cfg)
+    report = evaluate_players(cfg, players, adversary)
+    report["learner"] = str(learner_dir)
+    report["adversary"] = None if adversary_dir is None else str(adversary_dir)
+    return report

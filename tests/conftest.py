@@ -1,0 +1,37 @@
+"""Shared fixtures: one torch thread, and Hydra configs composed exactly as the CLI composes them."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from omegaconf import DictConfig
+
+from armeta_rl.cli import config_dir
+
+torch.set_num_threads(1)
+os.environ.setdefault("WANDB_MODE", "offline")
+os.environ.setdefault("WANDB_SILENT", "true")
+
+SMALL_RUN = (
+    "trainer.iterations=6",
+    "trainer.checkpoint_every=3",
+    "trainer.log_every=2",
+    "trainer.progress=false",
+    "eval.n_tasks=20",
+    "logger=none",
+)
+"""Overrides that make any benchmark/method run in a couple of seconds."""
+
+
+def compose_train(*overrides: str) -> DictConfig:
+    """The ``armeta-train`` config for ``overrides``."""
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        return compose("train", overrides=list(overrides))
+
+
+@pytest.fixture
+def sinusoid_cfg() -> DictConfig:
+    return compose_train(*SMALL_RUN)

@@ -1,0 +1,67 @@
+"""The command line: bad input gets one clear line and exit code 2; wandb runs offline."""
+
+import subprocess
+import sys
+
+import pytest
+from conftest import SMALL_RUN, compose_train
+
+from armeta_rl.trainers.run import run_training
+
+TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
+EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
+
+
+@pytest.mark.parametrize(
+    "override,key,allowed",
+    [
+        ("benchmark=sinusoid_square", "benchmark", "sinusoid_uniform"),
+        ("method=super_maml", "method", "ar_maml"),
+        ("logger=tensorboard", "logger", "csv"),
+        ("benchmark.space.low=[5.0,0.0]", "benchmark.space.low", "must be <"),
+        ("risk.ar.lam=-0.5", "risk.ar.lam", ">= 0"),
+        ("eval.alphas=[0.5,1.2]", "eval.alphas", "(0, 1)"),
+        ("trainer.meta_batch=0", "trainer.meta_batch", ">= 1"),
+        ("trainer.iterations=-3", "trainer.iterations", ">= 1"),
+        ("eval.n_tasks=0", "eval.n_tasks", ">= 1"),
+    ],
+)
+def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):
+    result = subprocess.run([*TRAIN, override, f"hydra.run.dir={tmp_path}"],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert f"'{key}'" in lines[0] and allowed in lines[0]
+
+
+def test_unknown_choice_inside_a_sweep_is_rejected(tmp_path):
+    result = subprocess.run([*TRAIN, "-m", "method=maml,ar_mam"], capture_output=True, text=True,
+                            timeout=120, cwd=tmp_path)
+    assert result.returncode == 2 and "'ar_mam'" in result.stderr
+
+
+def test_resume_and_eval_of_a_non_run_directory_are_rejected(tmp_path):
+    resumed = subprocess.run([*TRAIN, f"resume={tmp_path}"], capture_output=True, text=True)
+    assert resumed.returncode == 2 and "'resume'" in resumed.stderr
+    evaluated = subprocess.run([*EVAL, f"learner={tmp_path}"], capture_output=True, text=True)
+    assert evaluated.returncode == 2 and "'learner'" in evaluated.stderr
+
+
+def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):
+    run_training(compose_train(*SMALL_RUN, "method=maml"), tmp_path / "maml")
+    run_training(compose_train(*SMALL_RUN, "method=ar_maml"), tmp_path / "ar")
+    result = subprocess.run([*EVAL, f"learner={tmp_path / 'maml'}", f"adversary={tmp_path / 'ar'}",
+                             "eval.n_tasks=30"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert "adversarial" in result.stdout
+    report = (tmp_path / "maml" / "eval_vs_ar.json").read_text()
+    assert '"n_tasks": 30' in report and '"adversarial"' in report
+
+
+def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch):
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    run_training(compose_train(*SMALL_RUN, "logger=wandb"), tmp_path)
+    runs = list((tmp_path / "wandb").glob("offline-run-*"))
+    assert len(runs) == 1
+    assert list(runs[0].glob("run-*.wandb"))

@@ -1,0 +1,34 @@
+"""Evaluation metrics: CVaR_α on hand-made vectors."""
+
+import pytest
+import torch
+
+from armeta_rl.trainers.evaluation import cvar, summarize
+
+
+def test_cvar_is_mean_of_the_worst_tail_of_losses():
+    losses = torch.arange(1.0, 11.0)  # 1 … 10
+    assert cvar(losses, 0.5) == pytest.approx((6 + 7 + 8 + 9 + 10) / 5)
+    assert cvar(losses, 0.7) == pytest.approx((8 + 9 + 10) / 3)
+    assert cvar(losses, 0.9) == pytest.approx(10.0)
+
+
+def test_cvar_of_returns_takes_the_lowest():
+    returns = torch.tensor([-1.0, -5.0, -2.0, -8.0])
+    assert cvar(returns, 0.5, higher_better=True) == pytest.approx((-8 - 5) / 2)
+
+
+def test_cvar_tail_rounds_up_and_keeps_one_value():
+    losses = torch.tensor([3.0, 1.0, 2.0])
+    assert cvar(losses, 0.5) == pytest.approx((3 + 2) / 2)  # ceil(1.5) = 2
+    assert cvar(losses, 0.99) == pytest.approx(3.0)
+
+
+def test_cvar_rejects_alpha_outside_unit_interval():
+    with pytest.raises(ValueError):
+        cvar(torch.ones(3), 1.0)
+
+
+def test_summary_of_returns_negates_losses():
+    report = summarize(torch.tensor([1.0, 3.0]), "return", [0.5])
+    assert report == {"mean": -2.0, "cvar": {"0.5": -3.0}, "n_tasks": 2}

@@ -1,0 +1,72 @@
+"""Task space and initial distributions: exact, normalized densities on the box."""
+
+import math
+
+import pytest
+import torch
+
+from armeta_rl.errors import ConfigError
+from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal, make_initial
+
+SINUSOID = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
+
+
+def test_space_rejects_empty_or_inverted_boxes():
+    with pytest.raises(ConfigError, match="benchmark.space.low"):
+        TaskSpace(["a", "b"], [0.0, 1.0], [1.0, 1.0])
+    with pytest.raises(ConfigError, match="benchmark.space.high"):
+        TaskSpace(["a", "b"], [0.0, 0.0], [1.0])
+
+
+def test_unit_map_round_trip():
+    params = BoxUniform(SINUSOID).sample(64)["params"].double()
+    unit = SINUSOID.to_unit(params)
+    assert unit.min() >= 0 and unit.max() <= 1
+    torch.testing.assert_close(SINUSOID.from_unit(unit), params)
+
+
+@pytest.mark.parametrize(
+    "distribution",
+    [BoxUniform(SINUSOID), TruncatedNormal(SINUSOID, [2.5, 1.5], [0.8, 0.5])],
+    ids=["uniform", "truncated_normal"],
+)
+def test_density_integrates_to_one_and_samples_stay_in_box(distribution):
+    grid, cell = SINUSOID.grid(300)
+    assert float(distribution.log_prob(grid).exp().sum() * cell) == pytest.approx(1.0, abs=1e-3)
+    tasks = distribution.sample(2000)
+    assert SINUSOID.contains(tasks["params"]).all()
+    torch.testing.assert_close(tasks["log_prob"], distribution.log_prob(tasks["params"]).float())
+    outside = torch.tensor([[6.0, 1.0], [1.0, -0.1]])
+    assert torch.isinf(distribution.log_prob(outside)).all()
+
+
+def test_truncated_normal_samples_follow_the_density():
+    distribution = TruncatedNormal(SINUSOID, [4.5, 0.3], [1.0, 0.5])
+    grid, cell = SINUSOID.grid(300)
+    weights = distribution.log_prob(grid).exp() * cell
+    exact_mean = (weights[:, None] * grid).sum(0)
+    torch.manual_seed(0)
+    sample_mean = distribution.sample_params(200_000).mean(0)
+    torch.testing.assert_close(sample_mean, exact_mean, atol=0.01, rtol=0)
+
+
+def test_truncated_normal_is_normal_renormalized_on_the_box():
+    loc, scale = torch.tensor([2.5, 1.5]), torch.tensor([0.8, 0.5])
+    distribution = TruncatedNormal(SINUSOID, loc.tolist(), scale.tolist())
+    normal = torch.distributions.Normal(loc.double(), scale.double())
+    low, high = SINUSOID.bounds(torch.float64)
+    mass = (normal.cdf(high) - normal.cdf(low)).prod()
+    points = torch.tensor([[1.0, 0.5], [4.0, 2.5]], dtype=torch.float64)
+    torch.testing.assert_close(distribution.log_prob(points), normal.log_prob(points).sum(-1) - mass.log())
+
+
+def test_uniform_entropy_is_log_volume():
+    assert float(BoxUniform(SINUSOID).entropy()) == pytest.approx(math.log(4.9 * math.pi))
+    assert float(BoxUniform(SINUSOID).entropy()) == pytest.approx(2.734, abs=1e-3)
+
+
+def test_make_initial_names_the_bad_key():
+    with pytest.raises(ConfigError, match="benchmark.initial.kind"):
+        make_initial(SINUSOID, "beta")
+    with pytest.raises(ConfigError, match="benchmark.initial.scale"):
+        make_initial(SINUSOID, "normal", [1.0, 1.0], [0.5, -1.0])
