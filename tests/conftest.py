@@ -1,4 +1,4 @@
-"""Shared fixtures: one torch thread, and Hydra configs composed exactly as the CLI composes them."""
+"""Shared fixtures: one torch thread, and Hydra configs composed as the CLI composes them."""
 
 from __future__ import annotations
 

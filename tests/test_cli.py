@@ -27,8 +27,9 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
     ],
 )
 def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):
-    result = subprocess.run([*TRAIN, override, f"hydra.run.dir={tmp_path}"],
-                            capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [*TRAIN, override, f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=120
+    )
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
@@ -36,8 +37,13 @@ def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowe
 
 
 def test_unknown_choice_inside_a_sweep_is_rejected(tmp_path):
-    result = subprocess.run([*TRAIN, "-m", "method=maml,ar_mam"], capture_output=True, text=True,
-                            timeout=120, cwd=tmp_path)
+    result = subprocess.run(
+        [*TRAIN, "-m", "method=maml,ar_mam"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+    )
     assert result.returncode == 2 and "'ar_mam'" in result.stderr
 
 
@@ -51,8 +57,12 @@ def test_resume_and_eval_of_a_non_run_directory_are_rejected(tmp_path):
 def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):
     run_training(compose_train(*SMALL_RUN, "method=maml"), tmp_path / "maml")
     run_training(compose_train(*SMALL_RUN, "method=ar_maml"), tmp_path / "ar")
-    result = subprocess.run([*EVAL, f"learner={tmp_path / 'maml'}", f"adversary={tmp_path / 'ar'}",
-                             "eval.n_tasks=30"], capture_output=True, text=True, timeout=120)
+    result = subprocess.run(
+        [*EVAL, f"learner={tmp_path / 'maml'}", f"adversary={tmp_path / 'ar'}", "eval.n_tasks=30"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert result.returncode == 0, result.stderr
     assert "adversarial" in result.stdout
     report = (tmp_path / "maml" / "eval_vs_ar.json").read_text()

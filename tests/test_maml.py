@@ -17,8 +17,13 @@ SPACE = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
 
 def make_leader(first_order=False, inner_steps=1, hidden=(128, 128, 128)):
     torch.manual_seed(0)
-    return MAMLLeader(make_mlp(1, 1, hidden), SinusoidCollector(5, 5), inner_lr=0.01,
-                      inner_steps=inner_steps, first_order=first_order)
+    return MAMLLeader(
+        make_mlp(1, 1, hidden),
+        SinusoidCollector(5, 5),
+        inner_lr=0.01,
+        inner_steps=inner_steps,
+        first_order=first_order,
+    )
 
 
 def per_task_loss(leader, params, task):
@@ -27,8 +32,9 @@ def per_task_loss(leader, params, task):
     names = list(params)
     for _ in range(leader.inner_steps):
         loss = (functional_call(leader.model, params, (support["x"],)) - support["y"]).pow(2).mean()
-        grads = torch.autograd.grad(loss, [params[n] for n in names],
-                                    create_graph=not leader.first_order)
+        grads = torch.autograd.grad(
+            loss, [params[n] for n in names], create_graph=not leader.first_order
+        )
         params = {n: params[n] - leader.inner_lr * g for n, g in zip(names, grads)}
     return (functional_call(leader.model, params, (query["x"],)) - query["y"]).pow(2).mean()
 

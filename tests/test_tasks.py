@@ -57,7 +57,9 @@ def test_truncated_normal_is_normal_renormalized_on_the_box():
     low, high = SINUSOID.bounds(torch.float64)
     mass = (normal.cdf(high) - normal.cdf(low)).prod()
     points = torch.tensor([[1.0, 0.5], [4.0, 2.5]], dtype=torch.float64)
-    torch.testing.assert_close(distribution.log_prob(points), normal.log_prob(points).sum(-1) - mass.log())
+    torch.testing.assert_close(
+        distribution.log_prob(points), normal.log_prob(points).sum(-1) - mass.log()
+    )
 
 
 def test_uniform_entropy_is_log_volume():

@@ -34,8 +34,9 @@ def test_training_writes_a_complete_run_directory(tmp_path, method):
 
 
 def test_training_lowers_the_query_loss(tmp_path):
-    cfg = compose_train(*SMALL_RUN, "trainer.iterations=150", "trainer.checkpoint_every=150",
-                        "method=maml")
+    cfg = compose_train(
+        *SMALL_RUN, "trainer.iterations=150", "trainer.checkpoint_every=150", "method=maml"
+    )
     players = build_players(cfg)
     before = run_training_eval(players, cfg)
     run_training(cfg, tmp_path)
@@ -46,8 +47,14 @@ def test_training_lowers_the_query_loss(tmp_path):
 def run_training_eval(players, cfg):
     from armeta_rl.trainers.evaluation import evaluate_on
 
-    report = evaluate_on(players.leader, players.initial, players.eval_collector,
-                         cfg.eval.n_tasks, [0.5], cfg.eval.seed)
+    report = evaluate_on(
+        players.leader,
+        players.initial,
+        players.eval_collector,
+        cfg.eval.n_tasks,
+        [0.5],
+        cfg.eval.seed,
+    )
     return report["mean"]
 
 
@@ -55,8 +62,11 @@ def test_resume_through_the_cli_ends_exactly_like_an_uninterrupted_run(tmp_path)
     overrides = [*SMALL_RUN, "method=ar_maml"]
     run_training(compose_train(*overrides), tmp_path / "whole")
     cli = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
-    stopped = subprocess.run([*cli, *overrides, "trainer.stop_at=3",
-                              f"hydra.run.dir={tmp_path / 'split'}"], capture_output=True, text=True)
+    stopped = subprocess.run(
+        [*cli, *overrides, "trainer.stop_at=3", f"hydra.run.dir={tmp_path / 'split'}"],
+        capture_output=True,
+        text=True,
+    )
     assert stopped.returncode == 0, stopped.stderr
     assert not (tmp_path / "split" / "eval.json").exists()
     resumed = subprocess.run([*cli, f"resume={tmp_path / 'split'}"], capture_output=True, text=True)
@@ -85,8 +95,15 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
     players = build_players(cfg)
     players.leader.collector = PoisonedCollector(players.leader.collector, bad_call=6)
     checkpoint = RunCheckpoint(tmp_path, players.leader, players.principle)
-    trainer = GameTrainer(players.leader, players.principle, iterations=10, meta_batch=5,
-                          checkpoint=checkpoint, checkpoint_every=2, progress=False)
+    trainer = GameTrainer(
+        players.leader,
+        players.principle,
+        iterations=10,
+        meta_batch=5,
+        checkpoint=checkpoint,
+        checkpoint_every=2,
+        progress=False,
+    )
     with pytest.raises(TrainingDiverged, match="iteration 6"):
         trainer.run()
     assert checkpoint.restore() == 4

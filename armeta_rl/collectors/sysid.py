@@ -1,0 +1,147 @@
+"""System-identification data: random-policy transitions of one simulated system per task
+(paper, appendix "System Identification")."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor
+
+from armeta_rl.envs.acrobot import AcrobotEnv
+from armeta_rl.envs.identified_env import IdentifiedSystemEnv
+from armeta_rl.envs.pendulum import PendulumEnv
+from armeta_rl.errors import ConfigError
+
+ENVIRONMENTS: dict[str, type[IdentifiedSystemEnv]] = {
+    "pendulum": PendulumEnv,
+    "acrobot": AcrobotEnv,
+}
+TARGETS = ("delta", "next")
+NORMALIZATIONS = ("none", "scale")
+
+
+class SysIdCollector:
+    """Few-shot transition data for system identification (the ``Collector`` protocol).
+
+    For tasks ``[K]`` with identifiers ``"params"`` ``[K, 2]`` ((m, l) for the pendulum,
+    (m1, m2) for the acrobot), one batched env ``[K, episodes]`` is reset with those identifiers
+    and a uniformly random policy acts for ``n_transitions / episodes`` steps in a single
+    ``env.rollout`` (finished acrobot episodes are reset and collection goes on). Each task's
+    ``n_transitions`` transitions are split at random (torch's global RNG) into ``n_support``
+    support and ``n_transitions - n_support`` query points::
+
+        x = (observation, torque)            y = next observation − observation  ("delta")
+                                             y = next observation                ("next")
+
+    With ``normalize="scale"`` every observation component of ``x`` and ``y`` is divided by its
+    bound in the observation spec (1 for cos/sin, the speed limits for velocities) and the
+    torque by its bound, so all inputs lie in [-1, 1]; ``"none"`` keeps physical units. Losses
+    are computed on ``y`` as returned.
+
+    Defaults ``target="delta"``, ``normalize="none"`` learned best in a measured comparison
+    (MAML, 3×128 ReLU MLP, inner lr 0.01, 300 meta-iterations of 16 tasks from U([0.4, 1.6]²),
+    next-observation MSE on 100 fresh tasks, one seed): pendulum delta/none 0.0415,
+    delta/scale 0.0431, next/none 0.0435, next/scale 0.0455; acrobot delta/none 0.00110,
+    next/none 0.00114, delta/scale 0.00147, next/scale 0.0142. ``episodes=10`` (10 episodes of
+    20 steps per task) makes one collection ~9x faster than a single 200-step episode (the
+    TorchRL step overhead is paid per time step, not per env); see
+    ``benchmarks/bench_sysid_envs.py``.
+
+    The environment's initial-state seed is drawn from torch's global RNG at every call, so
+    ``torch.manual_seed`` fixes the whole collection.
+
+    Args:
+        env: ``"pendulum"`` or ``"acrobot"``.
+        n_transitions: transitions per task (paper: 200).
+        n_support: support transitions per task (paper: 10).
+        episodes: episodes per task sharing the ``n_transitions`` (must divide it).
+        target: ``"delta"`` or ``"next"``.
+        normalize: ``"none"`` or ``"scale"``.
+        device: torch device of the environments and the returned data.
+    """
+
+    def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
+                 episodes: int = 10, target: str = "delta", normalize: str = "none",
+                 device: str = "cpu") -> None:
+        if env not in ENVIRONMENTS:
+            raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
+        if not isinstance(n_transitions, int) or n_transitions < 2:
+            raise ConfigError("benchmark.collector.n_transitions", n_transitions,
+                              "an integer >= 2")
+        if not isinstance(n_support, int) or not 1 <= n_support < n_transitions:
+            raise ConfigError("benchmark.collector.n_support", n_support,
+                              f"an integer in [1, n_transitions={n_transitions})")
+        if not isinstance(episodes, int) or episodes < 1 or n_transitions % episodes:
+            raise ConfigError("benchmark.collector.episodes", episodes,
+                              f"a positive integer dividing n_transitions={n_transitions}")
+        if target not in TARGETS:
+            raise ConfigError("benchmark.collector.target", target,
+                              f"allowed: {', '.join(TARGETS)}")
+        if normalize not in NORMALIZATIONS:
+            raise ConfigError("benchmark.collector.normalize", normalize,
+                              f"allowed: {', '.join(NORMALIZATIONS)}")
+        self.env_name, self.env_cls = env, ENVIRONMENTS[env]
+        self.n_transitions, self.n_support, self.episodes = n_transitions, n_support, episodes
+        self.target, self.normalize, self.device = target, normalize, torch.device(device)
+        self._envs: dict[int, IdentifiedSystemEnv] = {}
+        x_scale, y_scale = self._scales()
+        self.x_scale, self.y_scale = x_scale.to(self.device), y_scale.to(self.device)
+
+    @property
+    def in_features(self) -> int:
+        """Size of ``x``: observation and torque."""
+        return self.env_cls.observation_dim + 1
+
+    @property
+    def out_features(self) -> int:
+        """Size of ``y``: one value per observation component."""
+        return self.env_cls.observation_dim
+
+    def _scales(self) -> tuple[Tensor, Tensor]:
+        if self.normalize == "none":
+            return torch.ones(self.in_features), torch.ones(self.out_features)
+        observation = torch.tensor(self.env_cls.observation_high)
+        torque = torch.tensor([self.env_cls.max_torque])
+        return torch.cat([observation, torque]), observation
+
+    def _env(self, n_tasks: int) -> IdentifiedSystemEnv:
+        if n_tasks not in self._envs:
+            self._envs[n_tasks] = self.env_cls(batch_size=(n_tasks, self.episodes), seed=0,
+                                               device=self.device)
+        return self._envs[n_tasks]
+
+    def rollout(self, params: Tensor) -> TensorDict:
+        """Random-policy rollout ``[K, episodes, steps]`` of the systems ``params`` ``[K, d]``."""
+        n_tasks = params.shape[0]
+        env = self._env(n_tasks)
+        env.set_seed(int(torch.randint(0, 2**62, ())))
+        batch = (n_tasks, self.episodes)
+        reset = TensorDict({"params": params[:, None].expand(*batch, -1)}, batch_size=batch)
+        reset = env.reset(reset.to(self.device))
+        return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
+                           auto_reset=False, break_when_any_done=False)
+
+    def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
+        """Support and query transitions for every task: TensorDict ``[K]`` with
+        ``{"support", "query"}`` × ``{"x", "y"}``, tensors ``[K, points, features]``."""
+        params = tasks["params"]
+        n_tasks = params.shape[0]
+        data = self.rollout(params).reshape(n_tasks, self.n_transitions)
+        observation, next_observation = data["observation"], data["next", "observation"]
+        torque = self.env_cls.torque(data["action"])
+        x = torch.cat([observation, torque], -1) / self.x_scale
+        target = next_observation - observation if self.target == "delta" else next_observation
+        y = target / self.y_scale
+        order = torch.rand(n_tasks, self.n_transitions).argsort(-1).to(self.device)
+        x, y = _gather_rows(x, order), _gather_rows(y, order)
+        dtype = torch.get_default_dtype()
+        split = {
+            "support": {"x": x[:, : self.n_support], "y": y[:, : self.n_support]},
+            "query": {"x": x[:, self.n_support :], "y": y[:, self.n_support :]},
+        }
+        return TensorDict(split, batch_size=[n_tasks], device=self.device).to(dtype)
+
+
+def _gather_rows(values: Tensor, order: Tensor) -> Tensor:
+    """``values[k, order[k]]`` for every task ``k``."""
+    return values.gather(1, order.unsqueeze(-1).expand(-1, -1, values.shape[-1]))

@@ -1,0 +1,144 @@
+"""A batched TorchRL environment whose physical identifiers are set through the reset TensorDict.
+
+System identification (paper, appendix "System Identification") needs one dynamical system per
+task: the task identifiers (pendulum mass and length, acrobot link masses) are physical constants
+of the simulator. Subclasses write the batched physics; this base class owns what they share:
+
+* batch size ``[tasks, episodes]``; every tensor entry carries it as leading dimensions;
+* ``"params"`` ``[*batch, d]`` (identifiers in the order of :attr:`param_names`) is read from the
+  reset TensorDict and kept: the env stores the last identifiers it was given, so an automatic
+  (partial) reset inside ``env.rollout`` or ``torchrl.collectors.Collector`` — which passes only
+  ``"_reset"`` — restores them, and ``_step`` carries them from input to output like an
+  observation. A reset TensorDict without ``"params"`` keeps the stored ones;
+* ``"state"`` ``[*batch, state_dim]`` is the exact simulator state (the observation is a function
+  of it); ``env.reset(td, set_state=True)`` starts from ``td["state"]`` instead of a random one;
+* a ``torch.Generator`` owned by the env draws the random initial states (``set_seed``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from armeta_rl.errors import ConfigError
+
+
+class IdentifiedSystemEnv(EnvBase):
+    """Base class of the batched system-identification environments.
+
+    Args:
+        batch_size: ``(tasks, episodes)`` (any shape works; the collectors use two dimensions).
+        seed: seed of the env's generator; ``None`` draws one from torch's global RNG.
+        device: torch device of every tensor.
+        dtype: floating dtype of the state, observation and reward (float64 to compare with
+            gymnasium, which integrates in float64).
+    """
+
+    param_names: tuple[str, ...] = ()
+    default_params: tuple[float, ...] = ()
+    state_dim: int = 0
+    observation_dim: int = 0
+    observation_high: tuple[float, ...] = ()
+    max_torque: float = 1.0
+    _supports_set_state = True
+
+    def __init__(self, batch_size: Sequence[int] = (1, 1), seed: int | None = None,
+                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+        batch_size = torch.Size(batch_size)
+        if any(n < 1 for n in batch_size):
+            raise ConfigError("env.batch_size", list(batch_size), "every dimension must be >= 1")
+        super().__init__(device=device, batch_size=batch_size)
+        self.dtype = dtype
+        default = torch.tensor(self.default_params, dtype=dtype, device=self.device)
+        self.task_params = default.expand(*batch_size, len(self.param_names)).clone()
+        self._make_specs()
+        if seed is None:
+            seed = int(torch.randint(0, 2**62, ()))
+        self.set_seed(seed)
+
+    def _make_specs(self) -> None:
+        batch, kwargs = self.batch_size, {"dtype": self.dtype, "device": self.device}
+        self.observation_spec = Composite(
+            observation=self._observation_bounds(),
+            state=Unbounded(shape=(*batch, self.state_dim), **kwargs),
+            params=Unbounded(shape=(*batch, len(self.param_names)), **kwargs),
+            shape=batch,
+        )
+        self.action_spec = self._make_action_spec()
+        self.reward_spec = Unbounded(shape=(*batch, 1), **kwargs)
+        done = Categorical(n=2, shape=(*batch, 1), dtype=torch.bool, device=self.device)
+        self.done_spec = Composite(done=done, terminated=done.clone(), shape=batch)
+
+    def _observation_bounds(self) -> Bounded:
+        high = torch.tensor(self.observation_high, dtype=self.dtype, device=self.device)
+        high = high.expand(*self.batch_size, self.observation_dim)
+        return Bounded(low=-high, high=high, dtype=self.dtype, device=self.device)
+
+    @staticmethod
+    def torque(action: Tensor) -> Tensor:
+        """The torque ``[..., 1]`` an action applies."""
+        raise NotImplementedError
+
+    def _make_action_spec(self):
+        raise NotImplementedError
+
+    def _initial_state(self) -> Tensor:
+        """Random initial states ``[*batch, state_dim]`` drawn with the env's generator."""
+        raise NotImplementedError
+
+    def _observe(self, state: Tensor) -> Tensor:
+        """Observation ``[*batch, observation_dim]`` of a state."""
+        raise NotImplementedError
+
+    def _set_seed(self, seed: int | None) -> None:
+        self.rng = torch.Generator(device=self.device)
+        self.rng.manual_seed(seed)
+
+    def _uniform(self, low: float, high: float) -> Tensor:
+        shape = (*self.batch_size, self.state_dim)
+        unit = torch.rand(shape, generator=self.rng, dtype=self.dtype, device=self.device)
+        return low + (high - low) * unit
+
+    def rand_action(self, tensordict: TensorDictBase | None = None) -> TensorDictBase:
+        """A uniform random action from the action spec (torch's global RNG).
+
+        Samples the one action spec directly: ``EnvBase.rand_action`` samples the full action
+        Composite and rebuilds a TensorDict every step, which dominated the rollout time.
+        """
+        action = self.action_spec.rand()
+        if tensordict is None:
+            return TensorDict({"action": action}, batch_size=self.batch_size, device=self.device)
+        tensordict.set("action", action)
+        return tensordict
+
+    def _reset(self, tensordict: TensorDictBase | None, set_state: bool = False,
+               **kwargs) -> TensorDictBase:
+        """New episodes where ``"_reset"`` is set (all if absent), with the stored identifiers
+        updated from ``tensordict["params"]`` when given."""
+        tensordict = tensordict if tensordict is not None else TensorDict({}, self.batch_size)
+        reset = tensordict.get("_reset", None)
+        params = tensordict.get("params", None)
+        if params is not None:
+            params = params.to(self.task_params).expand_as(self.task_params)
+            self.task_params = params.clone() if reset is None else torch.where(
+                reset, params, self.task_params)
+        state = tensordict.get("state", None)
+        if not set_state or state is None:
+            state = self._initial_state()
+        done = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
+        return TensorDict(
+            {
+                "state": state.to(self.dtype),
+                "observation": self._observe(state.to(self.dtype)),
+                "params": self.task_params.clone(),
+                "done": done,
+                "terminated": done.clone(),
+            },
+            batch_size=self.batch_size,
+            device=self.device,
+        )

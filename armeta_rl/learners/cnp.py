@@ -1,0 +1,141 @@
+"""Conditional neural process leader (Garnelo et al. 2018; paper, Example AR-CNP and Algorithm 2).
+
+θ = {θ_1, θ_2}: a set encoder h_{θ_1} maps the support set to a representation
+z = mean_i h_{θ_1}(x_i, y_i), and a decoder g_{θ_2}(z, x) predicts a Gaussian over y at each query
+point. Adaptation is this forward pass alone: Algorithm 2 has no inner gradient step, so the leader
+update is one Adam step on Σ_k w_k L(D^Q_{τ_k}; z_k, θ_2) for the whole task batch.
+
+Architecture (paper, appendix "Neural Architectures & Optimization"): the encoder is a three-layer
+MLP with 128 hidden units and a 128-d output, the representations are averaged over the support
+set, and the decoder is a two-layer MLP on (z, x_query); ReLU activations, Adam with lr 1e-3.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+from torch.nn import functional as F
+from torchrl.modules import MLP
+
+from armeta_rl.collectors.base import Collector
+from armeta_rl.errors import ConfigError
+from armeta_rl.learners.base import TaskWeights
+
+LIKELIHOODS = ("gaussian", "mse")
+MIN_STD = 0.1
+
+
+class ConditionalNeuralProcess(nn.Module):
+    """Encoder–mean–decoder network; every tensor may carry any leading batch shape ``[*B]``.
+
+    The predictive standard deviation is σ = 0.1 + 0.9·softplus(s) for the decoder's raw output s
+    (Le et al. 2018, "Empirical evaluation of neural process objectives"): the 0.1 floor keeps the
+    Gaussian likelihood from collapsing onto single points early in training.
+    """
+
+    def __init__(self, in_features: int, out_features: int, hidden: int = 128) -> None:
+        super().__init__()
+        self.encoder = MLP(in_features=in_features + out_features, out_features=hidden,
+                           num_cells=[hidden, hidden], activation_class=nn.ReLU)
+        self.decoder = MLP(in_features=hidden + in_features, out_features=2 * out_features,
+                           num_cells=[hidden], activation_class=nn.ReLU)
+
+    def represent(self, support_x: Tensor, support_y: Tensor) -> Tensor:
+        """z = mean over the support points of h(x, y): ``[*B, S, ·]`` → ``[*B, hidden]``."""
+        return self.encoder(torch.cat([support_x, support_y], -1)).mean(-2)
+
+    def forward(self, support_x: Tensor, support_y: Tensor,
+                query_x: Tensor) -> tuple[Tensor, Tensor]:
+        """Predictive mean and standard deviation ``[*B, Q, out]`` at the query inputs."""
+        z = self.represent(support_x, support_y)
+        z = z.unsqueeze(-2).expand(*query_x.shape[:-1], z.shape[-1])
+        mean, raw_std = self.decoder(torch.cat([z, query_x], -1)).chunk(2, -1)
+        return mean, MIN_STD + (1.0 - MIN_STD) * F.softplus(raw_std)
+
+
+def gaussian_nll(mean: Tensor, std: Tensor, target: Tensor) -> Tensor:
+    """Elementwise −ln N(target; mean, std²), including the ½·ln 2π constant."""
+    return F.gaussian_nll_loss(mean, target, std.square(), full=True, reduction="none")
+
+
+class CNPLeader:
+    """The CNP as a leader: collect support/query data, predict, score, one Adam step.
+
+    Args:
+        in_features: dimension of the inputs x.
+        out_features: dimension of the targets y.
+        collector: returns ``{"support": {"x", "y"}, "query": {"x", "y"}}`` with batch ``[K]``.
+        lr: Adam learning rate (1e-3 in the paper).
+        hidden: width of every hidden layer and of the representation z (128 in the paper).
+        likelihood: training loss per task, averaged over query points and output dimensions:
+            ``"gaussian"`` (negative log-likelihood of the predicted Gaussian, as in Garnelo et al.)
+            or ``"mse"`` (squared error of the predicted mean; the std head is then unused).
+
+    :meth:`evaluate` always reports the mean squared error of the predicted mean (``metric="mse"``),
+    like MAML, whichever likelihood trains the network.
+    """
+
+    metric = "mse"
+
+    def __init__(self, in_features: int, out_features: int, collector: Collector,
+                 lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian") -> None:
+        for key, value in (("in_features", in_features), ("out_features", out_features),
+                           ("hidden", hidden)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"learner.cnp.{key}", value, "must be an integer >= 1")
+        if not (isinstance(lr, (int, float)) and lr > 0):
+            raise ConfigError("learner.cnp.lr", lr, "must be a number > 0")
+        if likelihood not in LIKELIHOODS:
+            raise ConfigError("learner.cnp.likelihood", likelihood,
+                              f"allowed: {', '.join(LIKELIHOODS)}")
+        self.collector = collector
+        self.likelihood = likelihood
+        self.model = ConditionalNeuralProcess(in_features, out_features, hidden)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
+
+    def predict(self, data: TensorDict) -> tuple[Tensor, Tensor]:
+        """Predictive mean and std ``[K, Q, out]`` at the query inputs of ``data``."""
+        return self.model(data["support", "x"], data["support", "y"], data["query", "x"])
+
+    def task_losses(self, data: TensorDict) -> tuple[Tensor, Tensor]:
+        """Per-task training loss ``[K]`` (the chosen likelihood) and query MSE ``[K]``."""
+        mean, std = self.predict(data)
+        target = data["query", "y"]
+        squared_error = (mean - target).square().mean((-2, -1))
+        if self.likelihood == "mse":
+            return squared_error, squared_error
+        return gaussian_nll(mean, std, target).mean((-2, -1)), squared_error
+
+    def step(self, tasks: TensorDict, weights: TaskWeights) -> TensorDict:
+        """One Adam step on Σ_k w_k L_k with ``w = weights(L.detach())`` (Algorithm 2).
+
+        Returns a TensorDict ``[K]`` with the detached per-task ``"loss"`` and query ``"mse"``,
+        both before the update.
+        """
+        data = self.collector.collect(tasks)
+        losses, squared_error = self.task_losses(data)
+        task_weights = weights(losses.detach())
+        self.optimizer.zero_grad(set_to_none=True)
+        (task_weights * losses).sum().backward()
+        self.optimizer.step()
+        return TensorDict({"loss": losses.detach(), "mse": squared_error.detach()},
+                          batch_size=tasks.batch_size)
+
+    @torch.no_grad()
+    def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
+        """Per-task query MSE ``[K]`` of the predicted mean at the current θ."""
+        data = (collector or self.collector).collect(tasks)
+        mean, _ = self.predict(data)
+        return (mean - data["query", "y"]).square().mean((-2, -1))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Network parameters and Adam state."""
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state_dict` returned."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])

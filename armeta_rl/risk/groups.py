@@ -1,0 +1,178 @@
+"""Task-group principles: worst-case ``tr`` (TR-MAML) and group DRO ``dro`` (DRO-MAML).
+
+Paper, table "A Summary of Used Methods" and appendix "Robust Fast Adaptation Strategies in the
+Task Space", eq. ``append:gdro``: min_θ max_{g∈G} E_{p_g(τ)}[L(D^Q_τ, D^S_τ; θ)]. The groups G are
+the cells of a regular grid over the identifier box (``groups_per_axis`` cells per identifier, so
+``groups_per_axis ** d`` groups). The inner max over groups is relaxed to a max over group weights q
+on the probability simplex, min_θ max_{q∈Δ} Σ_g q_g L_g(θ), and q follows the group losses:
+
+* ``tr`` (Collins et al. 2020, TR-MAML): projected gradient ascent, q ← Π_Δ(q + η·L̄).
+* ``dro`` (Sagawa et al. 2020, group DRO): exponentiated gradient, q ← q·exp(η·L̄) / Z.
+
+L̄_g is the mean loss of the batch tasks in group g. A group with no task in the batch has no loss
+estimate: its entry of L̄ is 0, so its weight is moved only by the normalization (as in Sagawa et
+al.'s reference code). Tasks always come from the fixed p0 (the table's "Task Distribution: Fixed");
+the groups only decide how the leader weighs them.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+
+from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.distributions import TaskDistribution
+
+
+def project_to_simplex(v: Tensor) -> Tensor:
+    """Euclidean projection of ``v [G]`` onto the probability simplex {q ≥ 0, Σ q = 1}.
+
+    Sort-based algorithm of Duchi et al. (2008), "Efficient projections onto the l1-ball":
+    q = max(v − τ, 0) with the threshold τ = (Σ_{i≤ρ} u_i − 1) / ρ, where u is v sorted in
+    decreasing order and ρ the largest index with u_ρ − (Σ_{i≤ρ} u_i − 1) / ρ > 0.
+    """
+    u = torch.sort(v, descending=True).values
+    cumulative = u.cumsum(0) - 1.0
+    index = torch.arange(1, v.numel() + 1, dtype=v.dtype, device=v.device)
+    support = (u - cumulative / index) > 0
+    rho = int(support.nonzero().max()) + 1
+    threshold = cumulative[rho - 1] / rho
+    return (v - threshold).clamp_min(0.0)
+
+
+class _GroupPrinciple(nn.Module):
+    """Group weights q over a grid of the identifier box; subclasses define the q step."""
+
+    update_every = 1
+    config_key = "risk.groups"
+
+    def __init__(self, initial: TaskDistribution, groups_per_axis: int, step_size: float) -> None:
+        super().__init__()
+        valid_count = isinstance(groups_per_axis, int) and not isinstance(groups_per_axis, bool)
+        if not valid_count or groups_per_axis < 1:
+            raise ConfigError(f"{self.config_key}.groups_per_axis", groups_per_axis,
+                              "must be an integer >= 1")
+        if not (isinstance(step_size, (int, float)) and math.isfinite(step_size) and step_size > 0):
+            raise ConfigError(f"{self.config_key}.step_size", step_size,
+                              "must be a finite number > 0")
+        self.initial = initial
+        self.groups_per_axis = groups_per_axis
+        self.step_size = float(step_size)
+        self.num_groups = groups_per_axis ** initial.space.dim
+        self.register_buffer("q", torch.full((self.num_groups,), 1.0 / self.num_groups,
+                                             dtype=torch.float64))
+        self._last_groups: Tensor | None = None
+
+    def group_of(self, params: Tensor) -> Tensor:
+        """Group index ``[n]`` of each task: its grid cell, numbered row-major over the axes.
+
+        A point on an inner cell boundary belongs to the upper cell; the box's upper edge belongs
+        to the last cell.
+        """
+        unit = self.initial.space.to_unit(params.to(torch.float64))
+        cell = (unit * self.groups_per_axis).floor().long().clamp(0, self.groups_per_axis - 1)
+        axes = torch.arange(cell.shape[-1] - 1, -1, -1, device=cell.device)
+        strides = self.groups_per_axis ** axes
+        return (cell * strides).sum(-1)
+
+    def propose(self, n: int) -> TensorDict:
+        """``n`` tasks from p0; their groups are kept for the :meth:`weights` call that follows."""
+        tasks = self.initial.sample(n)
+        self._last_groups = self.group_of(tasks["params"])
+        return tasks
+
+    def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
+        """w_k = q_{g(k)} / n_{g(k)} / Σ_{g present} q_g for the tasks of a batch.
+
+        n_g is the number of batch tasks in group g, so Σ_k w_k L_k = Σ_g q_g L̄_g / Σ_{g present}
+        q_g: the q-weighted group risk, renormalized over the groups present in the batch. If every
+        present group has q_g = 0 (``tr`` can sit on a vertex whose group the batch missed), the
+        present groups share the weight equally, the limit of q + ε·1 as ε → 0. The groups are
+        those of ``tasks`` when given, else of the batch last returned by :meth:`propose` (the
+        trainer's ``propose`` → ``leader.step(tasks, principle.weights)``).
+        """
+        if tasks is not None:
+            groups = self.group_of(tasks["params"])
+        elif self._last_groups is not None:
+            groups = self._last_groups
+        else:
+            raise RuntimeError("weights() needs tasks, or a batch from propose() first")
+        if groups.numel() != losses.numel():
+            raise ValueError(f"{losses.numel()} losses for a batch of {groups.numel()} tasks")
+        groups = groups.to(losses.device)
+        q = self.q.to(losses.device)
+        counts = torch.bincount(groups, minlength=self.num_groups).to(q)
+        present_q = q * (counts > 0)
+        if not present_q.sum() > 0:
+            present_q = (counts > 0).to(q)
+        return (present_q[groups] / counts[groups] / present_q.sum()).to(losses.dtype)
+
+    def group_losses(self, tasks: TensorDict, losses: Tensor) -> tuple[Tensor, Tensor]:
+        """Mean loss per group ``[G]`` (0 where absent) and the mask of groups present ``[G]``."""
+        groups = self.group_of(tasks["params"]).to(self.q.device)
+        losses = losses.detach().to(self.q)
+        counts = torch.bincount(groups, minlength=self.num_groups).to(self.q)
+        sums = torch.zeros_like(self.q).index_add(0, groups, losses)
+        return sums / counts.clamp_min(1.0), counts > 0
+
+    def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
+        """One ascent step of q on the per-group mean losses at θ_{t+1}."""
+        mean_losses, present = self.group_losses(tasks, losses)
+        self.q.copy_(self._ascent_step(self.q, mean_losses))
+        return {
+            "risk/max_group_weight": float(self.q.max()),
+            "risk/worst_group_loss": float(mean_losses[present].max()),
+        }
+
+    def _ascent_step(self, q: Tensor, group_losses: Tensor) -> Tensor:
+        raise NotImplementedError
+
+
+class WorstCasePrinciple(_GroupPrinciple):
+    """``tr``: TR-MAML (Collins et al. 2020), min_θ max_{q∈Δ} Σ_g q_g L_g(θ).
+
+    q takes a projected gradient-ascent step on the group losses every meta-iteration:
+    q ← Π_Δ(q + η·L̄) (:func:`project_to_simplex`). Linear in q, the objective's maximizer is a
+    vertex, so q tends to put all its mass on the worst group (the table's "Worst Risk").
+
+    Args:
+        initial: p0, where every task comes from.
+        groups_per_axis: grid cells per identifier; ``groups_per_axis ** d`` groups.
+        step_size: η of the ascent step. The default 0.001 moves q at first about as fast as
+            ``dro``'s 0.01: near uniform q the exponentiated step changes q_g by ≈ q_g·η·ΔL with
+            q_g = 1/G, the projected step by ≈ η·ΔL.
+    """
+
+    config_key = "risk.tr"
+
+    def __init__(self, initial: TaskDistribution, groups_per_axis: int = 3,
+                 step_size: float = 0.001) -> None:
+        super().__init__(initial, groups_per_axis, step_size)
+
+    def _ascent_step(self, q: Tensor, group_losses: Tensor) -> Tensor:
+        return project_to_simplex(q + self.step_size * group_losses)
+
+
+class GroupDROPrinciple(_GroupPrinciple):
+    """``dro``: group DRO (Sagawa et al. 2020), min_θ max_{q∈Δ} Σ_g q_g L_g(θ).
+
+    q takes an exponentiated-gradient (mirror-ascent) step every meta-iteration:
+    q ← q·exp(η·L̄) / Σ_g q_g·exp(η·L̄_g), computed in log space so large losses cannot overflow.
+
+    Args:
+        initial: p0, where every task comes from.
+        groups_per_axis: grid cells per identifier; ``groups_per_axis ** d`` groups.
+        step_size: η of the exponentiated-gradient step (0.01 in Sagawa et al.).
+    """
+
+    config_key = "risk.dro"
+
+    def __init__(self, initial: TaskDistribution, groups_per_axis: int = 3,
+                 step_size: float = 0.01) -> None:
+        super().__init__(initial, groups_per_axis, step_size)
+
+    def _ascent_step(self, q: Tensor, group_losses: Tensor) -> Tensor:
+        return torch.softmax(q.log() + self.step_size * group_losses, 0)

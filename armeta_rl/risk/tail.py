@@ -1,0 +1,89 @@
+"""Tail-risk minimization, the ``dr`` principle (DR-MAML, Wang et al. 2023).
+
+Paper, table "A Summary of Used Methods" and appendix "Robust Fast Adaptation Strategies in the
+Task Space": the leader minimizes E_{p_α(τ;θ)}[L(D^Q_τ, D^S_τ; θ)], the expected loss over the
+normalized tail of the task-loss distribution, i.e. CVaR_α of the task loss under the fixed p0.
+In a batch this is the importance-weighted form (eq. ``append:cvar_iw``): the α-quantile (VaR) of
+the batch losses is estimated and the tasks at or above it get equal weight, the others zero.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+
+from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.distributions import TaskDistribution
+
+
+def tail_size(batch_size: int, alpha: float) -> int:
+    """Number of tasks kept in the worst (1 − α) tail of a batch: ``ceil((1 − α)·K)``.
+
+    The ceiling keeps at least one task for every α in (0, 1); with α = 0.5 and an even ``K`` it
+    is exactly ``K / 2``. The product is rounded to 9 decimals first so that floating-point noise
+    (``0.3 * 10 = 3.0000000000000004``) does not add a task.
+    """
+    return math.ceil(round((1.0 - alpha) * batch_size, 9))
+
+
+class TailRiskPrinciple(nn.Module):
+    """CVaR_α (tail-risk) weighting of tasks drawn from the fixed initial distribution p0.
+
+    Args:
+        initial: p0, where every task comes from.
+        alpha: confidence level α ∈ (0, 1); the leader trains on the worst ``ceil((1 − α)·K)``
+            tasks of each batch of ``K`` (see :func:`tail_size`). ``0.5`` as in the paper.
+        oversample: when ``True``, :meth:`propose` draws ``ceil(n / (1 − α))`` candidates instead
+            of ``n``, so that the tail the leader trains on holds about ``n`` tasks, as many as an
+            ERM step uses. The trainer then passes the whole returned batch to the leader (its size
+            is ``tasks.batch_size[0]``, not ``n``); the weights zero the tasks outside the tail.
+            When ``False`` (default) the tail of a meta-batch of ``n`` tasks is about ``(1 − α)·n``.
+
+    Never needs a follower step: ``update_every = 0``.
+    """
+
+    update_every = 0
+
+    def __init__(self, initial: TaskDistribution, alpha: float = 0.5,
+                 oversample: bool = False) -> None:
+        super().__init__()
+        if not (isinstance(alpha, (int, float)) and 0.0 < alpha < 1.0):
+            raise ConfigError("risk.dr.alpha", alpha,
+                              "must be a number in the open interval (0, 1)")
+        if not isinstance(oversample, bool):
+            raise ConfigError("risk.dr.oversample", oversample, "must be true or false")
+        self.initial = initial
+        self.alpha = float(alpha)
+        self.oversample = oversample
+
+    def propose(self, n: int) -> TensorDict:
+        """Candidate tasks from p0: ``n``, or ``ceil(n / (1 − α))`` when oversampling."""
+        count = math.ceil(round(n / (1.0 - self.alpha), 9)) if self.oversample else n
+        return self.initial.sample(count)
+
+    def value_at_risk(self, losses: Tensor) -> Tensor:
+        """Empirical α-quantile (VaR_α) of the batch: the smallest loss kept in the tail."""
+        keep = tail_size(losses.numel(), self.alpha)
+        return torch.topk(losses.detach(), keep).values[-1]
+
+    def weights(self, losses: Tensor) -> Tensor:
+        """Weight ``1 / m`` on the ``m = ceil((1 − α)·K)`` largest losses, 0 elsewhere.
+
+        Σ_k w_k L_k is then the empirical CVaR_α of the batch. Ties at the VaR are broken by
+        :func:`torch.topk`, so exactly ``m`` tasks are kept.
+        """
+        keep = tail_size(losses.numel(), self.alpha)
+        worst = torch.topk(losses.detach(), keep).indices
+        weights = torch.zeros_like(losses)
+        return weights.index_fill(0, worst, 1.0 / keep)
+
+    def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
+        """No follower to update; reports VaR_α and CVaR_α of ``losses`` for logging."""
+        losses = losses.detach()
+        return {
+            "risk/var": float(self.value_at_risk(losses)),
+            "risk/cvar": float((self.weights(losses) * losses).sum()),
+        }

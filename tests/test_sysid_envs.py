@@ -1,0 +1,248 @@
+"""System-identification environments and collector (issue 3).
+
+The batched torch dynamics are checked against gymnasium's own Pendulum-v1 / Acrobot-v1 with the
+same identifiers, state and actions; the identifiers must survive TorchRL's automatic resets.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs.utils import check_env_specs
+
+from armeta_rl.collectors.base import Collector as CollectorProtocol
+from armeta_rl.collectors.sysid import SysIdCollector
+from armeta_rl.envs.acrobot import AcrobotEnv
+from armeta_rl.envs.pendulum import PendulumEnv
+from armeta_rl.errors import ConfigError
+
+PENDULUM_PARAMS = [(1.0, 1.0), (0.4, 1.6), (1.6, 0.4), (0.7, 1.25)]
+ACROBOT_PARAMS = [(1.0, 1.0), (0.4, 1.6), (1.6, 0.4), (1.3, 0.9)]
+STEPS = 100
+
+
+def _reset_to(env, params: torch.Tensor, state: torch.Tensor) -> TensorDict:
+    """Reset a ``[n, 1]`` env to given identifiers ``[n, d]`` and states ``[n, s]``."""
+    td = TensorDict({"params": params[:, None], "state": state[:, None]}, env.batch_size)
+    return env.reset(td, set_state=True)
+
+
+def test_pendulum_matches_gymnasium():
+    rng = np.random.default_rng(0)
+    gym_envs = []
+    for mass, length in PENDULUM_PARAMS:
+        gym_env = gym.make("Pendulum-v1").unwrapped
+        gym_env.m, gym_env.l = mass, length
+        gym_env.reset(seed=int(rng.integers(1 << 30)))
+        gym_envs.append(gym_env)
+    env = PendulumEnv(batch_size=(len(gym_envs), 1), seed=0, dtype=torch.float64)
+    params = torch.tensor(PENDULUM_PARAMS, dtype=torch.float64)
+    state = torch.tensor(np.stack([g.state for g in gym_envs]))
+    td = _reset_to(env, params, state)
+    for _ in range(STEPS):
+        # Torques beyond ±2 exercise the clipping.
+        actions = rng.uniform(-2.5, 2.5, size=(len(gym_envs), 1))
+        gym_out = [g.step(a.astype(np.float32)) for g, a in zip(gym_envs, actions, strict=True)]
+        td["action"] = torch.tensor(actions, dtype=torch.float32).to(torch.float64)[:, None]
+        out = env.step(td)["next"]
+        expected_obs = torch.tensor(np.stack([o[0] for o in gym_out]), dtype=torch.float64)
+        expected_reward = torch.tensor([o[1] for o in gym_out], dtype=torch.float64)
+        torch.testing.assert_close(out["observation"][:, 0], expected_obs, atol=1e-4, rtol=0)
+        torch.testing.assert_close(out["reward"][:, 0, 0], expected_reward, atol=1e-4, rtol=0)
+        assert not out["done"].any()
+        td = out.clone()
+
+
+def test_acrobot_matches_gymnasium():
+    rng = np.random.default_rng(1)
+    gym_envs = []
+    for mass1, mass2 in ACROBOT_PARAMS:
+        gym_env = gym.make("Acrobot-v1").unwrapped
+        gym_env.LINK_MASS_1, gym_env.LINK_MASS_2 = mass1, mass2
+        gym_env.reset(seed=int(rng.integers(1 << 30)))
+        # A wider start than gymnasium's ±0.1 so the comparison covers large swings.
+        gym_env.state = rng.uniform(-1.0, 1.0, size=4)
+        gym_envs.append(gym_env)
+    # The first acrobot starts above the bar, so it terminates at once and is reset.
+    gym_envs[0].state = np.array([2.5, 0.0, 0.0, 0.0])
+    env = AcrobotEnv(batch_size=(len(gym_envs), 1), seed=0, dtype=torch.float64)
+    params = torch.tensor(ACROBOT_PARAMS, dtype=torch.float64)
+    td = _reset_to(env, params, torch.tensor(np.stack([g.state for g in gym_envs])))
+    terminations = 0
+    for _ in range(STEPS):
+        actions = rng.integers(0, 3, size=len(gym_envs))
+        gym_out = [g.step(int(a)) for g, a in zip(gym_envs, actions, strict=True)]
+        td["action"] = torch.tensor(actions)[:, None]
+        out = env.step(td)["next"]
+        expected_obs = torch.tensor(np.stack([o[0] for o in gym_out]), dtype=torch.float64)
+        torch.testing.assert_close(out["observation"][:, 0], expected_obs, atol=1e-4, rtol=0)
+        assert out["reward"][:, 0, 0].tolist() == [o[1] for o in gym_out]
+        terminated = torch.tensor([o[2] for o in gym_out])
+        assert torch.equal(out["terminated"][:, 0, 0], terminated)
+        td = out.clone()
+        if terminated.any():
+            # Gymnasium needs a reset after termination: restart both from gymnasium's new state
+            # with a partial reset of the finished episodes only.
+            terminations += int(terminated.sum())
+            for i in terminated.nonzero().flatten().tolist():
+                gym_envs[i].reset(seed=int(rng.integers(1 << 30)))
+                td["state"][i, 0] = torch.tensor(gym_envs[i].state, dtype=torch.float64)
+            td["_reset"] = terminated[:, None, None]
+            td = env.reset(td, set_state=True)
+    assert terminations >= 1
+
+
+@pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])
+def test_check_env_specs(env_cls):
+    check_env_specs(env_cls(batch_size=(3, 2), seed=0))
+
+
+def _upright_acrobot(params: torch.Tensor, upright: torch.Tensor) -> tuple[AcrobotEnv, TensorDict]:
+    """An acrobot ``[K, E]`` whose ``upright`` episodes terminate at their first step."""
+    env = AcrobotEnv(batch_size=upright.shape, seed=0)
+    state = torch.zeros(*upright.shape, 4)
+    state[..., 0] = torch.where(upright, torch.pi, 0.0)
+    td = TensorDict({"params": params, "state": state}, upright.shape)
+    return env, env.reset(td, set_state=True)
+
+
+def test_identifiers_survive_partial_resets_in_rollout():
+    params = torch.tensor([[0.5, 1.5], [1.2, 0.7], [0.9, 1.1]])[:, None].expand(3, 2, 2)
+    upright = torch.tensor([[True, False], [False, True], [True, True]])
+    env, td = _upright_acrobot(params, upright)
+    rollout = env.rollout(4, tensordict=td, auto_reset=False, break_when_any_done=False)
+    # The upright episodes terminated at the first step and were reset to a rest state.
+    assert torch.equal(rollout["next", "terminated"][:, :, 0, 0], upright)
+    assert rollout["state"][:, :, 1][upright].abs().max() <= 0.1 + 1e-6
+    # The others kept running from their own (hanging) start.
+    assert torch.equal(rollout["state"][:, :, 0][~upright], torch.zeros(int((~upright).sum()), 4))
+    assert not rollout["next", "done"][~upright].any()
+    for key in ("params", ("next", "params")):
+        torch.testing.assert_close(rollout[key], params[:, :, None].expand(3, 2, 4, 2))
+
+
+@pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])
+def test_identifiers_survive_resets_in_torchrl_collector(env_cls):
+    env = env_cls(batch_size=(4, 2), seed=0)
+    params = 0.4 + 1.2 * torch.rand(4, 1, 2).expand(4, 2, 2)
+    env.reset(TensorDict({"params": params}, env.batch_size))
+    # Trajectories of 3 frames: the collector truncates and partially resets every third step.
+    collector = Collector(env, None, frames_per_batch=8 * 6, total_frames=8 * 12,
+                          max_frames_per_traj=3)
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch["next", "truncated"].any()
+        torch.testing.assert_close(batch["params"], params[:, :, None].expand_as(batch["params"]))
+
+
+@pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])
+def test_seeded_env_is_reproducible(env_cls):
+    def run(seed: int) -> TensorDict:
+        torch.manual_seed(seed)
+        env = env_cls(batch_size=(2, 3), seed=seed)
+        return env.rollout(20, break_when_any_done=False)
+
+    first, second, other = run(0), run(0), run(1)
+    torch.testing.assert_close(first["next", "observation"], second["next", "observation"])
+    assert not torch.allclose(first["next", "observation"], other["next", "observation"])
+
+
+def _tasks(n: int) -> TensorDict:
+    return TensorDict({"params": 0.4 + 1.2 * torch.rand(n, 2)}, batch_size=[n])
+
+
+def _sort_rows(rows: torch.Tensor) -> torch.Tensor:
+    """Rows in lexicographic order (stable sorts from the last column to the first)."""
+    for column in reversed(range(rows.shape[1])):
+        rows = rows[rows[:, column].argsort(stable=True)]
+    return rows
+
+
+@pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
+def test_collector_shapes_and_split(env_name):
+    collector = SysIdCollector(env_name, n_transitions=200, n_support=10)
+    assert isinstance(collector, CollectorProtocol)
+    torch.manual_seed(0)
+    tasks = _tasks(5)
+    data = collector.collect(tasks)
+    size = collector.in_features, collector.out_features
+    assert data.batch_size == torch.Size([5])
+    assert data["support", "x"].shape == (5, 10, size[0])
+    assert data["support", "y"].shape == (5, 10, size[1])
+    assert data["query", "x"].shape == (5, 190, size[0])
+    assert data["query", "y"].shape == (5, 190, size[1])
+    # Support and query together are exactly the rollout's transitions, in a per-task order.
+    torch.manual_seed(0)
+    _tasks(5)
+    rollout = collector.rollout(tasks["params"]).reshape(5, 200)
+    expected = torch.cat([rollout["observation"], collector.env_cls.torque(rollout["action"])], -1)
+    got = torch.cat([data["support", "x"], data["query", "x"]], 1)
+    for task_expected, task_got in zip(expected, got, strict=True):
+        torch.testing.assert_close(_sort_rows(task_got), _sort_rows(task_expected))
+    assert not torch.equal(got[0], expected[0]), "the split should be random, not the time order"
+
+
+def test_collector_pairs_pendulum_inputs_with_their_physics():
+    """Each target is the next state of its own input under the task's (m, l)."""
+    torch.manual_seed(1)
+    tasks = _tasks(4)
+    data = SysIdCollector("pendulum", target="delta", normalize="none").collect(tasks)
+    x, y = data["query", "x"].double(), data["query", "y"].double()
+    mass, length = tasks["params"].double().unbind(-1)
+    cos, sin, speed, torque = x.unbind(-1)
+    acceleration = 15 / length[:, None] * sin + 3 / (mass * length**2)[:, None] * torque
+    next_speed = (speed + acceleration * 0.05).clamp(-8, 8)
+    torch.testing.assert_close(y[..., 2], next_speed - speed, atol=1e-4, rtol=0)
+    angle = torch.atan2(sin, cos) + next_speed * 0.05
+    torch.testing.assert_close(y[..., 0], angle.cos() - cos, atol=1e-4, rtol=0)
+
+
+@pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
+def test_collector_targets_and_scaling(env_name):
+    kwargs = {"episodes": 4, "n_transitions": 40, "n_support": 5}
+    torch.manual_seed(2)
+    tasks = _tasks(3)
+    delta = SysIdCollector(env_name, target="delta", **kwargs).collect(tasks)
+    torch.manual_seed(2)
+    _tasks(3)
+    absolute = SysIdCollector(env_name, target="next", normalize="scale", **kwargs).collect(tasks)
+    collector = SysIdCollector(env_name, target="next", normalize="scale", **kwargs)
+    observation = delta["query", "x"][..., : collector.out_features]
+    torch.testing.assert_close(absolute["query", "x"] * collector.x_scale, delta["query", "x"])
+    torch.testing.assert_close(absolute["query", "y"] * collector.y_scale,
+                               observation + delta["query", "y"])
+    assert absolute["query", "x"].abs().max() <= 1.0
+
+
+@pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
+def test_seeded_collection_is_reproducible(env_name):
+    collector = SysIdCollector(env_name)
+    torch.manual_seed(3)
+    first = collector.collect(_tasks(4))
+    torch.manual_seed(3)
+    second = SysIdCollector(env_name).collect(_tasks(4))
+    third = collector.collect(_tasks(4))
+    assert (first == second).all()
+    assert not torch.equal(first["query", "y"], third["query", "y"])
+
+
+@pytest.mark.parametrize(
+    ("key", "kwargs"),
+    [
+        ("env", {"env": "cartpole"}),
+        ("n_support", {"n_support": 200}),
+        ("episodes", {"episodes": 7}),
+        ("target", {"target": "state"}),
+        ("normalize", {"normalize": "zscore"}),
+    ],
+)
+def test_collector_rejects_bad_options(key, kwargs):
+    with pytest.raises(ConfigError) as error:
+        SysIdCollector(**kwargs)
+    assert error.value.key == f"benchmark.collector.{key}"
