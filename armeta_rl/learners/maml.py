@@ -52,7 +52,7 @@ class MAMLLeader:
             raise ConfigError("learner.maml.outer_lr", outer_lr, "must be > 0")
         self.model, self.collector = model, collector
         self.inner_lr, self.inner_steps, self.first_order = inner_lr, int(inner_steps), first_order
-        self.optimizer = torch.optim.Adam(model.parameters(), lr=outer_lr)
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=outer_lr, foreach=True)
         self._batched_loss = vmap(self._adapted_loss, in_dims=(None, 0))
 
     def _mse(self, params: Params, x: Tensor, y: Tensor) -> Tensor:

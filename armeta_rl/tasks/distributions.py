@@ -37,14 +37,28 @@ class TaskDistribution(nn.Module):
         """Exact log-density ``[n]`` at any ``params [n, d]``; ``-inf`` outside the box."""
         raise NotImplementedError
 
+    def sample_with_log_prob(self, n: int) -> tuple[Tensor, Tensor]:
+        """``n`` identifiers and their log-densities, both float64 and detached."""
+        params = self.sample_params(n)
+        return params, self.log_prob(params)
+
     def sample(self, n: int) -> TensorDict:
         """``n`` tasks as ``{"params": [n, d], "log_prob": [n]}`` in the default dtype."""
-        params = self.sample_params(n)
+        params, log_prob = self.sample_with_log_prob(n)
         dtype = torch.get_default_dtype()
         return TensorDict(
-            {"params": params.to(dtype), "log_prob": self.log_prob(params).to(dtype)},
+            {"params": self._cast_inside(params, dtype), "log_prob": log_prob.to(dtype)},
             batch_size=[n],
         )
+
+    def _cast_inside(self, params: Tensor, dtype: torch.dtype) -> Tensor:
+        """Round ``params`` to ``dtype`` without leaving the box: a face such as π is not a float32
+        number, and a sample on it would round outside (where the density is zero)."""
+        cast = params.to(dtype)
+        above = cast.to(torch.float64) > self.high
+        below = cast.to(torch.float64) < self.low
+        cast = torch.where(above, torch.nextafter(cast, torch.tensor(-math.inf, dtype=dtype)), cast)
+        return torch.where(below, torch.nextafter(cast, torch.tensor(math.inf, dtype=dtype)), cast)
 
     def entropy(self, n: int = 4096) -> Tensor:
         """Entropy H[p] = -E_p[ln p(τ)] (Monte Carlo unless a subclass knows it exactly)."""
@@ -64,8 +78,8 @@ class BoxUniform(TaskDistribution):
 
     def log_prob(self, params: Tensor) -> Tensor:
         params = params.to(torch.float64)
-        inside = self._inside(params)
-        return torch.where(inside, -self.space.log_volume, -math.inf)
+        log_density = torch.tensor(-self.space.log_volume, dtype=torch.float64)
+        return torch.where(self._inside(params), log_density, -math.inf)
 
     def entropy(self, n: int = 0) -> Tensor:
         return torch.tensor(self.space.log_volume, dtype=torch.float64)

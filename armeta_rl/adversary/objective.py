@@ -1,0 +1,78 @@
+"""The follower's score-function surrogate (paper Eq. main_obj and Eq. meta_adversary_obj_1).
+
+The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. main_obj). Its gradient is
+
+    ∇_φ J ≈ (1/K) Σ_k (L_k − V_k) ∇_φ ln p_φ(τ_k) + (λ/M) Σ_m ∇_φ ln p_φ(τ_m^0)
+
+with τ_k ~ p_φ the tasks the leader was scored on (held fixed) and V a baseline (Eq.
+meta_adversary_obj_1). The second term is the exact gradient of λ·E_{p0}[ln p_φ]: it needs samples
+τ_m^0 ~ p0 drawn independently, not the pre-images g⁻¹(τ_k) of the adversary's own samples as in
+the paper's Eq. meta_adversary_obj (those are distributed as p0 only at φ = φ_0 and are tied to
+the τ_k).
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from armeta_rl.adversary.flow_adversary import FlowAdversary
+from armeta_rl.errors import ConfigError
+
+BASELINES = ("mean", "leave_one_out")
+
+
+def score_baseline(losses: Tensor, baseline: str = "mean") -> Tensor:
+    """The baseline V of the score-function estimator: the batch mean (the paper's choice) or,
+    per task, the mean of the other tasks' losses (independent of τ_k, hence exactly unbiased)."""
+    if baseline == "mean":
+        return losses.mean().expand_as(losses)
+    if baseline == "leave_one_out":
+        if losses.numel() < 2:
+            raise ConfigError("risk.ar.baseline", baseline, "needs at least 2 tasks per update")
+        return (losses.sum() - losses) / (losses.numel() - 1)
+    raise ConfigError("risk.ar.baseline", baseline, "allowed: " + ", ".join(BASELINES))
+
+
+def adversary_surrogate(
+    adversary: FlowAdversary,
+    tasks: TensorDictBase | Tensor,
+    losses: Tensor,
+    lam: float,
+    initial_params: Tensor,
+    baseline: str = "mean",
+) -> tuple[Tensor, dict[str, float]]:
+    """A scalar whose gradient in φ is the estimate of ∇_φ J of paper Eq. meta_adversary_obj_1.
+
+    Args:
+        adversary: p_φ.
+        tasks: the tasks ``{"params": [K, d], ...}`` (or their params) the losses belong to; they
+            are held fixed and ln p_φ is re-evaluated at them.
+        losses: per-task losses ``[K]`` (detached here).
+        lam: Lagrange multiplier λ ≥ 0 of the KL(p0 ‖ p_φ) constraint.
+        initial_params: ``[M, d]`` samples of p0, independent of the tasks.
+        baseline: ``"mean"`` or ``"leave_one_out"``.
+
+    Returns:
+        ``(surrogate, stats)``: ascend ``surrogate``. ``stats`` holds Monte-Carlo estimates at the
+        current φ that reuse the log-densities the surrogate needs: ``objective`` mean(L) +
+        λ·mean ln p_φ(τ^0) of J, ``loss_mean``, ``entropy`` −mean ln p_φ(τ_k) (the τ_k are
+        samples of p_φ) and ``kl_p0`` mean[ln p0(τ^0) − ln p_φ(τ^0)].
+    """
+    params = tasks["params"] if isinstance(tasks, TensorDictBase) else tasks
+    losses = losses.detach().to(torch.float64)
+    advantages = losses - score_baseline(losses, baseline)
+    points = torch.cat([params.to(torch.float64), initial_params.to(torch.float64)]).detach()
+    sizes = [len(params), len(initial_params)]
+    log_p_tasks, log_p_initial = adversary.log_prob(points).split(sizes)
+    surrogate = (advantages * log_p_tasks).mean() + lam * log_p_initial.mean()
+    log_p_initial = log_p_initial.detach()
+    objective = losses.mean() + lam * log_p_initial.mean()
+    kl = (adversary.base.log_prob(initial_params) - log_p_initial).mean()
+    return surrogate, {
+        "objective": float(objective),
+        "loss_mean": float(losses.mean()),
+        "entropy": float(-log_p_tasks.detach().mean()),
+        "kl_p0": float(kl),
+    }

@@ -1,0 +1,178 @@
+"""The AR risk principle: the flow adversary p_φ as the follower of the Stackelberg game.
+
+Tasks come from p_φ and weigh equally in the leader's objective (paper Eq. meta_player_obj). After
+the leader's step the follower takes one stochastic gradient *ascent* step on
+J(θ_{t+1}, φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. main_obj and the alternating GDA of Eq.
+stochastic_grad_opt) with the score-function estimate of Eq. meta_adversary_obj_1, Adam and a
+cosine learning-rate schedule (paper appendix "Distribution Adversary Implementations").
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import Any
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+
+from armeta_rl.adversary.flow_adversary import FlowAdversary
+from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
+from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.tasks.distributions import TaskDistribution
+
+
+class AdversarialPrinciple(nn.Module):
+    """AR-MAML / AR-CNP's task source: the flow adversary, updated every ``update_every`` steps.
+
+    ``state_dict()`` holds the adversary's parameters plus, as torch's ``_extra_state``, the Adam
+    and scheduler states (plain tensors, numbers and lists: ``torch.load(weights_only=True)`` reads
+    it). Like any ``nn.Module`` state dict its tensors alias the live ones; copy before mutating.
+
+    Args:
+        adversary: p_φ (its ``base`` is p0).
+        lam: Lagrange multiplier λ ≥ 0 (paper: 0.2 for regression and system identification, 0 for
+            continuous control).
+        update_every: follower update interval u in leader steps (≥ 1).
+        lr: Adam learning rate of the follower (> 0).
+        total_updates: ``T_max`` of the cosine schedule (≥ 1); the rate reaches 0 after that many
+            follower updates.
+        grad_clip: maximum gradient norm, or ``None`` for no clipping.
+        baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
+        initial_samples: M, the number of fresh p0 samples for the λ term of the gradient (≥ 1).
+    """
+
+    def __init__(
+        self,
+        adversary: FlowAdversary,
+        lam: float = 0.2,
+        update_every: int = 1,
+        lr: float = 1e-3,
+        total_updates: int = 1000,
+        grad_clip: float | None = 1.0,
+        baseline: str = "mean",
+        initial_samples: int = 256,
+    ) -> None:
+        super().__init__()
+        if not (math.isfinite(lam) and lam >= 0):
+            raise ConfigError("risk.ar.lam", lam, "must be a finite number >= 0")
+        for key, value in (
+            ("update_every", update_every),
+            ("total_updates", total_updates),
+            ("initial_samples", initial_samples),
+        ):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"risk.ar.{key}", value, "must be an integer >= 1")
+        if not (math.isfinite(lr) and lr > 0):
+            raise ConfigError("risk.ar.lr", lr, "must be a finite number > 0")
+        if grad_clip is not None and not grad_clip > 0:
+            raise ConfigError("risk.ar.grad_clip", grad_clip, "must be > 0 or null")
+        if baseline not in BASELINES:
+            raise ConfigError("risk.ar.baseline", baseline, "allowed: " + ", ".join(BASELINES))
+        self.adversary = adversary
+        self.lam, self.update_every, self.grad_clip = float(lam), update_every, grad_clip
+        self.baseline, self.initial_samples = baseline, initial_samples
+        self.optimizer = torch.optim.Adam(
+            adversary.parameters(), lr=lr, maximize=True, foreach=True
+        )
+        self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
+            self.optimizer, T_max=total_updates
+        )
+
+    @property
+    def initial(self) -> TaskDistribution:
+        """p0, the adversary's base distribution."""
+        return self.adversary.base
+
+    def propose(self, n: int) -> TensorDict:
+        """``n`` tasks drawn from p_φ, with their log-probabilities."""
+        return self.adversary.sample(n)
+
+    def weights(self, losses: Tensor) -> Tensor:
+        """Uniform weights 1/K: the leader minimizes the plain average over tasks from p_φ."""
+        return torch.full_like(losses, 1.0 / losses.numel())
+
+    def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
+        """One follower ascent step on the losses of ``tasks`` at θ_{t+1} (paper Eq.
+        stochastic_grad_opt, second line; gradient of Eq. meta_adversary_obj_1).
+
+        Logs ``adversary/objective`` (the estimate of J), ``adversary/entropy`` (from the K task
+        samples) and ``adversary/kl_p0`` (from the ``initial_samples`` p0 samples), all of p_φ
+        before the step and free by-products of the surrogate; ``adversary/lr`` (the rate used)
+        and ``adversary/grad_norm`` (before clipping). Precise entropy and KL of the final p_φ go
+        to the evaluation report.
+
+        Raises:
+            TrainingDiverged: if the losses, the surrogate, its gradient, the new parameters or the
+                new density are not finite; the parameters and optimizer are left as they were.
+        """
+        losses = losses.detach().to(torch.float64)
+        if not torch.isfinite(losses).all():
+            raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
+        initial = self.initial.sample_params(self.initial_samples)
+        surrogate, stats = adversary_surrogate(
+            self.adversary, tasks, losses, self.lam, initial, self.baseline
+        )
+        if not torch.isfinite(surrogate):
+            raise TrainingDiverged(
+                "adversary surrogate is not finite (a task outside the box, "
+                "or a non-finite flow log-density)"
+            )
+        self.optimizer.zero_grad(set_to_none=True)
+        surrogate.backward()
+        parameters = list(self.adversary.parameters())
+        max_norm = math.inf if self.grad_clip is None else self.grad_clip
+        grad_norm = torch.nn.utils.clip_grad_norm_(parameters, max_norm)
+        if not torch.isfinite(grad_norm):
+            self.optimizer.zero_grad(set_to_none=True)
+            raise TrainingDiverged(f"adversary gradient is not finite (norm {float(grad_norm)})")
+        lr = self.optimizer.param_groups[0]["lr"]
+        snapshot = self._snapshot()
+        self.optimizer.step()
+        self.scheduler.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        with torch.no_grad():
+            density = self.adversary.log_prob(tasks["params"])
+        if not (
+            all(bool(torch.isfinite(p).all()) for p in parameters) and torch.isfinite(density).all()
+        ):
+            self._restore(snapshot)
+            raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
+        return {
+            "adversary/objective": stats["objective"],
+            "adversary/entropy": stats["entropy"],
+            "adversary/kl_p0": stats["kl_p0"],
+            "adversary/lr": float(lr),
+            "adversary/grad_norm": float(grad_norm),
+        }
+
+    def get_extra_state(self) -> dict[str, Any]:
+        """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``."""
+        return {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
+
+    def set_extra_state(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`get_extra_state` returned."""
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+
+    def _snapshot(self) -> tuple[list[Tensor], dict[Any, Any], dict[str, Any]]:
+        """Copies of the parameters, Adam's moments and the schedule, to undo a step."""
+        parameters = [p.detach().clone() for p in self.adversary.parameters()]
+        moments = {
+            p: {k: v.clone() if torch.is_tensor(v) else v for k, v in state.items()}
+            for p, state in self.optimizer.state.items()
+        }
+        return parameters, moments, copy.deepcopy(self.scheduler.state_dict())
+
+    @torch.no_grad()
+    def _restore(self, snapshot: tuple[list[Tensor], dict[Any, Any], dict[str, Any]]) -> None:
+        parameters, moments, schedule = snapshot
+        for parameter, saved in zip(self.adversary.parameters(), parameters, strict=True):
+            parameter.copy_(saved)
+        self.optimizer.state.clear()
+        self.optimizer.state.update(moments)
+        self.scheduler.load_state_dict(schedule)
+        last_lrs = self.scheduler.get_last_lr()
+        for group, lr in zip(self.optimizer.param_groups, last_lrs, strict=True):
+            group["lr"] = lr

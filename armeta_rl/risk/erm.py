@@ -1,0 +1,36 @@
+"""Empirical risk minimization: tasks from p0, equal weights (paper Eq. meta_obj; the MAML row of
+the paper's table of meta-learning principles)."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict
+from torch import Tensor, nn
+
+from armeta_rl.tasks.distributions import TaskDistribution
+
+
+class ERMPrinciple(nn.Module):
+    """Plain expected risk under the initial task distribution p0; there is no follower.
+
+    Args:
+        initial: p0.
+    """
+
+    update_every = 0
+
+    def __init__(self, initial: TaskDistribution) -> None:
+        super().__init__()
+        self.initial = initial
+
+    def propose(self, n: int) -> TensorDict:
+        """``n`` tasks drawn from p0."""
+        return self.initial.sample(n)
+
+    def weights(self, losses: Tensor) -> Tensor:
+        """Uniform weights 1/K."""
+        return torch.full_like(losses, 1.0 / losses.numel())
+
+    def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
+        """Nothing to update; the trainer skips it since ``update_every == 0``."""
+        return {}

@@ -1,0 +1,428 @@
+"""The adversary's contract (ARCHITECTURE.md) for both flows, the follower's surrogate and step,
+the ERM principle and the density plot."""
+
+from __future__ import annotations
+
+import io
+import math
+
+import pytest
+import torch
+
+from armeta_rl.adversary.flow_adversary import FlowAdversary
+from armeta_rl.adversary.objective import adversary_surrogate
+from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.plots import plot_density
+from armeta_rl.risk.adversarial import AdversarialPrinciple
+from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.risk.erm import ERMPrinciple
+from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
+
+SINUSOID = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
+FLOWS = ["spline", "planar", "planar_leaky"]
+"""Flow configurations: the spline flow, the tanh planar flow, and the paper's leaky-ReLU planar
+flow (whose score-function gradient is biased, so contract 4 is not claimed for it)."""
+FLOW_OPTIONS = {"spline": ("spline", {}), "planar": ("planar", {}),
+                "planar_leaky": ("planar", {"activation": "leaky_relu"})}
+BASES = ["uniform", "normal"]
+GRID = 150
+CORNER = torch.tensor([0.1, 0.0], dtype=torch.float64)
+
+
+def make_base(kind: str, space: TaskSpace = SINUSOID):
+    if kind == "uniform":
+        return BoxUniform(space)
+    low, high = space.bounds(torch.float64)
+    return TruncatedNormal(space, ((low + high) / 2).tolist(), ((high - low) / 4).tolist())
+
+
+def make_adversary(flow: str, base: str = "uniform", perturb: float = 0.0, seed: int = 0,
+                   space: TaskSpace = SINUSOID) -> FlowAdversary:
+    """An adversary; with ``perturb > 0`` every parameter gets N(0, perturb²) noise (away from
+    the identity initialization)."""
+    torch.manual_seed(seed)
+    kind, options = FLOW_OPTIONS[flow]
+    adversary = FlowAdversary(space, make_base(base, space), kind, **options)
+    with torch.no_grad():
+        for parameter in adversary.parameters():
+            parameter.add_(perturb * torch.randn_like(parameter))
+    return adversary
+
+
+PERTURB = {"spline": 0.1, "planar": 0.3, "planar_leaky": 0.3}
+
+
+def toy_loss(params: torch.Tensor) -> torch.Tensor:
+    """L(τ) = ‖τ − c‖², high far from the corner c."""
+    return (params.to(torch.float64) - CORNER).pow(2).sum(-1)
+
+
+def grid_objective(adversary: FlowAdversary, lam: float,
+                   points_per_axis: int = 100) -> torch.Tensor:
+    """J(φ) = ∫ p_φ L + λ ∫ p0 ln p_φ by midpoint quadrature, the first term after the change of
+    variables τ = g(τ0): ∫ p0(τ0) L(g(τ0)) dτ0 (a smooth integrand even where p_φ is peaked)."""
+    grid, cell = adversary.space.grid(points_per_axis)
+    p0 = adversary.base.log_prob(grid).exp()
+    return cell * (p0 * toy_loss(adversary.flow(grid)[0])).sum() + lam * cell * (
+        p0 * adversary.log_prob(grid)).sum()
+
+
+# --- contract 1: samples always lie inside the box -----------------------------------------------
+
+@pytest.mark.parametrize("flow", FLOWS)
+@pytest.mark.parametrize("base", BASES)
+def test_samples_stay_inside_the_box(flow: str, base: str) -> None:
+    adversary = make_adversary(flow, base, perturb=3 * PERTURB[flow])
+    params, log_prob = adversary.sample_with_log_prob(20_000)
+    assert SINUSOID.contains(params).all()
+    assert torch.isfinite(log_prob).all()
+    tasks = adversary.sample(20_000)  # default dtype: π is not a float32 number
+    assert tasks["params"].dtype == torch.get_default_dtype()
+    assert SINUSOID.contains(tasks["params"].to(torch.float64)).all()
+
+
+@pytest.mark.parametrize("flow", ["planar", "planar_leaky"])
+def test_saturated_planar_samples_on_the_faces_stay_inside(flow: str) -> None:
+    adversary = make_adversary(flow)
+    with torch.no_grad():  # a large shift orthogonal to w pushes mass onto the faces
+        layer = adversary.flow.layers[1]
+        w1, w2 = layer.w[0]
+        layer.u.copy_(60.0 * torch.stack([-w2, w1])[None] / layer.w.norm())
+    params = adversary.sample(5_000)["params"].to(torch.float64)
+    low, high = SINUSOID.bounds(torch.float64)
+    on_face = ((params <= low + 1e-6) | (params >= high - 1e-6)).any(-1)
+    assert on_face.float().mean() > 0.1
+    assert SINUSOID.contains(params).all()
+    assert torch.isfinite(adversary.log_prob(params)).all()
+
+
+# --- contract 2: exact normalized density, evaluable anywhere ------------------------------------
+
+@pytest.mark.parametrize("flow", FLOWS)
+@pytest.mark.parametrize("base", BASES)
+@pytest.mark.parametrize("perturbed", [False, True])
+def test_log_prob_is_a_normalized_density_matching_sampling(flow: str, base: str,
+                                                           perturbed: bool) -> None:
+    adversary = make_adversary(flow, base, perturb=PERTURB[flow] if perturbed else 0.0)
+    params, sampled_log_prob = adversary.sample_with_log_prob(2_000)
+    with torch.no_grad():
+        assert torch.allclose(adversary.log_prob(params), sampled_log_prob, atol=1e-6, rtol=0)
+        grid, cell = SINUSOID.grid(GRID)
+        mass = adversary.log_prob(grid).exp().sum() * cell
+    assert abs(float(mass) - 1.0) < 1e-2
+    outside = torch.tensor([[0.05, 1.0], [2.0, -0.1], [5.5, 4.0]], dtype=torch.float64)
+    assert torch.isneginf(adversary.log_prob(outside)).all()
+
+
+@pytest.mark.parametrize("flow", FLOWS)
+@pytest.mark.parametrize("dim", [1, 3])
+def test_density_normalizes_in_other_dimensions(flow: str, dim: int) -> None:
+    space = TaskSpace([f"x{i}" for i in range(dim)], [-1.0] * dim, [2.0] * dim)
+    adversary = make_adversary(flow, "normal", perturb=PERTURB[flow], space=space)
+    grid, cell = space.grid(2_000 if dim == 1 else 30)
+    with torch.no_grad():
+        mass = adversary.log_prob(grid).exp().sum() * cell
+        params, sampled_log_prob = adversary.sample_with_log_prob(1_000)
+        assert torch.allclose(adversary.log_prob(params), sampled_log_prob, atol=1e-6, rtol=0)
+    assert abs(float(mass) - 1.0) < 1e-2
+
+
+@pytest.mark.parametrize("flow", FLOWS)
+def test_log_prob_gradient_at_fixed_params_matches_finite_differences(flow: str) -> None:
+    adversary = make_adversary(flow, "normal", perturb=PERTURB[flow])
+    params = adversary.sample_params(16)
+    parameters = list(adversary.parameters())
+    direction = [torch.randn_like(p) for p in parameters]
+    gradients = torch.autograd.grad(adversary.log_prob(params).sum(), parameters)
+    analytic = sum((g * v).sum() for g, v in zip(gradients, direction, strict=True))
+    step = 1e-6
+
+    def shifted(sign: float) -> torch.Tensor:
+        with torch.no_grad():
+            for p, v in zip(parameters, direction, strict=True):
+                p.add_(sign * step * v)
+            value = adversary.log_prob(params).sum()
+            for p, v in zip(parameters, direction, strict=True):
+                p.sub_(sign * step * v)
+        return value
+
+    numeric = (shifted(1.0) - shifted(-1.0)) / (2 * step)
+    assert torch.isclose(analytic, numeric, rtol=1e-5, atol=1e-7)
+
+
+# --- contract 3: p_φ = p0 at initialization ------------------------------------------------------
+
+@pytest.mark.parametrize("flow", FLOWS)
+@pytest.mark.parametrize("base", BASES)
+def test_equals_the_initial_distribution_at_init(flow: str, base: str) -> None:
+    adversary = make_adversary(flow, base)
+    grid, _ = SINUSOID.grid(50)
+    with torch.no_grad():
+        expected = adversary.base.log_prob(grid).to(torch.float64)
+        assert torch.allclose(adversary.log_prob(grid), expected, atol=1e-10)
+        image, log_det = adversary.flow(grid)
+    assert torch.allclose(image, grid, atol=1e-12)
+    assert log_det.abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("flow", FLOWS)
+@pytest.mark.parametrize("dim", [1, 3])
+def test_identity_at_init_in_other_dimensions(flow: str, dim: int) -> None:
+    space = TaskSpace([f"x{i}" for i in range(dim)], [-1.0] * dim, [2.0] * dim)
+    adversary = make_adversary(flow, "normal", space=space)
+    params = adversary.base.sample_params(500)
+    with torch.no_grad():
+        image, log_det = adversary.flow(params)
+    assert torch.allclose(image, params, atol=1e-12)
+    assert log_det.abs().max() < 1e-12
+
+
+# --- contract 4: the score-function gradient matches a finite difference of J --------------------
+
+@pytest.mark.parametrize(("flow", "baseline", "batch"), [
+    ("spline", "mean", 1_000), ("planar", "mean", 10_000), ("planar", "leave_one_out", 10_000)])
+def test_score_function_gradient_matches_finite_difference(flow: str, baseline: str,
+                                                           batch: int) -> None:
+    lam, batches = 0.5, 32
+    adversary = make_adversary(flow, "uniform", perturb=PERTURB[flow] / 2, seed=2)
+    parameters = list(adversary.parameters())
+    direction = [torch.randn_like(p) for p in parameters]
+    estimates = []
+    for _ in range(batches):
+        params = adversary.sample_params(batch)
+        initial = adversary.base.sample_params(batch)
+        surrogate, _ = adversary_surrogate(adversary, params, toy_loss(params), lam, initial,
+                                           baseline)
+        gradients = torch.autograd.grad(surrogate, parameters)
+        estimates.append(sum((g * v).sum() for g, v in zip(gradients, direction, strict=True)))
+    estimates = torch.stack(estimates)
+    estimate, standard_error = estimates.mean(), estimates.std() / math.sqrt(batches)
+
+    step = 1e-5
+    with torch.no_grad():
+        values = []
+        for sign in (1.0, -1.0):
+            for p, v in zip(parameters, direction, strict=True):
+                p.add_(sign * step * v)
+            values.append(grid_objective(adversary, lam))
+            for p, v in zip(parameters, direction, strict=True):
+                p.sub_(sign * step * v)
+    finite_difference = (values[0] - values[1]) / (2 * step)
+    assert standard_error < 0.1 * finite_difference.abs()  # the comparison has power
+    assert (estimate - finite_difference).abs() < 4 * standard_error
+
+
+# --- contract 5: entropy -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("flow", FLOWS)
+def test_entropy_at_init_is_that_of_p0(flow: str) -> None:
+    adversary = make_adversary(flow, "uniform")
+    # p0's log-density is float32-exact (BoxUniform returns the default dtype), hence 1e-6
+    assert math.isclose(float(adversary.entropy(1_000)), math.log(4.9 * math.pi), abs_tol=1e-6)
+    assert math.isclose(float(adversary.entropy(1_000)), 2.734, abs_tol=5e-4)  # paper's table
+    assert float(adversary.kl_from_base(1_000)) == pytest.approx(0.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("flow", FLOWS)
+@pytest.mark.parametrize("base", BASES)
+def test_entropy_and_kl_match_grid_quadrature(flow: str, base: str) -> None:
+    adversary = make_adversary(flow, base, perturb=PERTURB[flow])
+    n = 10_000
+    torch.manual_seed(3)
+    _, log_prob = adversary.sample_with_log_prob(n)
+    torch.manual_seed(3)
+    entropy = adversary.entropy(n)
+    assert torch.isclose(entropy, -log_prob.mean())
+    grid, cell = SINUSOID.grid(GRID)
+    with torch.no_grad():
+        log_p, log_p0 = adversary.log_prob(grid), adversary.base.log_prob(grid)
+    grid_entropy = -cell * (log_p.exp() * log_p).sum()
+    assert (entropy - grid_entropy).abs() < 4 * log_prob.std() / math.sqrt(n) + 1e-3
+    initial = adversary.base.sample_params(n)
+    kl = adversary.kl_from_base(initial=initial)
+    with torch.no_grad():
+        log_ratio = adversary.base.log_prob(initial) - adversary.log_prob(initial)
+    assert torch.isclose(kl, log_ratio.mean())
+    grid_kl = cell * (log_p0.exp() * (log_p0 - log_p)).sum()
+    assert grid_kl > 1e-3
+    assert (kl - grid_kl).abs() < 4 * log_ratio.std() / math.sqrt(n) + 1e-3
+
+
+# --- the surrogate and its baselines -------------------------------------------------------------
+
+def surrogate_gradient(adversary, params, losses, lam, initial, baseline):
+    surrogate, stats = adversary_surrogate(adversary, params, losses, lam, initial, baseline)
+    return torch.cat([g.flatten() for g in torch.autograd.grad(surrogate, adversary.parameters())])
+
+
+def test_mean_baseline_is_a_scaled_leave_one_out_baseline() -> None:
+    adversary = make_adversary("spline", "uniform", perturb=0.1)
+    k = 25
+    params, initial = adversary.sample_params(k), adversary.base.sample_params(64)
+    losses = toy_loss(params)
+    mean = surrogate_gradient(adversary, params, losses, 0.0, initial, "mean")
+    loo = surrogate_gradient(adversary, params, losses, 0.0, initial, "leave_one_out")
+    # L_k − mean(L) = (K − 1)/K · (L_k − mean of the others): same direction, both unbiased up to
+    # this factor.
+    assert torch.allclose(mean, (k - 1) / k * loo, atol=1e-10)
+    assert mean.norm() > 1e-3
+    lam_term = (surrogate_gradient(adversary, params, losses, 0.3, initial, "mean") - mean) / 0.3
+    lam_term_loo = (surrogate_gradient(adversary, params, losses, 0.3, initial, "leave_one_out")
+                    - loo) / 0.3
+    assert torch.allclose(lam_term, lam_term_loo, atol=1e-8)
+
+
+def test_constant_loss_gives_zero_loss_gradient() -> None:
+    adversary = make_adversary("planar", "uniform", perturb=0.3)
+    params, initial = adversary.sample_params(25), adversary.base.sample_params(64)
+    losses = torch.full((25,), 0.7, dtype=torch.float64)
+    for baseline in ("mean", "leave_one_out"):
+        gradient = surrogate_gradient(adversary, params, losses, 0.0, initial, baseline)
+        assert gradient.abs().max() < 1e-12
+    _, stats = adversary_surrogate(adversary, params, losses, 0.2, initial)
+    with torch.no_grad():
+        expected = 0.7 + 0.2 * float(adversary.log_prob(initial).mean())
+    assert stats["objective"] == pytest.approx(expected)
+
+
+def test_bad_names_raise_config_errors() -> None:
+    adversary = make_adversary("planar")
+    params = adversary.sample_params(4)
+    with pytest.raises(ConfigError, match="risk.ar.baseline"):
+        adversary_surrogate(adversary, params, toy_loss(params), 0.1, params, "median")
+    with pytest.raises(ConfigError, match="risk.ar.flow"):
+        FlowAdversary(SINUSOID, BoxUniform(SINUSOID), "radial")
+    with pytest.raises(ConfigError, match="risk.ar.flow_kwargs"):
+        FlowAdversary(SINUSOID, BoxUniform(SINUSOID), "planar", bins=8)
+
+
+# --- the follower: AdversarialPrinciple ----------------------------------------------------------
+
+def make_principle(flow: str = "spline", seed: int = 0, **kwargs) -> AdversarialPrinciple:
+    return AdversarialPrinciple(make_adversary(flow, "uniform", seed=seed), **kwargs)
+
+
+def run_updates(principle: AdversarialPrinciple, steps: int, k: int = 32) -> dict[str, float]:
+    logs = {}
+    for _ in range(steps):
+        tasks = principle.propose(k)
+        logs = principle.update(tasks, toy_loss(tasks["params"]))
+    return logs
+
+
+@pytest.mark.parametrize("flow", FLOWS)
+def test_update_ascends_the_objective_and_keeps_samples_in_the_box(flow: str) -> None:
+    lam = 0.2
+    principle = make_principle(flow, lam=lam, lr=0.03, total_updates=25)
+    assert isinstance(principle, RiskPrinciple)
+    with torch.no_grad():
+        before = grid_objective(principle.adversary, lam)
+    logs = run_updates(principle, 25)
+    with torch.no_grad():
+        after = grid_objective(principle.adversary, lam)
+    assert after > before + 0.1
+    assert set(logs) == {"adversary/objective", "adversary/entropy", "adversary/kl_p0",
+                         "adversary/lr", "adversary/grad_norm"}
+    assert all(math.isfinite(v) for v in logs.values())
+    assert logs["adversary/kl_p0"] > 0 and logs["adversary/entropy"] < SINUSOID.log_volume
+    tasks = principle.propose(5_000)
+    assert SINUSOID.contains(tasks["params"].to(torch.float64)).all()
+    weights = principle.weights(toy_loss(tasks["params"]))
+    assert torch.allclose(weights, torch.full_like(weights, 1 / 5_000))
+
+
+def test_state_dict_round_trip_restores_exactly() -> None:
+    principle = make_principle("spline", lr=0.01, total_updates=20)
+    run_updates(principle, 3)
+    buffer = io.BytesIO()
+    torch.save(principle.state_dict(), buffer)
+    buffer.seek(0)
+    restored = make_principle("spline", seed=7, lr=0.01, total_updates=20)
+    restored.load_state_dict(torch.load(buffer, weights_only=True))
+    for a, b in zip(principle.parameters(), restored.parameters(), strict=True):
+        assert torch.equal(a, b)
+    torch.manual_seed(11)
+    logs = run_updates(principle, 2)
+    torch.manual_seed(11)
+    logs_restored = run_updates(restored, 2)
+    assert logs == logs_restored
+    for a, b in zip(principle.parameters(), restored.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_nan_loss_raises_without_changing_parameters() -> None:
+    principle = make_principle("planar", lr=0.01)
+    run_updates(principle, 2)
+    before = [p.detach().clone() for p in principle.parameters()]
+    tasks = principle.propose(8)
+    losses = toy_loss(tasks["params"])
+    losses[3] = float("nan")
+    with pytest.raises(TrainingDiverged):
+        principle.update(tasks, losses)
+    for a, b in zip(before, principle.parameters(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_exploding_step_is_rolled_back() -> None:
+    principle = make_principle("planar", lr=1e300)
+    state = {key: value.clone() for key, value in principle.adversary.state_dict().items()}
+    tasks = principle.propose(8)
+    with pytest.raises(TrainingDiverged):
+        principle.update(tasks, toy_loss(tasks["params"]))
+    for key, value in principle.adversary.state_dict().items():
+        assert torch.equal(value, state[key])
+    assert principle.scheduler.last_epoch == 0
+    assert not principle.optimizer.state
+
+
+@pytest.mark.parametrize(("kwargs", "key"), [
+    ({"lam": -0.1}, "risk.ar.lam"), ({"update_every": 0}, "risk.ar.update_every"),
+    ({"lr": 0.0}, "risk.ar.lr"), ({"total_updates": 0}, "risk.ar.total_updates"),
+    ({"grad_clip": 0.0}, "risk.ar.grad_clip"), ({"baseline": "max"}, "risk.ar.baseline"),
+    ({"initial_samples": 0}, "risk.ar.initial_samples"),
+])
+def test_principle_rejects_bad_config(kwargs: dict, key: str) -> None:
+    with pytest.raises(ConfigError) as error:
+        make_principle("planar", **kwargs)
+    assert error.value.key == key
+
+
+def test_erm_samples_p0_with_uniform_weights() -> None:
+    initial = make_base("normal")
+    principle = ERMPrinciple(initial)
+    assert isinstance(principle, RiskPrinciple) and principle.update_every == 0
+    tasks = principle.propose(500)
+    params = tasks["params"].to(torch.float64)
+    assert SINUSOID.contains(params).all()
+    assert torch.allclose(tasks["log_prob"].to(torch.float64), initial.log_prob(params), atol=1e-5)
+    weights = principle.weights(torch.rand(10))
+    assert torch.allclose(weights, torch.full((10,), 0.1))
+    assert principle.update(tasks, torch.rand(500)) == {}
+
+
+# --- the density plot ----------------------------------------------------------------------------
+
+def test_plot_density_draws_both_densities(tmp_path) -> None:
+    adversary = make_adversary("spline", "normal", perturb=0.1)
+    path = tmp_path / "density.png"
+    figure = plot_density(adversary, adversary.base, path, points_per_axis=30)
+    assert path.stat().st_size > 0
+    images = [axis.images[0] for axis in figure.axes if axis.images]
+    assert len(images) == 2 and len(figure.axes) == 4  # two heat maps and two colorbars
+    grid, _ = SINUSOID.grid(30)
+    with torch.no_grad():
+        for image, distribution in zip(images, (adversary, adversary.base), strict=True):
+            expected = distribution.log_prob(grid).exp().reshape(30, 30).T.numpy()
+            assert abs(image.get_array() - expected).max() < 1e-12
+    assert [axis.get_xlabel() for axis in figure.axes if axis.images] == ["amplitude"] * 2
+    assert [axis.get_ylabel() for axis in figure.axes if axis.images] == ["phase"] * 2
+
+
+def test_plot_density_one_and_three_identifiers(tmp_path) -> None:
+    line = TaskSpace(["mass"], [0.5], [2.0])
+    adversary = make_adversary("planar", perturb=0.3, space=line)
+    figure = plot_density(adversary, adversary.base, tmp_path / "a.png")
+    assert len(figure.axes[0].lines) == 2
+    cube = TaskSpace(["a", "b", "c"], [0, 0, 0], [1, 1, 1])
+    with pytest.raises(ConfigError, match="benchmark.space.names"):
+        plot_density(BoxUniform(cube), BoxUniform(cube), tmp_path / "b.png")
