@@ -14,6 +14,7 @@ from torchrl.record.loggers import CSVLogger, Logger
 
 from armeta_rl.config import CONFIG_FILE, check_config
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks import TaskDistribution
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 from armeta_rl.trainers.evaluation import evaluate_on, format_table
 from armeta_rl.trainers.game import GameTrainer
@@ -77,6 +78,7 @@ def evaluate_players(
             list(ev.alphas),
             ev.seed + offset,
         )
+        report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset))
     if ev.support_noise > 0:
         noisy = NoisySupport(players.eval_collector, ev.support_noise)
         report["support_noise"] = ev.support_noise
@@ -85,6 +87,18 @@ def evaluate_players(
                 players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset
             )
     return report
+
+
+def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
+                       samples: int = 4096) -> dict[str, float]:
+    """Entropy H[p] and KL(p0 ‖ p) of a task distribution (Monte Carlo with exact log-densities;
+    the paper's entropy table reports H of p0 and of the learned p_φ)."""
+    with torch.random.fork_rng(devices=[]), torch.no_grad():
+        torch.manual_seed(seed)
+        entropy = float(distribution.entropy(samples))
+        initial_params = initial.sample_params(samples)
+        kl = initial.log_prob(initial_params) - distribution.log_prob(initial_params)
+    return {"entropy": entropy, "kl_p0": float(kl.mean())}
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
