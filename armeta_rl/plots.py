@@ -20,9 +20,10 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
                  points_per_axis: int = 100) -> Figure:
     """Plot exp(log_prob) of ``distribution`` (e.g. p_φ) next to ``initial`` (p0) and save a PNG.
 
-    For two identifiers: two heat maps over the box, axes named by ``space.names``, each with a
-    colorbar. For one identifier: both densities as curves on one axis. More identifiers have no
-    exact picture without integrating the density out, so they raise ``ConfigError``.
+    For two identifiers: two heat maps over the box on one colour scale (so they compare), axes
+    named by ``space.names``. For one identifier: both densities as curves on one axis. More
+    identifiers have no exact picture without integrating the density out, so they raise
+    ``ConfigError``.
 
     Args:
         distribution: the distribution to show.
@@ -55,13 +56,14 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
         axis.legend()
     else:
         extent = (space.low[0], space.high[0], space.low[1], space.high[1])
-        for index, (density, title) in enumerate(zip(densities, titles, strict=True)):
-            axis = figure.add_subplot(1, 2, index + 1)
+        top = max(float(density.max()) for density in densities)
+        axes = figure.subplots(1, 2)
+        for axis, density, title in zip(axes, densities, titles, strict=True):
             image = axis.imshow(density.T, origin="lower", extent=extent, aspect="auto",
-                                cmap="viridis")
+                                cmap="viridis", vmin=0.0, vmax=top)
             axis.set_xlabel(space.names[0])
             axis.set_ylabel(space.names[1])
             axis.set_title(title)
-            figure.colorbar(image, ax=axis, label="density")
+        figure.colorbar(image, ax=axes, label="density")
     figure.savefig(path, dpi=120)
     return figure

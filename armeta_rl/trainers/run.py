@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from torchrl.record.loggers import CSVLogger, Logger
+from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
 from armeta_rl.config import CONFIG_FILE, check_config
 from armeta_rl.errors import ConfigError
@@ -32,8 +32,6 @@ def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
     if kind == "csv":
         return CSVLogger(exp_name="logs", log_dir=str(run_dir))
     if kind == "wandb":
-        from torchrl.record.loggers import WandbLogger
-
         run_id = "armeta-" + hashlib.sha1(str(run_dir.resolve()).encode()).hexdigest()[:12]
         offline = os.environ.get("WANDB_MODE", "offline") != "online"
         logger = WandbLogger(
@@ -159,20 +157,13 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
 
 
 def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
-    import matplotlib.pyplot as plt
-
     from armeta_rl.plots import plot_density
 
-    figure = plot_density(players.adversary, players.initial, path)
-    if (
-        logger is not None
-        and hasattr(logger, "experiment")
-        and type(logger).__name__ == "WandbLogger"
-    ):
+    plot_density(players.adversary, players.initial, path)
+    if isinstance(logger, WandbLogger):
         import wandb
 
         logger.experiment.log({"adversary/density": wandb.Image(str(path))})
-    plt.close(figure)
 
 
 def cross_evaluate(
