@@ -132,8 +132,16 @@ PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPr
 
 
 def build_leader(cfg: DictConfig, collector: Collector) -> Leader:
-    """The leader named by ``method.learner``."""
+    """The leader named by ``method.learner``, through the benchmark's ``leaders`` map if it has
+    one (on RL benchmarks ``maml`` means MAML-TRPO; CNP has no RL form)."""
     name = cfg.method.learner
+    leaders = OmegaConf.select(cfg, "benchmark.leaders")
+    if leaders is not None:
+        if name not in leaders:
+            raise ConfigError("method", cfg.method.name,
+                              f"benchmark {cfg.benchmark.name} supports methods whose learner is "
+                              f"one of: {', '.join(leaders)}")
+        name = leaders[name]
     if name not in LEADERS:
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEADERS)}")
     return LEADERS[name](cfg, collector)

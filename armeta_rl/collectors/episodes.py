@@ -1,0 +1,129 @@
+"""Episode collector for meta-RL: every task × episode rolls out in one batched env call.
+
+``collect(tasks, policy_params, policy)`` runs ``episodes`` episodes per task in a goal-conditioned
+env (point navigation, Ant goal) of batch size ``[K, episodes]`` with
+``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
+``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
+steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from functools import partial
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
+from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianMLP, make_actor
+
+
+def valid_mask(done: torch.Tensor) -> torch.Tensor:
+    """``[..., T]`` bool: step ``t`` belongs to the first episode (no ``done`` before ``t``)."""
+    ended_before = done.cumsum(-1) - done.long()
+    return ended_before == 0
+
+
+class EpisodeCollector:
+    """Collects ``[K, episodes, max_steps]`` trajectories for ``K`` goals in any goal-conditioned
+    env of batch size ``[tasks, episodes]`` (point navigation, Ant goal, ...).
+
+    Args:
+        make_env: builds the env, called as ``make_env(batch_size=(K, episodes),
+            max_steps=max_steps)``; the env reads ``"goal"`` from the reset TensorDict and keeps it.
+            In a Hydra config this is a ``_partial_: true`` node.
+        episodes: episodes per task (the paper: 20).
+        max_steps: episode length limit.
+
+    The returned TensorDict has batch ``[K, episodes, max_steps]`` and keys ``"observation"``,
+    ``"action"``, ``"log_prob"`` (of the action under the collecting policy), ``"reward"``,
+    ``"done"``, ``"terminated"``, ``"truncated"`` (``[..., 1]``), ``"mask"`` (bool, the step is part
+    of the episode) and ``"goal"``. The env is reseeded from torch's global RNG at every call, so
+    ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes the whole collection.
+    """
+
+    def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,
+                 max_steps: int = 100) -> None:
+        if int(episodes) < 1:
+            raise ConfigError("benchmark.collector.episodes", episodes, "must be >= 1")
+        if int(max_steps) < 1:
+            raise ConfigError("benchmark.collector.max_steps", max_steps, "must be >= 1")
+        self.make_env = make_env
+        self.episodes = int(episodes)
+        self.max_steps = int(max_steps)
+        self._envs: dict[int, EnvBase] = {}
+
+    def env(self, tasks: int) -> EnvBase:
+        """The (cached) env of batch size ``[tasks, episodes]``."""
+        if tasks not in self._envs:
+            self._envs[tasks] = self.make_env(batch_size=(tasks, self.episodes),
+                                              max_steps=self.max_steps)
+        return self._envs[tasks]
+
+    @torch.no_grad()
+    def collect(
+        self,
+        tasks: TensorDictBase,
+        policy_params: TensorDictBase | None = None,
+        policy: GaussianMLP | None = None,
+    ) -> TensorDict:
+        """Roll out ``policy`` (with ``policy_params`` ``[K]`` if given, else its own parameters)
+        for every task in ``tasks["params"]`` (goals ``[K, 2]``)."""
+        if policy is None:
+            raise ValueError("EpisodeCollector.collect needs the policy network")
+        goals = tasks["params"]
+        n_tasks = goals.shape[0]
+        env = self.env(n_tasks)
+        env.set_seed(int(torch.randint(0, 2**62, ())))
+        start = env.reset(
+            TensorDict({"goal": goals[:, None].expand(n_tasks, self.episodes, 2)}, env.batch_size)
+        )
+        actor = make_actor(policy, policy_params)
+        with set_exploration_type(ExplorationType.RANDOM):
+            rollout = env.rollout(
+                self.max_steps, actor, tensordict=start, auto_reset=False, break_when_any_done=False
+            )
+        done = rollout["next", "done"].squeeze(-1)
+        return TensorDict(
+            {
+                "observation": rollout["observation"],
+                "action": rollout["action"],
+                "log_prob": rollout["action_log_prob"],
+                "reward": rollout["next", "reward"],
+                "done": rollout["next", "done"],
+                "terminated": rollout["next", "terminated"],
+                "truncated": rollout["next", "truncated"],
+                "mask": valid_mask(done),
+                "goal": rollout["goal"],
+            },
+            batch_size=rollout.batch_size,
+        )
+
+
+class PointNavigationCollector(EpisodeCollector):
+    """:class:`EpisodeCollector` over :class:`PointNavigationEnv`.
+
+    Args:
+        episodes: episodes per task (the paper: 20).
+        max_steps: episode length limit (100).
+        sparse_regions: reward-scaling regions of the env (empty: plain navigation).
+        squared_distance: reward minus the squared distance.
+        seed: seed of the env (used only for goals that are never set).
+    """
+
+    def __init__(self, episodes: int = 20, max_steps: int = 100,
+                 sparse_regions: Sequence[Region] = (), squared_distance: bool = False,
+                 seed: int | None = None) -> None:
+        make_env = partial(PointNavigationEnv, sparse_regions=check_regions(sparse_regions),
+                           squared_distance=bool(squared_distance), seed=seed)
+        super().__init__(make_env, episodes, max_steps)
+
+
+def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:
+    """Undiscounted return of every episode ``[K, episodes]``."""
+    reward = trajectories["reward"].squeeze(-1)
+    return (reward * trajectories["mask"]).sum(-1)

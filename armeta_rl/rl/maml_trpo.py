@@ -1,0 +1,316 @@
+"""MAML-TRPO leader (Finn et al. 2017, Alg. 3 with TRPO as the outer optimizer, Sec. 5.3; the
+paper's meta-RL benchmark, appendix "Meta Learning Continuous Control"; pytorch-maml-rl).
+
+One meta-iteration on K tasks, all batched over tasks:
+
+1. roll out π_θ for ``episodes`` episodes per task (one env call, batch ``[K, episodes]``);
+2. inner step per task: θ'_k = θ − α ∇_θ L^in_k(θ), L^in_k = −mean(log π_θ(a|s)·Â) with normalized
+   GAE advantages from the per-task linear baseline; the K adapted parameter sets live in a
+   TensorDict ``[K]`` and the adapted policies roll out together;
+3. outer TRPO step on the weighted post-adaptation surrogate
+   Σ_k w_k L^out_k(θ), L^out_k = −mean(π_θ'_k(a|s)/π_old(a|s)·Â), subject to
+   Σ_k w_k KL_k(π_θ'_k ‖ π_old) ≤ δ, with w = weights(per-task losses) (ERM: 1/K; the risk
+   principles of the paper reweight tasks here). The Hessian-vector products of the KL are taken
+   through the inner step (second order).
+
+The per-task loss reported to the game is −(mean return of the adapted policy).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+
+from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.episodes import episode_returns
+from armeta_rl.errors import ConfigError
+from armeta_rl.learners.base import TaskWeights
+from armeta_rl.rl.baseline import gae_advantages
+from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
+from armeta_rl.rl.trpo import (
+    backtracking_line_search,
+    flatten,
+    meta_kl_hessian_vector_product,
+    trust_region_step,
+    unflatten,
+)
+
+Params = dict[str, Tensor]
+
+
+def episode_mean(values: Tensor, mask: Tensor) -> Tensor:
+    """Per-task mean ``[K]`` over episodes of each episode's time-average over its valid steps
+    (pytorch-maml-rl's ``weighted_mean``); ``values`` and ``mask`` are ``[K, E, T]``."""
+    weights = mask.to(values.dtype)
+    per_episode = (values * weights).sum(-1) / weights.sum(-1).clamp_min(1.0)
+    return per_episode.mean(-1)
+
+
+@dataclass
+class MetaBatch:
+    """One meta-iteration's data: pre-adaptation episodes ``train`` ``[K, E, T]`` and their
+    advantages, θ broadcast to ``[K]`` and the adapted parameters ``[K]`` computed from it (with
+    their graph to θ when built for an update), and the adapted policies' episodes ``valid`` with
+    their advantages."""
+
+    train: TensorDictBase
+    train_advantages: Tensor
+    broadcast: Params
+    adapted: Params
+    valid: TensorDictBase
+    valid_advantages: Tensor
+
+
+def as_task_params(params: Params) -> TensorDict:
+    """Flat ``{"a.b": [K, ...]}`` parameters as a nested TensorDict ``[K]``."""
+    n_tasks = next(iter(params.values())).shape[0]
+    return TensorDict(params, batch_size=[n_tasks]).unflatten_keys(".")
+
+
+class MAMLTRPOLeader:
+    """The meta-RL leader θ (Gaussian MLP policy) trained by MAML-TRPO.
+
+    Args:
+        collector: episode collector (e.g. ``PointNavigationCollector``); it is called as
+            ``collect(tasks, policy_params, policy=net)``.
+        obs_dim, action_dim: policy input and output sizes.
+        hidden_sizes: hidden layers of the policy MLP.
+        inner_lr: inner policy-gradient step size α.
+        gamma, gae_lambda: discount and GAE λ.
+        max_kl: TRPO trust region δ.
+        cg_iterations, cg_damping: conjugate-gradient iterations and damping.
+        ls_max_steps, ls_backtrack_ratio: backtracking line search.
+        baseline_reg: ridge coefficient of the linear baseline.
+        first_order: drop the second-order terms of the inner step (FO-MAML ablation).
+        hvp_episodes: episodes per task on which the KL's Hessian-vector products are computed
+            (``None``: all, the exact MAML-TRPO). Episodes are i.i.d., so the first ``n`` are a
+            random subsample; TRPO (Schulman et al. 2015) likewise computes its Fisher-vector
+            products on a fraction of the batch to cut the cost of conjugate gradient. The
+            surrogate, its gradient and the line search always use every episode.
+    """
+
+    metric = "return"
+
+    def __init__(
+        self,
+        collector: Collector,
+        obs_dim: int = 2,
+        action_dim: int = 2,
+        hidden_sizes: Sequence[int] = (64, 64),
+        inner_lr: float = 0.1,
+        gamma: float = 0.99,
+        gae_lambda: float = 1.0,
+        max_kl: float = 1e-2,
+        cg_iterations: int = 10,
+        cg_damping: float = 1e-5,
+        ls_max_steps: int = 15,
+        ls_backtrack_ratio: float = 0.8,
+        baseline_reg: float = 1e-5,
+        first_order: bool = False,
+        hvp_episodes: int | None = None,
+    ) -> None:
+        checks = {
+            "learner.maml_trpo.inner_lr": (inner_lr, inner_lr > 0, "must be > 0"),
+            "learner.maml_trpo.gamma": (gamma, 0 < gamma <= 1, "must be in (0, 1]"),
+            "learner.maml_trpo.gae_lambda": (gae_lambda, 0 <= gae_lambda <= 1, "must be in [0, 1]"),
+            "learner.maml_trpo.max_kl": (max_kl, max_kl > 0, "must be > 0"),
+            "learner.maml_trpo.cg_iterations": (cg_iterations, cg_iterations >= 1, "must be >= 1"),
+            "learner.maml_trpo.ls_max_steps": (ls_max_steps, ls_max_steps >= 1, "must be >= 1"),
+            "learner.maml_trpo.ls_backtrack_ratio": (
+                ls_backtrack_ratio, 0 < ls_backtrack_ratio < 1, "must be in (0, 1)"
+            ),
+            "learner.maml_trpo.hvp_episodes": (
+                hvp_episodes, hvp_episodes is None or hvp_episodes >= 1, "must be null or >= 1"
+            ),
+        }
+        for key, (value, ok, allowed) in checks.items():
+            if not ok:
+                raise ConfigError(key, value, allowed)
+        self.collector = collector
+        self.net = GaussianMLP(obs_dim, action_dim, tuple(hidden_sizes))
+        self.inner_lr = float(inner_lr)
+        self.gamma, self.gae_lambda = float(gamma), float(gae_lambda)
+        self.max_kl = float(max_kl)
+        self.cg_iterations, self.cg_damping = int(cg_iterations), float(cg_damping)
+        self.ls_max_steps, self.ls_backtrack_ratio = int(ls_max_steps), float(ls_backtrack_ratio)
+        self.baseline_reg = float(baseline_reg)
+        self.first_order = bool(first_order)
+        self.hvp_episodes = None if hvp_episodes is None else int(hvp_episodes)
+        self.last_update: dict[str, float] = {}
+
+    # -- functional pieces ------------------------------------------------------------------
+
+    def theta(self) -> Params:
+        """The meta-parameters θ as a flat name -> tensor dict (the module's own tensors)."""
+        return dict(self.net.named_parameters())
+
+    def advantages(self, trajectories: TensorDictBase) -> Tensor:
+        """Normalized GAE advantages ``[K, E, T]`` with the per-task refit baseline."""
+        return gae_advantages(trajectories, self.gamma, self.gae_lambda)
+
+    def inner_loss(
+        self, params: Params, trajectories: TensorDictBase, advantages: Tensor
+    ) -> Tensor:
+        """Per-task REINFORCE loss ``[K]``: −mean(log π(a|s)·Â) under per-task ``params``."""
+        loc, scale = loc_scale(self.net, as_task_params(params), trajectories["observation"])
+        logp = log_prob(loc, scale, trajectories["action"])
+        return -episode_mean(logp * advantages, trajectories["mask"])
+
+    def inner_step(
+        self, theta: Params, trajectories: TensorDictBase, advantages: Tensor, create_graph: bool
+    ) -> tuple[Params, Params]:
+        """One inner policy-gradient step per task: θ'_k = θ − α ∇L^in_k(θ), ``[K]`` leading.
+
+        θ is broadcast to ``[K]``; since L^in_k depends only on slice k, the gradient of Σ_k L^in_k
+        with respect to the broadcast tensor holds every task's gradient at once.
+        ``create_graph`` keeps the graph for second-order meta-gradients. Returns the broadcast θ
+        and the adapted parameters.
+        """
+        n_tasks = trajectories.batch_size[0]
+        expanded = {name: p.expand(n_tasks, *p.shape) for name, p in theta.items()}
+        loss = self.inner_loss(expanded, trajectories, advantages).sum()
+        grads = torch.autograd.grad(
+            loss, list(expanded.values()), create_graph=create_graph and not self.first_order
+        )
+        adapted = {name: p - self.inner_lr * g for (name, p), g in zip(expanded.items(), grads)}
+        return expanded, adapted
+
+    def adapt(
+        self, theta: Params, trajectories: TensorDictBase, advantages: Tensor, create_graph: bool
+    ) -> Params:
+        """The adapted per-task parameters θ'_k ``[K]`` of :meth:`inner_step`."""
+        return self.inner_step(theta, trajectories, advantages, create_graph)[1]
+
+    def outer_terms(
+        self, adapted: Params, valid: TensorDictBase, advantages: Tensor,
+        old: tuple[Tensor, Tensor] | None = None,
+    ) -> tuple[Tensor, Tensor, tuple[Tensor, Tensor]]:
+        """Per-task surrogate loss and KL ``[K]`` of the adapted policies on the post-adaptation
+        episodes, against ``old`` (loc, scale) (default: the adapted policies themselves,
+        detached). Returns (loss, kl, old)."""
+        loc, scale = loc_scale(self.net, as_task_params(adapted), valid["observation"])
+        if old is None:
+            old = (loc.detach(), scale.detach())
+        ratio = (log_prob(loc, scale, valid["action"]) - valid["log_prob"]).exp()
+        loss = -episode_mean(ratio * advantages, valid["mask"])
+        kl = episode_mean(kl_divergence(loc, scale, *old), valid["mask"])
+        return loss, kl, old
+
+    # -- Leader protocol ----------------------------------------------------------------------
+
+    def collect_meta_batch(
+        self, tasks: TensorDictBase, collector: Collector | None = None, create_graph: bool = True
+    ) -> MetaBatch:
+        """Roll out π_θ, adapt every task (one batched inner step), roll out the adapted policies.
+
+        With ``create_graph`` the adapted parameters keep their graph to θ (for the meta-gradient).
+        """
+        collector = collector or self.collector
+        train = collector.collect(tasks, None, policy=self.net)
+        train_advantages = self.advantages(train)
+        with torch.enable_grad():
+            broadcast, adapted = self.inner_step(
+                self.theta(), train, train_advantages, create_graph
+            )
+        detached = as_task_params({k: v.detach() for k, v in adapted.items()})
+        valid = collector.collect(tasks, detached, policy=self.net)
+        return MetaBatch(
+            train, train_advantages, broadcast, adapted, valid, self.advantages(valid)
+        )
+
+    def trpo_update(self, batch: MetaBatch, weights: Tensor) -> dict[str, float]:
+        """One TRPO step on the weighted post-adaptation surrogate Σ_k w_k L^out_k (in place).
+
+        Natural-gradient direction by conjugate gradient on the second-order KL Hessian, scaled to
+        the trust region, then backtracking until the surrogate improves with Σ_k w_k KL_k ≤ δ.
+        Returns the surrogate and KL of the accepted step (θ unchanged if none qualifies).
+        """
+        w = weights.to(batch.valid["reward"].dtype)
+        params = list(self.net.parameters())
+        names = [name for name, _ in self.net.named_parameters()]
+        loss_k, _, old = self.outer_terms(batch.adapted, batch.valid, batch.valid_advantages)
+        surrogate = (w * loss_k).sum()
+        exact = self.hvp_episodes is None or self.hvp_episodes >= batch.train.batch_size[1]
+        gradient = flatten(torch.autograd.grad(surrogate, params, retain_graph=exact))
+        subset = slice(None) if exact else slice(0, self.hvp_episodes)
+        valid, valid_advantages = batch.valid[:, subset], batch.valid_advantages[:, subset]
+        if exact:
+            broadcast, adapted = batch.broadcast, batch.adapted
+        else:
+            broadcast, adapted = self.inner_step(
+                self.theta(), batch.train[:, subset], batch.train_advantages[:, subset], True
+            )
+
+        def weighted_kl(leaves: list[Tensor]) -> Tensor:
+            kl = self.outer_terms(dict(zip(names, leaves)), valid, valid_advantages)[1]
+            return (w * kl).sum()
+
+        hvp = meta_kl_hessian_vector_product(
+            weighted_kl, list(broadcast.values()), list(adapted.values()), params, self.cg_damping
+        )
+        full_step = trust_region_step(gradient, hvp, self.max_kl, self.cg_iterations)
+        del hvp, broadcast, adapted
+        found: dict[str, Tensor] = {}
+
+        def evaluate(vector: Tensor) -> tuple[Tensor, Tensor]:
+            vector = vector.detach().requires_grad_(True)
+            theta = dict(zip(names, unflatten(vector, params)))
+            candidate = self.adapt(theta, batch.train, batch.train_advantages, create_graph=False)
+            with torch.no_grad():
+                loss_c, kl_c, _ = self.outer_terms(
+                    {k: v.detach() for k, v in candidate.items()}, batch.valid,
+                    batch.valid_advantages, old,
+                )
+            found["loss"], found["kl"] = (w * loss_c).sum(), (w * kl_c).sum()
+            return found["loss"], found["kl"]
+
+        theta0 = flatten(params).detach()
+        new_theta, accepted = backtracking_line_search(
+            evaluate, theta0, full_step, surrogate.detach(), self.max_kl,
+            self.ls_max_steps, self.ls_backtrack_ratio,
+        )
+        with torch.no_grad():
+            for p, value in zip(params, unflatten(new_theta, params)):
+                p.copy_(value)
+        return {
+            "trpo/line_search_steps": float(-1 if accepted is None else accepted),
+            "trpo/surrogate_before": surrogate.item(),
+            "trpo/surrogate_after": surrogate.item() if accepted is None else found["loss"].item(),
+            "trpo/kl": 0.0 if accepted is None else found["kl"].item(),
+        }
+
+    def step(self, tasks: TensorDictBase, weights: TaskWeights) -> TensorDict:
+        """Collect before/after adaptation, score, then one TRPO step on Σ_k w_k L^out_k with
+        ``w = weights(losses)``; ``last_update`` keeps the step's TRPO scalars for logging."""
+        batch = self.collect_meta_batch(tasks)
+        return_pre = episode_returns(batch.train).mean(-1)
+        return_post = episode_returns(batch.valid).mean(-1)
+        losses = -return_post
+        self.last_update = self.trpo_update(batch, weights(losses))
+        return TensorDict(
+            {"loss": losses, "return_pre": return_pre, "return_post": return_post},
+            batch_size=[losses.shape[0]],
+        )
+
+    def evaluate(self, tasks: TensorDictBase, collector: Collector | None = None) -> Tensor:
+        """Per-task −(mean return after one inner step) ``[K]`` at the current θ: explore with
+        π_θ, adapt on those episodes, and roll out the adapted policies afresh.
+
+        The trainer calls this for the follower's update, after the leader's step, so the
+        adversary scores tasks at θ_{t+1} as the game prescribes. It costs two rollouts and one
+        inner step (no second-order graph, no TRPO), a small fraction of a meta-iteration, so the
+        returns of :meth:`step` (measured at θ_t) are not reused in its place.
+        """
+        batch = self.collect_meta_batch(tasks, collector, create_graph=False)
+        return -episode_returns(batch.valid).mean(-1)
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"policy": self.net.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.net.load_state_dict(state["policy"])

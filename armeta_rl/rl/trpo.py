@@ -1,0 +1,138 @@
+"""TRPO pieces (Schulman et al. 2015, App. C) used by MAML-TRPO's outer step (MAML paper,
+Sec. 5.3): conjugate gradient, Hessian-vector products of the mean KL, backtracking line search.
+
+Parameters are handled as a list of tensors and flattened into one vector for the linear algebra.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import torch
+from torch import Tensor
+
+
+def flatten(tensors: Sequence[Tensor]) -> Tensor:
+    """Concatenate tensors into one flat vector."""
+    return torch.cat([t.reshape(-1) for t in tensors])
+
+
+def unflatten(vector: Tensor, like: Sequence[Tensor]) -> list[Tensor]:
+    """Split a flat vector back into tensors shaped like ``like``."""
+    out, start = [], 0
+    for t in like:
+        out.append(vector[start : start + t.numel()].view_as(t))
+        start += t.numel()
+    return out
+
+
+def conjugate_gradient(
+    matvec: Callable[[Tensor], Tensor], b: Tensor, iterations: int = 10, residual_tol: float = 1e-10
+) -> Tensor:
+    """Approximately solve A x = b for symmetric positive-definite A given x ↦ A x
+    (Hestenes–Stiefel CG, ``iterations`` steps, stopping early when ‖r‖² < ``residual_tol``)."""
+    x = torch.zeros_like(b)
+    r = b.clone()
+    p = b.clone()
+    r_dot_r = r @ r
+    for _ in range(iterations):
+        if r_dot_r.item() < residual_tol:
+            break
+        ap = matvec(p)
+        alpha = r_dot_r / (p @ ap)
+        x = x + alpha * p
+        r = r - alpha * ap
+        new_r_dot_r = r @ r
+        p = r + (new_r_dot_r / r_dot_r) * p
+        r_dot_r = new_r_dot_r
+    return x
+
+
+def kl_hessian_vector_product(
+    kl: Tensor, params: Sequence[Tensor], damping: float = 1e-5
+) -> Callable[[Tensor], Tensor]:
+    """v ↦ (∇²_θ KL + damping·I) v by double backpropagation.
+
+    ``kl`` must be built with a graph from ``params`` (when the KL is taken at the adapted policy
+    of MAML, the graph runs *through* the inner gradient step, giving the second-order Hessian).
+    The first gradient is computed once; every product is one more backward pass.
+    """
+    grads = torch.autograd.grad(kl, params, create_graph=True)
+    flat_grad = flatten(grads)
+
+    def product(vector: Tensor) -> Tensor:
+        second = torch.autograd.grad(flat_grad @ vector, params, retain_graph=True)
+        return flatten(second).detach() + damping * vector
+
+    return product
+
+
+def meta_kl_hessian_vector_product(
+    kl: Callable[[list[Tensor]], Tensor],
+    broadcast: Sequence[Tensor],
+    adapted: Sequence[Tensor],
+    params: Sequence[Tensor],
+    damping: float = 1e-5,
+) -> Callable[[Tensor], Tensor]:
+    """v ↦ (∇²_θ KL(θ'(θ)) + damping·I) v for a KL taken at adapted parameters, second order
+    through the adaptation step, without third-order terms.
+
+    ``broadcast`` are the meta-parameters θ expanded to ``[K, ...]`` and ``adapted`` the per-task
+    parameters θ'_k = θ − α∇L^in_k computed from them with ``create_graph=True``; ``kl(leaves)``
+    evaluates the (weighted) KL at adapted parameters ``leaves``. At the current point the KL sits
+    at its minimum (π_old is the current adapted policy), so its gradient in θ' is zero and the
+    exact Hessian in θ is Σ_k J_kᵀ F_k J_k, with J_k = I − α∇²L^in_k (symmetric) and F_k the KL's
+    Hessian in θ'_k. Each product is computed as
+    ``J_k v`` (a backward pass through the inner step, w.r.t. the broadcast θ), ``F_k (J_k v)``
+    (double backpropagation through the policy on the post-adaptation data) and
+    ``Σ_k J_k (...)`` (a backward pass to θ), which avoids differentiating the inner step three
+    times as the plain double-backward of ∇_θ KL would.
+    """
+    leaves = [a.detach().requires_grad_(True) for a in adapted]
+    kl_grads = torch.autograd.grad(kl(leaves), leaves, create_graph=True)
+
+    def product(vector: Tensor) -> Tensor:
+        pieces = unflatten(vector, params)
+        cotangents = [piece.expand_as(b) for piece, b in zip(pieces, broadcast)]
+        tangents = torch.autograd.grad(adapted, broadcast, cotangents, retain_graph=True)
+        fisher = torch.autograd.grad(kl_grads, leaves, tangents, retain_graph=True)
+        back = torch.autograd.grad(adapted, params, fisher, retain_graph=True)
+        return flatten(back).detach() + damping * vector
+
+    return product
+
+
+def trust_region_step(
+    gradient: Tensor, hvp: Callable[[Tensor], Tensor], max_kl: float, cg_iterations: int = 10
+) -> Tensor:
+    """The full natural-gradient step s = √(2δ / gᵀF⁻¹g)·F⁻¹g (to be *subtracted* from θ), with
+    F⁻¹g from conjugate gradient; its quadratic KL model ½ sᵀFs equals δ = ``max_kl``."""
+    direction = conjugate_gradient(hvp, gradient, cg_iterations)
+    half_curvature = 0.5 * (direction @ hvp(direction))
+    multiplier = torch.sqrt(half_curvature.clamp_min(1e-12) / max_kl)
+    return direction / multiplier
+
+
+def backtracking_line_search(
+    evaluate: Callable[[Tensor], tuple[Tensor, Tensor]],
+    theta: Tensor,
+    step: Tensor,
+    old_loss: Tensor,
+    max_kl: float,
+    max_steps: int = 15,
+    ratio: float = 0.8,
+) -> tuple[Tensor, int | None]:
+    """Try θ − ratio^i·step for i = 0 … max_steps−1; accept the first that lowers the loss and
+    keeps the KL within ``max_kl``.
+
+    ``evaluate(θ)`` returns (loss, KL) at θ. Returns (new θ, accepted i), or (θ, None) when no
+    step qualifies, in which case θ is unchanged.
+    """
+    fraction = 1.0
+    for i in range(max_steps):
+        candidate = theta - fraction * step
+        loss, kl = evaluate(candidate)
+        if loss.item() < old_loss.item() and kl.item() < max_kl:
+            return candidate, i
+        fraction *= ratio
+    return theta, None

@@ -1,0 +1,174 @@
+"""Throughput of the Ant goal-position env (issue "Ant goal-position meta-RL on MuJoCo").
+
+Env steps per second (one env step = ``frame_skip`` = 5 physics steps) of
+
+* a bare ``mujoco.mj_step(model, data, nstep=5)`` loop over one MjData per simulation (the
+  reference: no observation, reward, contact forces or TorchRL);
+* gymnasium's ``Ant-v5`` (one env, ``step`` with random actions, reset when it ends);
+* the native :class:`mujoco.batch.Batch` step that ``AntGoalEnv`` uses, alone;
+* ``AntGoalEnv.rollout`` in one process (random actions, automatic resets);
+* ``AntGoalEnv`` split over 2 worker processes (``make_parallel_ant_goal``);
+
+then seconds per MAML-TRPO meta-iteration on ``ant_goal`` (rollouts before and after adaptation and
+the TRPO step) for a reduced meta-batch, scaled linearly to the paper's 40 tasks and to a
+500-iteration run. Single-threaded torch; the machine's load average is printed with the table.
+
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_goal.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import time
+from collections.abc import Callable
+from functools import partial
+
+import gymnasium
+import mujoco
+import numpy as np
+import torch
+from tensordict import TensorDict
+
+from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, make_parallel_ant_goal
+
+STAGE_ACC = mujoco.mjtStage.mjSTAGE_ACC.value
+
+
+def seconds(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``repeats`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def bare_loop(n_sims: int, steps: int, frame_skip: int) -> Callable[[], None]:
+    model = load_ant_model(with_force_sensor=False)
+    datas = [mujoco.MjData(model) for _ in range(n_sims)]
+    rng = np.random.default_rng(0)
+    for data in datas:
+        data.ctrl[:] = rng.uniform(-1, 1, model.nu)
+
+    def run() -> None:
+        for _ in range(steps):
+            for data in datas:
+                mujoco.mj_step(model, data, nstep=frame_skip)
+
+    return run
+
+
+def gymnasium_loop(steps: int) -> Callable[[], None]:
+    env = gymnasium.make("Ant-v5")
+    env.reset(seed=0)
+    env.action_space.seed(0)
+
+    def run() -> None:
+        for _ in range(steps):
+            _, _, terminated, truncated, _ = env.step(env.action_space.sample())
+            if terminated or truncated:
+                env.reset()
+
+    return run
+
+
+def native_batch(n_sims: int, steps: int, frame_skip: int) -> Callable[[], None]:
+    batch = mujoco.batch.Batch(load_ant_model(), n_sims, nthread=1)
+    batch.reset()
+    ctrl = batch.bind("ctrl")
+    ctrl[:] = np.random.default_rng(0).uniform(-1, 1, ctrl.shape)
+
+    def run() -> None:
+        for _ in range(steps):
+            batch.step(nstep=frame_skip, stage=STAGE_ACC)
+
+    return run
+
+
+def env_rollout(env, steps: int) -> Callable[[], None]:
+    shape = env.batch_size
+    goals = 6 * torch.rand(*shape, 2) - 3
+    start = env.reset(TensorDict({"goal": goals}, shape))
+    return lambda: env.rollout(
+        steps, tensordict=start.clone(), auto_reset=False, break_when_any_done=False
+    )
+
+
+def meta_iteration_seconds(tasks: int, episodes: int, horizon: int, repeats: int) -> float:
+    """Seconds per MAML-TRPO meta-iteration on ant_goal with ``tasks`` tasks."""
+    from armeta_rl.collectors.episodes import EpisodeCollector
+    from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+    from armeta_rl.tasks import BoxUniform, TaskSpace
+
+    space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
+    collector = EpisodeCollector(partial(AntGoalEnv, seed=0), episodes=episodes, max_steps=horizon)
+    probe = collector.env(1)
+    leader = MAMLTRPOLeader(
+        collector,
+        obs_dim=probe.observation_spec["observation"].shape[-1],
+        action_dim=probe.action_spec.shape[-1],
+    )
+    task_batch = BoxUniform(space).sample(tasks)
+
+    def erm_weights(losses: torch.Tensor) -> torch.Tensor:
+        return torch.full_like(losses, 1 / tasks)
+
+    return seconds(lambda: leader.step(task_batch, erm_weights), repeats)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--tasks", type=int, default=8)
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--steps", type=int, default=25, help="env steps per timed call")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--meta-tasks", type=int, default=4, help="meta-batch actually timed")
+    parser.add_argument("--horizon", type=int, default=200)
+    parser.add_argument("--skip-meta", action="store_true")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    k, e, steps, frame_skip = args.tasks, args.episodes, args.steps, 5
+    n = k * e
+    rows: list[tuple[str, str, float]] = []
+
+    t = seconds(bare_loop(n, steps, frame_skip), args.repeats)
+    rows.append(("bare mj_step loop (reference)", f"{n} MjData", n * steps / t))
+    gym_steps = 1000
+    t = seconds(gymnasium_loop(gym_steps), args.repeats)
+    rows.append(("gymnasium Ant-v5 (one env)", "1", gym_steps / t))
+    t = seconds(native_batch(n, steps, frame_skip), args.repeats)
+    rows.append(("mujoco.batch step + forward (native)", f"{n} sims", n * steps / t))
+    env = AntGoalEnv((k, e), seed=0)
+    t = seconds(env_rollout(env, steps), args.repeats)
+    rows.append(("AntGoalEnv.rollout, 1 process", f"[{k}, {e}]", n * steps / t))
+    parallel = make_parallel_ant_goal(2, k, e, seed=0)
+    t = seconds(env_rollout(parallel, steps), args.repeats)
+    rows.append(("AntGoalEnv, 2 processes (ParallelEnv)", f"[2, {k // 2}, {e}]", n * steps / t))
+    parallel.close()
+
+    bare = rows[0][2]
+    print(f"load average (1, 5, 15 min): {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
+          f"{os.cpu_count()} CPUs")
+    print(f"{'what':42s} {'batch':>12s} {'env steps/s':>12s} {'% bare':>7s}")
+    for name, batch, rate in rows:
+        print(f"{name:42s} {batch:>12s} {rate:12.0f} {100 * rate / bare:6.0f}%")
+
+    if args.skip_meta:
+        return
+    t = meta_iteration_seconds(args.meta_tasks, e, args.horizon, 1)
+    scaled = t * 40 / args.meta_tasks
+    print(
+        f"\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} episodes × "
+        f"{args.horizon} steps (2 rollouts + TRPO): {t:.1f} s measured; scaled linearly to the "
+        f"paper's 40 tasks: {scaled:.0f} s; 500 iterations ≈ {500 * scaled / 3600:.1f} h "
+        f"(one process, one thread)."
+    )
+
+
+if __name__ == "__main__":
+    main()

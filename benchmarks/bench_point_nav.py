@@ -1,0 +1,77 @@
+"""Speed of meta-RL on point navigation: env steps/s and seconds per MAML-TRPO meta-iteration
+(20 tasks × 20 episodes × 100 steps; rollouts before and after adaptation and the TRPO step), on
+one thread. Prints a table; run ``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+from tensordict import TensorDict
+
+from armeta_rl.collectors.episodes import PointNavigationCollector
+from armeta_rl.envs.point_navigation import PointNavigationEnv
+from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+from armeta_rl.rl.policy import GaussianMLP, parameters_of
+from armeta_rl.tasks import BoxUniform, TaskSpace
+
+
+def seconds(fn: Callable[[], object], repeats: int) -> float:
+    """Median wall time of ``repeats`` calls after one warm-up call."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--tasks", type=int, default=20)
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=3)
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    k, e, steps = args.tasks, args.episodes, 100
+    space = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
+    tasks = BoxUniform(space).sample(k)
+    rows = []
+
+    env = PointNavigationEnv((k, e), seed=0)
+    reset = env.reset(TensorDict({"goal": tasks["params"][:, None].expand(k, e, 2)}, [k, e]))
+    t = seconds(lambda: env.rollout(steps, tensordict=reset.clone(), auto_reset=False,
+                                    break_when_any_done=False), args.repeats)
+    rows.append(("env.rollout, random actions", t, k * e * steps / t))
+
+    collector = PointNavigationCollector(episodes=e, seed=0)
+    net = GaussianMLP()
+    per_task = parameters_of(net).detach().expand(k).clone()
+    t = seconds(lambda: collector.collect(tasks, None, policy=net), args.repeats)
+    rows.append(("collect, shared θ", t, k * e * steps / t))
+    t = seconds(lambda: collector.collect(tasks, per_task, policy=net), args.repeats)
+    rows.append(("collect, per-task θ'_k (vmap)", t, k * e * steps / t))
+
+    def erm(losses: torch.Tensor) -> torch.Tensor:
+        return torch.full_like(losses, 1.0 / losses.numel())
+
+    for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5)):
+        leader = MAMLTRPOLeader(collector, hvp_episodes=hvp_episodes)
+        t = seconds(lambda leader=leader: leader.step(tasks, erm), args.repeats)
+        rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
+
+    print(f"point_nav, {k} tasks x {e} episodes x {steps} steps, torch threads = "
+          f"{torch.get_num_threads()}")
+    print(f"{'what':<42} {'seconds':>9} {'env steps/s':>12}")
+    for what, t, rate in rows:
+        print(f"{what:<42} {t:>9.3f} {rate:>12.0f}")
+
+
+if __name__ == "__main__":
+    main()

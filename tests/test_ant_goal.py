@@ -1,0 +1,194 @@
+"""AntGoalEnv: TorchRL contract, physics and reward against MuJoCo and gymnasium, goals across
+resets, seeding, and the multi-process split."""
+
+import gymnasium
+import mujoco
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import RewardSum, StepCounter, TransformedEnv
+from torchrl.envs.utils import RandomPolicy, check_env_specs, step_mdp
+
+from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, make_parallel_ant_goal
+from armeta_rl.errors import ConfigError
+
+CTRL, CONTACT, SURVIVE = 5e-3, 5e-4, 0.05
+
+
+def goals_td(env: AntGoalEnv, goals: torch.Tensor) -> TensorDict:
+    tasks, episodes = env.batch_size
+    return TensorDict({"goal": goals[:, None].expand(tasks, episodes, 2)}, env.batch_size)
+
+
+def reward_from_transition(td: TensorDict) -> torch.Tensor:
+    """The AntPos reward recomputed from a transition's action, next observation and goal."""
+    obs = td["next", "observation"]
+    xy, forces = obs[..., 116:118], obs[..., 29:107]
+    return (
+        -(xy - td["goal"]).abs().sum(-1)
+        - CTRL * td["action"].square().sum(-1)
+        - CONTACT * forces.square().sum(-1)
+        + SURVIVE
+    )
+
+
+def test_check_env_specs():
+    check_env_specs(AntGoalEnv((2, 3), max_steps=4, seed=0))
+
+
+def test_step_equals_direct_mujoco_computation():
+    """Each env step equals mj_step × 5, mj_forward and mj_rnePostConstraint on a separate MjData
+    of the plain gymnasium model, with observation and reward computed from that MjData."""
+    torch.manual_seed(0)
+    env = AntGoalEnv((2, 2), seed=1)
+    goals = torch.tensor([[2.0, -1.0], [-0.5, 3.0]])
+    td = env.reset(goals_td(env, goals))
+    model = load_ant_model(with_force_sensor=False)
+    torso = model.body("torso").id
+    datas = []
+    for qpos, qvel in zip(env.sim.bind("qpos"), env.sim.bind("qvel")):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        datas.append(data)
+    flat_goals = goals.repeat_interleave(2, 0).double().numpy()
+    max_force = 0.0
+    for _ in range(30):
+        action = 1.2 * (2 * torch.rand(2, 2, 8) - 1)  # beyond the control range: MuJoCo clamps
+        td["action"] = action
+        td = env.step(td)
+        for i, data in enumerate(datas):
+            a = action.reshape(4, 8)[i].double().numpy()
+            data.ctrl[:] = a
+            mujoco.mj_step(model, data, nstep=5)
+            mujoco.mj_forward(model, data)
+            mujoco.mj_rnePostConstraint(model, data)
+            forces = np.clip(data.cfrc_ext, -1, 1)
+            expected_obs = np.concatenate(
+                [data.qpos, data.qvel, forces[1:].ravel(), data.xmat[torso], data.xpos[torso]]
+            )
+            expected_reward = (
+                -np.abs(data.xpos[torso, :2] - flat_goals[i]).sum()
+                - CTRL * np.square(a).sum()
+                - CONTACT * np.square(forces).sum()
+                + SURVIVE
+            )
+            obs = td["next", "observation"].reshape(4, -1)[i].double().numpy()
+            reward = td["next", "reward"].reshape(4)[i].item()
+            np.testing.assert_allclose(obs, expected_obs, rtol=1e-5, atol=1e-5)
+            assert reward == pytest.approx(expected_reward, rel=1e-5, abs=1e-5)
+            height_ok = 0.2 <= data.qpos[2] <= 1.0
+            assert td["next", "terminated"].reshape(4)[i].item() == (not height_ok)
+            max_force = max(max_force, np.abs(data.cfrc_ext).max())
+        td = step_mdp(td)
+    assert max_force > 1.0  # contact forces are real (the Ant lands), not zeros
+
+
+def test_dynamics_equal_gymnasium_ant_v5():
+    """From the same state and actions, qpos and qvel follow gymnasium's Ant-v5 exactly."""
+    torch.manual_seed(0)
+    env = AntGoalEnv((1, 1), seed=2)
+    td = env.reset()
+    gym_env = gymnasium.make("Ant-v5", exclude_current_positions_from_observation=False)
+    gym_env.reset(seed=0)
+    gym_env.unwrapped.set_state(env.sim.bind("qpos")[0].copy(), env.sim.bind("qvel")[0].copy())
+    for _ in range(40):
+        action = 2 * torch.rand(1, 1, 8) - 1
+        td["action"] = action
+        td = env.step(td)
+        gym_obs = gym_env.step(action.reshape(8).double().numpy())[0]
+        np.testing.assert_allclose(env.sim.bind("qpos")[0], gym_obs[:15], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(env.sim.bind("qvel")[0], gym_obs[15:29], rtol=0, atol=1e-12)
+        td = step_mdp(td)
+    gym_env.close()
+
+
+def test_goals_survive_automatic_resets_in_rollout():
+    env = AntGoalEnv((2, 3), max_steps=5, seed=3)
+    goals = torch.tensor([[1.5, -2.0], [-3.0, 0.5]])
+    start = env.reset(goals_td(env, goals))
+    rollout = env.rollout(
+        17, RandomPolicy(env.action_spec), tensordict=start, auto_reset=False,
+        break_when_any_done=False,
+    )
+    expected = goals[:, None, None].expand(2, 3, 17, 2)
+    assert torch.equal(rollout["goal"], expected)
+    assert torch.equal(rollout["next", "goal"], expected)
+    truncated = rollout["next", "truncated"][0, 0, :, 0]
+    assert truncated.nonzero().flatten().tolist() == [4, 9, 14]  # three automatic resets
+    reward = rollout["next", "reward"].squeeze(-1)
+    torch.testing.assert_close(reward, reward_from_transition(rollout), rtol=1e-5, atol=1e-4)
+
+
+def test_goals_reach_the_env_through_transforms():
+    env = TransformedEnv(AntGoalEnv((2, 1), max_steps=3, seed=5), StepCounter())
+    env.append_transform(RewardSum())
+    check_env_specs(env)
+    goals = torch.tensor([[-2.5, 1.0], [0.0, 2.0]])
+    start = env.reset(TensorDict({"goal": goals[:, None]}, [2, 1]))
+    rollout = env.rollout(7, tensordict=start, auto_reset=False, break_when_any_done=False)
+    assert torch.equal(rollout["next", "goal"], goals[:, None, None].expand(2, 1, 7, 2))
+    assert rollout["next", "step_count"].max() == 3
+
+
+def test_goals_survive_resets_in_collector():
+    env = AntGoalEnv((2, 2), max_steps=4, seed=4)
+    goals = torch.tensor([[0.5, 2.5], [-1.0, -1.0]])
+    env.reset(goals_td(env, goals))
+    collector = Collector(
+        env, RandomPolicy(env.action_spec), frames_per_batch=4 * 10, total_frames=4 * 20
+    )
+    for data in collector:
+        assert data.batch_size == torch.Size([2, 2, 10])
+        assert torch.equal(data["goal"], goals[:, None, None].expand(2, 2, 10, 2))
+        assert data["next", "done"].any()
+        torch.testing.assert_close(
+            data["next", "reward"].squeeze(-1), reward_from_transition(data),
+            rtol=1e-5, atol=1e-4,
+        )
+    collector.shutdown()
+
+
+def test_seeded_reproducibility():
+    actions = 2 * torch.rand(10, 2, 2, 8) - 1
+
+    def run(seed: int) -> torch.Tensor:
+        env = AntGoalEnv((2, 2), max_steps=4, seed=seed)
+        td = env.reset()
+        observations = [td["observation"]]
+        for action in actions:
+            td["action"] = action
+            td = env.step_and_maybe_reset(td)[1]
+            observations.append(td["observation"])
+        return torch.stack(observations)
+
+    assert torch.equal(run(5), run(5))
+    assert not torch.allclose(run(5)[0], run(6)[0])
+
+
+def test_parallel_workers_equal_single_process_slices():
+    """Two worker processes, each with one task: worker w behaves as AntGoalEnv(seed=seed + w)."""
+    goals = torch.tensor([[1.0, 1.0], [-2.0, 0.0]])
+    actions = 2 * torch.rand(6, 2, 1, 2, 8) - 1
+    parallel = make_parallel_ant_goal(2, 2, 2, seed=7, max_steps=3)
+    td = parallel.reset(TensorDict({"goal": goals[:, None, None].expand(2, 1, 2, 2)}, [2, 1, 2]))
+    singles = [AntGoalEnv((1, 2), max_steps=3, seed=7 + w) for w in range(2)]
+    single_tds = [env.reset(goals_td(env, goals[w : w + 1])) for w, env in enumerate(singles)]
+    for action in actions:
+        td["action"] = action
+        _, td = parallel.step_and_maybe_reset(td)
+        for w, env in enumerate(singles):
+            single_tds[w]["action"] = action[w]
+            _, single_tds[w] = env.step_and_maybe_reset(single_tds[w])
+            torch.testing.assert_close(td[w]["observation"], single_tds[w]["observation"])
+            torch.testing.assert_close(td[w]["goal"], goals[w].expand(1, 2, 2))
+    parallel.close()
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{"max_steps": 0}, {"healthy_z_range": (1.0, 0.2)}, {"goal_range": 0.0}]
+)
+def test_bad_config_raises(kwargs):
+    with pytest.raises(ConfigError):
+        AntGoalEnv((1, 1), **kwargs)

@@ -1,0 +1,318 @@
+"""MAML-TRPO pieces: returns, GAE and the linear baseline on hand-computed cases; conjugate
+gradient and KL Hessian-vector products against dense linear algebra; the batched inner step
+against a per-task loop; the TRPO trust region; and a short seeded training run."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torch.func import functional_call
+
+from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
+from armeta_rl.errors import ConfigError
+from armeta_rl.rl.baseline import (
+    baseline_features,
+    baseline_values,
+    discounted_returns,
+    fit_linear_baseline,
+    gae_advantages,
+)
+from armeta_rl.rl.maml_trpo import MAMLTRPOLeader, as_task_params, episode_mean
+from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
+from armeta_rl.rl.trpo import (
+    backtracking_line_search,
+    conjugate_gradient,
+    flatten,
+    kl_hessian_vector_product,
+    meta_kl_hessian_vector_product,
+    unflatten,
+)
+from armeta_rl.tasks import BoxUniform, TaskSpace
+
+SPACE = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
+
+
+def trajectories(reward: torch.Tensor, done: torch.Tensor, observation: torch.Tensor) -> TensorDict:
+    """A hand-made trajectory batch ``[K, E, T]``."""
+    done = done.bool()
+    return TensorDict(
+        {
+            "reward": reward.unsqueeze(-1),
+            "done": done.unsqueeze(-1),
+            "mask": valid_mask(done),
+            "observation": observation,
+        },
+        batch_size=reward.shape,
+    )
+
+
+def test_discounted_returns_hand_case() -> None:
+    reward = torch.tensor([[[1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0, 4.0]]])
+    done = torch.tensor([[[0, 1, 0, 0], [0, 0, 0, 1]]])
+    data = trajectories(reward, done, torch.zeros(1, 2, 4, 2))
+    returns = discounted_returns(data, 0.5).squeeze(-1)
+    expected = torch.tensor([[[1 + 0.5 * 2, 2, 0, 0], [1 + 1 + 0.75 + 0.5, 2 + 1.5 + 1, 3 + 2, 4]]])
+    torch.testing.assert_close(returns, expected)
+
+
+def test_baseline_features_hand_case() -> None:
+    observation = torch.tensor([[[[0.1, -0.2], [0.3, 0.4], [9.0, 9.0]]]])
+    data = trajectories(torch.zeros(1, 1, 3), torch.tensor([[[0, 1, 0]]]), observation)
+    features = baseline_features(data)
+    t = 0.01
+    expected = torch.tensor(
+        [
+            [0.1, -0.2, 0.01, 0.04, 0.0, 0.0, 0.0, 1.0],
+            [0.3, 0.4, 0.09, 0.16, t, t**2, t**3, 1.0],
+            [0.0] * 8,  # after the episode's end
+        ]
+    )
+    torch.testing.assert_close(features[0, 0], expected)
+
+
+def test_ridge_fit_recovers_per_task_linear_targets() -> None:
+    torch.manual_seed(0)
+    features = torch.randn(3, 4, 10, 8, dtype=torch.float64)
+    coefficients = torch.randn(3, 8, dtype=torch.float64)
+    targets = torch.einsum("kdtf,kf->kdt", features, coefficients)
+    fitted = fit_linear_baseline(features, targets, reg=1e-10)
+    torch.testing.assert_close(fitted, coefficients)
+    # with a strong ridge the solution is the regularized normal-equation solution of each task
+    design = features[1].reshape(-1, 8)
+    ridge = torch.linalg.solve(design.T @ design + 5.0 * torch.eye(8, dtype=torch.float64),
+                               design.T @ targets[1].reshape(-1))
+    torch.testing.assert_close(fit_linear_baseline(features, targets, reg=5.0)[1], ridge)
+
+
+def test_gae_matches_hand_recursion_and_is_normalized_per_task() -> None:
+    torch.manual_seed(1)
+    k, e, t, gamma, lmbda = 2, 3, 6, 0.9, 0.8
+    reward = torch.randn(k, e, t)
+    done = torch.zeros(k, e, t)
+    done[..., -1] = 1
+    done[0, 1, 2] = 1
+    done[1, 2, 0] = 1
+    data = trajectories(reward, done, torch.randn(k, e, t, 2))
+    mask = data["mask"]
+    values = (baseline_values(data, gamma).squeeze(-1) * mask).tolist()
+    raw = torch.zeros(k, e, t)
+    for a in range(k):
+        for b in range(e):
+            following = 0.0
+            for s in reversed(range(t)):
+                if not mask[a, b, s]:
+                    continue
+                ends = bool(done[a, b, s])
+                next_value = 0.0 if ends else values[a][b][s + 1]
+                delta = float(reward[a, b, s]) + gamma * next_value - values[a][b][s]
+                following = delta + (0.0 if ends else gamma * lmbda * following)
+                raw[a, b, s] = following
+    expected = torch.zeros_like(raw)
+    for a in range(k):
+        valid = raw[a][mask[a]]
+        expected[a][mask[a]] = (valid - valid.mean()) / (valid.std(unbiased=False) + 1e-8)
+    torch.testing.assert_close(gae_advantages(data, gamma, lmbda), expected, atol=1e-5, rtol=1e-4)
+
+
+def small_policy_kl(dtype: torch.dtype = torch.float64):
+    """A tiny Gaussian policy, its flat parameters and θ ↦ mean KL(π_θ ‖ π_θ0) on fixed states."""
+    torch.manual_seed(2)
+    net = GaussianMLP(2, 2, (3,)).to(dtype)
+    names = [n for n, _ in net.named_parameters()]
+    shapes = [p.detach().clone() for p in net.parameters()]
+    observation = torch.randn(40, 2, dtype=dtype)
+    with torch.no_grad():  # move log-std away from 0 so the Fisher is not trivially scaled
+        net.log_std.fill_(-0.3)
+        theta0 = flatten(list(net.parameters())).detach()
+        old = net(observation)
+
+    def kl(vector: torch.Tensor) -> torch.Tensor:
+        params = dict(zip(names, unflatten(vector, shapes)))
+        loc, scale = functional_call(net, params, (observation,))
+        return kl_divergence(loc, scale, *old).mean()
+
+    return theta0, kl
+
+
+def test_kl_hessian_vector_product_and_conjugate_gradient_match_dense_algebra() -> None:
+    theta0, kl = small_policy_kl()
+    hessian = torch.autograd.functional.hessian(kl, theta0)
+    n = theta0.numel()
+    damping = 1e-2
+    theta = theta0.clone().requires_grad_(True)
+    hvp = kl_hessian_vector_product(kl(theta), [theta], damping)
+    v = torch.randn(n, dtype=theta0.dtype)
+    torch.testing.assert_close(hvp(v), hessian @ v + damping * v)
+    # at θ = θ_old the KL Hessian is the Fisher: symmetric positive semi-definite
+    assert torch.linalg.eigvalsh(hessian).min() > -1e-10
+    b = torch.randn(n, dtype=theta0.dtype)
+    exact = torch.linalg.solve(hessian + damping * torch.eye(n, dtype=theta0.dtype), b)
+    approx = conjugate_gradient(hvp, b, iterations=4 * n, residual_tol=1e-20)
+    torch.testing.assert_close(approx, exact, rtol=1e-6, atol=1e-8)
+    # every CG iteration lowers the quadratic model ½xᵀAx − bᵀx that it minimizes
+    model = [float(0.5 * x @ hvp(x) - b @ x)
+             for x in (conjugate_gradient(hvp, b, iterations=i) for i in range(1, 6))]
+    assert model[0] < 0
+    assert all(later <= earlier + 1e-12 for earlier, later in zip(model, model[1:]))
+
+
+def fake_batch(k: int = 3, e: int = 2, t: int = 5) -> tuple[TensorDict, torch.Tensor]:
+    torch.manual_seed(3)
+    done = torch.zeros(k, e, t, dtype=torch.bool)
+    done[..., -1] = True
+    done[0, 0, 2] = True
+    data = TensorDict(
+        {
+            "observation": torch.randn(k, e, t, 2),
+            "action": torch.randn(k, e, t, 2),
+            "mask": valid_mask(done),
+        },
+        [k, e, t],
+    )
+    return data, torch.randn(k, e, t)
+
+
+def test_batched_inner_step_equals_per_task_loop() -> None:
+    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2), hidden_sizes=(8, 8))
+    data, advantages = fake_batch()
+    adapted = leader.adapt(leader.theta(), data, advantages, create_graph=True)
+    queries = torch.randn(3, 7, 2)
+    meta_loss = loc_scale(leader.net, as_task_params(adapted), queries)[0].square().sum()
+    meta_grad = torch.autograd.grad(meta_loss, list(leader.net.parameters()))
+
+    looped_loss = torch.zeros(())
+    for k in range(3):
+        loc, scale = leader.net(data["observation"][k])
+        logp = log_prob(loc, scale, data["action"][k])
+        loss = -episode_mean((logp * advantages[k])[None], data["mask"][k][None])[0]
+        grads = torch.autograd.grad(loss, list(leader.net.parameters()), create_graph=True)
+        task = {name: p - 0.1 * g for (name, p), g in zip(leader.net.named_parameters(), grads)}
+        for name, value in task.items():
+            torch.testing.assert_close(adapted[name][k], value)
+        query_loc = functional_call(leader.net, task, (queries[k],))[0]
+        looped_loss = looped_loss + query_loc.square().sum()
+    looped_grad = torch.autograd.grad(looped_loss, list(leader.net.parameters()))
+    for batched, looped in zip(meta_grad, looped_grad):
+        torch.testing.assert_close(batched, looped, rtol=1e-4, atol=1e-5)
+
+
+def test_meta_kl_hessian_vector_product_equals_double_backward_through_adaptation() -> None:
+    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2), hidden_sizes=(8, 8))
+    train, train_advantages = fake_batch()
+    valid, _ = fake_batch()
+    valid["log_prob"] = torch.zeros(valid.batch_size)
+    weights = torch.tensor([0.5, 0.3, 0.2])
+    params = list(leader.net.parameters())
+    names = [name for name, _ in leader.net.named_parameters()]
+    broadcast, adapted = leader.inner_step(leader.theta(), train, train_advantages, True)
+
+    def weighted_kl(leaves: list[torch.Tensor]) -> torch.Tensor:
+        kl = leader.outer_terms(dict(zip(names, leaves)), valid, torch.zeros(3, 2, 5))[1]
+        return (weights * kl).sum()
+
+    structured = meta_kl_hessian_vector_product(
+        weighted_kl, list(broadcast.values()), list(adapted.values()), params, damping=0.0
+    )
+    # reference: differentiate ∇_θ KL(θ'(θ)) again, all the way through the inner step
+    reference = kl_hessian_vector_product(weighted_kl(list(adapted.values())), params, damping=0.0)
+    size = sum(p.numel() for p in params)
+    for seed in range(3):
+        v = torch.randn(size, generator=torch.Generator().manual_seed(seed))
+        expected = reference(v)
+        assert expected.norm() > 0
+        torch.testing.assert_close(structured(v), expected, rtol=1e-4, atol=1e-6)
+    # the inner step matters: the KL Hessian of the unadapted policy is a different matrix
+    first_order = kl_hessian_vector_product(
+        weighted_kl([p.expand(3, *p.shape) for p in params]), params, damping=0.0
+    )
+    assert not torch.allclose(first_order(v), expected, rtol=1e-3, atol=1e-5)
+
+
+def test_line_search_takes_the_first_improving_step_inside_the_bound() -> None:
+    def evaluate(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return (theta - 1).square().mean(), theta.square().mean()
+
+    theta0 = torch.zeros(5)
+    new, accepted = backtracking_line_search(
+        evaluate, theta0, -2 * torch.ones(5), torch.tensor(1.0), max_kl=1.0, max_steps=15, ratio=0.8
+    )
+    # 2·0.8^i must satisfy (2·0.8^i)² < 1: the first such i is 4
+    assert accepted == 4
+    torch.testing.assert_close(new, torch.full((5,), 2 * 0.8**4))
+    unchanged, none = backtracking_line_search(evaluate, theta0, 2 * torch.ones(5),
+                                               torch.tensor(1.0), max_kl=1.0)
+    assert none is None and torch.equal(unchanged, theta0)
+
+
+def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> None:
+    torch.manual_seed(4)
+    collector = PointNavigationCollector(episodes=4, max_steps=20, seed=0)
+    leader = MAMLTRPOLeader(collector, max_kl=1e-3)
+    tasks = BoxUniform(SPACE).sample(3)
+    batch = leader.collect_meta_batch(tasks)
+    weights = torch.tensor([0.7, 0.2, 0.1])
+    with torch.no_grad():
+        old = loc_scale(leader.net, as_task_params(batch.adapted), batch.valid["observation"])
+    info = leader.trpo_update(batch, weights)
+    assert info["trpo/line_search_steps"] >= 0
+
+    adapted = leader.adapt(leader.theta(), batch.train, batch.train_advantages, create_graph=False)
+    with torch.no_grad():
+        loss, kl, _ = leader.outer_terms(adapted, batch.valid, batch.valid_advantages, old)
+    assert 0 < (weights * kl).sum() <= 1e-3
+    assert (weights * loss).sum() < info["trpo/surrogate_before"]
+    torch.testing.assert_close((weights * kl).sum().item(), info["trpo/kl"], rtol=1e-4, atol=1e-9)
+
+
+def test_step_reports_per_task_returns_and_evaluate_keeps_theta() -> None:
+    torch.manual_seed(5)
+    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=3, max_steps=10, seed=0))
+    tasks = BoxUniform(SPACE).sample(4)
+    seen = []
+
+    def erm(losses: torch.Tensor) -> torch.Tensor:
+        seen.append(losses)
+        return torch.full_like(losses, 0.25)
+
+    out = leader.step(tasks, erm)
+    assert out.batch_size == (4,)
+    torch.testing.assert_close(out["loss"], -out["return_post"])
+    torch.testing.assert_close(seen[0], out["loss"])
+    before = {k: v.clone() for k, v in leader.net.state_dict().items()}
+    losses = leader.evaluate(tasks, PointNavigationCollector(episodes=2, max_steps=10))
+    assert losses.shape == (4,) and (losses > 0).all()
+    for key, value in leader.net.state_dict().items():
+        assert torch.equal(value, before[key])
+
+
+def test_short_seeded_run_improves_post_adaptation_return() -> None:
+    torch.manual_seed(0)
+    collector = PointNavigationCollector(episodes=10, max_steps=50, seed=0)
+    leader = MAMLTRPOLeader(collector)
+    sampler = BoxUniform(SPACE)
+    test_tasks = sampler.sample(10)
+
+    def erm(losses: torch.Tensor) -> torch.Tensor:
+        return torch.full_like(losses, 1.0 / losses.numel())
+
+    before = -leader.evaluate(test_tasks).mean()
+    for _ in range(6):
+        leader.step(sampler.sample(5), erm)
+    after = -leader.evaluate(test_tasks).mean()
+    assert after > before + 0.25 * before.abs()
+
+
+@pytest.mark.parametrize(
+    ("key", "kwargs"),
+    [
+        ("inner_lr", {"inner_lr": 0.0}),
+        ("max_kl", {"max_kl": -1.0}),
+        ("gamma", {"gamma": 1.5}),
+        ("ls_backtrack_ratio", {"ls_backtrack_ratio": 1.0}),
+        ("hvp_episodes", {"hvp_episodes": 0}),
+    ],
+)
+def test_bad_hyper_parameters_raise_config_error(key: str, kwargs: dict) -> None:
+    with pytest.raises(ConfigError, match=f"learner.maml_trpo.{key}"):
+        MAMLTRPOLeader(PointNavigationCollector(), **kwargs)

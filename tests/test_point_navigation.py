@@ -1,0 +1,202 @@
+"""PointNavigationEnv: specs, dynamics, goals across automatic resets, sparse regions, TorchRL
+rollouts/collectors/transforms, seeding; and the episode collector's masking."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs import RewardSum, StepCounter, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from armeta_rl.collectors.episodes import PointNavigationCollector, episode_returns, valid_mask
+from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
+from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianMLP, make_actor
+
+
+def reset_with_goals(env: PointNavigationEnv, goals: torch.Tensor) -> TensorDict:
+    return env.reset(TensorDict({"goal": goals}, env.batch_size))
+
+
+def test_check_env_specs_plain_and_sparse() -> None:
+    check_env_specs(PointNavigationEnv((3, 4), seed=0))
+    check_env_specs(PointNavigationEnv((2, 5), sparse_regions=PAPER_SPARSE_REGIONS, seed=1))
+
+
+def test_step_clips_action_and_rewards_minus_distance() -> None:
+    env = PointNavigationEnv((1, 2), seed=0)
+    goals = torch.tensor([[[0.3, -0.2], [0.05, 0.0]]])
+    reset_with_goals(env, goals)
+    action = torch.tensor([[[1.0, -1.0], [0.05, 0.0]]])
+    out = env.step(TensorDict({"action": action}, env.batch_size))["next"]
+    expected_position = torch.tensor([[[0.1, -0.1], [0.05, 0.0]]])
+    torch.testing.assert_close(out["observation"], expected_position)
+    distance = (expected_position - goals).norm(dim=-1, keepdim=True)
+    torch.testing.assert_close(out["reward"], -distance)
+    # the second robot lands on its goal: terminated, not truncated
+    assert out["terminated"].squeeze(-1).tolist() == [[False, True]]
+    assert not out["truncated"].any()
+
+
+def test_squared_distance_option() -> None:
+    env = PointNavigationEnv((1, 1), squared_distance=True, seed=0)
+    reset_with_goals(env, torch.tensor([[[0.4, 0.3]]]))
+    out = env.step(TensorDict({"action": torch.zeros(1, 1, 2)}, env.batch_size))["next"]
+    torch.testing.assert_close(out["reward"], torch.tensor([[[-0.25]]]))
+
+
+def test_time_limit_truncates() -> None:
+    env = PointNavigationEnv((2, 3), max_steps=7, seed=0)
+    start = reset_with_goals(env, torch.full((2, 3, 2), 0.5))
+    rollout = env.rollout(7, auto_reset=False, tensordict=start)
+    assert rollout.batch_size == (2, 3, 7)
+    truncated = rollout["next", "truncated"].squeeze(-1)
+    assert truncated[..., -1].all() and not truncated[..., :-1].any()
+
+
+def test_goals_survive_automatic_resets() -> None:
+    env = PointNavigationEnv((3, 2), max_steps=10, seed=0)
+    goals = torch.tensor([[0.4, -0.3], [-0.2, 0.1], [0.0, 0.45]])[:, None].expand(3, 2, 2)
+    start = reset_with_goals(env, goals)
+    # 25 steps with a 10-step limit: two automatic (partial) resets inside env.rollout
+    rollout = env.rollout(25, tensordict=start, auto_reset=False, break_when_any_done=False)
+    done = rollout["next", "done"].squeeze(-1)
+    assert done[..., 9].all() and done[..., 19].all()
+    # after each reset the robot is back at the origin ...
+    assert (rollout["observation"][..., [10, 20], :] == 0).all()
+    # ... and every step, before and after the resets, was played against the same goal
+    assert (rollout["goal"] == goals[:, :, None]).all()
+    assert (rollout["next", "goal"] == goals[:, :, None]).all()
+    offset = rollout["next", "observation"] - goals[:, :, None]
+    torch.testing.assert_close(rollout["next", "reward"], -offset.norm(dim=-1, keepdim=True))
+
+
+def test_reset_without_goal_keeps_goals_and_seed_draws_defaults() -> None:
+    a, b, c = (PointNavigationEnv((4, 2), seed=s) for s in (3, 3, 4))
+    goals_a = a.reset()["goal"]
+    torch.testing.assert_close(goals_a, b.reset()["goal"])
+    assert not torch.equal(goals_a, c.reset()["goal"])
+    assert goals_a.abs().max() <= 0.5
+    new = torch.full((4, 2, 2), 0.2)
+    reset_with_goals(a, new)
+    assert torch.equal(a.reset()["goal"], new)
+
+
+@pytest.mark.parametrize(
+    ("goal", "scale"),
+    [
+        ((-0.4, 0.3), 0.6),
+        ((-0.25, 0.25), 0.6),  # region edges are inside
+        ((0.3, -0.45), 0.4),
+        ((0.3, 0.3), 1.0),
+        ((-0.4, -0.3), 1.0),
+        ((-0.2, 0.4), 1.0),
+    ],
+)
+def test_sparse_regions_scale_step_rewards(goal: tuple[float, float], scale: float) -> None:
+    plain = PointNavigationEnv((1, 1), seed=0)
+    sparse = PointNavigationEnv((1, 1), sparse_regions=PAPER_SPARSE_REGIONS, seed=0)
+    goals = torch.tensor(goal).view(1, 1, 2)
+    actions = torch.tensor([[0.07, -0.02], [-0.1, 0.1], [0.03, 0.05]])
+    rewards = []
+    for env in (plain, sparse):
+        td = reset_with_goals(env, goals)
+        per_step = []
+        for action in actions:
+            td = env.step(td.set("action", action.view(1, 1, 2)))
+            per_step.append(td["next", "reward"])
+            td = td["next"]
+        rewards.append(torch.stack(per_step))
+    assert (rewards[0] < 0).all()
+    torch.testing.assert_close(rewards[1], scale * rewards[0])
+
+
+def test_custom_regions_and_bad_regions() -> None:
+    env = PointNavigationEnv((1, 1), sparse_regions=[((0.0, 0.5), (0.0, 0.5), 0.1)], seed=0)
+    reset_with_goals(env, torch.tensor([[[0.2, 0.2]]]))
+    reward = env.step(TensorDict({"action": torch.zeros(1, 1, 2)}, [1, 1]))["next", "reward"]
+    torch.testing.assert_close(reward, torch.tensor([[[-0.1 * 0.08**0.5]]]))
+    with pytest.raises(ConfigError, match="sparse_regions"):
+        PointNavigationEnv((1, 1), sparse_regions=[((0.5, 0.0), (0.0, 0.5), 0.1)])
+    with pytest.raises(ConfigError, match="sparse_regions"):
+        PointNavigationEnv((1, 1), sparse_regions=[(0.5, 0.1)])
+    with pytest.raises(ConfigError, match="max_steps"):
+        PointNavigationEnv((1, 1), max_steps=0)
+
+
+def test_runs_under_collector_with_probabilistic_actor_and_transforms() -> None:
+    torch.manual_seed(0)
+    env = TransformedEnv(PointNavigationEnv((2, 3), max_steps=5, seed=0), StepCounter())
+    env.append_transform(RewardSum())
+    check_env_specs(env)
+    actor = make_actor(GaussianMLP())
+    collector = Collector(
+        env, actor, frames_per_batch=2 * 3 * 8, total_frames=2 * 3 * 16,
+        auto_register_policy_transforms=False,
+    )
+    batches = list(collector)
+    collector.shutdown()
+    assert len(batches) == 2
+    for batch in batches:
+        assert batch.batch_size == (2, 3, 8)
+        goals = batch["goal"]
+        assert (goals == goals[:, :, :1]).all()  # constant across the resets at steps 5 and 10
+        assert (batch["next", "step_count"] <= 5).all()
+        # the actor's samples are stochastic and its log-probs match a diagonal Gaussian
+        logp = torch.distributions.Normal(batch["loc"], batch["scale"]).log_prob(batch["action"])
+        torch.testing.assert_close(batch["action_log_prob"], logp.sum(-1))
+    # the first batch starts with fresh episodes that end at the 5-step limit; RewardSum's
+    # episode return there equals the sum of the step rewards
+    first = batches[0]
+    assert first["next", "done"].squeeze(-1)[..., 4].all()
+    in_episode = first["next", "reward"][..., :5, 0].sum(-1)
+    torch.testing.assert_close(first["next", "episode_reward"][..., 4, 0], in_episode)
+
+
+def test_valid_mask_keeps_only_the_first_episode() -> None:
+    done = torch.tensor([[False, False, True, False, True], [False] * 4 + [True]])
+    expected = torch.tensor([[True, True, True, False, False], [True] * 5])
+    assert torch.equal(valid_mask(done), expected)
+
+
+def test_episode_collector_shapes_goals_and_masked_returns() -> None:
+    torch.manual_seed(0)
+    collector = PointNavigationCollector(episodes=3, max_steps=20, seed=0)
+    net = GaussianMLP()
+    goals = torch.tensor([[0.0, 0.005], [0.3, -0.4]])
+    data = collector.collect(TensorDict({"params": goals}, [2]), policy=net)
+    assert data.batch_size == (2, 3, 20)
+    assert (data["goal"] == goals[:, None, None]).all()
+    # returns count only the steps of the first episode of each batch entry
+    manual = torch.zeros(2, 3)
+    for k in range(2):
+        for e in range(3):
+            for t in range(20):
+                manual[k, e] += data["reward"][k, e, t, 0]
+                if data["done"][k, e, t, 0]:
+                    break
+    torch.testing.assert_close(episode_returns(data), manual)
+    with pytest.raises(ConfigError, match="episodes"):
+        PointNavigationCollector(episodes=0)
+    with pytest.raises(ConfigError, match="sparse_regions"):
+        PointNavigationCollector(sparse_regions=[((0.0, 0.5), (0.0, 0.5), -1.0)])
+
+
+def test_episode_collector_acts_with_each_tasks_parameters() -> None:
+    torch.manual_seed(1)
+    net = GaussianMLP()
+    params = TensorDict.from_module(net).detach().expand(2).clone()
+    # task 0 always pushes +x, task 1 always pushes -y, both (nearly) deterministically
+    params["mean", "4", "weight"].zero_()
+    params["mean", "4", "bias"].copy_(torch.tensor([[1.0, 0.0], [0.0, -1.0]]))
+    params["log_std"].fill_(-12.0)
+    collector = PointNavigationCollector(episodes=2, max_steps=4, seed=0)
+    goals = TensorDict({"params": torch.tensor([[0.5, 0.5], [0.5, 0.5]])}, [2])
+    data = collector.collect(goals, params, policy=net)
+    final = data["observation"][:, :, -1] + data["action"][:, :, -1].clamp(-0.1, 0.1)
+    torch.testing.assert_close(final[0], torch.tensor([[0.4, 0.0]] * 2), atol=1e-4, rtol=0)
+    torch.testing.assert_close(final[1], torch.tensor([[0.0, -0.4]] * 2), atol=1e-4, rtol=0)
+    expected_x = torch.tensor([0.1, 0.2, 0.3])
+    torch.testing.assert_close(data["observation"][0, 0, 1:, 0], expected_x, atol=1e-4, rtol=0)
