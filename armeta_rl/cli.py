@@ -16,6 +16,8 @@ from typing import NoReturn
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from armeta_rl.allocator import keep_freed_memory
+
 GROUPS = ("benchmark", "method", "logger")
 
 
@@ -84,6 +86,7 @@ def _train_task(cfg: DictConfig) -> None:
 
 def train() -> None:
     """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``)."""
+    keep_freed_memory()
     args = sys.argv[1:]
     check_group_choices(args, "armeta-train")
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
@@ -109,6 +112,7 @@ def _eval_task(cfg: DictConfig) -> None:
 
 def evaluate() -> None:
     """``armeta-eval``: score a saved learner on p0 and on a saved adversary."""
+    keep_freed_memory()
     args = sys.argv[1:]
     if not any(a.startswith("learner=") for a in args):
         _fail(

@@ -1,19 +1,22 @@
 """Milliseconds per meta-iteration on sinusoid_uniform (25 tasks, one thread).
 
 Rows: the full AR-MAML iteration (leader step, follower losses at θ_{t+1}, adversary update every
-iteration), plain MAML, and the same second-order meta-gradient computed with a Python loop over
-tasks instead of ``vmap``. Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sinusoid.py``.
+iteration) with the spline and the planar adversary, plain MAML, and the same second-order
+meta-gradient computed with a Python loop over tasks instead of ``vmap``. Config overrides may
+follow on the command line. Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sinusoid.py``.
 """
 
 from __future__ import annotations
 
 import statistics
+import sys
 import time
 from collections.abc import Callable
 
 import torch
 from hydra import compose, initialize_config_dir
 
+from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.runs import build_players
@@ -34,9 +37,10 @@ def milliseconds(
     return median, q3 - q1
 
 
-def trainer_for(method: str, flow: str = "spline") -> GameTrainer:
+def trainer_for(method: str, *overrides: str) -> GameTrainer:
+    """A trainer for ``method`` on the default benchmark with config ``overrides``."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=[f"method={method}", f"risk.ar.flow={flow}"])
+        cfg = compose("train", overrides=[f"method={method}", *overrides])
     players = build_players(cfg)
     return GameTrainer(
         players.leader,
@@ -63,7 +67,9 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
     return step
 
 
-def main() -> None:
+def main(extra: list[str]) -> None:
+    """Print the table; ``extra`` are config overrides (e.g. ``risk.ar.flow_kwargs.layers=2``)."""
+    keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     rows = []
@@ -72,9 +78,9 @@ def main() -> None:
         ("ar_maml (planar adversary, u=1)", "ar_maml", "planar"),
         ("maml (ERM)", "maml", "spline"),
     ]:
-        trainer = trainer_for(method, flow)
+        trainer = trainer_for(method, f"risk.ar.flow={flow}", *extra)
         rows.append((label, *milliseconds(trainer.train_iteration)))
-    trainer = trainer_for("maml")
+    trainer = trainer_for("maml", *extra)
     rows.append(("maml, per-task Python loop", *milliseconds(looped_meta_gradient(trainer), 50, 5)))
     print(
         f"sinusoid_uniform, 25 tasks, 5-shot, second-order MAML, {torch.get_num_threads()} thread"
@@ -85,4 +91,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

@@ -408,7 +408,8 @@ def test_plot_density_draws_both_densities(tmp_path) -> None:
     figure = plot_density(adversary, adversary.base, path, points_per_axis=30)
     assert path.stat().st_size > 0
     images = [axis.images[0] for axis in figure.axes if axis.images]
-    assert len(images) == 2 and len(figure.axes) == 4  # two heat maps and two colorbars
+    assert len(images) == 2 and len(figure.axes) == 3  # two heat maps and one shared colorbar
+    assert images[0].get_clim() == images[1].get_clim()  # one colour scale for both
     grid, _ = SINUSOID.grid(30)
     with torch.no_grad():
         for image, distribution in zip(images, (adversary, adversary.base), strict=True):

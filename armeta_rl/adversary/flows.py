@@ -100,7 +100,7 @@ class SplineBoxFlow(BoxFlow):
         blocks: residual blocks of each coupling's network.
     """
 
-    def __init__(self, space: TaskSpace, layers: int = 4, bins: int = 8, hidden: int = 32,
+    def __init__(self, space: TaskSpace, layers: int = 2, bins: int = 8, hidden: int = 32,
                  blocks: int = 2) -> None:
         for key, value in (("layers", layers), ("bins", bins), ("hidden", hidden)):
             if not isinstance(value, int) or value < 1:
