@@ -108,13 +108,13 @@ def _dr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPri
 def _tr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
     from armeta_rl.risk.groups import WorstCasePrinciple
 
-    return WorstCasePrinciple(initial, space, **_section(cfg, "risk.tr"))
+    return WorstCasePrinciple(initial, **_section(cfg, "risk.tr"))
 
 
 def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
     from armeta_rl.risk.groups import GroupDROPrinciple
 
-    return GroupDROPrinciple(initial, space, **_section(cfg, "risk.dro"))
+    return GroupDROPrinciple(initial, **_section(cfg, "risk.dro"))
 
 
 LEADERS: dict[str, Callable[[DictConfig, Collector], Leader]] = {

@@ -23,6 +23,7 @@ from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
     conjugate_gradient,
+    conjugate_gradient_with_product,
     flatten,
     kl_hessian_vector_product,
     meta_kl_hessian_vector_product,
@@ -150,6 +151,9 @@ def test_kl_hessian_vector_product_and_conjugate_gradient_match_dense_algebra() 
     exact = torch.linalg.solve(hessian + damping * torch.eye(n, dtype=theta0.dtype), b)
     approx = conjugate_gradient(hvp, b, iterations=4 * n, residual_tol=1e-20)
     torch.testing.assert_close(approx, exact, rtol=1e-6, atol=1e-8)
+    # the product A x that CG returns from its residual is the true product
+    partial, product = conjugate_gradient_with_product(hvp, b, iterations=5)
+    torch.testing.assert_close(product, hvp(partial), rtol=1e-8, atol=1e-10)
     # every CG iteration lowers the quadratic model ½xᵀAx − bᵀx that it minimizes
     model = [float(0.5 * x @ hvp(x) - b @ x)
              for x in (conjugate_gradient(hvp, b, iterations=i) for i in range(1, 6))]
@@ -197,36 +201,75 @@ def test_batched_inner_step_equals_per_task_loop() -> None:
         torch.testing.assert_close(batched, looped, rtol=1e-4, atol=1e-5)
 
 
-def test_meta_kl_hessian_vector_product_equals_double_backward_through_adaptation() -> None:
-    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2), hidden_sizes=(8, 8))
+def meta_hvp_pair(dtype: torch.dtype, hidden: tuple[int, ...] = (8, 8)):
+    """The fast meta-KL Hessian-vector product and the plain double-backward reference, at the
+    adapted policies of a small leader on fake data, with task weights."""
+    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2), hidden_sizes=hidden)
+    leader.net.to(dtype)
     train, train_advantages = fake_batch()
     valid, _ = fake_batch()
-    valid["log_prob"] = torch.zeros(valid.batch_size)
-    weights = torch.tensor([0.5, 0.3, 0.2])
+    train, valid = train.to(dtype), valid.to(dtype)
+    train_advantages = train_advantages.to(dtype)
+    valid["log_prob"] = torch.zeros(valid.batch_size, dtype=dtype)
+    weights = torch.tensor([0.5, 0.3, 0.2], dtype=dtype)
     params = list(leader.net.parameters())
     names = [name for name, _ in leader.net.named_parameters()]
     broadcast, adapted = leader.inner_step(leader.theta(), train, train_advantages, True)
+    leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
+    outputs = loc_scale(leader.net, as_task_params(dict(zip(names, leaves))), valid["observation"])
+    current = tuple(o.detach() for o in outputs)
 
-    def weighted_kl(leaves: list[torch.Tensor]) -> torch.Tensor:
-        kl = leader.outer_terms(dict(zip(names, leaves)), valid, torch.zeros(3, 2, 5))[1]
+    def weighted_kl_of_outputs(outs: list[torch.Tensor]) -> torch.Tensor:
+        return (weights * episode_mean(kl_divergence(*outs, *current), valid["mask"])).sum()
+
+    def weighted_kl(parameters: list[torch.Tensor]) -> torch.Tensor:
+        kl = leader.outer_terms(dict(zip(names, parameters)), valid, torch.zeros(3, 2, 5))[1]
         return (weights * kl).sum()
 
     structured = meta_kl_hessian_vector_product(
-        weighted_kl, list(broadcast.values()), list(adapted.values()), params, damping=0.0
+        weighted_kl_of_outputs, outputs, leaves, list(broadcast.values()),
+        list(adapted.values()), params, damping=0.0,
     )
     # reference: differentiate ∇_θ KL(θ'(θ)) again, all the way through the inner step
     reference = kl_hessian_vector_product(weighted_kl(list(adapted.values())), params, damping=0.0)
+    return leader, params, weighted_kl, structured, reference
+
+
+@pytest.mark.parametrize(("dtype", "rtol", "atol"),
+                         [(torch.float32, 1e-4, 1e-6), (torch.float64, 1e-6, 1e-12)])
+def test_meta_kl_hessian_vector_product_equals_double_backward_through_adaptation(
+    dtype: torch.dtype, rtol: float, atol: float
+) -> None:
+    leader, params, weighted_kl, structured, reference = meta_hvp_pair(dtype)
     size = sum(p.numel() for p in params)
     for seed in range(3):
-        v = torch.randn(size, generator=torch.Generator().manual_seed(seed))
+        v = torch.randn(size, generator=torch.Generator().manual_seed(seed)).to(dtype)
         expected = reference(v)
         assert expected.norm() > 0
-        torch.testing.assert_close(structured(v), expected, rtol=1e-4, atol=1e-6)
+        torch.testing.assert_close(structured(v), expected, rtol=rtol, atol=atol)
     # the inner step matters: the KL Hessian of the unadapted policy is a different matrix
     first_order = kl_hessian_vector_product(
         weighted_kl([p.expand(3, *p.shape) for p in params]), params, damping=0.0
     )
     assert not torch.allclose(first_order(v), expected, rtol=1e-3, atol=1e-5)
+
+
+def test_meta_kl_hessian_vector_product_equals_dense_hessian_on_a_tiny_net() -> None:
+    leader, params, weighted_kl, structured, _ = meta_hvp_pair(torch.float64, hidden=(3,))
+    names = [name for name, _ in leader.net.named_parameters()]
+    train, train_advantages = fake_batch()
+    train = train.to(torch.float64)
+    theta0 = flatten(params).detach()
+
+    def kl_of_theta(vector: torch.Tensor) -> torch.Tensor:
+        theta = dict(zip(names, unflatten(vector, params)))
+        adapted = leader.adapt(theta, train, train_advantages.double(), create_graph=True)
+        return weighted_kl(list(adapted.values()))
+
+    hessian = torch.autograd.functional.hessian(kl_of_theta, theta0)
+    assert torch.linalg.eigvalsh(hessian).min() > -1e-10  # Σ_k J_k F_k J_k is PSD
+    dense = torch.stack([structured(e) for e in torch.eye(theta0.numel(), dtype=torch.float64)])
+    torch.testing.assert_close(dense, hessian, rtol=1e-6, atol=1e-12)
 
 
 def test_line_search_takes_the_first_improving_step_inside_the_bound() -> None:

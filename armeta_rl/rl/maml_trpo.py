@@ -193,13 +193,24 @@ class MAMLTRPOLeader:
         """Per-task surrogate loss and KL ``[K]`` of the adapted policies on the post-adaptation
         episodes, against ``old`` (loc, scale) (default: the adapted policies themselves,
         detached). Returns (loss, kl, old)."""
-        loc, scale = loc_scale(self.net, as_task_params(adapted), valid["observation"])
+        outputs = loc_scale(self.net, as_task_params(adapted), valid["observation"])
         if old is None:
-            old = (loc.detach(), scale.detach())
+            old = (outputs[0].detach(), outputs[1].detach())
+        loss, kl = self.outer_terms_of_outputs(outputs, valid, advantages, old)
+        return loss, kl, old
+
+    @staticmethod
+    def outer_terms_of_outputs(
+        outputs: Sequence[Tensor], valid: TensorDictBase, advantages: Tensor,
+        old: Sequence[Tensor],
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`outer_terms` from the adapted policies' (loc, scale) on ``valid``:
+        L^out_k = −mean(π_θ'_k(a|s)/π_data(a|s)·Â) and KL_k(π_θ'_k ‖ π_old), each ``[K]``."""
+        loc, scale = outputs
         ratio = (log_prob(loc, scale, valid["action"]) - valid["log_prob"]).exp()
         loss = -episode_mean(ratio * advantages, valid["mask"])
         kl = episode_mean(kl_divergence(loc, scale, *old), valid["mask"])
-        return loss, kl, old
+        return loss, kl
 
     # -- Leader protocol ----------------------------------------------------------------------
 
@@ -233,28 +244,42 @@ class MAMLTRPOLeader:
         w = weights.to(batch.valid["reward"].dtype)
         params = list(self.net.parameters())
         names = [name for name, _ in self.net.named_parameters()]
-        loss_k, _, old = self.outer_terms(batch.adapted, batch.valid, batch.valid_advantages)
-        surrogate = (w * loss_k).sum()
         exact = self.hvp_episodes is None or self.hvp_episodes >= batch.train.batch_size[1]
-        gradient = flatten(torch.autograd.grad(surrogate, params, retain_graph=exact))
-        subset = slice(None) if exact else slice(0, self.hvp_episodes)
-        valid, valid_advantages = batch.valid[:, subset], batch.valid_advantages[:, subset]
+        leaves = [a.detach().requires_grad_(True) for a in batch.adapted.values()]
+        outputs = loc_scale(self.net, as_task_params(dict(zip(names, leaves))),
+                            batch.valid["observation"])
+        old = (outputs[0].detach(), outputs[1].detach())
+        loss_k, _ = self.outer_terms_of_outputs(
+            outputs, batch.valid, batch.valid_advantages, old
+        )
+        surrogate = (w * loss_k).sum()
+        # ∇_θ Σ_k w_k L^out_k(θ'_k(θ)) = Σ_k J_k ∇_θ'_k (...), J_k the inner step's Jacobian
+        outer_grad = torch.autograd.grad(surrogate, leaves, retain_graph=exact)
+        gradient = flatten(torch.autograd.grad(
+            list(batch.adapted.values()), params, outer_grad, retain_graph=exact
+        ))
         if exact:
-            broadcast, adapted = batch.broadcast, batch.adapted
+            valid, broadcast, adapted = batch.valid, batch.broadcast, batch.adapted
         else:
+            subset = slice(0, self.hvp_episodes)
+            valid = batch.valid[:, subset]
             broadcast, adapted = self.inner_step(
                 self.theta(), batch.train[:, subset], batch.train_advantages[:, subset], True
             )
+            leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
+            outputs = loc_scale(self.net, as_task_params(dict(zip(names, leaves))),
+                                valid["observation"])
+        current = tuple(o.detach() for o in outputs)
 
-        def weighted_kl(leaves: list[Tensor]) -> Tensor:
-            kl = self.outer_terms(dict(zip(names, leaves)), valid, valid_advantages)[1]
-            return (w * kl).sum()
+        def weighted_kl(outs: list[Tensor]) -> Tensor:
+            return (w * episode_mean(kl_divergence(*outs, *current), valid["mask"])).sum()
 
         hvp = meta_kl_hessian_vector_product(
-            weighted_kl, list(broadcast.values()), list(adapted.values()), params, self.cg_damping
+            weighted_kl, outputs, leaves, list(broadcast.values()), list(adapted.values()),
+            params, self.cg_damping,
         )
         full_step = trust_region_step(gradient, hvp, self.max_kl, self.cg_iterations)
-        del hvp, broadcast, adapted
+        del hvp, broadcast, adapted, outputs, leaves
         found: dict[str, Tensor] = {}
 
         def evaluate(vector: Tensor) -> tuple[Tensor, Tensor]:

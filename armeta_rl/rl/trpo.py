@@ -26,11 +26,15 @@ def unflatten(vector: Tensor, like: Sequence[Tensor]) -> list[Tensor]:
     return out
 
 
-def conjugate_gradient(
+def conjugate_gradient_with_product(
     matvec: Callable[[Tensor], Tensor], b: Tensor, iterations: int = 10, residual_tol: float = 1e-10
-) -> Tensor:
+) -> tuple[Tensor, Tensor]:
     """Approximately solve A x = b for symmetric positive-definite A given x ↦ A x
-    (Hestenes–Stiefel CG, ``iterations`` steps, stopping early when ‖r‖² < ``residual_tol``)."""
+    (Hestenes–Stiefel CG, ``iterations`` steps, stopping early when ‖r‖² < ``residual_tol``).
+
+    Returns (x, A x). CG keeps the residual r = b − A x up to date, so A x = b − r costs no extra
+    product (TRPO needs it for the step size, Schulman et al. 2015, App. C).
+    """
     x = torch.zeros_like(b)
     r = b.clone()
     p = b.clone()
@@ -45,7 +49,14 @@ def conjugate_gradient(
         new_r_dot_r = r @ r
         p = r + (new_r_dot_r / r_dot_r) * p
         r_dot_r = new_r_dot_r
-    return x
+    return x, b - r
+
+
+def conjugate_gradient(
+    matvec: Callable[[Tensor], Tensor], b: Tensor, iterations: int = 10, residual_tol: float = 1e-10
+) -> Tensor:
+    """The solution x of :func:`conjugate_gradient_with_product`."""
+    return conjugate_gradient_with_product(matvec, b, iterations, residual_tol)[0]
 
 
 def kl_hessian_vector_product(
@@ -68,34 +79,47 @@ def kl_hessian_vector_product(
 
 
 def meta_kl_hessian_vector_product(
-    kl: Callable[[list[Tensor]], Tensor],
+    divergence: Callable[[list[Tensor]], Tensor],
+    outputs: Sequence[Tensor],
+    leaves: Sequence[Tensor],
     broadcast: Sequence[Tensor],
     adapted: Sequence[Tensor],
     params: Sequence[Tensor],
     damping: float = 1e-5,
 ) -> Callable[[Tensor], Tensor]:
-    """v ↦ (∇²_θ KL(θ'(θ)) + damping·I) v for a KL taken at adapted parameters, second order
-    through the adaptation step, without third-order terms.
+    """v ↦ (∇²_θ KL(θ'(θ)) + damping·I) v for a KL taken at adapted parameters, exact and second
+    order through the adaptation step.
 
     ``broadcast`` are the meta-parameters θ expanded to ``[K, ...]`` and ``adapted`` the per-task
-    parameters θ'_k = θ − α∇L^in_k computed from them with ``create_graph=True``; ``kl(leaves)``
-    evaluates the (weighted) KL at adapted parameters ``leaves``. At the current point the KL sits
-    at its minimum (π_old is the current adapted policy), so its gradient in θ' is zero and the
-    exact Hessian in θ is Σ_k J_kᵀ F_k J_k, with J_k = I − α∇²L^in_k (symmetric) and F_k the KL's
-    Hessian in θ'_k. Each product is computed as
-    ``J_k v`` (a backward pass through the inner step, w.r.t. the broadcast θ), ``F_k (J_k v)``
-    (double backpropagation through the policy on the post-adaptation data) and
-    ``Σ_k J_k (...)`` (a backward pass to θ), which avoids differentiating the inner step three
-    times as the plain double-backward of ∇_θ KL would.
+    parameters θ'_k = θ − α∇L^in_k computed from them with ``create_graph=True``. ``outputs`` are
+    the policy's outputs (e.g. loc, scale) computed from ``leaves`` (detached copies of
+    ``adapted``) on the post-adaptation data, and ``divergence(outs)`` is the (weighted) KL of
+    outputs ``outs`` against the current ones. At the current point the KL sits at its minimum,
+    so its gradients in the outputs and in θ' vanish and the exact Hessian in θ is
+    Σ_k J_kᵀ F_k J_k, with J_k = I − α∇²L^in_k (symmetric) and F_k = J_outᵀ H_out J_out the
+    Gauss–Newton (Fisher) form of the KL's Hessian in θ'_k (H_out: the KL's Hessian in the
+    outputs, elementwise). Each product is five backward passes over retained graphs, none
+    recomputing a forward pass: ``J v`` (through the inner step, w.r.t. the broadcast θ),
+    ``J_out (J v)`` (the reverse-over-reverse trick: differentiate the pullback of the outputs
+    w.r.t. its cotangent), ``H_out (·)``, ``J_outᵀ (·)`` and ``Σ_k J_k (·)`` (to θ).
     """
-    leaves = [a.detach().requires_grad_(True) for a in adapted]
-    kl_grads = torch.autograd.grad(kl(leaves), leaves, create_graph=True)
+    outputs = list(outputs)
+    output_leaves = [o.detach().requires_grad_(True) for o in outputs]
+    divergence_grad = torch.autograd.grad(
+        divergence(output_leaves), output_leaves, create_graph=True
+    )
+    probes = [torch.zeros_like(o, requires_grad=True) for o in outputs]
+    pullback = torch.autograd.grad(outputs, leaves, probes, create_graph=True)
 
     def product(vector: Tensor) -> Tensor:
         pieces = unflatten(vector, params)
         cotangents = [piece.expand_as(b) for piece, b in zip(pieces, broadcast)]
         tangents = torch.autograd.grad(adapted, broadcast, cotangents, retain_graph=True)
-        fisher = torch.autograd.grad(kl_grads, leaves, tangents, retain_graph=True)
+        output_tangents = torch.autograd.grad(pullback, probes, tangents, retain_graph=True)
+        curvature = torch.autograd.grad(
+            divergence_grad, output_leaves, output_tangents, retain_graph=True
+        )
+        fisher = torch.autograd.grad(outputs, leaves, curvature, retain_graph=True)
         back = torch.autograd.grad(adapted, params, fisher, retain_graph=True)
         return flatten(back).detach() + damping * vector
 
@@ -106,9 +130,10 @@ def trust_region_step(
     gradient: Tensor, hvp: Callable[[Tensor], Tensor], max_kl: float, cg_iterations: int = 10
 ) -> Tensor:
     """The full natural-gradient step s = √(2δ / gᵀF⁻¹g)·F⁻¹g (to be *subtracted* from θ), with
-    F⁻¹g from conjugate gradient; its quadratic KL model ½ sᵀFs equals δ = ``max_kl``."""
-    direction = conjugate_gradient(hvp, gradient, cg_iterations)
-    half_curvature = 0.5 * (direction @ hvp(direction))
+    F⁻¹g from conjugate gradient; its quadratic KL model ½ sᵀFs equals δ = ``max_kl`` (F s from
+    conjugate gradient's residual: ``cg_iterations`` products in all)."""
+    direction, product = conjugate_gradient_with_product(hvp, gradient, cg_iterations)
+    half_curvature = 0.5 * (direction @ product)
     multiplier = torch.sqrt(half_curvature.clamp_min(1e-12) / max_kl)
     return direction / multiplier
 

@@ -1,0 +1,78 @@
+"""Every method trains through the CLI; the RL benchmarks train end to end."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+from conftest import SMALL_RUN, compose_train
+
+from armeta_rl.cli import group_choices
+from armeta_rl.errors import ConfigError
+from armeta_rl.trainers.run import run_training
+
+METHODS = [
+    "maml",
+    "dr_maml",
+    "tr_maml",
+    "dro_maml",
+    "ar_maml",
+    "cnp",
+    "dr_cnp",
+    "tr_cnp",
+    "dro_cnp",
+    "ar_cnp",
+]
+
+
+def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path):
+    assert sorted(group_choices("method")) == sorted(METHODS)
+    command = [
+        sys.executable,
+        "-c",
+        "from armeta_rl.cli import train; train()",
+        "-m",
+        f"method={','.join(METHODS)}",
+        "trainer.iterations=3",
+        "trainer.meta_batch=8",
+        "eval.n_tasks=10",
+        "logger=none",
+        "trainer.progress=false",
+        f"hydra.sweep.dir={tmp_path}",
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-2000:]
+    for method in METHODS:
+        report = json.loads(
+            (tmp_path / f"sinusoid_uniform_{method}_seed0" / "eval.json").read_text()
+        )
+        assert report["method"] == method and report["initial"]["n_tasks"] == 10
+        assert ("adversarial" in report) == method.startswith("ar_")
+
+
+@pytest.mark.parametrize("benchmark", ["point_nav", "ant_goal_smoke"])
+@pytest.mark.parametrize("method", ["maml", "ar_maml", "dr_maml"])
+def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
+    cfg = compose_train(
+        *SMALL_RUN,
+        f"benchmark={benchmark}",
+        f"method={method}",
+        "trainer.iterations=2",
+        "trainer.meta_batch=3",
+        "eval.n_tasks=3",
+        "benchmark.collector.episodes=2",
+        "benchmark.collector.max_steps=10",
+        "logger=csv",
+    )
+    report = run_training(cfg, tmp_path)
+    assert report["metric"] == "return"
+    assert report["initial"]["cvar"]["0.5"] <= report["initial"]["mean"]
+    assert ("adversarial" in report) == (method == "ar_maml")
+    for curve in ("return_pre", "return_post"):
+        assert (tmp_path / "logs" / "scalars" / "train" / f"{curve}.csv").is_file()
+
+
+def test_cnp_has_no_rl_form():
+    cfg = compose_train(*SMALL_RUN, "benchmark=point_nav", "method=cnp")
+    with pytest.raises(ConfigError, match="supports methods whose learner is one of: maml"):
+        run_training(cfg, "/nonexistent")
