@@ -1,9 +1,11 @@
-"""Milliseconds per meta-iteration on sinusoid_uniform (25 tasks, one thread).
+"""Milliseconds per meta-iteration of the regression and system-identification games, one thread.
 
-Rows: the full AR-MAML iteration (leader step, follower losses at θ_{t+1}, adversary update every
-iteration) with the spline and the planar adversary, plain MAML, and the same second-order
-meta-gradient computed with a Python loop over tasks instead of ``vmap``. Config overrides may
-follow on the command line. Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sinusoid.py``.
+Rows: the full AR-MAML iteration (data collection, leader step, follower losses at θ_{t+1},
+adversary update every iteration) with the spline and the planar adversary, and plain MAML, on
+sinusoid_uniform (25 tasks), pendulum_uniform and acrobot_uniform (16 tasks × 200 transitions,
+collection included); and the sinusoid's second-order meta-gradient computed with a Python loop
+over tasks instead of ``vmap``. Config overrides may follow on the command line.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py``.
 """
 
 from __future__ import annotations
@@ -68,26 +70,26 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
 
 
 def main(extra: list[str]) -> None:
-    """Print the table; ``extra`` are config overrides (e.g. ``risk.ar.flow_kwargs.layers=2``)."""
+    """Print the table; ``extra`` are config overrides (e.g. ``risk.ar.lam=0.1``)."""
     keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     rows = []
-    for label, method, flow in [
-        ("ar_maml (spline adversary, u=1)", "ar_maml", "spline"),
-        ("ar_maml (planar adversary, u=1)", "ar_maml", "planar"),
-        ("maml (ERM)", "maml", "spline"),
-    ]:
-        trainer = trainer_for(method, f"risk.ar.flow={flow}", *extra)
-        rows.append((label, *milliseconds(trainer.train_iteration)))
+    for benchmark in ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform"):
+        for label, method, flow in [
+            ("ar_maml, spline adversary", "ar_maml", "spline"),
+            ("ar_maml, planar adversary", "ar_maml", "planar"),
+            ("maml (ERM)", "maml", "spline"),
+        ]:
+            trainer = trainer_for(method, f"benchmark={benchmark}", f"risk.ar.flow={flow}", *extra)
+            rows.append((benchmark, label, *milliseconds(trainer.train_iteration, 100, 10)))
     trainer = trainer_for("maml", *extra)
-    rows.append(("maml, per-task Python loop", *milliseconds(looped_meta_gradient(trainer), 50, 5)))
-    print(
-        f"sinusoid_uniform, 25 tasks, 5-shot, second-order MAML, {torch.get_num_threads()} thread"
-    )
-    print(f"{'meta-iteration':<36}{'median ms':>12}{'IQR ms':>10}")
-    for label, median, iqr in rows:
-        print(f"{label:<36}{median:>12.1f}{iqr:>10.1f}")
+    looped = milliseconds(looped_meta_gradient(trainer), 50, 5)
+    rows.append(("sinusoid_uniform", "maml, per-task Python loop", *looped))
+    print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
+    print("| benchmark | meta-iteration | median ms | IQR ms |\n|---|---|---|---|")
+    for benchmark, label, median, iqr in rows:
+        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} |")
 
 
 if __name__ == "__main__":
