@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import time
 from collections.abc import Callable
 from functools import partial
 
@@ -30,6 +29,7 @@ import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
+from timing import wall_times
 
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, make_parallel_ant_goal
 
@@ -38,13 +38,7 @@ STAGE_ACC = mujoco.mjtStage.mjSTAGE_ACC.value
 
 def seconds(fn: Callable[[], object], repeats: int) -> float:
     """Median wall time of ``repeats`` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return statistics.median(wall_times(fn, repeats))
 
 
 def bare_loop(n_sims: int, steps: int, frame_skip: int) -> Callable[[], None]:

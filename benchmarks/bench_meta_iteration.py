@@ -12,11 +12,11 @@ from __future__ import annotations
 
 import statistics
 import sys
-import time
 from collections.abc import Callable
 
 import torch
 from hydra import compose, initialize_config_dir
+from timing import wall_times
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
@@ -24,18 +24,9 @@ from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.runs import build_players
 
 
-def milliseconds(
-    fn: Callable[[], object], repeats: int = 200, warmup: int = 20
-) -> tuple[float, float]:
+def milliseconds(fn: Callable[[], object], repeats: int, warmup: int) -> tuple[float, float]:
     """Median and interquartile range of ``fn``'s wall time in ms."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(1000 * (time.perf_counter() - start))
-    q1, median, q3 = statistics.quantiles(times, n=4)
+    q1, median, q3 = statistics.quantiles([1000 * t for t in wall_times(fn, repeats, warmup)], n=4)
     return median, q3 - q1
 
 

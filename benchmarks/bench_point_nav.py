@@ -1,6 +1,8 @@
 """Speed of meta-RL on point navigation: env steps/s and seconds per MAML-TRPO meta-iteration
 (20 tasks × 20 episodes × 100 steps; rollouts before and after adaptation and the TRPO step), on
-one thread. Prints a table; run ``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``.
+one thread, with the exact second-order KL Hessian-vector products and with them subsampled to 5
+episodes per task (``hvp_episodes``). Prints a table; run
+``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from collections.abc import Callable
 import torch
 from tensordict import TensorDict
 
+from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
@@ -37,6 +40,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
+    keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     k, e, steps = args.tasks, args.episodes, 100
@@ -61,6 +65,9 @@ def main() -> None:
     def erm(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1.0 / losses.numel())
 
+    leader = MAMLTRPOLeader(collector)
+    t = seconds(lambda: leader.collect_meta_batch(tasks), args.repeats)
+    rows.append(("both rollouts + inner step (sampling)", t, 2 * k * e * steps / t))
     for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5)):
         leader = MAMLTRPOLeader(collector, hvp_episodes=hvp_episodes)
         t = seconds(lambda leader=leader: leader.step(tasks, erm), args.repeats)

@@ -6,10 +6,9 @@ Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sysid_envs.py``
 
 from __future__ import annotations
 
-import time
-
 import torch
 from tensordict import TensorDict
+from timing import wall_times
 
 from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.envs.acrobot import AcrobotEnv
@@ -21,13 +20,7 @@ REPEATS = 5
 
 
 def _best_seconds(run, repeats: int = REPEATS) -> float:
-    run()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        run()
-        times.append(time.perf_counter() - start)
-    return min(times)
+    return min(wall_times(run, repeats))
 
 
 def bench_env(env_cls, episodes: int, steps: int) -> float:
