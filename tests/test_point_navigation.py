@@ -73,6 +73,19 @@ def test_goals_survive_automatic_resets() -> None:
     torch.testing.assert_close(rollout["next", "reward"], -offset.norm(dim=-1, keepdim=True))
 
 
+def test_goals_survive_reset_and_automatic_resets_under_transformed_env() -> None:
+    env = TransformedEnv(PointNavigationEnv((2, 3), max_steps=4, seed=0), StepCounter())
+    env.append_transform(RewardSum())
+    goals = torch.tensor([[0.4, -0.3], [-0.2, 0.1]])[:, None].expand(2, 3, 2).clone()
+    start = env.reset(TensorDict({"goal": goals}, env.batch_size))
+    assert torch.equal(start["goal"], goals)
+    rollout = env.rollout(10, tensordict=start, auto_reset=False, break_when_any_done=False)
+    assert rollout["next", "done"].squeeze(-1)[..., 3].all()  # reset inside the rollout
+    assert (rollout["goal"] == goals[:, :, None]).all()
+    offset = rollout["next", "observation"] - goals[:, :, None]
+    torch.testing.assert_close(rollout["next", "reward"], -offset.norm(dim=-1, keepdim=True))
+
+
 def test_reset_without_goal_keeps_goals_and_seed_draws_defaults() -> None:
     a, b, c = (PointNavigationEnv((4, 2), seed=s) for s in (3, 3, 4))
     goals_a = a.reset()["goal"]

@@ -111,6 +111,13 @@ class PointNavigationEnv(EnvBase):
             shape=shape,
             device=self.device,
         )
+        # "goal" is also a state entry, so that TransformedEnv (which passes only reset and state
+        # keys to the base env's reset) forwards it; the env's own copy stays authoritative.
+        self.state_spec = Composite(
+            goal=Bounded(GOAL_LOW, GOAL_HIGH, shape=(*shape, 2), dtype=dtype, device=self.device),
+            shape=shape,
+            device=self.device,
+        )
         self.action_spec = Bounded(
             -MAX_SPEED, MAX_SPEED, shape=(*shape, 2), dtype=dtype, device=self.device
         )

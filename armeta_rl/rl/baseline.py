@@ -79,14 +79,16 @@ def normalize_per_task(advantages: Tensor, mask: Tensor, eps: float = 1e-8) -> T
     return (advantages - mean) / (variance.sqrt() + eps) * weights
 
 
-def gae_advantages(trajectories: TensorDictBase, gamma: float = 0.99, lmbda: float = 1.0) -> Tensor:
-    """Normalized GAE advantages ``[K, E, T]`` with the per-task linear baseline as V.
+def gae_advantages(trajectories: TensorDictBase, gamma: float = 0.99, lmbda: float = 1.0,
+                   reg: float = 1e-5) -> Tensor:
+    """Normalized GAE advantages ``[K, E, T]`` with the per-task linear baseline (ridge ``reg``)
+    as V.
 
     torchrl's ``generalized_advantage_estimate`` with V(s_t) from the baseline, V(s_{t+1}) the
     next step's value, and episodes ending at ``done`` (goal reached or time limit).
     """
     mask = trajectories["mask"]
-    values = baseline_values(trajectories, gamma) * mask.unsqueeze(-1)
+    values = baseline_values(trajectories, gamma, reg) * mask.unsqueeze(-1)
     next_values = torch.cat([values[..., 1:, :], torch.zeros_like(values[..., :1, :])], dim=-2)
     reward = trajectories["reward"] * mask.unsqueeze(-1)
     done = trajectories["done"]

@@ -141,7 +141,6 @@ class MAMLTRPOLeader:
         self.baseline_reg = float(baseline_reg)
         self.first_order = bool(first_order)
         self.hvp_episodes = None if hvp_episodes is None else int(hvp_episodes)
-        self.last_update: dict[str, float] = {}
 
     # -- functional pieces ------------------------------------------------------------------
 
@@ -151,7 +150,7 @@ class MAMLTRPOLeader:
 
     def advantages(self, trajectories: TensorDictBase) -> Tensor:
         """Normalized GAE advantages ``[K, E, T]`` with the per-task refit baseline."""
-        return gae_advantages(trajectories, self.gamma, self.gae_lambda)
+        return gae_advantages(trajectories, self.gamma, self.gae_lambda, self.baseline_reg)
 
     def inner_loss(
         self, params: Params, trajectories: TensorDictBase, advantages: Tensor
@@ -311,14 +310,29 @@ class MAMLTRPOLeader:
 
     def step(self, tasks: TensorDictBase, weights: TaskWeights) -> TensorDict:
         """Collect before/after adaptation, score, then one TRPO step on Σ_k w_k L^out_k with
-        ``w = weights(losses)``; ``last_update`` keeps the step's TRPO scalars for logging."""
+        ``w = weights(losses)``.
+
+        Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"``,
+        ``"return_post"`` and the step's TRPO diagnostics broadcast to ``[K]`` (the trainer logs
+        their means): ``"trpo_kl"`` (Σ_k w_k KL_k of the accepted step), ``"trpo_improvement"``
+        (decrease of the weighted surrogate) and ``"trpo_line_search_steps"`` (backtracking
+        steps taken; −1 when no step was accepted).
+        """
         batch = self.collect_meta_batch(tasks)
         return_pre = episode_returns(batch.train).mean(-1)
         return_post = episode_returns(batch.valid).mean(-1)
         losses = -return_post
-        self.last_update = self.trpo_update(batch, weights(losses))
+        update = self.trpo_update(batch, weights(losses))
+        diagnostics = {
+            "trpo_kl": update["trpo/kl"],
+            "trpo_improvement": update["trpo/surrogate_before"] - update["trpo/surrogate_after"],
+            "trpo_line_search_steps": update["trpo/line_search_steps"],
+        }
         return TensorDict(
-            {"loss": losses, "return_pre": return_pre, "return_post": return_post},
+            {
+                "loss": losses, "return_pre": return_pre, "return_post": return_post,
+                **{key: torch.full_like(losses, value) for key, value in diagnostics.items()},
+            },
             batch_size=[losses.shape[0]],
         )
 

@@ -67,8 +67,14 @@ def loc_scale(
         params: parameters with batch size ``[K]``, one set per task.
         observation: ``[K, ...batch, obs_dim]``; task ``k`` is evaluated with ``params[k]``.
     """
-    flat = params.flatten_keys(".").to_dict()
-    return vmap(lambda p, obs: functional_call(net, p, (obs,)))(flat, observation)
+    return loc_scale_flat(net, params.flatten_keys(".").to_dict(), observation)
+
+
+def loc_scale_flat(
+    net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
+) -> tuple[Tensor, Tensor]:
+    """:func:`loc_scale` with per-task parameters as a flat ``{"a.b": [K, ...]}`` dict."""
+    return vmap(lambda p, obs: functional_call(net, p, (obs,)))(params, observation)
 
 
 class PerTaskLocScale(nn.Module):
@@ -78,12 +84,13 @@ class PerTaskLocScale(nn.Module):
     def __init__(self, net: GaussianMLP, params: TensorDictBase | None = None) -> None:
         super().__init__()
         self.net = net
-        self.params = params
+        # flattened once: the module runs at every env step of a rollout
+        self.params = None if params is None else params.flatten_keys(".").to_dict()
 
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
         if self.params is None:
             return self.net(observation)
-        return loc_scale(self.net, self.params, observation)
+        return loc_scale_flat(self.net, self.params, observation)
 
 
 def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> ProbabilisticActor:
