@@ -10,6 +10,7 @@ from pathlib import Path
 
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import LogNorm
 from matplotlib.figure import Figure
 
 from armeta_rl.errors import ConfigError
@@ -20,10 +21,10 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
                  points_per_axis: int = 100) -> Figure:
     """Plot exp(log_prob) of ``distribution`` (e.g. p_φ) next to ``initial`` (p0) and save a PNG.
 
-    For two identifiers: two heat maps over the box on one colour scale (so they compare), axes
-    named by ``space.names``. For one identifier: both densities as curves on one axis. More
-    identifiers have no exact picture without integrating the density out, so they raise
-    ``ConfigError``.
+    For two identifiers: two heat maps over the box on one logarithmic colour scale (so they
+    compare, and a concentrated p_φ does not wash out p0), axes named by ``space.names``. For one
+    identifier: both densities as curves on one axis. More identifiers have no exact picture
+    without integrating the density out, so they raise ``ConfigError``.
 
     Args:
         distribution: the distribution to show.
@@ -57,10 +58,11 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
     else:
         extent = (space.low[0], space.high[0], space.low[1], space.high[1])
         top = max(float(density.max()) for density in densities)
+        norm = LogNorm(vmin=top * 1e-4, vmax=top, clip=True)
         axes = figure.subplots(1, 2)
         for axis, density, title in zip(axes, densities, titles, strict=True):
             image = axis.imshow(density.T, origin="lower", extent=extent, aspect="auto",
-                                cmap="viridis", vmin=0.0, vmax=top)
+                                cmap="viridis", norm=norm)
             axis.set_xlabel(space.names[0])
             axis.set_ylabel(space.names[1])
             axis.set_title(title)
