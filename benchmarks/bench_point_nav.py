@@ -19,7 +19,7 @@ from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
-from armeta_rl.rl.policy import GaussianMLP, parameters_of
+from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 
@@ -56,7 +56,7 @@ def main() -> None:
 
     collector = PointNavigationCollector(episodes=e, seed=0)
     net = GaussianMLP()
-    per_task = parameters_of(net).detach().expand(k).clone()
+    per_task = TensorDict.from_module(net).detach().expand(k).clone()
     t = seconds(lambda: collector.collect(tasks, None, policy=net), args.repeats)
     rows.append(("collect, shared θ", t, k * e * steps / t))
     t = seconds(lambda: collector.collect(tasks, per_task, policy=net), args.repeats)

@@ -15,7 +15,7 @@ import math
 from collections.abc import Sequence
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModule
 from torch import Tensor, nn
 from torch.func import functional_call, vmap
@@ -50,11 +50,6 @@ class GaussianMLP(nn.Module):
         loc = self.mean(observation)
         scale = self.log_std.clamp_min(MIN_LOG_STD).exp().expand_as(loc)
         return loc, scale
-
-
-def parameters_of(net: nn.Module) -> TensorDict:
-    """The network's parameters as a TensorDict of leaves (shares storage with ``net``)."""
-    return TensorDict.from_module(net)
 
 
 def loc_scale(

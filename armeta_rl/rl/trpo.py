@@ -26,7 +26,7 @@ def unflatten(vector: Tensor, like: Sequence[Tensor]) -> list[Tensor]:
     return out
 
 
-def conjugate_gradient_with_product(
+def conjugate_gradient(
     matvec: Callable[[Tensor], Tensor], b: Tensor, iterations: int = 10, residual_tol: float = 1e-10
 ) -> tuple[Tensor, Tensor]:
     """Approximately solve A x = b for symmetric positive-definite A given x ↦ A x
@@ -50,32 +50,6 @@ def conjugate_gradient_with_product(
         p = r + (new_r_dot_r / r_dot_r) * p
         r_dot_r = new_r_dot_r
     return x, b - r
-
-
-def conjugate_gradient(
-    matvec: Callable[[Tensor], Tensor], b: Tensor, iterations: int = 10, residual_tol: float = 1e-10
-) -> Tensor:
-    """The solution x of :func:`conjugate_gradient_with_product`."""
-    return conjugate_gradient_with_product(matvec, b, iterations, residual_tol)[0]
-
-
-def kl_hessian_vector_product(
-    kl: Tensor, params: Sequence[Tensor], damping: float = 1e-5
-) -> Callable[[Tensor], Tensor]:
-    """v ↦ (∇²_θ KL + damping·I) v by double backpropagation.
-
-    ``kl`` must be built with a graph from ``params`` (when the KL is taken at the adapted policy
-    of MAML, the graph runs *through* the inner gradient step, giving the second-order Hessian).
-    The first gradient is computed once; every product is one more backward pass.
-    """
-    grads = torch.autograd.grad(kl, params, create_graph=True)
-    flat_grad = flatten(grads)
-
-    def product(vector: Tensor) -> Tensor:
-        second = torch.autograd.grad(flat_grad @ vector, params, retain_graph=True)
-        return flatten(second).detach() + damping * vector
-
-    return product
 
 
 def meta_kl_hessian_vector_product(
@@ -132,7 +106,7 @@ def trust_region_step(
     """The full natural-gradient step s = √(2δ / gᵀF⁻¹g)·F⁻¹g (to be *subtracted* from θ), with
     F⁻¹g from conjugate gradient; its quadratic KL model ½ sᵀFs equals δ = ``max_kl`` (F s from
     conjugate gradient's residual: ``cg_iterations`` products in all)."""
-    direction, product = conjugate_gradient_with_product(hvp, gradient, cg_iterations)
+    direction, product = conjugate_gradient(hvp, gradient, cg_iterations)
     half_curvature = 0.5 * (direction @ product)
     multiplier = torch.sqrt(half_curvature.clamp_min(1e-12) / max_kl)
     return direction / multiplier
