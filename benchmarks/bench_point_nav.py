@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict
+from timing import wall_times
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
@@ -25,13 +25,7 @@ from armeta_rl.tasks import BoxUniform, TaskSpace
 
 def seconds(fn: Callable[[], object], repeats: int) -> float:
     """Median wall time of ``repeats`` calls after one warm-up call."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+    return statistics.median(wall_times(fn, repeats))
 
 
 def main() -> None:
