@@ -99,7 +99,8 @@ def meta_iteration_seconds(tasks: int, episodes: int, horizon: int, repeats: int
     from armeta_rl.tasks import BoxUniform, TaskSpace
 
     space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
-    collector = EpisodeCollector(partial(AntGoalEnv, seed=0), episodes=episodes, max_steps=horizon)
+    make_env = partial(AntGoalEnv, seed=0, threads=None)
+    collector = EpisodeCollector(make_env, episodes=episodes, max_steps=horizon)
     probe = collector.env(1)
     leader = MAMLTRPOLeader(
         collector,
@@ -140,6 +141,11 @@ def main() -> None:
     env = AntGoalEnv((k, e), seed=0)
     t = seconds(env_rollout(env, steps), args.repeats)
     rows.append(("AntGoalEnv.rollout, 1 process", f"[{k}, {e}]", n * steps / t))
+    cores = os.cpu_count() or 1
+    threaded = AntGoalEnv((k, e), seed=0, threads=None)
+    t = seconds(env_rollout(threaded, steps), args.repeats)
+    rows.append((f"AntGoalEnv.rollout, 1 process, {cores} MuJoCo threads", f"[{k}, {e}]",
+                 n * steps / t))
     parallel = make_parallel_ant_goal(2, k, e, seed=0)
     t = seconds(env_rollout(parallel, steps), args.repeats)
     rows.append(("AntGoalEnv, 2 processes (ParallelEnv)", f"[2, {k // 2}, {e}]", n * steps / t))
@@ -148,9 +154,9 @@ def main() -> None:
     bare = rows[0][2]
     print(f"load average (1, 5, 15 min): {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
           f"{os.cpu_count()} CPUs")
-    print(f"{'what':42s} {'batch':>12s} {'env steps/s':>12s} {'% bare':>7s}")
+    print(f"{'what':48s} {'batch':>12s} {'env steps/s':>12s} {'% bare':>7s}")
     for name, batch, rate in rows:
-        print(f"{name:42s} {batch:>12s} {rate:12.0f} {100 * rate / bare:6.0f}%")
+        print(f"{name:48s} {batch:>12s} {rate:12.0f} {100 * rate / bare:6.0f}%")
 
     if args.skip_meta:
         return
@@ -160,7 +166,7 @@ def main() -> None:
         f"\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} episodes × "
         f"{args.horizon} steps (2 rollouts + TRPO): {t:.1f} s measured; scaled linearly to the "
         f"paper's 40 tasks: {scaled:.0f} s; 500 iterations ≈ {500 * scaled / 3600:.1f} h "
-        f"(one process, one thread)."
+        f"(one process, one torch thread, one MuJoCo thread per core)."
     )
 
 

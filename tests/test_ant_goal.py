@@ -150,11 +150,11 @@ def test_goals_survive_resets_in_collector():
     collector.shutdown()
 
 
-def test_seeded_reproducibility():
+def test_seeded_reproducibility_and_native_threads_change_nothing():
     actions = 2 * torch.rand(10, 2, 2, 8) - 1
 
-    def run(seed: int) -> torch.Tensor:
-        env = AntGoalEnv((2, 2), max_steps=4, seed=seed)
+    def run(seed: int, threads: int | None = 1) -> torch.Tensor:
+        env = AntGoalEnv((2, 2), max_steps=4, seed=seed, threads=threads)
         td = env.reset()
         observations = [td["observation"]]
         for action in actions:
@@ -165,6 +165,8 @@ def test_seeded_reproducibility():
 
     assert torch.equal(run(5), run(5))
     assert not torch.allclose(run(5)[0], run(6)[0])
+    assert torch.equal(run(5, threads=2), run(5))
+    assert torch.equal(run(5, threads=None), run(5))
 
 
 def test_parallel_workers_equal_single_process_slices():

@@ -100,7 +100,8 @@ class AntGoalEnv(EnvBase):
         healthy_z_range: torso heights outside this closed interval terminate the episode.
         reset_noise_scale: initial qpos = model qpos0 + U(±scale), qvel = scale·N(0, 1).
         goal_range: default goals (never set by a reset) are U([-goal_range, goal_range]²).
-        threads: threads of the MuJoCo batch (1: the calling thread only).
+        threads: threads stepping the MuJoCo batch natively (1: the calling thread only;
+            ``None``: one per CPU core).
         seed: seed of the generator for reset noise and default goals.
         device: torch device of the outputs (the physics runs on the CPU).
     """
@@ -118,7 +119,7 @@ class AntGoalEnv(EnvBase):
         healthy_z_range: Sequence[float] = (0.2, 1.0),
         reset_noise_scale: float = 0.1,
         goal_range: float = 3.0,
-        threads: int = 1,
+        threads: int | None = 1,
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
@@ -132,7 +133,8 @@ class AntGoalEnv(EnvBase):
             ),
             f"{KEY}.reset_noise_scale": (reset_noise_scale, reset_noise_scale >= 0, "must be >= 0"),
             f"{KEY}.goal_range": (goal_range, goal_range > 0, "must be > 0"),
-            f"{KEY}.threads": (threads, int(threads) >= 1, "must be >= 1"),
+            f"{KEY}.threads": (threads, threads is None or int(threads) >= 1,
+                               "must be null (one per core) or an integer >= 1"),
         }
         for key, (value, ok, allowed) in checks.items():
             if not ok:
@@ -148,7 +150,8 @@ class AntGoalEnv(EnvBase):
 
         self.model = load_ant_model()
         self.n_sims = math.prod(self.batch_size)
-        self.sim = Batch(self.model, self.n_sims, nthread=int(threads))
+        threads = (os.cpu_count() or 1) if threads is None else int(threads)
+        self.sim = Batch(self.model, self.n_sims, nthread=threads)
         self._torso = self.model.body(TORSO).id
         self._qpos, self._qvel, self._ctrl = (self.sim.bind(k) for k in ("qpos", "qvel", "ctrl"))
         self._cfrc_ext, self._xpos, self._xmat = (
