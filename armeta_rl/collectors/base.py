@@ -14,7 +14,8 @@ class Collector(Protocol):
     ``tasks`` is a TensorDict ``[K]`` with ``"params"`` ``[K, d]``. Regression and system
     identification return ``{"support": {"x", "y"}, "query": {"x", "y"}}`` with batch ``[K]`` and
     tensors ``[K, points, features]``; episode collectors return trajectories ``[K, episodes, T]``
-    gathered with ``policy_params`` (per-task parameters with a leading ``K``, or shared ones).
+    gathered with ``policy_params`` (per-task parameters with a leading ``K``, or shared ones) and
+    also take the policy network as a ``policy=`` keyword.
     """
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
