@@ -2,7 +2,7 @@
 
     armeta-train -m method=maml,dr_maml,tr_maml,dro_maml,ar_maml,cnp,dr_cnp,tr_cnp,dro_cnp,ar_cnp \\
         trainer.iterations=3000 seed=0 hydra.sweep.dir=runs/compare
-    python benchmarks/compare_methods.py runs/compare runs/compare/sinusoid_uniform_ar_maml_seed0
+    python benchmarks/compare_methods.py runs/compare runs/compare/4_sinusoid_uniform_ar_maml_seed0
 
 Every method is evaluated on the same tasks (the eval seed of each run's config) from the initial
 distribution and from the adversary saved in the second directory, so the columns compare.

@@ -42,10 +42,9 @@ def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path):
     ]
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
-    for method in METHODS:
-        report = json.loads(
-            (tmp_path / f"sinusoid_uniform_{method}_seed0" / "eval.json").read_text()
-        )
+    for job, method in enumerate(METHODS):
+        run = tmp_path / f"{job}_sinusoid_uniform_{method}_seed0"
+        report = json.loads((run / "eval.json").read_text())
         assert report["method"] == method and report["initial"]["n_tasks"] == 10
         assert ("adversarial" in report) == method.startswith("ar_")
 
