@@ -102,7 +102,7 @@ def _eval_task(cfg: DictConfig) -> None:
     from armeta_rl.trainers.run import cross_evaluate
 
     overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    report = cross_evaluate(cfg.learner, cfg.adversary, OmegaConf.create({"eval": overrides}))
+    report = cross_evaluate(cfg.learner, cfg.adversary, overrides)
     suffix = "" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}"
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     out.write_text(json.dumps(report, indent=2) + "\n")

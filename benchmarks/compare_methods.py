@@ -14,7 +14,6 @@ import argparse
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.config import CONFIG_FILE
@@ -35,7 +34,7 @@ def main() -> None:
           f"| adversarial CVaR{args.alpha} |")
     print("|---|---|---|---|---|")
     for run in runs:
-        report = cross_evaluate(run, args.adversary, OmegaConf.create({"eval": {}}))
+        report = cross_evaluate(run, args.adversary)
         initial, shifted = report["initial"], report["adversarial"]
         print(f"| {report['method']} | {initial['mean']:.3f} | {initial['cvar'][args.alpha]:.3f} "
               f"| {shifted['mean']:.3f} | {shifted['cvar'][args.alpha]:.3f} |")

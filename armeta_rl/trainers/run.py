@@ -48,7 +48,7 @@ def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
 
 
 def evaluate_players(
-    cfg: DictConfig, players: Players, adversary: Any | None = None
+    cfg: DictConfig, players: Players, adversary: TaskDistribution | None = None
 ) -> dict[str, Any]:
     """``eval.json``'s content: the leader on p0 and on an adversarial distribution.
 
@@ -136,7 +136,7 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         log_every=cfg.trainer.log_every,
         checkpoint=checkpoint,
         checkpoint_every=cfg.trainer.checkpoint_every,
-        log=None if logger is None else (lambda s, step: logger.log_metrics(s, step)),
+        log=None if logger is None else logger.log_metrics,
         progress=progress and cfg.trainer.progress,
     )
     trainer.iteration = start
@@ -167,10 +167,12 @@ def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
 
 
 def cross_evaluate(
-    learner_dir: str | Path, adversary_dir: str | Path | None, overrides: DictConfig
+    learner_dir: str | Path,
+    adversary_dir: str | Path | None,
+    eval_overrides: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Score the learner saved in ``learner_dir`` on p0 and on the adversary saved in
-    ``adversary_dir`` (same benchmark), with evaluation settings from ``overrides.eval``."""
+    ``adversary_dir`` (same benchmark); ``eval_overrides`` replace the learner run's ``eval.*``."""
     cfg, players = load_players(learner_dir, "learner")
     adversary = None
     if adversary_dir is not None:
@@ -189,7 +191,7 @@ def cross_evaluate(
                 f"{players.space}",
             )
         adversary = adv_players.adversary
-    cfg = OmegaConf.merge(cfg, {"eval": overrides.eval})
+    cfg = OmegaConf.merge(cfg, {"eval": eval_overrides or {}})
     check_config(cfg)
     report = evaluate_players(cfg, players, adversary)
     report["learner"] = str(learner_dir)
