@@ -5,8 +5,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
+import torch
 from tensordict import TensorDict
-from torch import Tensor
+from torch import Tensor, nn
 
 from armeta_rl.collectors.base import Collector
 
@@ -48,3 +49,28 @@ class Leader(Protocol):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`state_dict` returned."""
         ...
+
+
+class OneNetworkLeader:
+    """What leaders made of one network and one optimizer share (MAML, CNP): the weighted
+    meta-update θ ← opt(∇_θ Σ_k w_k L_k) (paper Eq. meta_player_obj with task weights) and their
+    checkpoint state."""
+
+    model: nn.Module
+    optimizer: torch.optim.Optimizer
+
+    def descend(self, losses: Tensor, weights: TaskWeights) -> None:
+        """One optimizer step on Σ_k w_k L_k with ``w = weights(L.detach())``."""
+        task_weights = weights(losses.detach())
+        self.optimizer.zero_grad(set_to_none=True)
+        (task_weights * losses).sum().backward()
+        self.optimizer.step()
+
+    def state_dict(self) -> dict[str, Any]:
+        """Network parameters and optimizer state."""
+        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what :meth:`state_dict` returned."""
+        self.model.load_state_dict(state["model"])
+        self.optimizer.load_state_dict(state["optimizer"])

@@ -12,8 +12,6 @@ set, and the decoder is a two-layer MLP on (z, x_query); ReLU activations, Adam 
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
@@ -22,7 +20,7 @@ from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import Collector
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.base import TaskWeights
+from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
 
 LIKELIHOODS = ("gaussian", "mse")
 MIN_STD = 0.1
@@ -61,7 +59,7 @@ def gaussian_nll(mean: Tensor, std: Tensor, target: Tensor) -> Tensor:
     return F.gaussian_nll_loss(mean, target, std.square(), full=True, reduction="none")
 
 
-class CNPLeader:
+class CNPLeader(OneNetworkLeader):
     """The CNP as a leader: collect support/query data, predict, score, one Adam step.
 
     Args:
@@ -117,10 +115,7 @@ class CNPLeader:
         """
         data = self.collector.collect(tasks)
         losses, squared_error = self.task_losses(data)
-        task_weights = weights(losses.detach())
-        self.optimizer.zero_grad(set_to_none=True)
-        (task_weights * losses).sum().backward()
-        self.optimizer.step()
+        self.descend(losses, weights)
         return TensorDict({"loss": losses.detach(), "mse": squared_error.detach()},
                           batch_size=tasks.batch_size)
 
@@ -130,12 +125,3 @@ class CNPLeader:
         data = (collector or self.collector).collect(tasks)
         mean, _ = self.predict(data)
         return (mean - data["query", "y"]).square().mean((-2, -1))
-
-    def state_dict(self) -> dict[str, Any]:
-        """Network parameters and Adam state."""
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`state_dict` returned."""
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])

@@ -7,8 +7,6 @@ meta-batch costs one batched forward/backward instead of a Python loop over task
 
 from __future__ import annotations
 
-from typing import Any
-
 import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
@@ -16,12 +14,12 @@ from torch.func import functional_call, grad, vmap
 
 from armeta_rl.collectors.base import Collector
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.base import TaskWeights
+from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
 
 Params = dict[str, Tensor]
 
 
-class MAMLLeader:
+class MAMLLeader(OneNetworkLeader):
     """MAML on regression data ``{"support": {"x", "y"}, "query": {"x", "y"}}``, metric MSE.
 
     Args:
@@ -80,10 +78,7 @@ class MAMLLeader:
         """Meta-update θ ← Adam(∇_θ Σ_k w_k L_k) (paper Eq. meta_player_obj, weighted)."""
         data = self.collector.collect(tasks)
         losses = self.task_losses(data)
-        task_weights = weights(losses.detach())
-        self.optimizer.zero_grad(set_to_none=True)
-        (task_weights * losses).sum().backward()
-        self.optimizer.step()
+        self.descend(losses, weights)
         return TensorDict({"loss": losses.detach()}, batch_size=losses.shape)
 
     def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
@@ -91,10 +86,3 @@ class MAMLLeader:
         data = (collector or self.collector).collect(tasks)
         params = {name: p.detach() for name, p in self.model.named_parameters()}
         return self.task_losses(data, params).detach()
-
-    def state_dict(self) -> dict[str, Any]:
-        return {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict()}
-
-    def load_state_dict(self, state: dict[str, Any]) -> None:
-        self.model.load_state_dict(state["model"])
-        self.optimizer.load_state_dict(state["optimizer"])
