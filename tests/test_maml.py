@@ -5,6 +5,8 @@ import math
 
 import pytest
 import torch
+from tensordict import TensorDict
+from torch import nn
 from torch.func import functional_call
 
 from armeta_rl.collectors.regression import SinusoidCollector
@@ -55,6 +57,53 @@ def test_vmapped_maml_equals_per_task_loop(first_order, inner_steps):
     torch.testing.assert_close(batched, looped, atol=1e-5, rtol=1e-5)
     for got, want in zip(batched_grads, looped_grads):
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
+
+
+def test_vmapped_maml_equals_per_task_loop_with_vector_inputs_and_outputs():
+    """Sys-id shapes: 4 inputs, 3 outputs, 10 support and 190 query points per task."""
+    torch.manual_seed(5)
+    leader = MAMLLeader(make_mlp(4, 3, (32, 32)), SinusoidCollector(5, 5), inner_lr=0.05)
+    data = TensorDict(
+        {
+            part: {"x": torch.randn(3, n, 4), "y": torch.randn(3, n, 3)}
+            for part, n in (("support", 10), ("query", 190))
+        },
+        batch_size=[3],
+    )
+    theta = dict(leader.model.named_parameters())
+    batched = leader.task_losses(data)
+    looped = torch.stack([per_task_loss(leader, theta, data[k]) for k in range(3)])
+    torch.testing.assert_close(batched, looped, atol=1e-5, rtol=1e-5)
+    for got, want in zip(
+        torch.autograd.grad(batched.sum(), list(theta.values())),
+        torch.autograd.grad(looped.sum(), list(theta.values())),
+    ):
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
+
+
+def test_mlp_is_the_linear_relu_network_with_the_same_initial_draws():
+    """make_mlp stores weights input-major but computes nn.Linear/ReLU layers, drawn alike."""
+    torch.manual_seed(6)
+    mlp = make_mlp(2, 3, (16, 8))
+    torch.manual_seed(6)
+    reference = nn.Sequential(
+        nn.Linear(2, 16), nn.ReLU(), nn.Linear(16, 8), nn.ReLU(), nn.Linear(8, 3)
+    )
+    x = torch.randn(7, 5, 2)
+    torch.testing.assert_close(mlp(x), reference(x))
+    assert all(w.is_contiguous() for w in mlp.weights)
+
+
+def test_evaluate_equals_task_losses_and_keeps_no_graph():
+    leader = make_leader()
+    tasks = BoxUniform(SPACE).sample(5)
+    torch.manual_seed(7)
+    expected = leader.task_losses(leader.collector.collect(tasks))
+    torch.manual_seed(7)
+    got = leader.evaluate(tasks)
+    assert not got.requires_grad
+    assert all(p.grad is None for p in leader.model.parameters())
+    torch.testing.assert_close(got, expected.detach())
 
 
 def test_meta_gradient_matches_finite_differences():
