@@ -3,6 +3,7 @@ the ERM principle and the density plot."""
 
 from __future__ import annotations
 
+import copy
 import io
 import math
 
@@ -341,6 +342,9 @@ def test_state_dict_round_trip_restores_exactly() -> None:
     restored.load_state_dict(torch.load(buffer, weights_only=True))
     for a, b in zip(principle.parameters(), restored.parameters(), strict=True):
         assert torch.equal(a, b)
+    first, first_restored = principle.propose(32), restored.propose(32)  # the last update's draw
+    assert torch.equal(first["params"], first_restored["params"])
+    assert torch.equal(first["log_prob"], first_restored["log_prob"])
     torch.manual_seed(11)
     logs = run_updates(principle, 2)
     torch.manual_seed(11)
@@ -373,6 +377,54 @@ def test_exploding_step_is_rolled_back() -> None:
         assert torch.equal(value, state[key])
     assert principle.scheduler.last_epoch == 0
     assert not principle.optimizer.state
+
+
+def test_diverging_step_after_updates_restores_adam_and_schedule() -> None:
+    principle = make_principle("planar", lr=0.01, total_updates=50)
+    run_updates(principle, 3)
+    before = copy.deepcopy(principle.state_dict())
+    principle.optimizer.param_groups[0]["lr"] = 1e300
+    tasks = principle.propose(8)
+    with pytest.raises(TrainingDiverged):
+        principle.update(tasks, toy_loss(tasks["params"]))
+    after = principle.state_dict()
+    for key, value in before.items():
+        if key != "_extra_state":
+            assert torch.equal(after[key], value)
+    saved, restored = before["_extra_state"]["optimizer"], after["_extra_state"]["optimizer"]
+    assert saved["param_groups"] == restored["param_groups"]  # the scheduled rate is back
+    assert saved["state"].keys() == restored["state"].keys()
+    for index, state in saved["state"].items():
+        for name, value in state.items():  # moments and step counts
+            assert torch.equal(restored["state"][index][name], value)
+    assert after["_extra_state"]["scheduler"] == before["_extra_state"]["scheduler"]
+
+
+def test_propose_after_update_is_a_draw_from_the_updated_flow() -> None:
+    principle = make_principle("spline", lr=0.05)
+    run_updates(principle, 3, k=16)
+    old = copy.deepcopy(principle.adversary)
+    tasks = principle.propose(16)
+    principle.update(tasks, toy_loss(tasks["params"]))
+    drawn = principle.propose(16)
+    params = drawn["params"].to(torch.float64)
+    with torch.no_grad():
+        new_log_prob, old_log_prob = principle.adversary.log_prob(params), old.log_prob(params)
+    assert torch.allclose(drawn["log_prob"].to(torch.float64), new_log_prob, atol=1e-5)
+    assert (new_log_prob - old_log_prob).abs().max() > 1e-3  # the update moved p_φ there
+    again = principle.propose(16)  # the draw is handed out once
+    assert not torch.equal(again["params"], drawn["params"])
+    tasks = principle.propose(16)
+    principle.update(tasks, toy_loss(tasks["params"]))
+    assert len(principle.propose(7)) == 7  # another batch size: a fresh draw
+    tasks = principle.propose(16)
+    principle.update(tasks, toy_loss(tasks["params"]))
+    with torch.no_grad():  # φ changed by hand after the update: the draw is stale
+        principle.adversary.flow.layers[0].prqct.unconditional_transform.unnormalized_widths.add_(
+            torch.randn(1, 8, dtype=torch.float64))
+        fresh = principle.propose(16)
+        exact = principle.adversary.log_prob(fresh["params"].to(torch.float64))
+    assert torch.allclose(fresh["log_prob"].to(torch.float64), exact, atol=1e-5)
 
 
 @pytest.mark.parametrize(("kwargs", "key"), [

@@ -72,3 +72,23 @@ def test_make_initial_names_the_bad_key():
         make_initial(SINUSOID, "beta")
     with pytest.raises(ConfigError, match="benchmark.initial.scale"):
         make_initial(SINUSOID, "normal", [1.0, 1.0], [0.5, -1.0])
+
+
+def test_tasks_on_the_faces_round_into_the_box():
+    # π rounds up in float32 (outside the box); 0.1 rounds up too (inside), 5.0 is exact
+    space = TaskSpace(["a", "b"], [0.1, -math.pi], [5.0, math.pi])
+    distribution = BoxUniform(space)
+    params = torch.tensor([[0.1, math.pi], [5.0, -math.pi], [2.0, 1.0]], dtype=torch.float64)
+    log_prob = distribution.log_prob(params)
+    tasks = distribution.as_tasks(params, log_prob)
+    cast = tasks["params"]
+    assert cast.dtype == torch.get_default_dtype()
+    assert space.contains(cast.double()).all()
+    assert torch.isfinite(distribution.log_prob(cast)).all()
+    plain = params.float()
+    assert plain[0, 1].double() > math.pi and plain[1, 1].double() < -math.pi  # the hazard
+    below_pi = torch.nextafter(plain[0, 1], torch.tensor(0.0))
+    assert cast[0, 1] == below_pi and cast[1, 1] == -below_pi  # the nearest float32 inside
+    inside = torch.tensor([[True, False], [True, False], [True, True]])
+    assert torch.equal(cast[inside], plain[inside])  # everything else is the plain cast
+    torch.testing.assert_close(tasks["log_prob"], log_prob.float())

@@ -53,6 +53,7 @@ class FlowAdversary(TaskDistribution):
         self.base = base
         self.flow_kind = flow
         self.flow = make_box_flow(space, flow, **flow_kwargs)
+        self.register_buffer("centre", (self.low + self.high) / 2, persistent=False)
 
     @torch.no_grad()
     def sample_with_log_prob(self, n: int) -> tuple[Tensor, Tensor]:
@@ -71,8 +72,7 @@ class FlowAdversary(TaskDistribution):
         ln|det ∂g⁻¹/∂τ| inside the box, ``-inf`` outside. Differentiable with respect to φ."""
         params = params.to(torch.float64)
         inside = self._inside(params)
-        centre = (self.low + self.high) / 2
-        safe = torch.where(inside[:, None], params, centre)
+        safe = torch.where(inside[:, None], params, self.centre)
         initial, log_det = self.flow.inverse(safe)
         return torch.where(inside, self.base.log_prob(initial) + log_det, -math.inf)
 

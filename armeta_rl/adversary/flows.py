@@ -49,6 +49,10 @@ class BoxFlow(nn.Module):
         super().__init__()
         self.space = space
         self.layers = nn.ModuleList(layers)
+        low, high = space.bounds(torch.float64)
+        self.register_buffer("low", low, persistent=False)
+        self.register_buffer("high", high, persistent=False)
+        self.register_buffer("width", high - low, persistent=False)
         self.to(torch.float64)
         self.reset_identity()
 
@@ -65,14 +69,13 @@ class BoxFlow(nn.Module):
         return x
 
     def _run(self, params: Tensor, inverse: bool) -> tuple[Tensor, Tensor]:
-        x = self._enter(self.space.to_unit(params.to(torch.float64)))
-        log_det = torch.zeros(x.shape[0], dtype=torch.float64, device=x.device)
+        x = self._enter((params.to(torch.float64) - self.low) / self.width)
+        log_det: Tensor | float = 0.0
         for layer in reversed(self.layers) if inverse else self.layers:
             x, layer_log_det = layer.inverse(x) if inverse else layer(x)
             log_det = log_det + layer_log_det
             x = self._between(x)
-        low, high = self.space.bounds(torch.float64, x.device)
-        return self.space.from_unit(x).clamp(low, high), log_det
+        return (self.low + x * self.width).clamp(self.low, self.high), log_det
 
     def forward(self, params: Tensor) -> tuple[Tensor, Tensor]:
         """τ = g(τ0) for ``params = τ0 [n, d]`` in the box, and ln|det ∂g/∂τ0| ``[n]``."""

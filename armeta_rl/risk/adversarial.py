@@ -27,8 +27,9 @@ class AdversarialPrinciple(nn.Module):
     """AR-MAML / AR-CNP's task source: the flow adversary, updated every ``update_every`` steps.
 
     ``state_dict()`` holds the adversary's parameters plus, as torch's ``_extra_state``, the Adam
-    and scheduler states (plain tensors, numbers and lists: ``torch.load(weights_only=True)`` reads
-    it). Like any ``nn.Module`` state dict its tensors alias the live ones; copy before mutating.
+    and scheduler states and the tasks drawn for the next :meth:`propose` (plain tensors, numbers
+    and lists: ``torch.load(weights_only=True)`` reads it). Like any ``nn.Module`` state dict its
+    tensors alias the live ones; copy before mutating.
 
     Args:
         adversary: p_φ (its ``base`` is p0).
@@ -73,12 +74,13 @@ class AdversarialPrinciple(nn.Module):
         self.adversary = adversary
         self.lam, self.update_every, self.grad_clip = float(lam), update_every, grad_clip
         self.baseline, self.initial_samples = baseline, initial_samples
-        self.optimizer = torch.optim.Adam(
-            adversary.parameters(), lr=lr, maximize=True, foreach=True
-        )
+        self._phi = list(adversary.parameters())
+        self.optimizer = torch.optim.Adam(self._phi, lr=lr, maximize=True, fused=True)
         self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
             self.optimizer, T_max=total_updates
         )
+        self._drawn: dict[str, Any] | None = None
+        self.register_load_state_dict_post_hook(self._stamp_drawn)
 
     @property
     def initial(self) -> TaskDistribution:
@@ -86,7 +88,15 @@ class AdversarialPrinciple(nn.Module):
         return self.adversary.base
 
     def propose(self, n: int) -> TensorDict:
-        """``n`` tasks drawn from p_φ, with their log-probabilities."""
+        """``n`` tasks drawn from p_φ, with their log-probabilities.
+
+        The first call after :meth:`update` returns the tasks that the update drew from the new
+        p_φ to check its density, if ``n`` matches and φ has not been changed since; so a
+        meta-iteration runs the flow once to sample and once (the inverse) to update.
+        """
+        drawn, self._drawn = self._drawn, None
+        if drawn is not None and len(drawn["tasks"]) == n and self._versions() == drawn["versions"]:
+            return drawn["tasks"]
         return self.adversary.sample(n)
 
     def weights(self, losses: Tensor) -> Tensor:
@@ -101,7 +111,8 @@ class AdversarialPrinciple(nn.Module):
         samples) and ``adversary/kl_p0`` (from the ``initial_samples`` p0 samples), all of p_φ
         before the step and free by-products of the surrogate; ``adversary/lr`` (the rate used)
         and ``adversary/grad_norm`` (before clipping). Precise entropy and KL of the final p_φ go
-        to the evaluation report.
+        to the evaluation report. After the step it draws ``K`` tasks from the new p_φ: their
+        log-densities check the new flow, and the next :meth:`propose` returns them.
 
         Raises:
             TrainingDiverged: if the losses, the surrogate, its gradient, the new parameters or the
@@ -121,9 +132,8 @@ class AdversarialPrinciple(nn.Module):
             )
         self.optimizer.zero_grad(set_to_none=True)
         surrogate.backward()
-        parameters = list(self.adversary.parameters())
         max_norm = math.inf if self.grad_clip is None else self.grad_clip
-        grad_norm = torch.nn.utils.clip_grad_norm_(parameters, max_norm)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self._phi, max_norm, foreach=True)
         if not torch.isfinite(grad_norm):
             self.optimizer.zero_grad(set_to_none=True)
             raise TrainingDiverged(f"adversary gradient is not finite (norm {float(grad_norm)})")
@@ -132,13 +142,13 @@ class AdversarialPrinciple(nn.Module):
         self.optimizer.step()
         self.scheduler.step()
         self.optimizer.zero_grad(set_to_none=True)
-        with torch.no_grad():
-            density = self.adversary.log_prob(tasks["params"])
-        if not (
-            all(bool(torch.isfinite(p).all()) for p in parameters) and torch.isfinite(density).all()
-        ):
+        largest = torch.nn.utils.get_total_norm(self._phi, norm_type=math.inf, foreach=True)
+        params, log_prob = self.adversary.sample_with_log_prob(len(losses))
+        if not (torch.isfinite(largest) and torch.isfinite(log_prob).all()):
             self._restore(snapshot)
             raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
+        self._drawn = {"tasks": self.adversary.as_tasks(params, log_prob),
+                       "versions": self._versions()}
         return {
             "adversary/objective": stats["objective"],
             "adversary/entropy": stats["entropy"],
@@ -147,31 +157,53 @@ class AdversarialPrinciple(nn.Module):
             "adversary/grad_norm": float(grad_norm),
         }
 
+    def _versions(self) -> tuple[int, ...]:
+        """In-place modification counters of φ: they change whenever φ does."""
+        return tuple(p._version for p in self._phi)
+
     def get_extra_state(self) -> dict[str, Any]:
-        """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``."""
-        return {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
+        """Optimizer, learning-rate schedule and the tasks :meth:`propose` returns next (drawn
+        from p_φ by the last update, so a resumed run proposes the same tasks), stored in
+        ``state_dict()["_extra_state"]``."""
+        drawn = {} if self._drawn is None else self._drawn["tasks"].to_dict()
+        return {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
+                "drawn": drawn}
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`get_extra_state` returned."""
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
+        drawn = state.get("drawn") or {}
+        self._drawn = None
+        if drawn:
+            tasks = TensorDict(dict(drawn), batch_size=[len(drawn["params"])])
+            self._drawn = {"tasks": tasks, "versions": None}
 
-    def _snapshot(self) -> tuple[list[Tensor], dict[Any, Any], dict[str, Any]]:
-        """Copies of the parameters, Adam's moments and the schedule, to undo a step."""
-        parameters = [p.detach().clone() for p in self.adversary.parameters()]
-        moments = {
-            p: {k: v.clone() if torch.is_tensor(v) else v for k, v in state.items()}
-            for p, state in self.optimizer.state.items()
-        }
-        return parameters, moments, copy.deepcopy(self.scheduler.state_dict())
+    def _stamp_drawn(self, *_: Any) -> None:
+        """After ``load_state_dict`` has set φ, tie the restored draw to it."""
+        if self._drawn is not None:
+            self._drawn["versions"] = self._versions()
 
     @torch.no_grad()
-    def _restore(self, snapshot: tuple[list[Tensor], dict[Any, Any], dict[str, Any]]) -> None:
-        parameters, moments, schedule = snapshot
-        for parameter, saved in zip(self.adversary.parameters(), parameters, strict=True):
-            parameter.copy_(saved)
-        self.optimizer.state.clear()
-        self.optimizer.state.update(moments)
+    def _snapshot(self) -> tuple[Tensor, bool, dict[str, Any]]:
+        """One flat copy of the parameters and Adam's moments and step counts, whether Adam has
+        state yet, and the schedule: what :meth:`_restore` needs to undo a step."""
+        tensors = self._state_tensors()
+        flat = torch.cat([t.reshape(-1) for t in tensors])
+        return flat, bool(self.optimizer.state), copy.deepcopy(self.scheduler.state_dict())
+
+    def _state_tensors(self) -> list[Tensor]:
+        states = [self.optimizer.state[p] for p in self._phi if p in self.optimizer.state]
+        return self._phi + [s[k] for s in states for k in sorted(s)]
+
+    @torch.no_grad()
+    def _restore(self, snapshot: tuple[Tensor, bool, dict[str, Any]]) -> None:
+        flat, had_state, schedule = snapshot
+        tensors = self._state_tensors() if had_state else self._phi
+        for tensor, saved in zip(tensors, flat.split([t.numel() for t in tensors]), strict=True):
+            tensor.copy_(saved.view_as(tensor))
+        if not had_state:
+            self.optimizer.state.clear()
         self.scheduler.load_state_dict(schedule)
         last_lrs = self.scheduler.get_last_lr()
         for group, lr in zip(self.optimizer.param_groups, last_lrs, strict=True):

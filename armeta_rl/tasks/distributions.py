@@ -28,6 +28,7 @@ class TaskDistribution(nn.Module):
         low, high = space.bounds(torch.float64)
         self.register_buffer("low", low, persistent=False)
         self.register_buffer("high", high, persistent=False)
+        self._inner_bounds: dict[tuple[torch.dtype, torch.device], tuple[Tensor, Tensor]] = {}
 
     def sample_params(self, n: int) -> Tensor:
         """``n`` identifiers ``[n, d]`` in float64."""
@@ -44,21 +45,28 @@ class TaskDistribution(nn.Module):
 
     def sample(self, n: int) -> TensorDict:
         """``n`` tasks as ``{"params": [n, d], "log_prob": [n]}`` in the default dtype."""
-        params, log_prob = self.sample_with_log_prob(n)
+        return self.as_tasks(*self.sample_with_log_prob(n))
+
+    def as_tasks(self, params: Tensor, log_prob: Tensor) -> TensorDict:
+        """The TensorDict :meth:`sample` returns for samples ``params [n, d]`` and their
+        log-densities ``[n]``, in the default dtype."""
         dtype = torch.get_default_dtype()
         return TensorDict(
             {"params": self._cast_inside(params, dtype), "log_prob": log_prob.to(dtype)},
-            batch_size=[n],
+            batch_size=[len(params)],
         )
 
     def _cast_inside(self, params: Tensor, dtype: torch.dtype) -> Tensor:
         """Round ``params`` to ``dtype`` without leaving the box: a face such as π is not a float32
-        number, and a sample on it would round outside (where the density is zero)."""
-        cast = params.to(dtype)
-        above = cast.to(torch.float64) > self.high
-        below = cast.to(torch.float64) < self.low
-        cast = torch.where(above, torch.nextafter(cast, torch.tensor(-math.inf, dtype=dtype)), cast)
-        return torch.where(below, torch.nextafter(cast, torch.tensor(math.inf, dtype=dtype)), cast)
+        number, and a sample on it would round outside (where the density is zero). A value that
+        rounds outside lands on the nearest ``dtype`` number inside instead."""
+        key = (dtype, self.low.device)
+        if key not in self._inner_bounds:
+            low, high = self.low.to(dtype), self.high.to(dtype)
+            low = torch.where(low.to(torch.float64) < self.low, torch.nextafter(low, high), low)
+            high = torch.where(high.to(torch.float64) > self.high, torch.nextafter(high, low), high)
+            self._inner_bounds[key] = (low, high)
+        return params.to(dtype).clamp(*self._inner_bounds[key])
 
     def entropy(self, n: int = 4096) -> Tensor:
         """Entropy H[p] = -E_p[ln p(τ)] (Monte Carlo unless a subclass knows it exactly)."""
@@ -71,15 +79,18 @@ class TaskDistribution(nn.Module):
 class BoxUniform(TaskDistribution):
     """Uniform distribution on the box: ln p(τ) = -ln vol(box)."""
 
+    def __init__(self, space: TaskSpace) -> None:
+        super().__init__(space)
+        log_density = torch.tensor(-space.log_volume, dtype=torch.float64)
+        self.register_buffer("log_density", log_density, persistent=False)
+
     def sample_params(self, n: int) -> Tensor:
         return self.low + torch.rand(n, self.space.dim, dtype=torch.float64) * (
             self.high - self.low
         )
 
     def log_prob(self, params: Tensor) -> Tensor:
-        params = params.to(torch.float64)
-        log_density = torch.tensor(-self.space.log_volume, dtype=torch.float64)
-        return torch.where(self._inside(params), log_density, -math.inf)
+        return torch.where(self._inside(params.to(torch.float64)), self.log_density, -math.inf)
 
     def entropy(self, n: int = 0) -> Tensor:
         return torch.tensor(self.space.log_volume, dtype=torch.float64)
