@@ -67,12 +67,15 @@ def test_acrobot_matches_gymnasium():
         # A wider start than gymnasium's ±0.1 so the comparison covers large swings.
         gym_env.state = rng.uniform(-1.0, 1.0, size=4)
         gym_envs.append(gym_env)
-    # The first acrobot starts above the bar, so it terminates at once and is reset.
+    # The first acrobot starts above the bar, so it terminates at once and is reset; the last
+    # starts at its velocity limits, so its velocities get clipped.
     gym_envs[0].state = np.array([2.5, 0.0, 0.0, 0.0])
+    gym_envs[-1].state = np.array([0.0, 0.0, 12.5, 28.2])
+    max_velocity = torch.tensor([AcrobotEnv.max_vel_1, AcrobotEnv.max_vel_2], dtype=torch.float64)
     env = AcrobotEnv(batch_size=(len(gym_envs), 1), seed=0, dtype=torch.float64)
     params = torch.tensor(ACROBOT_PARAMS, dtype=torch.float64)
     td = _reset_to(env, params, torch.tensor(np.stack([g.state for g in gym_envs])))
-    terminations = 0
+    terminations = clipped = 0
     for _ in range(STEPS):
         actions = rng.integers(0, 3, size=len(gym_envs))
         gym_out = [g.step(int(a)) for g, a in zip(gym_envs, actions, strict=True)]
@@ -83,6 +86,7 @@ def test_acrobot_matches_gymnasium():
         assert out["reward"][:, 0, 0].tolist() == [o[1] for o in gym_out]
         terminated = torch.tensor([o[2] for o in gym_out])
         assert torch.equal(out["terminated"][:, 0, 0], terminated)
+        clipped += int((out["state"][:, 0, 2:].abs() == max_velocity).sum())
         td = out.clone()
         if terminated.any():
             # Gymnasium needs a reset after termination: restart both from gymnasium's new state
@@ -94,6 +98,7 @@ def test_acrobot_matches_gymnasium():
             td["_reset"] = terminated[:, None, None]
             td = env.reset(td, set_state=True)
     assert terminations >= 1
+    assert clipped >= 1
 
 
 @pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])
@@ -123,6 +128,13 @@ def test_identifiers_survive_partial_resets_in_rollout():
     assert not rollout["next", "done"][~upright].any()
     for key in ("params", ("next", "params")):
         torch.testing.assert_close(rollout[key], params[:, :, None].expand(3, 2, 4, 2))
+    # Every transition, before and after the resets, is the physics of its own episode's masses.
+    fresh = AcrobotEnv(batch_size=(3, 2), seed=1)
+    for t in range(4):
+        start = TensorDict({"params": params, "state": rollout["state"][:, :, t]}, (3, 2))
+        start = fresh.reset(start, set_state=True).set("action", rollout["action"][:, :, t])
+        torch.testing.assert_close(fresh.step(start)["next", "state"],
+                                   rollout["next", "state"][:, :, t])
 
 
 @pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])

@@ -40,12 +40,16 @@ class SysIdCollector:
 
     Defaults ``target="delta"``, ``normalize="none"`` learned best in a measured comparison
     (MAML, 3×128 ReLU MLP, inner lr 0.01, 300 meta-iterations of 16 tasks from U([0.4, 1.6]²),
-    next-observation MSE on 100 fresh tasks, one seed): pendulum delta/none 0.0415,
-    delta/scale 0.0431, next/none 0.0435, next/scale 0.0455; acrobot delta/none 0.00110,
-    next/none 0.00114, delta/scale 0.00147, next/scale 0.0142. ``episodes=10`` (10 episodes of
-    20 steps per task) makes one collection ~9x faster than a single 200-step episode (the
-    TorchRL step overhead is paid per time step, not per env); see
-    ``benchmarks/bench_sysid_envs.py``.
+    10 episodes of 20 steps, next-observation MSE on 100 fresh tasks, one seed): pendulum
+    delta/none 0.0415, delta/scale 0.0431, next/none 0.0435, next/scale 0.0455; acrobot
+    delta/none 0.00110, next/none 0.00114, delta/scale 0.00147, next/scale 0.0142.
+
+    ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
+    any batch, so collection time grows with the steps per episode (one 200-step episode is
+    ~20x slower; see ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
+    initial states: the median |θ̇| of the pendulum data is 2.5 with one 200-step episode, 2.4
+    with 10 x 20 steps and 1.8 with 20 x 10 (90% quantile 6.0 / 6.2 / 5.5; the ±8 clip is reached
+    in all three); the acrobot's median |θ̇2| is 0.95 / 0.35 / 0.28.
 
     The environment's initial-state seed is drawn from torch's global RNG at every call, so
     ``torch.manual_seed`` fixes the whole collection.
@@ -61,7 +65,7 @@ class SysIdCollector:
     """
 
     def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
-                 episodes: int = 10, target: str = "delta", normalize: str = "none",
+                 episodes: int = 20, target: str = "delta", normalize: str = "none",
                  device: str = "cpu") -> None:
         if env not in ENVIRONMENTS:
             raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
@@ -116,8 +120,8 @@ class SysIdCollector:
         env = self._env(n_tasks)
         env.set_seed(int(torch.randint(0, 2**62, ())))
         batch = (n_tasks, self.episodes)
-        reset = TensorDict({"params": params[:, None].expand(*batch, -1)}, batch_size=batch)
-        reset = env.reset(reset.to(self.device))
+        params = params.to(self.device)[:, None].expand(*batch, -1)
+        reset = env.reset(TensorDict({"params": params}, batch_size=batch, device=self.device))
         return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
                            auto_reset=False, break_when_any_done=False)
 
@@ -125,23 +129,25 @@ class SysIdCollector:
         """Support and query transitions for every task: TensorDict ``[K]`` with
         ``{"support", "query"}`` × ``{"x", "y"}``, tensors ``[K, points, features]``."""
         params = tasks["params"]
-        n_tasks = params.shape[0]
-        data = self.rollout(params).reshape(n_tasks, self.n_transitions)
-        observation, next_observation = data["observation"], data["next", "observation"]
-        torque = self.env_cls.torque(data["action"])
-        x = torch.cat([observation, torque], -1) / self.x_scale
-        target = next_observation - observation if self.target == "delta" else next_observation
-        y = target / self.y_scale
-        order = torch.rand(n_tasks, self.n_transitions).argsort(-1).to(self.device)
-        x, y = _gather_rows(x, order), _gather_rows(y, order)
-        dtype = torch.get_default_dtype()
+        n_tasks, n_points = params.shape[0], self.n_transitions
+        data = self.rollout(params)
+        observation = data["observation"].reshape(n_tasks, n_points, -1)
+        next_observation = data["next", "observation"].reshape(n_tasks, n_points, -1)
+        torque = self.env_cls.torque(data["action"]).reshape(n_tasks, n_points, 1)
+        if self.target == "delta":
+            next_observation = next_observation - observation
+        # One [K, points, x | y] tensor: one scaling, one shuffle, then the split.
+        points = torch.cat([observation, torque.to(observation.dtype), next_observation], -1)
+        if self.normalize != "none":
+            points = points / torch.cat([self.x_scale, self.y_scale])
+        order = torch.rand(n_tasks, n_points).argsort(-1).to(self.device)
+        points = points.gather(1, order.unsqueeze(-1).expand_as(points))
+        points = points.to(torch.get_default_dtype())
+        x = points[..., : self.in_features].contiguous()
+        y = points[..., self.in_features :].contiguous()
+        support, query = slice(None, self.n_support), slice(self.n_support, None)
         split = {
-            "support": {"x": x[:, : self.n_support], "y": y[:, : self.n_support]},
-            "query": {"x": x[:, self.n_support :], "y": y[:, self.n_support :]},
+            "support": {"x": x[:, support], "y": y[:, support]},
+            "query": {"x": x[:, query], "y": y[:, query]},
         }
-        return TensorDict(split, batch_size=[n_tasks], device=self.device).to(dtype)
-
-
-def _gather_rows(values: Tensor, order: Tensor) -> Tensor:
-    """``values[k, order[k]]`` for every task ``k``."""
-    return values.gather(1, order.unsqueeze(-1).expand(-1, -1, values.shape[-1]))
+        return TensorDict(split, batch_size=[n_tasks], device=self.device)

@@ -6,16 +6,11 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torch import Tensor
 from torchrl.data import Categorical
 
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
-
-
-def wrap_angle(angle: Tensor) -> Tensor:
-    """Wrap into ``[-π, π)`` (gymnasium's ``wrap``; equal up to the value at ±π)."""
-    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
 
 
 class AcrobotEnv(IdentifiedSystemEnv):
@@ -35,6 +30,9 @@ class AcrobotEnv(IdentifiedSystemEnv):
     ``"params"`` (m1, m2) = gymnasium's ``LINK_MASS_1``, ``LINK_MASS_2``, and ``"action"``
     ``[*batch]``: a categorical index in {0, 1, 2} applying torque ``action - 1`` ∈ {-1, 0, +1}
     (gymnasium's ``AVAIL_TORQUE[action]``).
+
+    Cosines are computed as ``cos x = sin(x + π/2)`` so that every trigonometric value of a
+    Runge–Kutta stage comes from one ``sin`` of one ``[n_envs, 4]`` tensor of angles.
     """
 
     param_names = ("m1", "m2")
@@ -60,76 +58,113 @@ class AcrobotEnv(IdentifiedSystemEnv):
     def _make_action_spec(self) -> Categorical:
         return Categorical(n=3, shape=self.batch_size, dtype=torch.int64, device=self.device)
 
+    def _random_action(self) -> Tensor:
+        return torch.randint(0, 3, self.batch_size, device=self.device)
+
+    def _precompute(self) -> None:
+        kwargs = {"dtype": self.dtype, "device": self.device}
+        half_pi = math.pi / 2
+        # The physics works on feature-major states [4, n_envs] (contiguous rows).
+        self.one, self.minus_one = torch.tensor(1.0, **kwargs), torch.tensor(-1.0, **kwargs)
+        # State (θ1, θ2, θ̇1, θ̇2) -> angles whose sines are (sin θ1, sin θ2, sin(θ1+θ2), cos θ2).
+        self.stage_map = torch.tensor(
+            [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [1.0, 1.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+            ],
+            **kwargs,
+        )
+        self.stage_shift = torch.tensor([[0.0], [0.0], [0.0], [half_pi]], **kwargs)
+        # State -> (θ1 + π/2, θ1, θ2 + π/2, θ2, θ̇1, θ̇2, θ1 + θ2 + π/2): the sines of all rows
+        # but the velocities are the observation's trigonometric part and, last, cos(θ1 + θ2).
+        self.observation_map = torch.tensor(
+            [
+                [1.0, 0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 0.0],
+                [0.0, 0.0, 0.0, 1.0],
+                [1.0, 1.0, 0.0, 0.0],
+            ],
+            **kwargs,
+        )
+        self.observation_shift = torch.tensor(
+            [[half_pi], [0.0], [half_pi], [0.0], [0.0], [0.0], [half_pi]], **kwargs)
+        self.max_velocity = torch.tensor([[self.max_vel_1], [self.max_vel_2]], **kwargs)
+        self.min_velocity = -self.max_velocity
+
+    def _physical_constants(self, params: Tensor) -> Tensor:
+        """Per env the mass-dependent constants of the equations of motion, all affine in
+        (m1, m2): d1 without its cos θ2 term, 2 × coupling, coupling ``m2 l1 lc2``,
+        ``d2_rest = m2 lc2² + I``, and the gravity factors of φ2 and φ1."""
+        l1, lc1, lc2, inertia = self.link_length_1, self.link_com_1, self.link_com_2, self.link_moi
+        weights = torch.tensor(
+            [
+                [lc1**2, 0.0, 0.0, 0.0, 0.0, lc1 * self.g],
+                [l1**2 + lc2**2, 2 * l1 * lc2, l1 * lc2, lc2**2, lc2 * self.g, l1 * self.g],
+            ],
+            dtype=params.dtype,
+            device=params.device,
+        )
+        bias = torch.tensor([2 * inertia, 0.0, 0.0, inertia, 0.0, 0.0], dtype=params.dtype,
+                            device=params.device)
+        return torch.addmm(bias, params, weights)
+
     def _initial_state(self) -> Tensor:
         return self._uniform(-0.1, 0.1)
 
     def _observe(self, state: Tensor) -> Tensor:
-        theta1, theta2, dtheta1, dtheta2 = state.unbind(-1)
-        return torch.stack(
-            [theta1.cos(), theta1.sin(), theta2.cos(), theta2.sin(), dtheta1, dtheta2], -1)
+        return self._observe_with_tip(state.T)[:6].T
 
-    def _coefficients(self, params: Tensor) -> tuple[Tensor, ...]:
-        """Mass-dependent constants of the equations of motion, once per step."""
-        m1, m2 = params.unbind(-1)
-        l1, lc1, lc2, inertia = self.link_length_1, self.link_com_1, self.link_com_2, self.link_moi
-        return (
-            m1 * lc1**2 + m2 * (l1**2 + lc2**2) + 2 * inertia,  # d1 without its cos θ2 term
-            m2 * l1 * lc2,
-            m2 * lc2**2 + inertia,
-            m2 * lc2 * self.g,
-            (m1 * lc1 + m2 * l1) * self.g,
-        )
+    def _observe_with_tip(self, state: Tensor) -> Tensor:
+        """From feature-major states ``[4, n_envs]``: (cos θ1, sin θ1, cos θ2, sin θ2, θ̇1, θ̇2,
+        cos(θ1 + θ2)) ``[7, n_envs]``."""
+        observation = torch.mm(self.observation_map, state).add_(self.observation_shift)
+        observation[:4].sin_()
+        observation[6].sin_()
+        return observation
 
-    @staticmethod
-    def _derivatives(state: Tensor, torque: Tensor, coefficients: tuple[Tensor, ...]) -> Tensor:
-        """ds/dt of the book equations (gymnasium's ``AcrobotEnv._dsdt``), with
-        cos(θ1 + θ2 − π/2) = sin(θ1 + θ2) and cos(θ1 − π/2) = sin θ1."""
-        d1_rest, coupling, d2_rest, gravity2, gravity1 = coefficients
-        theta1, theta2, dtheta1, dtheta2 = state.unbind(-1)
-        cos2, sin2 = theta2.cos(), theta2.sin()
-        d1 = d1_rest + 2 * coupling * cos2
-        d2 = d2_rest + coupling * cos2
-        phi2 = gravity2 * torch.sin(theta1 + theta2)
-        phi1 = -coupling * sin2 * dtheta2 * (dtheta2 + 2 * dtheta1) + gravity1 * theta1.sin() + phi2
-        ddtheta2 = (torque + d2 / d1 * phi1 - coupling * dtheta1**2 * sin2 - phi2) / (
-            d2_rest - d2**2 / d1
-        )
-        ddtheta1 = -(d2 * ddtheta2 + phi1) / d1
-        return torch.stack([dtheta1, dtheta2, ddtheta1, ddtheta2], -1)
+    def _derivatives(self, state: Tensor, torque: Tensor) -> Tensor:
+        """ds/dt ``[4, n_envs]`` of the book equations (gymnasium's ``AcrobotEnv._dsdt``) at
+        feature-major states ``[4, n_envs]``, with cos(θ1 + θ2 − π/2) = sin(θ1 + θ2) and
+        cos(θ1 − π/2) = sin θ1."""
+        d1_rest, two_coupling, coupling, d2_rest, gravity2, gravity1 = self.constants
+        angles = torch.mm(self.stage_map, state).add_(self.stage_shift).sin_()
+        sin1, sin2, sin12, cos2 = angles.unbind(0)
+        dtheta1, dtheta2 = state[2], state[3]
+        d1 = torch.addcmul(d1_rest, two_coupling, cos2)
+        d2 = torch.addcmul(d2_rest, coupling, cos2)
+        phi2 = gravity2 * sin12
+        coupled_sin = coupling * sin2
+        phi1 = torch.addcmul(phi2, gravity1, sin1)
+        phi1.addcmul_(coupled_sin * dtheta2, torch.add(dtheta2, dtheta1, alpha=2.0), value=-1.0)
+        ratio = d2 / d1
+        numerator = torch.addcmul(torque, ratio, phi1)
+        numerator.addcmul_(coupled_sin, dtheta1 * dtheta1, value=-1.0).sub_(phi2)
+        ddtheta2 = numerator.div_(torch.addcmul(d2_rest, d2, ratio, value=-1.0))
+        ddtheta1 = torch.addcmul(phi1, d2, ddtheta2).div_(d1).neg_()
+        return torch.stack([dtheta1, dtheta2, ddtheta1, ddtheta2])
 
-    def _rk4(self, state: Tensor, torque: Tensor, params: Tensor) -> Tensor:
+    def _rk4(self, state: Tensor, torque: Tensor) -> Tensor:
         """One classical Runge–Kutta step of length dt (gymnasium's ``rk4``)."""
-        coefficients, half = self._coefficients(params), self.dt / 2.0
-        k1 = self._derivatives(state, torque, coefficients)
-        k2 = self._derivatives(state + half * k1, torque, coefficients)
-        k3 = self._derivatives(state + half * k2, torque, coefficients)
-        k4 = self._derivatives(state + self.dt * k3, torque, coefficients)
-        return state + self.dt / 6.0 * (k1 + 2 * k2 + 2 * k3 + k4)
+        half = self.dt / 2.0
+        k1 = self._derivatives(state, torque)
+        k2 = self._derivatives(torch.add(state, k1, alpha=half), torque)
+        k3 = self._derivatives(torch.add(state, k2, alpha=half), torque)
+        k4 = self._derivatives(torch.add(state, k3, alpha=self.dt), torque)
+        slope = torch.add(k1, k4).add_(k2, alpha=2.0).add_(k3, alpha=2.0)
+        return torch.add(state, slope, alpha=self.dt / 6.0)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        params = tensordict["params"]
-        torque = self.torque(tensordict["action"]).squeeze(-1).to(self.dtype)
-        theta1, theta2, dtheta1, dtheta2 = self._rk4(tensordict["state"], torque, params).unbind(-1)
-        state = torch.stack(
-            [
-                wrap_angle(theta1),
-                wrap_angle(theta2),
-                dtheta1.clamp(-self.max_vel_1, self.max_vel_1),
-                dtheta2.clamp(-self.max_vel_2, self.max_vel_2),
-            ],
-            -1,
-        )
-        terminated = (-state[..., 0].cos() - (state[..., 1] + state[..., 0]).cos() > 1.0)
-        terminated = terminated.unsqueeze(-1)
-        return TensorDict(
-            {
-                "state": state,
-                "observation": self._observe(state),
-                "params": params,
-                "reward": terminated.to(self.dtype) - 1.0,
-                "done": terminated,
-                "terminated": terminated.clone(),
-            },
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        state = tensordict["state"].reshape(self.n_envs, 4).T.contiguous()
+        torque = torch.sub(tensordict["action"].reshape(self.n_envs).to(self.dtype), self.one)
+        state = self._rk4(state, torque)
+        self._wrap_angles_(state[:2])
+        state[2:].clamp_(self.min_velocity, self.max_velocity)
+        observation = self._observe_with_tip(state)
+        terminated = (observation[0] + observation[6]) < self.minus_one
+        reward = terminated.to(self.dtype).sub_(self.one)
+        return self._output(state.T, observation[:6].T, reward, terminated)

@@ -8,15 +8,21 @@ of the simulator. Subclasses write the batched physics; this base class owns wha
 * ``"params"`` ``[*batch, d]`` (identifiers in the order of :attr:`param_names`) is read from the
   reset TensorDict and kept: the env stores the last identifiers it was given, so an automatic
   (partial) reset inside ``env.rollout`` or ``torchrl.collectors.Collector`` — which passes only
-  ``"_reset"`` — restores them, and ``_step`` carries them from input to output like an
-  observation. A reset TensorDict without ``"params"`` keeps the stored ones;
+  ``"_reset"`` — restores them. Steps simulate the stored identifiers and report them under
+  ``"params"`` like an observation. A reset TensorDict without ``"params"`` keeps the stored ones;
 * ``"state"`` ``[*batch, state_dim]`` is the exact simulator state (the observation is a function
   of it); ``env.reset(td, set_state=True)`` starts from ``td["state"]`` instead of a random one;
 * a ``torch.Generator`` owned by the env draws the random initial states (``set_seed``).
+
+The physics runs on flat ``[tasks * episodes, ...]`` views with few, fused tensor ops: a step
+costs one small op per arithmetic stage, so its time is set by the op count, not the batch size.
+Identifier-dependent constants are computed once per reset (:meth:`_physical_constants`), not per
+step.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -54,8 +60,14 @@ class IdentifiedSystemEnv(EnvBase):
             raise ConfigError("env.batch_size", list(batch_size), "every dimension must be >= 1")
         super().__init__(device=device, batch_size=batch_size)
         self.dtype = dtype
+        self.n_envs = batch_size.numel()
+        # Scalars of the physics are 0-dim tensors: an op with a Python number costs about twice
+        # one with a tensor.
+        self.pi = torch.tensor(math.pi, dtype=dtype, device=self.device)
+        self.two_pi = 2 * self.pi
+        self._precompute()
         default = torch.tensor(self.default_params, dtype=dtype, device=self.device)
-        self.task_params = default.expand(*batch_size, len(self.param_names)).clone()
+        self._identify(default.expand(*batch_size, len(self.param_names)).clone())
         self._make_specs()
         if seed is None:
             seed = int(torch.randint(0, 2**62, ()))
@@ -84,6 +96,30 @@ class IdentifiedSystemEnv(EnvBase):
         """The torque ``[..., 1]`` an action applies."""
         raise NotImplementedError
 
+    def _precompute(self) -> None:
+        """Build the constant tensors (in the env's dtype and device) the physics reuses."""
+
+    def _physical_constants(self, params: Tensor) -> Tensor:
+        """Identifier-dependent constants ``[n_envs, c]`` of the equations of motion, from the
+        flat identifiers ``[n_envs, d]``."""
+        raise NotImplementedError
+
+    def _random_action(self) -> Tensor:
+        """A uniform random action with the action spec's shape, dtype and range."""
+        raise NotImplementedError
+
+    def _wrap_angles_(self, angles: Tensor) -> Tensor:
+        """Wrap ``angles`` into ``[-π, π)`` in place (gymnasium's ``angle_normalize`` and
+        ``wrap``, equal up to the value at ±π)."""
+        return angles.add_(self.pi).remainder_(self.two_pi).sub_(self.pi)
+
+    def _identify(self, params: Tensor) -> None:
+        """Store the identifiers ``[*batch, d]`` and the constants the physics derives from
+        them (:attr:`constants`: one flat ``[n_envs]`` tensor per constant)."""
+        self.task_params = params
+        flat = params.reshape(self.n_envs, -1)
+        self.constants = self._physical_constants(flat).T.contiguous().unbind(0)
+
     def _make_action_spec(self):
         raise NotImplementedError
 
@@ -92,7 +128,7 @@ class IdentifiedSystemEnv(EnvBase):
         raise NotImplementedError
 
     def _observe(self, state: Tensor) -> Tensor:
-        """Observation ``[*batch, observation_dim]`` of a state."""
+        """Observations ``[n_envs, observation_dim]`` of flat states ``[n_envs, state_dim]``."""
         raise NotImplementedError
 
     def _set_seed(self, seed: int | None) -> None:
@@ -105,12 +141,13 @@ class IdentifiedSystemEnv(EnvBase):
         return low + (high - low) * unit
 
     def rand_action(self, tensordict: TensorDictBase | None = None) -> TensorDictBase:
-        """A uniform random action from the action spec (torch's global RNG).
+        """A uniform random action in the action spec's range (torch's global RNG).
 
-        Samples the one action spec directly: ``EnvBase.rand_action`` samples the full action
-        Composite and rebuilds a TensorDict every step, which dominated the rollout time.
+        Draws the one action tensor directly (:meth:`_random_action`): ``EnvBase.rand_action``
+        samples the full action Composite and rebuilds a TensorDict every step, which dominated
+        the rollout time.
         """
-        action = self.action_spec.rand()
+        action = self._random_action()
         if tensordict is None:
             return TensorDict({"action": action}, batch_size=self.batch_size, device=self.device)
         tensordict.set("action", action)
@@ -125,20 +162,30 @@ class IdentifiedSystemEnv(EnvBase):
         params = tensordict.get("params", None)
         if params is not None:
             params = params.to(self.task_params).expand_as(self.task_params)
-            self.task_params = params.clone() if reset is None else torch.where(
-                reset, params, self.task_params)
+            self._identify(params.clone() if reset is None else torch.where(
+                reset, params, self.task_params))
         state = tensordict.get("state", None)
         if not set_state or state is None:
             state = self._initial_state()
-        done = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
-        return TensorDict(
-            {
-                "state": state.to(self.dtype),
-                "observation": self._observe(state.to(self.dtype)),
-                "params": self.task_params.clone(),
-                "done": done,
-                "terminated": done.clone(),
-            },
-            batch_size=self.batch_size,
-            device=self.device,
-        )
+        state = state.to(self.dtype)
+        observation = self._observe(state.reshape(self.n_envs, self.state_dim))
+        done = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
+        return self._output(state, observation, None, done)
+
+    def _output(self, state: Tensor, observation: Tensor, reward: Tensor | None,
+                terminated: Tensor) -> TensorDictBase:
+        """The TensorDict of a reset (``reward=None``) or a step, from flat ``[n_envs, ...]``
+        tensors; ``"params"`` are the env's identifiers (the ones the physics used)."""
+        batch = self.batch_size
+        out = {
+            "state": state.reshape(*batch, self.state_dim),
+            "observation": observation.reshape(*batch, self.observation_dim),
+            "params": self.task_params.clone(),
+            "done": terminated.reshape(*batch, 1),
+            "terminated": terminated.reshape(*batch, 1).clone(),
+        }
+        if reward is not None:
+            out["reward"] = reward.reshape(*batch, 1)
+        # Every shape is built here, so the per-entry validation of ``TensorDict(...)`` is
+        # skipped, as torchrl's own ``GymLikeEnv._step`` does.
+        return TensorDict._new_unsafe(out, batch_size=batch, device=self.device)
