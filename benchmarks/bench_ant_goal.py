@@ -8,10 +8,14 @@ Env steps per second (one env step = ``frame_skip`` = 5 physics steps) of
 * the native :class:`mujoco.batch.Batch` step that ``AntGoalEnv`` uses, alone;
 * ``AntGoalEnv.rollout`` in one process (random actions, automatic resets);
 * ``AntGoalEnv`` split over 2 worker processes (``make_parallel_ant_goal``);
+* a whole episode collection with the Gaussian MLP policy (``TaskSplitEpisodeCollector.collect``,
+  what training runs): in one process with one MuJoCo thread per core, and with the tasks split
+  over 2 worker processes of one thread each;
 
 then seconds per MAML-TRPO meta-iteration on ``ant_goal`` (rollouts before and after adaptation and
-the TRPO step) for a reduced meta-batch, scaled linearly to the paper's 40 tasks and to a
-500-iteration run. Single-threaded torch; the machine's load average is printed with the table.
+the TRPO step) for a reduced meta-batch, in one process (MuJoCo threads) and with the tasks split
+over 2 processes, scaled linearly to the paper's 40 tasks and to a 500-iteration run.
+Single-threaded torch; the machine's load average is printed with the table.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_goal.py``.
 """
@@ -31,7 +35,14 @@ import torch
 from tensordict import TensorDict
 from timing import wall_times
 
-from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, make_parallel_ant_goal
+from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
+from armeta_rl.envs.ant_goal import (
+    AntGoalEnv,
+    load_ant_model,
+    make_parallel_ant_goal,
+    observation_size,
+)
+from armeta_rl.rl.policy import GaussianMLP
 
 STAGE_ACC = mujoco.mjtStage.mjSTAGE_ACC.value
 
@@ -92,27 +103,43 @@ def env_rollout(env, steps: int) -> Callable[[], None]:
     )
 
 
-def meta_iteration_seconds(tasks: int, episodes: int, horizon: int, repeats: int) -> float:
+def task_split_collector(
+    workers: int, episodes: int, horizon: int
+) -> TaskSplitEpisodeCollector:
+    """ant_goal's collector: 1 process with one MuJoCo thread per core, or ``workers`` processes
+    with one MuJoCo thread each."""
+    threads = None if workers == 1 else 1
+    make_env = partial(AntGoalEnv, seed=0, threads=threads)
+    return TaskSplitEpisodeCollector(make_env, episodes, horizon, workers=workers)
+
+
+def collection(collector: TaskSplitEpisodeCollector, tasks: int) -> Callable[[], object]:
+    """One ``collect`` of ``tasks`` random goals with a fresh Gaussian MLP policy."""
+    model = load_ant_model()
+    net = GaussianMLP(observation_size(model), model.nu)
+    goals = TensorDict({"params": 6 * torch.rand(tasks, 2) - 3}, [tasks])
+    return lambda: collector.collect(goals, policy=net)
+
+
+def meta_iteration_seconds(
+    tasks: int, episodes: int, horizon: int, repeats: int, workers: int = 1
+) -> float:
     """Seconds per MAML-TRPO meta-iteration on ant_goal with ``tasks`` tasks."""
-    from armeta_rl.collectors.episodes import EpisodeCollector
     from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
     from armeta_rl.tasks import BoxUniform, TaskSpace
 
     space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
-    make_env = partial(AntGoalEnv, seed=0, threads=None)
-    collector = EpisodeCollector(make_env, episodes=episodes, max_steps=horizon)
-    probe = collector.env(1)
-    leader = MAMLTRPOLeader(
-        collector,
-        obs_dim=probe.observation_spec["observation"].shape[-1],
-        action_dim=probe.action_spec.shape[-1],
-    )
+    collector = task_split_collector(workers, episodes, horizon)
+    model = load_ant_model()
+    leader = MAMLTRPOLeader(collector, obs_dim=observation_size(model), action_dim=model.nu)
     task_batch = BoxUniform(space).sample(tasks)
 
     def erm_weights(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1 / tasks)
 
-    return seconds(lambda: leader.step(task_batch, erm_weights), repeats)
+    elapsed = seconds(lambda: leader.step(task_batch, erm_weights), repeats)
+    collector.close()
+    return elapsed
 
 
 def main() -> None:
@@ -150,24 +177,31 @@ def main() -> None:
     t = seconds(env_rollout(parallel, steps), args.repeats)
     rows.append(("AntGoalEnv, 2 processes (ParallelEnv)", f"[2, {k // 2}, {e}]", n * steps / t))
     parallel.close()
+    for workers in (1, 2):
+        collector = task_split_collector(workers, e, steps)
+        t = seconds(collection(collector, k), args.repeats)
+        collector.close()
+        how = f"1 process, {cores} MuJoCo threads" if workers == 1 else f"{workers} processes"
+        rows.append((f"collect with policy, {how}", f"[{k}, {e}]", n * steps / t))
 
     bare = rows[0][2]
     print(f"load average (1, 5, 15 min): {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
           f"{os.cpu_count()} CPUs")
-    print(f"{'what':48s} {'batch':>12s} {'env steps/s':>12s} {'% bare':>7s}")
+    print(f"{'what':52s} {'batch':>12s} {'env steps/s':>12s} {'% bare':>7s}")
     for name, batch, rate in rows:
-        print(f"{name:48s} {batch:>12s} {rate:12.0f} {100 * rate / bare:6.0f}%")
+        print(f"{name:52s} {batch:>12s} {rate:12.0f} {100 * rate / bare:6.0f}%")
 
     if args.skip_meta:
         return
-    t = meta_iteration_seconds(args.meta_tasks, e, args.horizon, 1)
-    scaled = t * 40 / args.meta_tasks
-    print(
-        f"\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} episodes × "
-        f"{args.horizon} steps (2 rollouts + TRPO): {t:.1f} s measured; scaled linearly to the "
-        f"paper's 40 tasks: {scaled:.0f} s; 500 iterations ≈ {500 * scaled / 3600:.1f} h "
-        f"(one process, one torch thread, one MuJoCo thread per core)."
-    )
+    print(f"\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} episodes × "
+          f"{args.horizon} steps (2 rollouts + TRPO), one torch thread per process:")
+    for workers in (1, 2):
+        t = meta_iteration_seconds(args.meta_tasks, e, args.horizon, 1, workers)
+        scaled = t * 40 / args.meta_tasks
+        how = (f"1 process, {cores} MuJoCo threads" if workers == 1
+               else f"tasks split over {workers} processes")
+        print(f"  {how:40s} {t:6.1f} s measured; scaled linearly to the paper's 40 tasks: "
+              f"{scaled:.0f} s; 500 iterations ≈ {500 * scaled / 3600:.1f} h")
 
 
 if __name__ == "__main__":

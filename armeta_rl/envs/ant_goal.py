@@ -35,7 +35,9 @@ steps them natively (``frame_skip`` substeps and the forward pass at the new sta
 Python per simulation). ``mj_rnePostConstraint`` runs inside that call because the model gets one
 accelerometer sensor on the torso, which makes MuJoCo's sensor stage compute ``cfrc_ext``; the
 sensor changes nothing else. :func:`make_parallel_ant_goal` splits the tasks over worker processes
-(TorchRL ``ParallelEnv``), each owning a slice of tasks with its own batch.
+(TorchRL ``ParallelEnv``), each owning a slice of tasks with its own batch; training splits them
+the same way through :class:`armeta_rl.collectors.parallel_episodes.TaskSplitEpisodeCollector`
+(``benchmark.collector.workers``).
 
 Goals are passed as ``"goal"`` (``[*batch, 2]``) in the reset TensorDict and kept in the env's
 state across automatic (partial) resets; a reset without ``"goal"`` keeps the current goals, and
