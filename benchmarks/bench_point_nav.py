@@ -1,7 +1,7 @@
 """Speed of meta-RL on point navigation: env steps/s and seconds per MAML-TRPO meta-iteration
 (20 tasks × 20 episodes × 100 steps; rollouts before and after adaptation and the TRPO step), on
 one thread, with the exact second-order KL Hessian-vector products and with them subsampled to 5
-episodes per task (``hvp_episodes``). Prints a table; run
+or 2 episodes per task (``hvp_episodes``). Prints a table; run
 ``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``.
 """
 
@@ -62,7 +62,8 @@ def main() -> None:
     leader = MAMLTRPOLeader(collector)
     t = seconds(lambda: leader.collect_meta_batch(tasks), args.repeats)
     rows.append(("both rollouts + inner step (sampling)", t, 2 * k * e * steps / t))
-    for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5)):
+    for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5),
+                                ("HVP on 2 episodes/task", 2)):
         leader = MAMLTRPOLeader(collector, hvp_episodes=hvp_episodes)
         t = seconds(lambda leader=leader: leader.step(tasks, erm), args.repeats)
         rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
