@@ -22,6 +22,7 @@ from armeta_rl.trainers.runs import Players, build_players, load_players
 
 EVAL_FILE = "eval.json"
 DENSITY_FILE = "density.png"
+CSV_LOG_DIR = "logs"
 
 
 def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
@@ -30,7 +31,7 @@ def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
     if kind == "none":
         return None
     if kind == "csv":
-        return CSVLogger(exp_name="logs", log_dir=str(run_dir))
+        return CSVLogger(exp_name=CSV_LOG_DIR, log_dir=str(run_dir))
     if kind == "wandb":
         run_id = "armeta-" + hashlib.sha1(str(run_dir.resolve()).encode()).hexdigest()[:12]
         offline = os.environ.get("WANDB_MODE", "offline") != "online"
@@ -124,7 +125,14 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         if checkpoint.latest() is None:
             raise ConfigError("resume", str(cfg.resume), "has no checkpoint to resume from")
         start = checkpoint.restore()
+        drop_csv_rows_after(run_dir, start)
     else:
+        if checkpoint.latest() is not None:
+            raise ConfigError(
+                "hydra.run.dir", str(run_dir),
+                "already holds a run's checkpoints: continue it with resume=<dir>, or train into "
+                "a new directory",
+            )
         run_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(cfg, run_dir / CONFIG_FILE, resolve=True)
     logger = make_logger(cfg, run_dir)
@@ -154,6 +162,17 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     if logger is not None:
         logger.log_metrics(eval_scalars(report), cfg.trainer.iterations)
     return report
+
+
+def drop_csv_rows_after(run_dir: Path, iteration: int) -> None:
+    """Delete the CSV log rows of iterations after ``iteration`` (the checkpoint a run resumes
+    from): a run that crashed logged past its last checkpoint, and the resumed run logs those
+    iterations again, so without this every scalar would hold them twice."""
+    for path in (run_dir / CSV_LOG_DIR / "scalars").rglob("*.csv"):
+        rows = path.read_text().splitlines(keepends=True)
+        kept = [row for row in rows if int(row.split(",", 1)[0]) <= iteration]
+        if len(kept) < len(rows):
+            path.write_text("".join(kept))
 
 
 def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
