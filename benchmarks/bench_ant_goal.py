@@ -7,7 +7,8 @@ Env steps per second (one env step = ``frame_skip`` = 5 physics steps) of
 * gymnasium's ``Ant-v5`` (one env, ``step`` with random actions, reset when it ends);
 * the native :class:`mujoco.batch.Batch` step that ``AntGoalEnv`` uses, alone;
 * ``AntGoalEnv.rollout`` in one process (random actions, automatic resets);
-* ``AntGoalEnv`` split over 2 worker processes (``make_parallel_ant_goal``);
+* ``AntGoalEnv`` split over 2 worker processes (``make_task_split_env``: a ``ParallelEnv`` seen as
+  one ``[tasks, episodes]`` env);
 * a whole episode collection with the Gaussian MLP policy (``TaskSplitEpisodeCollector.collect``,
   what training runs): in one process with one MuJoCo thread per core, and with the tasks split
   over 2 worker processes of one thread each;
@@ -35,11 +36,10 @@ import torch
 from tensordict import TensorDict
 from timing import wall_times
 
-from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
+from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector, make_task_split_env
 from armeta_rl.envs.ant_goal import (
     AntGoalEnv,
     load_ant_model,
-    make_parallel_ant_goal,
     observation_size,
 )
 from armeta_rl.rl.policy import GaussianMLP
@@ -173,9 +173,9 @@ def main() -> None:
     t = seconds(env_rollout(threaded, steps), args.repeats)
     rows.append((f"AntGoalEnv.rollout, 1 process, {cores} MuJoCo threads", f"[{k}, {e}]",
                  n * steps / t))
-    parallel = make_parallel_ant_goal(2, k, e, seed=0)
+    parallel = make_task_split_env(partial(AntGoalEnv, threads=1), 2, (k, e), steps)
     t = seconds(env_rollout(parallel, steps), args.repeats)
-    rows.append(("AntGoalEnv, 2 processes (ParallelEnv)", f"[2, {k // 2}, {e}]", n * steps / t))
+    rows.append(("AntGoalEnv, 2 processes (ParallelEnv)", f"[{k}, {e}]", n * steps / t))
     parallel.close()
     for workers in (1, 2):
         collector = task_split_collector(workers, e, steps)

@@ -16,7 +16,7 @@ from torchrl.envs.utils import RandomPolicy, check_env_specs, step_mdp
 
 from armeta_rl.collectors.episodes import valid_mask
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
-from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, make_parallel_ant_goal
+from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.trainers.run import run_training
@@ -174,25 +174,6 @@ def test_seeded_reproducibility_and_native_threads_change_nothing():
     assert not torch.allclose(run(5)[0], run(6)[0])
     assert torch.equal(run(5, threads=2), run(5))
     assert torch.equal(run(5, threads=None), run(5))
-
-
-def test_parallel_workers_equal_single_process_slices():
-    """Two worker processes, each with one task: worker w behaves as AntGoalEnv(seed=seed + w)."""
-    goals = torch.tensor([[1.0, 1.0], [-2.0, 0.0]])
-    actions = 2 * torch.rand(6, 2, 1, 2, 8) - 1
-    parallel = make_parallel_ant_goal(2, 2, 2, seed=7, max_steps=3)
-    td = parallel.reset(TensorDict({"goal": goals[:, None, None].expand(2, 1, 2, 2)}, [2, 1, 2]))
-    singles = [AntGoalEnv((1, 2), max_steps=3, seed=7 + w) for w in range(2)]
-    single_tds = [env.reset(goals_td(env, goals[w : w + 1])) for w, env in enumerate(singles)]
-    for action in actions:
-        td["action"] = action
-        _, td = parallel.step_and_maybe_reset(td)
-        for w, env in enumerate(singles):
-            single_tds[w]["action"] = action[w]
-            _, single_tds[w] = env.step_and_maybe_reset(single_tds[w])
-            torch.testing.assert_close(td[w]["observation"], single_tds[w]["observation"])
-            torch.testing.assert_close(td[w]["goal"], goals[w].expand(1, 2, 2))
-    parallel.close()
 
 
 @pytest.mark.parametrize(

@@ -34,9 +34,9 @@ Throughput: all ``tasks × episodes`` simulations live in one :class:`mujoco.bat
 steps them natively (``frame_skip`` substeps and the forward pass at the new state in one call, no
 Python per simulation). ``mj_rnePostConstraint`` runs inside that call because the model gets one
 accelerometer sensor on the torso, which makes MuJoCo's sensor stage compute ``cfrc_ext``; the
-sensor changes nothing else. :func:`make_parallel_ant_goal` splits the tasks over worker processes
-(TorchRL ``ParallelEnv``), each owning a slice of tasks with its own batch; training splits them
-the same way through :class:`armeta_rl.collectors.parallel_episodes.TaskSplitEpisodeCollector`
+sensor changes nothing else. Training splits the tasks over worker processes (TorchRL
+``ParallelEnv``), each owning a slice of tasks with its own batch, through
+:class:`armeta_rl.collectors.parallel_episodes.TaskSplitEpisodeCollector`
 (``benchmark.collector.workers``).
 
 Goals are passed as ``"goal"`` (``[*batch, 2]``) in the reset TensorDict and kept in the env's
@@ -52,7 +52,6 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Sequence
-from functools import partial
 
 import gymnasium
 import mujoco
@@ -61,7 +60,7 @@ import torch
 from mujoco.batch import Batch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase, ParallelEnv
+from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
 
@@ -284,27 +283,3 @@ class AntGoalEnv(EnvBase):
                 "truncated": truncated,
             }
         )
-
-
-def make_parallel_ant_goal(
-    workers: int, tasks: int, episodes: int, seed: int | None = None, **env_kwargs
-) -> ParallelEnv:
-    """``AntGoalEnv`` split over ``workers`` processes (TorchRL ``ParallelEnv``), each owning
-    ``tasks // workers`` tasks × ``episodes``; batch size ``[workers, tasks // workers, episodes]``
-    (task ``k`` is worker ``k // (tasks // workers)``). Workers exchange only TensorDicts of
-    observations, actions and goals, so the same split maps onto TorchRL's ``RayCollector``.
-
-    Worker ``w`` is seeded with ``seed + w`` (when ``seed`` is given)."""
-    if int(workers) < 1 or tasks % workers:
-        raise ConfigError("benchmark.collector.workers", workers, f"must divide tasks={tasks}")
-    per_worker = tasks // workers
-    make = [
-        partial(
-            AntGoalEnv,
-            (per_worker, episodes),
-            seed=None if seed is None else seed + w,
-            **env_kwargs,
-        )
-        for w in range(workers)
-    ]
-    return ParallelEnv(workers, make, mp_start_method="fork")
