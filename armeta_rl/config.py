@@ -79,6 +79,24 @@ def check_config(cfg: DictConfig) -> None:
                     f"must be < benchmark.space.high for every identifier "
                     f"({name}: {low} >= {high})",
                 )
+    check_task_split(cfg)
+
+
+def check_task_split(cfg: DictConfig) -> None:
+    """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs every
+    task count it collects to divide evenly: checked here for the meta-batch and ``eval.n_tasks``,
+    so a bad split fails before training rather than at the evaluation after it."""
+    workers = OmegaConf.select(cfg, "benchmark.collector.workers", default=None)
+    if workers is None:
+        return
+    if not _positive_int(workers):
+        raise ConfigError("benchmark.collector.workers", workers, "must be an integer >= 1")
+    for key in ("trainer.meta_batch", "eval.n_tasks"):
+        count = OmegaConf.select(cfg, key)
+        if count % workers:
+            raise ConfigError(
+                "benchmark.collector.workers", workers, f"must divide {key} = {count}"
+            )
 
 
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
