@@ -43,24 +43,14 @@ def bench_env(env_cls, episodes: int, steps: int) -> float:
     return TASKS * episodes * steps / _median_and_best(run, 7)[0]
 
 
-def _median_cpu_seconds(run, repeats: int = REPEATS) -> float:
-    """Median process CPU time of ``run``: less sensitive than wall time to other processes."""
-    run()
-    times = []
-    for _ in range(repeats):
-        start = time.process_time()
-        run()
-        times.append(time.process_time() - start)
-    return statistics.median(times)
-
-
 def bench_collect(env_name: str, episodes: int) -> tuple[float, float, float]:
     """Median wall, best wall and median CPU milliseconds of one ``collect`` of 16 tasks x 200
     transitions."""
     collector = SysIdCollector(env_name, n_transitions=TRANSITIONS, episodes=episodes)
     tasks = TensorDict({"params": 0.4 + 1.2 * torch.rand(TASKS, 2)}, batch_size=[TASKS])
     median, best = _median_and_best(lambda: collector.collect(tasks))
-    cpu = _median_cpu_seconds(lambda: collector.collect(tasks))
+    cpu = statistics.median(wall_times(lambda: collector.collect(tasks), REPEATS,
+                                       clock=time.process_time))
     return 1e3 * median, 1e3 * best, 1e3 * cpu
 
 

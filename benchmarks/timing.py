@@ -6,13 +6,20 @@ import time
 from collections.abc import Callable
 
 
-def wall_times(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
-    """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls."""
+def wall_times(
+    fn: Callable[[], object],
+    repeats: int,
+    warmup: int = 1,
+    clock: Callable[[], float] = time.perf_counter,
+) -> list[float]:
+    """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls, on
+    ``clock`` (wall time; ``time.process_time`` gives this process's CPU time, less sensitive to
+    other processes)."""
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = clock()
         fn()
-        times.append(time.perf_counter() - start)
+        times.append(clock() - start)
     return times

@@ -31,14 +31,22 @@ def _reset_to(env, params: torch.Tensor, state: torch.Tensor) -> TensorDict:
     return env.reset(td, set_state=True)
 
 
+def gymnasium_envs(env_id: str, attributes: tuple[str, ...], params: list, rng) -> list:
+    """One unwrapped gymnasium env per identifier tuple, its physical ``attributes`` set to the
+    tuple and reset with a seed from ``rng``."""
+    envs = []
+    for values in params:
+        env = gym.make(env_id).unwrapped
+        for attribute, value in zip(attributes, values, strict=True):
+            setattr(env, attribute, value)
+        env.reset(seed=int(rng.integers(1 << 30)))
+        envs.append(env)
+    return envs
+
+
 def test_pendulum_matches_gymnasium():
     rng = np.random.default_rng(0)
-    gym_envs = []
-    for mass, length in PENDULUM_PARAMS:
-        gym_env = gym.make("Pendulum-v1").unwrapped
-        gym_env.m, gym_env.l = mass, length
-        gym_env.reset(seed=int(rng.integers(1 << 30)))
-        gym_envs.append(gym_env)
+    gym_envs = gymnasium_envs("Pendulum-v1", ("m", "l"), PENDULUM_PARAMS, rng)
     env = PendulumEnv(batch_size=(len(gym_envs), 1), seed=0, dtype=torch.float64)
     params = torch.tensor(PENDULUM_PARAMS, dtype=torch.float64)
     state = torch.tensor(np.stack([g.state for g in gym_envs]))
@@ -59,14 +67,10 @@ def test_pendulum_matches_gymnasium():
 
 def test_acrobot_matches_gymnasium():
     rng = np.random.default_rng(1)
-    gym_envs = []
-    for mass1, mass2 in ACROBOT_PARAMS:
-        gym_env = gym.make("Acrobot-v1").unwrapped
-        gym_env.LINK_MASS_1, gym_env.LINK_MASS_2 = mass1, mass2
-        gym_env.reset(seed=int(rng.integers(1 << 30)))
+    gym_envs = gymnasium_envs("Acrobot-v1", ("LINK_MASS_1", "LINK_MASS_2"), ACROBOT_PARAMS, rng)
+    for gym_env in gym_envs:
         # A wider start than gymnasium's ±0.1 so the comparison covers large swings.
         gym_env.state = rng.uniform(-1.0, 1.0, size=4)
-        gym_envs.append(gym_env)
     # The first acrobot starts above the bar, so it terminates at once and is reset; the last
     # starts at its velocity limits, so its velocities get clipped.
     gym_envs[0].state = np.array([2.5, 0.0, 0.0, 0.0])
