@@ -4,7 +4,8 @@ Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_adversary.py``. Prints the medi
 ``propose``, of the update (surrogate with 256 fresh p0 samples, backward, clipped Adam step, and
 the draw of the next tasks from the new p_φ, which checks its density and which the next
 ``propose`` returns), and of both, on the sinusoid box with a toy loss, for the spline flow at its
-default size and smaller, and for the planar flows.
+default size and smaller, and for the planar flows; then the default spline and planar flows with
+``risk.ar.compile=true`` (timed after their warm-up iterations, which compile).
 """
 
 from __future__ import annotations
@@ -28,6 +29,8 @@ FLOWS = {
     "planar": {},
     "planar (leaky_relu)": {"activation": "leaky_relu"},
 }
+COMPILED = ("spline", "planar")
+"""Flows also timed with ``risk.ar.compile=true`` (inductor; the first iterations compile)."""
 
 
 def time_iterations(
@@ -56,13 +59,16 @@ def main() -> None:
     space = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
     corner = torch.tensor([0.1, 0.0])
     print(f"{'flow':<22}{'params':>8}{'propose ms':>12}{'update ms':>12}{'total ms':>12}")
-    for name, options in FLOWS.items():
+    rows = [(name, options, False) for name, options in FLOWS.items()]
+    rows += [(name, FLOWS[name], True) for name in COMPILED]
+    for name, options, compiled in rows:
         kind = name.split()[0]
         adversary = FlowAdversary(space, BoxUniform(space), kind, **options)
-        principle = AdversarialPrinciple(adversary, lr=1e-2)
+        principle = AdversarialPrinciple(adversary, lr=1e-2, compile=compiled)
         propose, update, total = time_iterations(principle, corner)
         size = sum(p.numel() for p in principle.parameters())
-        print(f"{name:<22}{size:>8}{propose:>12.2f}{update:>12.2f}{total:>12.2f}")
+        label = f"{name}, compiled" if compiled else name
+        print(f"{label:<22}{size:>8}{propose:>12.2f}{update:>12.2f}{total:>12.2f}")
 
 
 if __name__ == "__main__":

@@ -4,14 +4,19 @@ Rows: the full AR-MAML iteration (data collection, leader step, follower losses 
 adversary update every iteration) with the spline and the planar adversary, and plain MAML, on
 sinusoid_uniform (25 tasks), pendulum_uniform and acrobot_uniform (16 tasks × 200 transitions,
 collection included); and the sinusoid's second-order meta-gradient computed with a Python loop
-over tasks instead of ``vmap``. Config overrides may follow on the command line.
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py``.
+over tasks instead of ``vmap``. ``--compile`` adds rows with the adversary's flow and/or the
+leader's loss compiled (``risk.ar.compile=true``, ``learner.maml.compile=true``). Config
+overrides may follow on the command line.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile]
+[--benchmarks sinusoid_uniform ...]``.
 """
 
 from __future__ import annotations
 
+import argparse
+import math
 import statistics
-import sys
+import time
 from collections.abc import Callable
 
 import torch
@@ -23,11 +28,18 @@ from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.runs import build_players
 
+BENCHMARKS = ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform")
+WARMUP = 10
 
-def milliseconds(fn: Callable[[], object], repeats: int, warmup: int) -> tuple[float, float]:
-    """Median and interquartile range of ``fn``'s wall time in ms."""
-    q1, median, q3 = statistics.quantiles([1000 * t for t in wall_times(fn, repeats, warmup)], n=4)
-    return median, q3 - q1
+
+def milliseconds(
+    fn: Callable[[], object], repeats: int, warmup: int
+) -> tuple[float, float, float]:
+    """Median, interquartile range and minimum of ``fn``'s wall time in ms (on a shared machine
+    the minimum is the steadiest estimate of the code's own cost)."""
+    times = [1000 * t for t in wall_times(fn, repeats, warmup)]
+    q1, median, q3 = statistics.quantiles(times, n=4)
+    return median, q3 - q1, min(times)
 
 
 def trainer_for(method: str, *overrides: str) -> GameTrainer:
@@ -60,28 +72,50 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
     return step
 
 
-def main(extra: list[str]) -> None:
-    """Print the table; ``extra`` are config overrides (e.g. ``risk.ar.lam=0.1``)."""
+LEADER, ADVERSARY = "learner.maml.compile=true", "risk.ar.compile=true"
+ROWS = (
+    ("ar_maml, spline adversary", "ar_maml", ("risk.ar.flow=spline",)),
+    ("ar_maml, planar adversary", "ar_maml", ("risk.ar.flow=planar",)),
+    ("maml (ERM)", "maml", ()),
+)
+COMPILED_ROWS = (
+    ("ar_maml, spline adversary compiled", "ar_maml", (ADVERSARY,)),
+    ("ar_maml, spline adversary and leader compiled", "ar_maml", (ADVERSARY, LEADER)),
+    ("maml (ERM), leader compiled", "maml", (LEADER,)),
+)
+
+
+def main() -> None:
+    """Print the table; unknown arguments are config overrides (e.g. ``risk.ar.lam=0.1``)."""
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--benchmarks", nargs="+", default=list(BENCHMARKS), choices=BENCHMARKS)
+    parser.add_argument("--compile", action="store_true",
+                        help="also time the compiled leader and adversary (inductor); the warm-up "
+                             "column then holds the compile time")
+    args, extra = parser.parse_known_args()
     keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     rows = []
-    for benchmark in ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform"):
-        for label, method, flow in [
-            ("ar_maml, spline adversary", "ar_maml", "spline"),
-            ("ar_maml, planar adversary", "ar_maml", "planar"),
-            ("maml (ERM)", "maml", "spline"),
-        ]:
-            trainer = trainer_for(method, f"benchmark={benchmark}", f"risk.ar.flow={flow}", *extra)
-            rows.append((benchmark, label, *milliseconds(trainer.train_iteration, 100, 10)))
-    trainer = trainer_for("maml", *extra)
-    looped = milliseconds(looped_meta_gradient(trainer), 50, 5)
-    rows.append(("sinusoid_uniform", "maml, per-task Python loop", *looped))
+    for benchmark in args.benchmarks:
+        for label, method, overrides in ROWS + (COMPILED_ROWS if args.compile else ()):
+            trainer = trainer_for(method, f"benchmark={benchmark}", *overrides, *extra)
+            start = time.perf_counter()
+            for _ in range(WARMUP):
+                trainer.train_iteration()
+            warmup = time.perf_counter() - start
+            rows.append((benchmark, label, *milliseconds(trainer.train_iteration, 100, 0), warmup))
+    if "sinusoid_uniform" in args.benchmarks:
+        trainer = trainer_for("maml", *extra)
+        looped = milliseconds(looped_meta_gradient(trainer), 50, 5)
+        rows.append(("sinusoid_uniform", "maml, per-task Python loop", *looped, math.nan))
     print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
-    print("| benchmark | meta-iteration | median ms | IQR ms |\n|---|---|---|---|")
-    for benchmark, label, median, iqr in rows:
-        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} |")
+    warmup_column = f"first {WARMUP} iterations s"
+    print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | {warmup_column} |")
+    print("|---|---|---|---|---|---|")
+    for benchmark, label, median, iqr, least, warmup in rows:
+        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} | {least:.1f} | {warmup:.1f} |")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

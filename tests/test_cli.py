@@ -24,6 +24,7 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
         ("trainer.meta_batch=0", "trainer.meta_batch", ">= 1"),
         ("trainer.iterations=-3", "trainer.iterations", ">= 1"),
         ("eval.n_tasks=0", "eval.n_tasks", ">= 1"),
+        ("risk.ar.compile=fast", "risk.ar.compile", "a backend (inductor"),
     ],
 )
 def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):

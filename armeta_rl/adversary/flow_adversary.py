@@ -59,7 +59,11 @@ class FlowAdversary(TaskDistribution):
     def sample_with_log_prob(self, n: int) -> tuple[Tensor, Tensor]:
         """``n`` samples τ = g(τ0), τ0 ~ p0, and ln p_φ(τ) from the forward pass (Eq. nf_logdeterm);
         both float64 and detached."""
-        initial = self.base.sample_params(n)
+        return self.push_forward(self.base.sample_params(n))
+
+    def push_forward(self, initial: Tensor) -> tuple[Tensor, Tensor]:
+        """τ = g(τ0) for points ``initial = τ0 [n, d]`` of p0, and ln p_φ(τ) = ln p0(τ0) −
+        ln|det ∂g/∂τ0| (Eq. nf_logdeterm); the random draw stays with the caller."""
         params, log_det = self.flow(initial)
         return params, self.base.log_prob(initial) - log_det
 

@@ -13,6 +13,8 @@ the τ_k).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
@@ -42,6 +44,7 @@ def adversary_surrogate(
     lam: float,
     initial_params: Tensor,
     baseline: str = "mean",
+    log_prob: Callable[[Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """A scalar whose gradient in φ is the estimate of ∇_φ J of paper Eq. meta_adversary_obj_1.
 
@@ -53,6 +56,8 @@ def adversary_surrogate(
         lam: Lagrange multiplier λ ≥ 0 of the KL(p0 ‖ p_φ) constraint.
         initial_params: ``[M, d]`` samples of p0, independent of the tasks.
         baseline: ``"mean"`` or ``"leave_one_out"``.
+        log_prob: the function computing ln p_φ (default ``adversary.log_prob``; e.g. a compiled
+            version of it).
 
     Returns:
         ``(surrogate, stats)``: ascend ``surrogate``. ``stats`` holds Monte-Carlo estimates at the
@@ -65,7 +70,7 @@ def adversary_surrogate(
     advantages = losses - score_baseline(losses, baseline)
     points = torch.cat([params.to(torch.float64), initial_params.to(torch.float64)]).detach()
     sizes = [len(params), len(initial_params)]
-    log_p_tasks, log_p_initial = adversary.log_prob(points).split(sizes)
+    log_p_tasks, log_p_initial = (log_prob or adversary.log_prob)(points).split(sizes)
     surrogate = (advantages * log_p_tasks).mean() + lam * log_p_initial.mean()
     log_p_initial = log_p_initial.detach()
     objective = losses.mean() + lam * log_p_initial.mean()

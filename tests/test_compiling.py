@@ -1,0 +1,80 @@
+"""Opt-in torch.compile of the hot paths: a compiled run computes what the eager run computes.
+
+The ``aot_eager`` backend traces the same graphs as ``inductor`` (through vmap, grad and the
+flow's couplings, forward and backward) without generating code, so these checks take seconds;
+inductor's kernels are exercised by ``benchmarks/bench_meta_iteration.py --compile``.
+"""
+
+import math
+
+import pytest
+import torch
+
+from armeta_rl.adversary.flow_adversary import FlowAdversary
+from armeta_rl.collectors.regression import SinusoidCollector
+from armeta_rl.compiling import compile_backend
+from armeta_rl.errors import ConfigError
+from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.learners.mlp import make_mlp
+from armeta_rl.risk.adversarial import AdversarialPrinciple
+from armeta_rl.tasks import BoxUniform, TaskSpace
+
+SPACE = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
+
+
+@pytest.mark.parametrize(("value", "backend"), [
+    (False, None), (None, None), (True, "inductor"), ("aot_eager", "aot_eager"),
+])
+def test_compile_option_names_a_backend(value, backend):
+    assert compile_backend("learner.maml.compile", value) == backend
+
+
+@pytest.mark.parametrize("value", ["fast", 1, "yes"])
+def test_bad_compile_option_names_its_key(value):
+    with pytest.raises(ConfigError) as error:
+        compile_backend("risk.ar.compile", value)
+    assert error.value.key == "risk.ar.compile"
+
+
+def train_leader(compile: bool | str) -> tuple[MAMLLeader, list[torch.Tensor]]:
+    torch.manual_seed(0)
+    leader = MAMLLeader(make_mlp(1, 1, (32, 32)), SinusoidCollector(5, 5), compile=compile)
+    tasks = BoxUniform(SPACE).sample(6)
+    losses = []
+    for _ in range(3):
+        losses.append(leader.step(tasks, lambda x: torch.full_like(x, 1 / len(x)))["loss"])
+        losses.append(leader.evaluate(tasks))
+    return leader, losses
+
+
+def test_compiled_maml_steps_equal_eager_steps():
+    eager, eager_losses = train_leader(False)
+    compiled, compiled_losses = train_leader("aot_eager")
+    torch.testing.assert_close(compiled_losses, eager_losses, rtol=1e-5, atol=1e-6)
+    for got, expected in zip(compiled.model.parameters(), eager.model.parameters(), strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    assert any(not torch.equal(p, q) for p, q in zip(
+        compiled.model.parameters(), make_mlp(1, 1, (32, 32)).parameters(), strict=True))
+
+
+def train_adversary(compile: bool | str) -> tuple[AdversarialPrinciple, list[torch.Tensor]]:
+    torch.manual_seed(0)
+    principle = AdversarialPrinciple(
+        FlowAdversary(SPACE, BoxUniform(SPACE), "spline", hidden=8), lr=0.05, compile=compile
+    )
+    proposed = []
+    for _ in range(3):
+        tasks = principle.propose(16)
+        proposed += [tasks["params"], tasks["log_prob"]]
+        principle.update(tasks, (tasks["params"] - torch.tensor([0.1, 0.0])).pow(2).sum(-1))
+    return principle, proposed
+
+
+def test_compiled_adversary_updates_equal_eager_updates():
+    eager, eager_tasks = train_adversary(False)
+    compiled, compiled_tasks = train_adversary("aot_eager")
+    torch.testing.assert_close(compiled_tasks, eager_tasks, rtol=1e-9, atol=1e-10)
+    for got, expected in zip(compiled.parameters(), eager.parameters(), strict=True):
+        torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-10)
+    moved = eager.adversary.log_prob(eager_tasks[0]) - eager_tasks[1]
+    assert moved.abs().max() > 1e-3
