@@ -19,6 +19,9 @@ from armeta_rl.errors import ConfigError
 
 F = TypeVar("F", bound=Callable)
 
+COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile")
+"""The config keys that switch compiling on."""
+
 BACKENDS = ("inductor", "aot_eager", "eager")
 """``inductor`` generates fused kernels (the speed-up); ``aot_eager`` and ``eager`` trace the same
 graphs without code generation (seconds to compile, for checking that a path compiles)."""

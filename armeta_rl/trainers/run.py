@@ -12,6 +12,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
+from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, check_config
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
@@ -136,6 +137,10 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         run_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(cfg, run_dir / CONFIG_FILE, resolve=True)
     logger = make_logger(cfg, run_dir)
+    compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
+    if compiled:
+        print(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
+              "(about 2 minutes with an empty compile cache)")
     trainer = GameTrainer(
         players.leader,
         players.principle,
