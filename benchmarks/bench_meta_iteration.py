@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import time
 from collections.abc import Callable
 
 import torch
@@ -100,10 +99,7 @@ def main() -> None:
     for benchmark in args.benchmarks:
         for label, method, overrides in ROWS + (COMPILED_ROWS if args.compile else ()):
             trainer = trainer_for(method, f"benchmark={benchmark}", *overrides, *extra)
-            start = time.perf_counter()
-            for _ in range(WARMUP):
-                trainer.train_iteration()
-            warmup = time.perf_counter() - start
+            warmup = sum(wall_times(trainer.train_iteration, WARMUP, warmup=0))
             rows.append((benchmark, label, *milliseconds(trainer.train_iteration, 100, 0), warmup))
     if "sinusoid_uniform" in args.benchmarks:
         trainer = trainer_for("maml", *extra)
