@@ -16,7 +16,7 @@ from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.compiling import compile_backend
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml import MAMLLeader
-from armeta_rl.learners.mlp import make_mlp
+from armeta_rl.learners.mlp import make_mlp, relu
 from armeta_rl.risk.adversarial import AdversarialPrinciple
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -35,6 +35,20 @@ def test_bad_compile_option_names_its_key(value):
     with pytest.raises(ConfigError) as error:
         compile_backend("risk.ar.compile", value)
     assert error.value.key == "risk.ar.compile"
+
+
+def test_traced_relu_equals_torch_relu_with_its_gradients():
+    """Under tracing the MLP's ReLU is written (x + |x|) / 2: the same values and derivatives as
+    torch.relu away from 0 (its second order runs inside the compiled MAML loss, checked below)."""
+    x = torch.randn(257, dtype=torch.float64)
+    x = torch.where(x.abs() < 1e-3, 1.0, x).requires_grad_()
+    traced = torch.compile(relu, backend="aot_eager", fullgraph=True, dynamic=False)
+    (value, reference) = (traced(x), torch.relu(x))
+    assert torch.equal(value, reference)
+    weights = torch.randn_like(x)
+    (grad,) = torch.autograd.grad((weights * value).sum(), x)
+    (grad_ref,) = torch.autograd.grad((weights * reference).sum(), x)
+    assert torch.equal(grad, grad_ref)
 
 
 def train_leader(compile: bool | str) -> tuple[list[torch.Tensor], list[torch.Tensor]]:

@@ -106,6 +106,26 @@ def test_evaluate_equals_task_losses_and_keeps_no_graph():
     torch.testing.assert_close(got, expected.detach())
 
 
+def test_evaluate_after_step_scores_that_steps_data_at_the_new_theta():
+    """The follower's losses (paper Algorithm 1): the tasks of the last step are scored at
+    θ_{t+1} on that step's support and query data, without collecting again; other tasks (even
+    equal ones) get fresh data."""
+    leader = make_leader()
+    tasks = BoxUniform(SPACE).sample(5)
+    torch.manual_seed(3)
+    data = leader.collector.collect(tasks)
+    torch.manual_seed(3)
+    before = leader.step(tasks, lambda losses: torch.full_like(losses, 1 / len(losses)))["loss"]
+    after = leader.task_losses(data).detach()
+    assert not torch.allclose(after, before)
+    rng = torch.get_rng_state()
+    torch.testing.assert_close(leader.evaluate(tasks), after)
+    assert torch.equal(torch.get_rng_state(), rng)
+    fresh = leader.evaluate(tasks.clone())
+    assert not torch.equal(torch.get_rng_state(), rng)
+    assert not torch.allclose(fresh, after)
+
+
 def test_meta_gradient_matches_finite_differences():
     leader = make_leader(hidden=(16, 16))
     leader.model.double()

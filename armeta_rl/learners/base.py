@@ -39,6 +39,9 @@ class Leader(Protocol):
         """Per-task loss after adaptation ``[K]`` at the current θ, without updating θ.
 
         Data come from ``collector`` (e.g. the larger evaluation collector) or the leader's own.
+        A leader whose data do not depend on θ (regression, system identification) scores the
+        tasks of its last :meth:`step` on that step's data, as the follower update of paper
+        Algorithms 1 and 2 does (L(D^Q_τ; θ_{t+1}) on the same D^S, D^Q).
         """
         ...
 
@@ -58,6 +61,23 @@ class OneNetworkLeader:
 
     model: nn.Module
     optimizer: torch.optim.Optimizer
+    collector: Collector
+    _stepped: tuple[TensorDict, TensorDict] | None = None
+
+    def step_data(self, tasks: TensorDict) -> TensorDict:
+        """Collect the data of a leader step on ``tasks`` and keep them for :meth:`task_data`."""
+        data = self.collector.collect(tasks)
+        self._stepped = (tasks, data)
+        return data
+
+    def task_data(self, tasks: TensorDict, collector: Collector | None = None) -> TensorDict:
+        """Data to score ``tasks`` on: from ``collector`` if given; else the data of the last
+        :meth:`step_data` if ``tasks`` is the very TensorDict it was called with (the follower
+        scores the leader's D^S, D^Q at θ_{t+1}, paper Algorithms 1 and 2, and no second
+        collection is paid); else a fresh collection by the leader's collector."""
+        if collector is None and self._stepped is not None and self._stepped[0] is tasks:
+            return self._stepped[1]
+        return (collector or self.collector).collect(tasks)
 
     def descend(self, losses: Tensor, weights: TaskWeights) -> None:
         """One optimizer step on Σ_k w_k L_k with ``w = weights(L.detach())``."""

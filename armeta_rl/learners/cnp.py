@@ -113,7 +113,7 @@ class CNPLeader(OneNetworkLeader):
         Returns a TensorDict ``[K]`` with the detached per-task ``"loss"`` and query ``"mse"``,
         both before the update.
         """
-        data = self.collector.collect(tasks)
+        data = self.step_data(tasks)
         losses, squared_error = self.task_losses(data)
         self.descend(losses, weights)
         return TensorDict({"loss": losses.detach(), "mse": squared_error.detach()},
@@ -121,7 +121,8 @@ class CNPLeader(OneNetworkLeader):
 
     @torch.no_grad()
     def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
-        """Per-task query MSE ``[K]`` of the predicted mean at the current θ."""
-        data = (collector or self.collector).collect(tasks)
+        """Per-task query MSE ``[K]`` of the predicted mean at the current θ, on the data
+        :meth:`task_data` picks (the last step's, for the tasks of that step)."""
+        data = self.task_data(tasks, collector)
         mean, _ = self.predict(data)
         return (mean - data["query", "y"]).square().mean((-2, -1))

@@ -114,14 +114,15 @@ class MAMLLeader(OneNetworkLeader):
 
     def step(self, tasks: TensorDict, weights: TaskWeights) -> TensorDict:
         """Meta-update θ ← Adam(∇_θ Σ_k w_k L_k) (paper Eq. meta_player_obj, weighted)."""
-        data = self.collector.collect(tasks)
+        data = self.step_data(tasks)
         losses = self._losses(self._training_loss, data)
         self.descend(losses, weights)
         return TensorDict({"loss": losses.detach()}, batch_size=losses.shape)
 
     def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
-        """Post-adaptation query MSE per task at the current θ (no meta-gradient kept)."""
+        """Post-adaptation query MSE per task at the current θ (no meta-gradient kept), on the
+        data :meth:`task_data` picks (the last step's, for the tasks of that step)."""
         batched_loss = self._training_loss if collector is None else self._batched_loss
-        data = (collector or self.collector).collect(tasks)
+        data = self.task_data(tasks, collector)
         with torch.no_grad():  # torch.func.grad still differentiates the inner step
             return self._losses(batched_loss, data)
