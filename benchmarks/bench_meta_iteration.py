@@ -20,7 +20,7 @@ from collections.abc import Callable
 
 import torch
 from hydra import compose, initialize_config_dir
-from timing import wall_times
+from timing import reference_product_ms, wall_times
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
@@ -95,6 +95,7 @@ def main() -> None:
     keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
+    reference_before = reference_product_ms()
     rows = []
     for benchmark in args.benchmarks:
         for label, method, overrides in ROWS + (COMPILED_ROWS if args.compile else ()):
@@ -106,6 +107,8 @@ def main() -> None:
         looped = milliseconds(looped_meta_gradient(trainer), 50, 5)
         rows.append(("sinusoid_uniform", "maml, per-task Python loop", *looped, math.nan))
     print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
+    print(f"machine yardstick (timing.reference_product_ms): {reference_before:.2f} ms before, "
+          f"{reference_product_ms():.2f} ms after (about 1.7 ms when the machine is idle)")
     warmup_column = f"first {WARMUP} iterations s"
     print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | {warmup_column} |")
     print("|---|---|---|---|---|---|")
