@@ -43,7 +43,7 @@ def test_traced_relu_equals_torch_relu_with_its_gradients():
     x = torch.randn(257, dtype=torch.float64)
     x = torch.where(x.abs() < 1e-3, 1.0, x).requires_grad_()
     traced = torch.compile(relu, backend="aot_eager", fullgraph=True, dynamic=False)
-    (value, reference) = (traced(x), torch.relu(x))
+    value, reference = traced(x), torch.relu(x)
     assert torch.equal(value, reference)
     weights = torch.randn_like(x)
     (grad,) = torch.autograd.grad((weights * value).sum(), x)
