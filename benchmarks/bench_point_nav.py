@@ -1,19 +1,28 @@
 """Speed of meta-RL on point navigation: env steps/s and seconds per MAML-TRPO meta-iteration
 (20 tasks × 20 episodes × 100 steps; rollouts before and after adaptation and the TRPO step), on
 one thread, with the exact second-order KL Hessian-vector products and with them subsampled to 5
-or 2 episodes per task (``hvp_episodes``). Prints a table; run
+or 2 episodes per task (``hvp_episodes``).
+
+It also times one exact Hessian-vector product (conjugate gradient takes 10 per iteration) against
+the batched matrix products that no exact product can avoid. For v ↦ Σ_k J_k F_k J_k v
+(J_k = I − α∇²L^in_k, F_k the KL's Gauss-Newton matrix) the 64 × 64 hidden layer alone takes 16
+products of ``[K, E·T, 64] × [K, 64, 64]``: 6 for each Hessian-vector product of the inner loss
+(forward-over-reverse: two per bilinear op of its forward and backward pass) and 4 for F_k (2 in
+the Jacobian-vector product, 2 in the transposed one). Prints a table; run
 ``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
 from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict
 from timing import wall_times
+from torch import nn
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
@@ -68,11 +77,27 @@ def main() -> None:
         t = seconds(lambda leader=leader: leader.step(tasks, erm), args.repeats)
         rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
 
+    leader = MAMLTRPOLeader(collector)
+    batch = leader.collect_meta_batch(tasks)
+    weights = erm(torch.zeros(k))
+    hvp = leader.kl_hessian_product(batch, weights, leader.surrogate_gradient(batch, weights)[2])
+    vector = torch.randn(sum(p.numel() for p in leader.net.parameters()))
+    product = seconds(lambda: hvp(vector), 5 * args.repeats)
+    rows.append(("one exact KL Hessian-vector product", product, math.nan))
+    largest = max((m for m in leader.net.mean if isinstance(m, nn.Linear)),
+                  key=lambda layer: layer.weight.numel())
+    n_out, n_in = largest.weight.shape
+    activations, weight = torch.randn(k, e * steps, n_in), torch.randn(k, n_in, n_out)
+    floor = seconds(lambda: [torch.bmm(activations, weight) for _ in range(16)], 5 * args.repeats)
+    rows.append((f"its 16 [K, E*T, {n_in}] x [K, {n_in}, {n_out}] products", floor, math.nan))
+
     print(f"point_nav, {k} tasks x {e} episodes x {steps} steps, torch threads = "
           f"{torch.get_num_threads()}")
     print(f"{'what':<42} {'seconds':>9} {'env steps/s':>12}")
     for what, t, rate in rows:
-        print(f"{what:<42} {t:>9.3f} {rate:>12.0f}")
+        print(f"{what:<42} {t:>9.3f} {'-' if math.isnan(rate) else f'{rate:.0f}':>12}")
+    print(f"conjugate gradient's 10 exact products: {10 * product:.2f} s measured, at least "
+          f"{10 * floor:.2f} s in matrix products alone")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""Evaluation metrics: CVaR_α on hand-made vectors."""
+"""Evaluation metrics: CVaR_α on hand-made vectors, and the standard error of the mean."""
 
 import pytest
 import torch
@@ -31,4 +31,13 @@ def test_cvar_rejects_alpha_outside_unit_interval():
 
 def test_summary_of_returns_negates_losses():
     report = summarize(torch.tensor([1.0, 3.0]), "return", [0.5])
-    assert report == {"mean": -2.0, "cvar": {"0.5": -3.0}, "n_tasks": 2}
+    assert report == {"mean": -2.0, "sem": 1.0, "cvar": {"0.5": -3.0}, "n_tasks": 2}
+
+
+def test_standard_error_is_the_spread_of_means_over_task_draws():
+    torch.manual_seed(0)
+    per_task = torch.distributions.Gamma(2.0, 0.5).sample((20_000, 50))
+    sems = torch.tensor([summarize(row, "mse", [0.5])["sem"] for row in per_task[:200]])
+    spread_of_means = per_task.double().mean(-1).std()
+    assert sems.mean() == pytest.approx(float(spread_of_means), rel=0.05)
+    assert summarize(torch.ones(1), "mse", [0.5])["sem"] is None

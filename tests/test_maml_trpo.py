@@ -292,6 +292,34 @@ def test_meta_kl_hessian_vector_product_equals_dense_hessian_on_a_tiny_net() -> 
     torch.testing.assert_close(dense, hessian, rtol=1e-6, atol=1e-12)
 
 
+@pytest.mark.parametrize("hvp_episodes", [None, 2])
+def test_leader_kl_hessian_product_is_the_second_order_hessian_on_its_episodes(
+    hvp_episodes: int | None,
+) -> None:
+    torch.manual_seed(6)
+    collector = PointNavigationCollector(episodes=4, max_steps=10, seed=0)
+    leader = MAMLTRPOLeader(collector, hidden_sizes=(8, 8), hvp_episodes=hvp_episodes)
+    batch = leader.collect_meta_batch(BoxUniform(SPACE).sample(3))
+    weights = torch.tensor([0.5, 0.3, 0.2])
+    graph = leader.surrogate_gradient(batch, weights)[2]
+    product = leader.kl_hessian_product(batch, weights, graph)
+
+    # reference: double backpropagation of Σ_k w_k KL_k through an inner step taken on the
+    # episodes the products use (all of them, or the first hvp_episodes)
+    episodes = slice(0, hvp_episodes)
+    params = list(leader.net.parameters())
+    adapted = leader.adapt(leader.theta(), batch.train[:, episodes],
+                           batch.train_advantages[:, episodes], create_graph=True)
+    valid = batch.valid[:, episodes]
+    loc, scale = loc_scale(leader.net, as_task_params(adapted), valid["observation"])
+    kl = episode_mean(kl_divergence(loc, scale, loc.detach(), scale.detach()), valid["mask"])
+    reference = kl_hessian_vector_product((weights * kl).sum(), params, leader.cg_damping)
+    v = torch.randn(sum(p.numel() for p in params))
+    expected = reference(v)
+    assert (expected - leader.cg_damping * v).norm() > 0
+    torch.testing.assert_close(product(v), expected, rtol=1e-4, atol=1e-6)
+
+
 def test_line_search_takes_the_first_improving_step_inside_the_bound() -> None:
     def evaluate(theta: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return (theta - 1).square().mean(), theta.square().mean()

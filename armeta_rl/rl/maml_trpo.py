@@ -18,9 +18,9 @@ The per-task loss reported to the game is −(mean return of the adapted policy)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -72,6 +72,14 @@ def as_task_params(params: Params) -> TensorDict:
     return TensorDict(params, batch_size=[n_tasks]).unflatten_keys(".")
 
 
+class SurrogateGraph(NamedTuple):
+    """The adapted parameters θ'_k as detached leaves ``[K, ...]`` and the adapted policies'
+    (loc, scale) on the post-adaptation episodes computed from them, graph kept."""
+
+    leaves: list[Tensor]
+    outputs: tuple[Tensor, Tensor]
+
+
 class MAMLTRPOLeader:
     """The meta-RL leader θ (Gaussian MLP policy) trained by MAML-TRPO.
 
@@ -91,6 +99,8 @@ class MAMLTRPOLeader:
             (``None``: all, the exact MAML-TRPO). Episodes are i.i.d., so the first ``n`` are a
             random subsample; TRPO (Schulman et al. 2015) likewise computes its Fisher-vector
             products on a fraction of the batch to cut the cost of conjugate gradient. The
+            products retake the inner step on the first ``n`` training episodes, so the inner
+            step's Jacobian is estimated from the subsample too (it is most of their cost). The
             surrogate, its gradient and the line search always use every episode.
     """
 
@@ -233,6 +243,70 @@ class MAMLTRPOLeader:
             train, train_advantages, broadcast, adapted, valid, self.advantages(valid)
         )
 
+    def _hvp_subset(self, batch: MetaBatch) -> slice | None:
+        """The episodes of each task the KL's Hessian-vector products use; ``None``: all."""
+        if self.hvp_episodes is None or self.hvp_episodes >= batch.train.batch_size[1]:
+            return None
+        return slice(0, self.hvp_episodes)
+
+    def surrogate_gradient(
+        self, batch: MetaBatch, weights: Tensor
+    ) -> tuple[Tensor, Tensor, SurrogateGraph]:
+        """The weighted post-adaptation surrogate Σ_k w_k L^out_k at the current θ and its flat
+        gradient in θ, through the inner step (second order unless ``first_order``).
+
+        Returns (surrogate, gradient, graph): ``graph`` holds the detached adapted parameters as
+        leaves and the adapted policies' (loc, scale) on ``batch.valid`` computed from them. Their
+        graphs and the inner step's are kept for :meth:`kl_hessian_product` when it uses every
+        episode, and freed otherwise.
+        """
+        keep = self._hvp_subset(batch) is None
+        leaves = [a.detach().requires_grad_(True) for a in batch.adapted.values()]
+        outputs = loc_scale_flat(self.net, dict(zip(batch.adapted, leaves)),
+                                 batch.valid["observation"])
+        old = (outputs[0].detach(), outputs[1].detach())
+        loss_k, _ = self.outer_terms_of_outputs(outputs, batch.valid, batch.valid_advantages, old)
+        surrogate = (weights * loss_k).sum()
+        # ∇_θ Σ_k w_k L^out_k(θ'_k(θ)) = Σ_k J_k ∇_θ'_k (...), J_k the inner step's Jacobian
+        outer_grad = torch.autograd.grad(surrogate, leaves, retain_graph=keep)
+        gradient = flatten(torch.autograd.grad(
+            list(batch.adapted.values()), list(self.net.parameters()), outer_grad,
+            retain_graph=keep,
+        ))
+        return surrogate.detach(), gradient, SurrogateGraph(leaves, outputs)
+
+    def kl_hessian_product(
+        self, batch: MetaBatch, weights: Tensor, graph: SurrogateGraph
+    ) -> Callable[[Tensor], Tensor]:
+        """v ↦ (∇²_θ Σ_k w_k KL_k(π_θ'_k ‖ π_θ'_k(θ_now)) + damping·I) v, exact and second order
+        through the inner step (:func:`~armeta_rl.rl.trpo.meta_kl_hessian_vector_product`).
+
+        On every episode it reuses the surrogate's ``graph``; with ``hvp_episodes = n`` it retakes
+        the inner step on the first n training episodes of each task and takes the KL on the first
+        n post-adaptation episodes, so both the Jacobian of the inner step and the KL's curvature
+        are estimated from that subsample.
+        """
+        params = list(self.net.parameters())
+        broadcast, adapted, valid = batch.broadcast, batch.adapted, batch.valid
+        leaves, outputs = graph
+        subset = self._hvp_subset(batch)
+        if subset is not None:
+            valid = batch.valid[:, subset]
+            broadcast, adapted = self.inner_step(
+                self.theta(), batch.train[:, subset], batch.train_advantages[:, subset], True
+            )
+            leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
+            outputs = loc_scale_flat(self.net, dict(zip(adapted, leaves)), valid["observation"])
+        current = tuple(o.detach() for o in outputs)
+
+        def weighted_kl(outs: list[Tensor]) -> Tensor:
+            return (weights * episode_mean(kl_divergence(*outs, *current), valid["mask"])).sum()
+
+        return meta_kl_hessian_vector_product(
+            weighted_kl, outputs, leaves, list(broadcast.values()), list(adapted.values()),
+            params, self.cg_damping,
+        )
+
     def trpo_update(self, batch: MetaBatch, weights: Tensor) -> dict[str, float]:
         """One TRPO step on the weighted post-adaptation surrogate Σ_k w_k L^out_k (in place).
 
@@ -242,41 +316,12 @@ class MAMLTRPOLeader:
         """
         w = weights.to(batch.valid["reward"].dtype)
         params = list(self.net.parameters())
-        names = [name for name, _ in self.net.named_parameters()]
-        exact = self.hvp_episodes is None or self.hvp_episodes >= batch.train.batch_size[1]
-        leaves = [a.detach().requires_grad_(True) for a in batch.adapted.values()]
-        outputs = loc_scale_flat(self.net, dict(zip(names, leaves)), batch.valid["observation"])
-        old = (outputs[0].detach(), outputs[1].detach())
-        loss_k, _ = self.outer_terms_of_outputs(
-            outputs, batch.valid, batch.valid_advantages, old
-        )
-        surrogate = (w * loss_k).sum()
-        # ∇_θ Σ_k w_k L^out_k(θ'_k(θ)) = Σ_k J_k ∇_θ'_k (...), J_k the inner step's Jacobian
-        outer_grad = torch.autograd.grad(surrogate, leaves, retain_graph=exact)
-        gradient = flatten(torch.autograd.grad(
-            list(batch.adapted.values()), params, outer_grad, retain_graph=exact
-        ))
-        if exact:
-            valid, broadcast, adapted = batch.valid, batch.broadcast, batch.adapted
-        else:
-            subset = slice(0, self.hvp_episodes)
-            valid = batch.valid[:, subset]
-            broadcast, adapted = self.inner_step(
-                self.theta(), batch.train[:, subset], batch.train_advantages[:, subset], True
-            )
-            leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
-            outputs = loc_scale_flat(self.net, dict(zip(names, leaves)), valid["observation"])
-        current = tuple(o.detach() for o in outputs)
-
-        def weighted_kl(outs: list[Tensor]) -> Tensor:
-            return (w * episode_mean(kl_divergence(*outs, *current), valid["mask"])).sum()
-
-        hvp = meta_kl_hessian_vector_product(
-            weighted_kl, outputs, leaves, list(broadcast.values()), list(adapted.values()),
-            params, self.cg_damping,
-        )
+        names = list(batch.adapted)
+        surrogate, gradient, graph = self.surrogate_gradient(batch, w)
+        old = tuple(o.detach() for o in graph.outputs)
+        hvp = self.kl_hessian_product(batch, w, graph)
         full_step = trust_region_step(gradient, hvp, self.max_kl, self.cg_iterations)
-        del hvp, broadcast, adapted, outputs, leaves
+        del hvp, graph
         found: dict[str, Tensor] = {}
 
         def evaluate(vector: Tensor) -> tuple[Tensor, Tensor]:
@@ -293,7 +338,7 @@ class MAMLTRPOLeader:
 
         theta0 = flatten(params).detach()
         new_theta, accepted = backtracking_line_search(
-            evaluate, theta0, full_step, surrogate.detach(), self.max_kl,
+            evaluate, theta0, full_step, surrogate, self.max_kl,
             self.ls_max_steps, self.ls_backtrack_ratio,
         )
         with torch.no_grad():

@@ -33,8 +33,19 @@ def cvar(values: Tensor, alpha: float, higher_better: bool = False) -> float:
     return float(worst.mean())
 
 
+def standard_error(values: Tensor) -> float | None:
+    """Standard error of the mean over tasks, s/√n with s the sample standard deviation (``None``
+    for a single task): how far the mean of ``n`` evaluation tasks may lie from the mean over the
+    whole task distribution."""
+    flat = values.detach().flatten().to(torch.float64)
+    if flat.numel() < 2:
+        return None
+    return float(flat.std() / math.sqrt(flat.numel()))
+
+
 def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str, Any]:
-    """``{"mean", "cvar": {α: …}, "n_tasks"}`` of per-task losses, in the units of ``metric``.
+    """``{"mean", "sem", "cvar": {α: …}, "n_tasks"}`` of per-task losses, in the units of
+    ``metric`` (``sem``: the mean's standard error over tasks).
 
     For ``metric == "return"`` the per-task loss is the negative return, so the summary reports
     returns and CVaR over the lowest returns.
@@ -43,6 +54,7 @@ def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str,
     values = -losses if higher_better else losses
     return {
         "mean": float(values.to(torch.float64).mean()),
+        "sem": standard_error(values),
         "cvar": {str(alpha): cvar(values, alpha, higher_better) for alpha in alphas},
         "n_tasks": int(values.numel()),
     }
@@ -76,15 +88,16 @@ def format_table(report: dict[str, Any]) -> str:
         if not isinstance(section, dict) or "mean" not in section:
             continue
         alphas = alphas or list(section["cvar"])
-        rows.append(
-            (name, section["mean"], [section["cvar"][a] for a in alphas], section["n_tasks"])
-        )
-    header = f"{'distribution':<16}{'mean':>10}" + "".join(
+        sem = section.get("sem")
+        rows.append((name, section["mean"], "-" if sem is None else f"{sem:.4f}",
+                     [section["cvar"][a] for a in alphas], section["n_tasks"]))
+    header = f"{'distribution':<16}{'mean':>10}{'sem':>9}" + "".join(
         f"{'cvar_' + a:>11}" for a in alphas or []
     )
     lines = [f"metric: {report.get('metric')}", header + f"{'tasks':>8}"]
-    for name, mean, cvars, n in rows:
+    for name, mean, sem, cvars, n in rows:
         lines.append(
-            f"{name:<16}{mean:>10.4f}" + "".join(f"{c:>11.4f}" for c in cvars) + f"{n:>8d}"
+            f"{name:<16}{mean:>10.4f}{sem:>9}" + "".join(f"{c:>11.4f}" for c in cvars)
+            + f"{n:>8d}"
         )
     return "\n".join(lines)

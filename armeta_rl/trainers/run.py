@@ -102,11 +102,13 @@ def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
-    """Dashboard names ``eval/<distribution>/mean`` and ``eval/<distribution>/cvar_<α>``."""
+    """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``."""
     scalars = {}
     for name, section in report.items():
         if isinstance(section, dict) and "mean" in section:
             scalars[f"eval/{name}/mean"] = section["mean"]
+            if section.get("sem") is not None:
+                scalars[f"eval/{name}/sem"] = section["sem"]
             scalars.update({f"eval/{name}/cvar_{a}": v for a, v in section["cvar"].items()})
     return scalars
 
