@@ -1,12 +1,14 @@
 """Console entry points ``armeta-train`` and ``armeta-eval`` (Hydra).
 
 Bad input ends with one line naming the config key, the value and what is allowed, and exit
-code 2. Group choices (``benchmark=``, ``method=``, ``logger=``) are checked before Hydra starts,
-values before any training work.
+code 2. Group choices (``benchmark=``, ``method=``, ``logger=``) and the keys of other overrides
+are checked before Hydra starts, values before any training work.
 """
 
 from __future__ import annotations
 
+import difflib
+import itertools
 import json
 import sys
 from collections.abc import Callable
@@ -19,6 +21,7 @@ from omegaconf import DictConfig, OmegaConf
 from armeta_rl.allocator import keep_freed_memory
 
 GROUPS = ("benchmark", "method", "logger")
+_ABSENT = object()
 
 
 def config_dir() -> Path:
@@ -47,6 +50,92 @@ def check_group_choices(args: list[str], prog: str) -> None:
         for choice in value.split(","):
             if choice not in allowed:
                 _fail(prog, f"config key '{key}' = {choice!r}: allowed: {', '.join(allowed)}")
+
+
+def _has_key(cfg: DictConfig, key: str) -> bool:
+    """Whether dotted ``key`` is in ``cfg`` (also when its value is the mandatory ``???``)."""
+    from omegaconf.errors import MissingMandatoryValue
+
+    try:
+        return OmegaConf.select(cfg, key, default=_ABSENT, throw_on_missing=True) is not _ABSENT
+    except MissingMandatoryValue:
+        return True
+
+
+def _deepest_existing(cfg: DictConfig, key: str) -> tuple[str, object]:
+    """The longest prefix of dotted ``key`` that ``cfg`` has, and its node (the root: ``""``)."""
+    parts = key.split(".")
+    for end in range(len(parts) - 1, 0, -1):
+        prefix = ".".join(parts[:end])
+        if _has_key(cfg, prefix):
+            return prefix, OmegaConf.select(cfg, prefix)
+    return "", cfg
+
+
+def _unknown_key_message(cfg: DictConfig, key: str, value: str, choices: list[str]) -> str:
+    """One line for an override of a key ``cfg`` (composed with the group ``choices``) lacks:
+    what exists there, the likely typo, and how to add a new key on purpose."""
+    parent, node = _deepest_existing(cfg, key)
+    where = f"'{parent}'" if parent else "the top level"
+    message = f"config key '{key}' = {value}: no such key"
+    if choices:
+        message += f" with {' '.join(choices)}"
+    if not isinstance(node, DictConfig):
+        return f"{message} ({where} is a value, not a group of keys)"
+    names = sorted(str(name) for name in node)
+    if names:
+        message += f"; {where} has: {', '.join(names)}"
+        missing = key[len(parent) + 1 :] if parent else key
+        close = difflib.get_close_matches(missing.split(".")[0], names, n=1)
+        if close:
+            message += f" (did you mean '{parent + '.' if parent else ''}{close[0]}'?)"
+    else:
+        message += f"; {where} has no keys yet"
+    return message + f"; to add a new key write +{key}={value}"
+
+
+def check_override_keys(args: list[str], prog: str, config_name: str) -> None:
+    """Reject an override that Hydra cannot parse or that changes a key the composed config does
+    not have (a typo such as ``trainer.iteratons=5``) with one line, before Hydra starts.
+
+    The config is composed for every combination of the group choices on the command line
+    (``-m`` sweeps included), so a key is accepted when the benchmark or method that defines it
+    is chosen. ``+key=`` (add), ``~key`` (delete) and ``hydra.*`` overrides are left to Hydra.
+    """
+    from hydra import compose, initialize_config_dir
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    parser = OverridesParser.create()
+    groups: dict[str, list[str]] = {}
+    changes = []
+    for arg in args:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        try:
+            (override,) = parser.parse_overrides([arg])
+        except HydraException as error:
+            reason = str(error).splitlines()[0]
+            _fail(prog, f"cannot read the override {arg!r}: {reason}")
+        key = override.key_or_group
+        if override.is_add() or override.is_delete() or key.split(".")[0].split("/")[0] == "hydra":
+            continue
+        if key in GROUPS:
+            choices = override.sweep_string_iterator() if override.is_sweep_override() else [
+                override.value()
+            ]
+            groups[key] = [str(choice) for choice in choices]
+        else:
+            changes.append((key, arg.split("=", 1)[1]))
+    if not changes:
+        return
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        for combination in itertools.product(*groups.values()):
+            choices = [f"{group}={choice}" for group, choice in zip(groups, combination)]
+            cfg = compose(config_name, overrides=choices)
+            for key, value in changes:
+                if not _has_key(cfg, key):
+                    _fail(prog, _unknown_key_message(cfg, key, value, choices))
 
 
 def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
@@ -89,6 +178,7 @@ def train() -> None:
     keep_freed_memory()
     args = sys.argv[1:]
     check_group_choices(args, "armeta-train")
+    check_override_keys(args, "armeta-train", "train")
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     if resume and not any(a.startswith("hydra.run.dir=") for a in args):
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
@@ -120,5 +210,6 @@ def evaluate() -> None:
             "config key 'learner' is missing: give the run directory to score, "
             "e.g. armeta-eval learner=runs/... adversary=runs/...",
         )
+    check_override_keys(args, "armeta-eval", "eval")
     main = hydra.main(version_base=None, config_path=str(config_dir()), config_name="eval")
     main(_guarded("armeta-eval", _eval_task))()

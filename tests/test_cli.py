@@ -25,6 +25,9 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
         ("trainer.iterations=-3", "trainer.iterations", ">= 1"),
         ("eval.n_tasks=0", "eval.n_tasks", ">= 1"),
         ("risk.ar.compile=fast", "risk.ar.compile", "a backend (inductor"),
+        ("trainer.iteratons=5", "trainer.iteratons", "did you mean 'trainer.iterations'?"),
+        ("risk.ar.flow_kwargs.activation=leaky_relu", "risk.ar.flow_kwargs.activation",
+         "+risk.ar.flow_kwargs.activation=leaky_relu"),
     ],
 )
 def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):
@@ -46,6 +49,24 @@ def test_unknown_choice_inside_a_sweep_is_rejected(tmp_path):
         cwd=tmp_path,
     )
     assert result.returncode == 2 and "'ar_mam'" in result.stderr
+
+
+def test_override_keys_are_checked_for_the_chosen_benchmark_and_sweep(tmp_path):
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([*TRAIN, *args], capture_output=True, text=True, timeout=120,
+                              cwd=tmp_path)
+
+    sysid = run("benchmark=pendulum_uniform", "benchmark.collector.episodes=10", "--cfg", "job")
+    assert sysid.returncode == 0 and "episodes: 10" in sysid.stdout
+    swept = run("-m", "benchmark=point_nav,sinusoid_uniform", "learner.maml_trpo.max_kl=0.02")
+    assert swept.returncode == 2
+    assert "'learner.maml_trpo.max_kl'" in swept.stderr
+    assert "benchmark=sinusoid_uniform" in swept.stderr
+    added = run("risk.ar.flow=planar", "+risk.ar.flow_kwargs.activation=leaky_relu", "--cfg", "job")
+    assert added.returncode == 0 and "activation: leaky_relu" in added.stdout
+    unreadable = run("trainer.iterations=[")
+    assert unreadable.returncode == 2 and len(unreadable.stderr.strip().splitlines()) == 1
+    assert "'trainer.iterations=['" in unreadable.stderr
 
 
 def test_resume_and_eval_of_a_non_run_directory_are_rejected(tmp_path):
