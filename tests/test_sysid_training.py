@@ -1,4 +1,5 @@
-"""A short ar_maml run on every system-identification benchmark lowers the query MSE."""
+"""A short ar_maml run on every system-identification benchmark lowers the query MSE; the
+evaluation collects data with the training collector's options."""
 
 import json
 
@@ -34,3 +35,17 @@ def test_short_ar_maml_run_lowers_query_mse(tmp_path, benchmark):
     run_training(cfg, tmp_path)
     after = json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"]
     assert after < 0.7 * before
+
+
+@pytest.mark.parametrize(
+    ("benchmark", "override", "attribute", "value"),
+    [
+        ("pendulum_uniform", "benchmark.collector.target=next", "target", "next"),
+        ("acrobot_normal", "benchmark.collector.normalize=scale", "normalize", "scale"),
+        ("point_nav_plain", "benchmark.collector.max_steps=30", "max_steps", 30),
+    ],
+)
+def test_evaluation_collects_data_the_way_training_does(benchmark, override, attribute, value):
+    players = build_players(compose_train(f"benchmark={benchmark}", override))
+    assert getattr(players.leader.collector, attribute) == value
+    assert getattr(players.eval_collector, attribute) == value
