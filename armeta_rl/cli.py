@@ -1,8 +1,8 @@
 """Console entry points ``armeta-train`` and ``armeta-eval`` (Hydra).
 
 Bad input ends with one line naming the config key, the value and what is allowed, and exit
-code 2. Group choices (``benchmark=``, ``method=``, ``logger=``) and the keys of other overrides
-are checked before Hydra starts, values before any training work.
+code 2. Overrides (group choices such as ``benchmark=`` and the keys of the others) are checked
+before Hydra starts, values before any training work.
 """
 
 from __future__ import annotations
@@ -38,18 +38,6 @@ def _fail(prog: str, message: str, code: int = 2) -> NoReturn:
 def group_choices(group: str) -> list[str]:
     """Names of the configs available for a config group, e.g. the benchmarks."""
     return sorted(path.stem for path in (config_dir() / group).glob("*.yaml"))
-
-
-def check_group_choices(args: list[str], prog: str) -> None:
-    """Reject an unknown ``benchmark=``/``method=``/``logger=`` (also in ``-m`` comma sweeps)."""
-    for arg in args:
-        key, sep, value = arg.lstrip("+~").partition("=")
-        if not sep or key not in GROUPS or "(" in value:
-            continue
-        allowed = group_choices(key)
-        for choice in value.split(","):
-            if choice not in allowed:
-                _fail(prog, f"config key '{key}' = {choice!r}: allowed: {', '.join(allowed)}")
 
 
 def _has_key(cfg: DictConfig, key: str) -> bool:
@@ -94,20 +82,24 @@ def _unknown_key_message(cfg: DictConfig, key: str, value: str, choices: list[st
     return message + f"; to add a new key write +{key}={value}"
 
 
-def check_override_keys(args: list[str], prog: str, config_name: str) -> None:
-    """Reject an override that Hydra cannot parse or that changes a key the composed config does
-    not have (a typo such as ``trainer.iteratons=5``) with one line, before Hydra starts.
+def check_overrides(
+    args: list[str], prog: str, config_name: str, groups: tuple[str, ...] = ()
+) -> None:
+    """Reject with one line, before Hydra starts, an override Hydra cannot parse, an unknown choice
+    of a config group in ``groups`` (``benchmark=``, ``method=``, ``logger=``; also inside ``-m``
+    sweeps), and an override of a key the composed config does not have (a typo such as
+    ``trainer.iteratons=5``).
 
-    The config is composed for every combination of the group choices on the command line
-    (``-m`` sweeps included), so a key is accepted when the benchmark or method that defines it
-    is chosen. ``+key=`` (add), ``~key`` (delete) and ``hydra.*`` overrides are left to Hydra.
+    The config is composed for every combination of the group choices on the command line, so a
+    key is accepted when the benchmark or method that defines it is chosen. Adding (``+key=``),
+    deleting (``~key``) and ``hydra.*`` overrides are left to Hydra.
     """
     from hydra import compose, initialize_config_dir
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
     parser = OverridesParser.create()
-    groups: dict[str, list[str]] = {}
+    chosen: dict[str, list[str]] = {}
     changes = []
     for arg in args:
         if arg.startswith("-") or "=" not in arg:
@@ -118,20 +110,24 @@ def check_override_keys(args: list[str], prog: str, config_name: str) -> None:
             reason = str(error).splitlines()[0]
             _fail(prog, f"cannot read the override {arg!r}: {reason}")
         key = override.key_or_group
-        if override.is_add() or override.is_delete() or key.split(".")[0].split("/")[0] == "hydra":
+        if override.is_delete() or key.split(".")[0].split("/")[0] == "hydra":
             continue
-        if key in GROUPS:
-            choices = override.sweep_string_iterator() if override.is_sweep_override() else [
+        if key in groups:
+            values = override.sweep_string_iterator() if override.is_sweep_override() else [
                 override.value()
             ]
-            groups[key] = [str(choice) for choice in choices]
-        else:
+            chosen[key] = [str(choice) for choice in values]
+            allowed = group_choices(key)
+            for choice in chosen[key]:
+                if choice not in allowed:
+                    _fail(prog, f"config key '{key}' = {choice!r}: allowed: {', '.join(allowed)}")
+        elif not override.is_add():
             changes.append((key, arg.split("=", 1)[1]))
     if not changes:
         return
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        for combination in itertools.product(*groups.values()):
-            choices = [f"{group}={choice}" for group, choice in zip(groups, combination)]
+        for combination in itertools.product(*chosen.values()):
+            choices = [f"{group}={choice}" for group, choice in zip(chosen, combination)]
             cfg = compose(config_name, overrides=choices)
             for key, value in changes:
                 if not _has_key(cfg, key):
@@ -177,8 +173,7 @@ def train() -> None:
     """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``)."""
     keep_freed_memory()
     args = sys.argv[1:]
-    check_group_choices(args, "armeta-train")
-    check_override_keys(args, "armeta-train", "train")
+    check_overrides(args, "armeta-train", "train", GROUPS)
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     if resume and not any(a.startswith("hydra.run.dir=") for a in args):
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
@@ -210,6 +205,6 @@ def evaluate() -> None:
             "config key 'learner' is missing: give the run directory to score, "
             "e.g. armeta-eval learner=runs/... adversary=runs/...",
         )
-    check_override_keys(args, "armeta-eval", "eval")
+    check_overrides(args, "armeta-eval", "eval")
     main = hydra.main(version_base=None, config_path=str(config_dir()), config_name="eval")
     main(_guarded("armeta-eval", _eval_task))()
