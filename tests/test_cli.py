@@ -40,6 +40,20 @@ def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowe
     assert f"'{key}'" in lines[0] and allowed in lines[0]
 
 
+def test_support_noise_on_an_rl_benchmark_is_refused_before_training(tmp_path):
+    result = subprocess.run(
+        [*TRAIN, "benchmark=point_nav_plain", "eval.support_noise=0.1",
+         f"hydra.run.dir={tmp_path}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert "'eval.support_noise'" in result.stderr and "no support labels" in result.stderr
+    assert not (tmp_path / "checkpoints").exists() and not (tmp_path / "config.yaml").exists()
+
+
 def test_unknown_choice_inside_a_sweep_is_rejected(tmp_path):
     result = subprocess.run(
         [*TRAIN, "-m", "method=maml,ar_mam"],

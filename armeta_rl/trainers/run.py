@@ -12,6 +12,9 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
+from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.episodes import EpisodeCollector
+from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, check_config
 from armeta_rl.errors import ConfigError
@@ -57,9 +60,8 @@ def evaluate_players(
     ``adversary`` defaults to the run's own p_φ (AR methods); ERM-style runs have none unless one
     is given (``armeta-eval`` scores any learner on any saved adversary).
     """
-    from armeta_rl.collectors.regression import NoisySupport
-
     ev = cfg.eval
+    noisy = noisy_support_collector(cfg, players)
     adversary = adversary if adversary is not None else players.adversary
     distributions = {"initial": players.initial}
     if adversary is not None:
@@ -79,14 +81,32 @@ def evaluate_players(
             ev.seed + offset,
         )
         report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset))
-    if ev.support_noise > 0:
-        noisy = NoisySupport(players.eval_collector, ev.support_noise)
+    if noisy is not None:
         report["support_noise"] = ev.support_noise
         for offset, (name, distribution) in enumerate(distributions.items()):
             report[f"{name}_noisy"] = evaluate_on(
                 players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset
             )
     return report
+
+
+def noisy_support_collector(cfg: DictConfig, players: Players) -> Collector | None:
+    """The evaluation collector with N(0, σ²) noise on the support labels for σ =
+    ``eval.support_noise`` (the paper's random perturbation test), or ``None`` when σ = 0.
+
+    RL benchmarks adapt on episodes, which have no support labels, so σ > 0 is refused there;
+    :func:`run_training` asks before training, so the error does not wait for the evaluation.
+    """
+    sigma = cfg.eval.support_noise
+    if not sigma > 0:
+        return None
+    if isinstance(players.eval_collector, EpisodeCollector):
+        raise ConfigError(
+            "eval.support_noise", sigma,
+            f"must be 0 on {cfg.benchmark.name}: its tasks are adapted from episodes, which have "
+            "no support labels to perturb",
+        )
+    return NoisySupport(players.eval_collector, sigma)
 
 
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
@@ -122,6 +142,7 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     check_config(cfg)
     torch.set_num_threads(cfg.threads)
     players = build_players(cfg)
+    noisy_support_collector(cfg, players)
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle)
     start = 0
     if cfg.resume:
