@@ -4,8 +4,9 @@ Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_adversary.py``. Prints the medi
 ``propose``, of the update (surrogate with 256 fresh p0 samples, backward, clipped Adam step, and
 the draw of the next tasks from the new p_φ, which checks its density and which the next
 ``propose`` returns), and of both, on the sinusoid box with a toy loss, for the spline flow at its
-default size and smaller, and for the planar flows; then the default spline and planar flows with
-``risk.ar.compile=true`` (timed after their warm-up iterations, which compile).
+default size (one coupling on this 2-D box), smaller and with two layers, and for the planar
+flows; then the default spline and planar flows with ``risk.ar.compile=true`` (timed after their
+warm-up iterations, which compile).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ TASKS, WARMUP, REPEATS = 25, 10, 200
 FLOWS = {
     "spline": {},
     "spline (blocks=1)": {"blocks": 1},
-    "spline (layers=1)": {"layers": 1, "blocks": 1},
+    "spline (layers=2)": {"layers": 2},
     "planar": {},
     "planar (leaky_relu)": {"activation": "leaky_relu"},
 }

@@ -115,6 +115,16 @@ def test_log_prob_is_a_normalized_density_matching_sampling(flow: str, base: str
     assert torch.isneginf(adversary.log_prob(outside)).all()
 
 
+def test_default_spline_flow_on_two_identifiers_models_their_dependence() -> None:
+    """One coupling is p(τ1)·p(τ2 | τ1): ln p_φ is not a sum of a function of τ1 and one of τ2."""
+    adversary = make_adversary("spline", perturb=PERTURB["spline"])
+    assert len(adversary.flow.layers) == 1
+    corners = torch.cartesian_prod(torch.tensor([1.0, 4.0]), torch.tensor([0.5, 2.5]))
+    with torch.no_grad():
+        log_p = adversary.log_prob(corners.to(torch.float64))
+    assert abs(float(log_p[0] + log_p[3] - log_p[1] - log_p[2])) > 1e-3
+
+
 @pytest.mark.parametrize("flow", FLOWS)
 @pytest.mark.parametrize("dim", [1, 3])
 def test_density_normalizes_in_other_dimensions(flow: str, dim: int) -> None:

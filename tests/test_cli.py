@@ -105,6 +105,20 @@ def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):
     assert '"n_tasks": 30' in report and '"adversarial"' in report
 
 
+def test_a_checkpoint_that_does_not_fit_its_config_gets_one_line(tmp_path):
+    run_training(compose_train(*SMALL_RUN, "+risk.ar.flow_kwargs.layers=2"), tmp_path / "ar")
+    config = tmp_path / "ar" / "config.yaml"
+    text = config.read_text()
+    config.write_text(text.replace("flow_kwargs:\n      layers: 2", "flow_kwargs: {}"))
+    assert config.read_text() != text
+    result = subprocess.run(
+        [*EVAL, f"learner={tmp_path / 'ar'}"], capture_output=True, text=True, timeout=120
+    )
+    assert result.returncode == 2
+    assert result.stderr.count("\n") == 1 and "Traceback" not in result.stderr
+    assert "'learner'" in result.stderr and "'layers: 2' under risk.ar.flow_kwargs" in result.stderr
+
+
 def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")
     run_training(compose_train(*SMALL_RUN, "logger=wandb"), tmp_path)

@@ -130,9 +130,10 @@ def test_gae_matches_hand_recursion_and_is_normalized_per_task() -> None:
                 following = delta + (0.0 if ends else gamma * lmbda * following)
                 raw[a, b, s] = following
     expected = torch.zeros_like(raw)
-    for a in range(k):
-        valid = raw[a][mask[a]]
-        expected[a][mask[a]] = (valid - valid.mean()) / (valid.std(unbiased=False) + 1e-8)
+    for a in range(k):  # every episode weighs equally in the statistics, whatever its length
+        mean = sum(raw[a, b][mask[a, b]].mean() for b in range(e)) / e
+        variance = sum(((raw[a, b][mask[a, b]] - mean) ** 2).mean() for b in range(e)) / e
+        expected[a][mask[a]] = (raw[a][mask[a]] - mean) / (variance.sqrt() + 1e-8)
     torch.testing.assert_close(gae_advantages(data, gamma, lmbda), expected, atol=1e-5, rtol=1e-4)
 
 

@@ -106,5 +106,5 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
     )
     with pytest.raises(TrainingDiverged, match="iteration 6"):
         trainer.run()
-    assert checkpoint.restore() == 4
+    assert checkpoint.restore("resume") == 4
     assert all(torch.isfinite(p).all() for p in players.leader.model.parameters())

@@ -8,7 +8,7 @@ density at any point of the box:
 
 * ``spline`` (default): affine map of the box onto [0, 1]^d, a stack of normflows
   ``CoupledRationalQuadraticSpline`` layers with ``tails=None`` (rational-quadratic splines that map
-  [0, 1] onto itself), alternating masks, and the affine map back.
+  [0, 1] onto itself; one layer on a 2-D box), alternating masks, and the affine map back.
 * ``planar`` (the paper's choice, two planar layers): box → [0, 1]^d → logit → normflows
   ``Planar`` layers on R^d → sigmoid → box; tanh activation by default, since the paper's leaky
   ReLU makes the score-function gradient biased (see :class:`PlanarBoxFlow`).
@@ -95,16 +95,23 @@ class SplineBoxFlow(BoxFlow):
     nothing to condition on and each layer is normflows' unconditional
     ``PiecewiseRationalQuadraticCDF``.
 
+    On a 2-D box one coupling layer is already the full autoregressive factorization
+    p(τ1)·p(τ2 | τ1): an unconditional spline on τ1 and a spline on τ2 whose knots are a function of
+    τ1. So ``layers`` defaults to 1 there, which halves the cost of the adversary's update against
+    two layers; other dimensions default to 2.
+
     Args:
         space: the task box.
-        layers: number of spline layers.
+        layers: number of spline layers (``None``: 1 on a 2-D box, else 2).
         bins: spline bins per coordinate.
         hidden: hidden units of each coupling's residual network.
         blocks: residual blocks of each coupling's network.
     """
 
-    def __init__(self, space: TaskSpace, layers: int = 2, bins: int = 8, hidden: int = 32,
-                 blocks: int = 2) -> None:
+    def __init__(self, space: TaskSpace, layers: int | None = None, bins: int = 8,
+                 hidden: int = 32, blocks: int = 2) -> None:
+        if layers is None:
+            layers = 1 if space.dim == 2 else 2
         for key, value in (("layers", layers), ("bins", bins), ("hidden", hidden)):
             if not isinstance(value, int) or value < 1:
                 raise ConfigError(f"risk.ar.flow_kwargs.{key}", value, "must be an integer >= 1")

@@ -67,15 +67,29 @@ def baseline_values(trajectories: TensorDictBase, gamma: float, reg: float = 1e-
     return values
 
 
+def episode_mean(values: Tensor, mask: Tensor) -> Tensor:
+    """Per-task mean ``[K]`` over episodes of each episode's time-average over its valid steps
+    (pytorch-maml-rl's ``weighted_mean``); ``values`` and ``mask`` are ``[K, E, T]``."""
+    weights = mask.to(values.dtype)
+    per_episode = (values * weights).sum(-1) / weights.sum(-1).clamp_min(1.0)
+    return per_episode.mean(-1)
+
+
 def normalize_per_task(advantages: Tensor, mask: Tensor, eps: float = 1e-8) -> Tensor:
-    """(A − mean_k)/(std_k + eps) over each task's valid steps; zero on masked steps.
+    """(A − m_k)/(s_k + eps) per task, zero on masked steps, with m_k and s_k² the
+    :func:`episode_mean` of A and of (A − m_k)² (pytorch-maml-rl's ``weighted_normalize``).
+
+    The statistics weigh episodes equally, as the losses do: an episode that reaches its goal after
+    a few steps has few, large advantages, and each of its steps weighs 1/length in the losses. In
+    the statistics they weigh as much, so they widen s_k and stay bounded (|Â| ≤ √E for one step
+    standing alone), whereas statistics pooled over steps would barely see them and let such an
+    episode dominate the inner step.
 
     ``advantages`` ``[K, E, T]`` and bool ``mask`` ``[K, E, T]``.
     """
     weights = mask.to(advantages.dtype)
-    count = weights.sum((1, 2), keepdim=True)
-    mean = (advantages * weights).sum((1, 2), keepdim=True) / count
-    variance = ((advantages - mean) ** 2 * weights).sum((1, 2), keepdim=True) / count
+    mean = episode_mean(advantages, mask)[:, None, None]
+    variance = episode_mean((advantages - mean) ** 2, mask)[:, None, None]
     return (advantages - mean) / (variance.sqrt() + eps) * weights
 
 

@@ -30,7 +30,7 @@ from armeta_rl.collectors.base import Collector
 from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import TaskWeights
-from armeta_rl.rl.baseline import gae_advantages
+from armeta_rl.rl.baseline import episode_mean, gae_advantages
 from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale_flat, log_prob
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
@@ -41,14 +41,6 @@ from armeta_rl.rl.trpo import (
 )
 
 Params = dict[str, Tensor]
-
-
-def episode_mean(values: Tensor, mask: Tensor) -> Tensor:
-    """Per-task mean ``[K]`` over episodes of each episode's time-average over its valid steps
-    (pytorch-maml-rl's ``weighted_mean``); ``values`` and ``mask`` are ``[K, E, T]``."""
-    weights = mask.to(values.dtype)
-    per_episode = (values * weights).sum(-1) / weights.sum(-1).clamp_min(1.0)
-    return per_episode.mean(-1)
 
 
 @dataclass

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchrl.checkpoint import Checkpoint, CheckpointRotation, GlobalRNGState
+from torchrl.checkpoint import Checkpoint, CheckpointError, CheckpointRotation, GlobalRNGState
 
+from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 
@@ -25,6 +26,7 @@ class RunCheckpoint:
         self.checkpoint = Checkpoint(
             leader=leader, principle=principle, rng=GlobalRNGState(), progress=self.progress
         )
+        self.directory = Path(directory)
         self.rotation = CheckpointRotation(directory, keep_last=keep_last)
 
     def save(self, iteration: int) -> Path:
@@ -36,7 +38,21 @@ class RunCheckpoint:
         """The newest checkpoint on disk, if any."""
         return self.rotation.latest()
 
-    def restore(self, components: tuple[str, ...] | None = None) -> int:
-        """Load the newest checkpoint (all components, or ``components``); returns its iteration."""
-        self.rotation.load_latest(self.checkpoint, components=components)
+    def restore(self, key: str, components: tuple[str, ...] | None = None) -> int:
+        """Load the newest checkpoint (all components, or ``components``); returns its iteration.
+
+        Raises:
+            ConfigError: naming ``key`` (the option that pointed at the run) if the checkpoint does
+                not fit the players built from the run's config, e.g. a run saved by a version of
+                armeta_rl whose defaults built other networks.
+        """
+        try:
+            self.rotation.load_latest(self.checkpoint, components=components)
+        except CheckpointError as error:
+            raise ConfigError(
+                key, str(self.directory.parent),
+                f"its checkpoint does not fit the players its config.yaml builds ({error}); runs "
+                "saved before one spline coupling became the default on 2-D boxes need "
+                "'layers: 2' under risk.ar.flow_kwargs there",
+            ) from error
         return int(self.progress["iteration"])

@@ -148,7 +148,7 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     if cfg.resume:
         if checkpoint.latest() is None:
             raise ConfigError("resume", str(cfg.resume), "has no checkpoint to resume from")
-        start = checkpoint.restore()
+        start = checkpoint.restore("resume")
         drop_csv_rows_after(run_dir, start)
     else:
         if checkpoint.latest() is not None:

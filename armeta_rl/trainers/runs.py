@@ -72,5 +72,5 @@ def load_players(run_dir: str | Path, key: str) -> tuple[DictConfig, Players]:
     checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle)
     if checkpoint.latest() is None:
         raise ConfigError(key, str(run_dir), "has no checkpoint")
-    checkpoint.restore(("leader", "principle"))
+    checkpoint.restore(key, ("leader", "principle"))
     return cfg, players
