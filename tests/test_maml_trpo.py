@@ -18,10 +18,11 @@ from armeta_rl.rl.baseline import (
     baseline_features,
     baseline_values,
     discounted_returns,
+    episode_mean,
     fit_linear_baseline,
     gae_advantages,
 )
-from armeta_rl.rl.maml_trpo import MAMLTRPOLeader, as_task_params, episode_mean
+from armeta_rl.rl.maml_trpo import MAMLTRPOLeader, as_task_params
 from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
