@@ -26,7 +26,6 @@ class RunCheckpoint:
         self.checkpoint = Checkpoint(
             leader=leader, principle=principle, rng=GlobalRNGState(), progress=self.progress
         )
-        self.directory = Path(directory)
         self.rotation = CheckpointRotation(directory, keep_last=keep_last)
 
     def save(self, iteration: int) -> Path:
@@ -50,7 +49,7 @@ class RunCheckpoint:
             self.rotation.load_latest(self.checkpoint, components=components)
         except CheckpointError as error:
             raise ConfigError(
-                key, str(self.directory.parent),
+                key, str(self.rotation.directory.parent),
                 f"its checkpoint does not fit the players its config.yaml builds ({error}); runs "
                 "saved before one spline coupling became the default on 2-D boxes need "
                 "'layers: 2' under risk.ar.flow_kwargs there",
