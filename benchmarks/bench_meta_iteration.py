@@ -1,12 +1,14 @@
 """Milliseconds per meta-iteration of the regression and system-identification games, one thread.
 
 Rows: the full AR-MAML iteration (data collection, leader step, follower losses at θ_{t+1},
-adversary update every iteration) with the spline and the planar adversary, and plain MAML, on
-sinusoid_uniform (25 tasks), pendulum_uniform and acrobot_uniform (16 tasks × 200 transitions,
-collection included); and the sinusoid's second-order meta-gradient computed with a Python loop
-over tasks instead of ``vmap``. ``--compile`` adds rows with the adversary's flow and/or the
-leader's loss compiled (``risk.ar.compile=true``, ``learner.maml.compile=true``). Config
-overrides may follow on the command line.
+adversary update every iteration) with the spline and the planar adversary, and plain MAML with
+either batched adaptation (``learner.maml.adaptation``: the benchmark's default is low_rank on the
+sinusoid, vmap on system identification), on sinusoid_uniform (25 tasks), pendulum_uniform and
+acrobot_uniform (16 tasks × 200 transitions, collection included); and the sinusoid's
+second-order meta-gradient computed with a Python loop over tasks instead of ``vmap``.
+``--compile`` adds rows with the adversary's flow and/or the leader's loss compiled
+(``risk.ar.compile=true``, ``learner.maml.compile=true``). Config overrides may follow on the
+command line.
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile]
 [--benchmarks sinusoid_uniform ...]``.
 """
@@ -75,7 +77,8 @@ LEADER, ADVERSARY = "learner.maml.compile=true", "risk.ar.compile=true"
 ROWS = (
     ("ar_maml, spline adversary", "ar_maml", ("risk.ar.flow=spline",)),
     ("ar_maml, planar adversary", "ar_maml", ("risk.ar.flow=planar",)),
-    ("maml (ERM)", "maml", ()),
+    ("maml (ERM), vmap adaptation", "maml", ("learner.maml.adaptation=vmap",)),
+    ("maml (ERM), low_rank adaptation", "maml", ("learner.maml.adaptation=low_rank",)),
 )
 COMPILED_ROWS = (
     ("ar_maml, spline adversary compiled", "ar_maml", (ADVERSARY,)),

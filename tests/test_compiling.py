@@ -15,7 +15,7 @@ from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.compiling import compile_backend
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader
 from armeta_rl.learners.mlp import make_mlp, relu
 from armeta_rl.risk.adversarial import AdversarialPrinciple
 from armeta_rl.tasks import BoxUniform, TaskSpace
@@ -51,10 +51,13 @@ def test_traced_relu_equals_torch_relu_with_its_gradients():
     assert torch.equal(grad, grad_ref)
 
 
-def train_leader(compile: bool | str) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+def train_leader(
+    compile: bool | str, adaptation: str
+) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     """Initial parameters, then losses and evaluations of three steps, then final parameters."""
     torch.manual_seed(0)
-    leader = MAMLLeader(make_mlp(1, 1, (32, 32)), SinusoidCollector(5, 5), compile=compile)
+    leader = MAMLLeader(make_mlp(1, 1, (32, 32)), SinusoidCollector(5, 5), compile=compile,
+                        adaptation=adaptation)
     initial = [p.detach().clone() for p in leader.model.parameters()]
     tasks = BoxUniform(SPACE).sample(6)
     losses = []
@@ -64,10 +67,11 @@ def train_leader(compile: bool | str) -> tuple[list[torch.Tensor], list[torch.Te
     return initial, losses + [p.detach() for p in leader.model.parameters()]
 
 
-def test_compiled_maml_steps_equal_eager_steps():
-    initial, eager = train_leader(False)
+@pytest.mark.parametrize("adaptation", ADAPTATIONS)
+def test_compiled_maml_steps_equal_eager_steps(adaptation):
+    initial, eager = train_leader(False, adaptation)
     counters.clear()
-    _, compiled = train_leader("aot_eager")
+    _, compiled = train_leader("aot_eager", adaptation)
     assert counters["stats"]["unique_graphs"] >= 2  # the training and the no-grad evaluation
     torch.testing.assert_close(compiled, eager, rtol=1e-5, atol=1e-6)
     trained = eager[-len(initial):]

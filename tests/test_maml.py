@@ -1,5 +1,5 @@
-"""Functional MAML: the vmapped meta-batch equals a per-task loop, and the meta-gradient equals
-finite differences of the adapted loss."""
+"""Batched MAML: the vmapped and the low-rank meta-batch equal a per-task loop, and the
+meta-gradient equals finite differences of the adapted loss."""
 
 import math
 
@@ -10,14 +10,15 @@ from torch import nn
 from torch.func import functional_call
 
 from armeta_rl.collectors.regression import SinusoidCollector
-from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.errors import ConfigError
+from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader
 from armeta_rl.learners.mlp import make_mlp
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 SPACE = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
 
 
-def make_leader(first_order=False, inner_steps=1, hidden=(128, 128, 128)):
+def make_leader(first_order=False, inner_steps=1, hidden=(128, 128, 128), adaptation="vmap"):
     torch.manual_seed(0)
     return MAMLLeader(
         make_mlp(1, 1, hidden),
@@ -25,6 +26,7 @@ def make_leader(first_order=False, inner_steps=1, hidden=(128, 128, 128)):
         inner_lr=0.01,
         inner_steps=inner_steps,
         first_order=first_order,
+        adaptation=adaptation,
     )
 
 
@@ -41,9 +43,10 @@ def per_task_loss(leader, params, task):
     return (functional_call(leader.model, params, (query["x"],)) - query["y"]).pow(2).mean()
 
 
-@pytest.mark.parametrize("first_order,inner_steps", [(False, 1), (True, 1), (False, 2)])
-def test_vmapped_maml_equals_per_task_loop(first_order, inner_steps):
-    leader = make_leader(first_order, inner_steps)
+@pytest.mark.parametrize("adaptation", ADAPTATIONS)
+@pytest.mark.parametrize("first_order,inner_steps", [(False, 1), (True, 1), (False, 2), (True, 2)])
+def test_batched_maml_equals_per_task_loop(first_order, inner_steps, adaptation):
+    leader = make_leader(first_order, inner_steps, adaptation=adaptation)
     torch.manual_seed(1)
     data = leader.collector.collect(BoxUniform(SPACE).sample(6))
     theta = dict(leader.model.named_parameters())
@@ -59,10 +62,12 @@ def test_vmapped_maml_equals_per_task_loop(first_order, inner_steps):
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
 
 
-def test_vmapped_maml_equals_per_task_loop_with_vector_inputs_and_outputs():
+@pytest.mark.parametrize("adaptation", ADAPTATIONS)
+def test_batched_maml_equals_per_task_loop_with_vector_inputs_and_outputs(adaptation):
     """Sys-id shapes: 4 inputs, 3 outputs, 10 support and 190 query points per task."""
     torch.manual_seed(5)
-    leader = MAMLLeader(make_mlp(4, 3, (32, 32)), SinusoidCollector(5, 5), inner_lr=0.05)
+    leader = MAMLLeader(make_mlp(4, 3, (32, 32)), SinusoidCollector(5, 5), inner_lr=0.05,
+                        adaptation=adaptation)
     data = TensorDict(
         {
             part: {"x": torch.randn(3, n, 4), "y": torch.randn(3, n, 3)}
@@ -79,6 +84,37 @@ def test_vmapped_maml_equals_per_task_loop_with_vector_inputs_and_outputs():
         torch.autograd.grad(looped.sum(), list(theta.values())),
     ):
         torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("first_order,inner_steps", [(False, 1), (True, 1), (False, 3)])
+def test_low_rank_adaptation_equals_vmap_in_double_precision(first_order, inner_steps):
+    """The two batched implementations are the same function of θ: losses, meta-gradients and
+    the gradient-free evaluation agree to rounding in float64."""
+    results = []
+    for adaptation in ADAPTATIONS:
+        leader = make_leader(first_order, inner_steps, hidden=(32, 32), adaptation=adaptation)
+        leader.model.double()
+        torch.manual_seed(1)
+        data = leader.collector.collect(BoxUniform(SPACE).sample(7)).double()
+        losses = leader.task_losses(data)
+        grads = torch.autograd.grad(losses.mean(), list(leader.model.parameters()))
+        with torch.no_grad():
+            scores = leader.task_losses(data)
+        assert not scores.requires_grad
+        results.append((losses, grads, scores))
+    (losses, grads, scores), (low_losses, low_grads, low_scores) = results
+    torch.testing.assert_close(low_losses, losses, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(low_scores, scores, atol=1e-12, rtol=1e-12)
+    for got, want in zip(low_grads, grads):
+        torch.testing.assert_close(got, want, atol=1e-12, rtol=1e-10)
+
+
+def test_bad_adaptation_is_a_config_error():
+    with pytest.raises(ConfigError, match="learner.maml.adaptation.*allowed: vmap, low_rank"):
+        make_leader(adaptation="loop")
+    sequential = nn.Sequential(nn.Linear(1, 8), nn.ReLU(), nn.Linear(8, 1))
+    with pytest.raises(ConfigError, match="learner.maml.adaptation.*not a Sequential; use vmap"):
+        MAMLLeader(sequential, SinusoidCollector(5, 5), adaptation="low_rank")
 
 
 def test_mlp_is_the_linear_relu_network_with_the_same_initial_draws():
@@ -126,8 +162,9 @@ def test_evaluate_after_step_scores_that_steps_data_at_the_new_theta():
     assert not torch.allclose(fresh, after)
 
 
-def test_meta_gradient_matches_finite_differences():
-    leader = make_leader(hidden=(16, 16))
+@pytest.mark.parametrize("adaptation", ADAPTATIONS)
+def test_meta_gradient_matches_finite_differences(adaptation):
+    leader = make_leader(hidden=(16, 16), adaptation=adaptation)
     leader.model.double()
     torch.manual_seed(2)
     data = leader.collector.collect(BoxUniform(SPACE).sample(4)).double()

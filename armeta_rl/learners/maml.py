@@ -1,13 +1,17 @@
-"""Functional MAML batched over tasks (Finn et al. 2017; paper Example "AR-MAML", Algorithm 1).
+"""MAML batched over tasks (Finn et al. 2017; paper Example "AR-MAML", Algorithm 1).
 
-The per-task adapted loss L(D^Q_τ; θ − γ∇_θ L(D^S_τ; θ)) is written for one task with
-``torch.func.grad`` and ``functional_call``, then ``vmap``-ed over the task dimension, so a
-meta-batch costs one batched forward/backward instead of a Python loop over tasks.
+Two exact implementations of the per-task adapted loss L(D^Q_τ; θ − γ∇_θ L(D^S_τ; θ)), both
+batched over the task dimension (a meta-batch costs one batched forward/backward, no Python loop
+over tasks):
 
-Cost notes (CPU, one thread): the per-task adapted weights θ'_τ are ``[K, fan_in, fan_out]``
-tensors, so the meta-iteration is dominated by batched matrix products and elementwise ops on
-them. :class:`armeta_rl.learners.mlp.MLP` keeps every such tensor in one contiguous layout, and
-the inner step is taken as the gradient of −γ·L so no full-size scaling op is needed.
+* ``adaptation="vmap"`` (any network): written for one task with ``torch.func.grad`` and
+  ``functional_call``, then ``vmap``-ed over tasks. The per-task adapted weights θ'_τ are
+  ``[K, fan_in, fan_out]`` tensors, so the step is dominated by batched matrix products and
+  elementwise ops on them. :class:`armeta_rl.learners.mlp.MLP` keeps every such tensor in one
+  contiguous layout, and the inner step is taken as the gradient of −γ·L so no full-size scaling
+  op is needed.
+* ``adaptation="low_rank"`` (:class:`~armeta_rl.learners.mlp.MLP` only): the inner steps kept as
+  low-rank weight updates (:mod:`armeta_rl.learners.low_rank`); no per-task weights at all.
 """
 
 from __future__ import annotations
@@ -23,8 +27,12 @@ from armeta_rl.collectors.base import Collector
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
+from armeta_rl.learners.low_rank import low_rank_query_losses
+from armeta_rl.learners.mlp import MLP
 
 Params = dict[str, Tensor]
+
+ADAPTATIONS = ("vmap", "low_rank")
 
 
 class MAMLLeader(OneNetworkLeader):
@@ -37,6 +45,9 @@ class MAMLLeader(OneNetworkLeader):
         inner_steps: number of inner steps.
         first_order: drop the second-order term (treat ∇_θ L^S as a constant).
         outer_lr: Adam learning rate of the meta-update.
+        adaptation: how the batched adapted losses are computed, ``"vmap"`` or ``"low_rank"``
+            (an :class:`~armeta_rl.learners.mlp.MLP` only); the same function of θ, different
+            speed and rounding (see the module docstring).
         compile: ``torch.compile`` the batched loss on the training collector's data (the
             meta-update and the follower's losses at θ_{t+1}): ``False``, ``True`` (inductor) or
             a backend name; see :mod:`armeta_rl.compiling`. Other data run eagerly.
@@ -52,6 +63,7 @@ class MAMLLeader(OneNetworkLeader):
         inner_steps: int = 1,
         first_order: bool = False,
         outer_lr: float = 1e-3,
+        adaptation: str = "vmap",
         compile: bool | str | None = False,
     ) -> None:
         if not inner_lr > 0:
@@ -60,12 +72,21 @@ class MAMLLeader(OneNetworkLeader):
             raise ConfigError("learner.maml.inner_steps", inner_steps, "must be an integer >= 1")
         if not outer_lr > 0:
             raise ConfigError("learner.maml.outer_lr", outer_lr, "must be > 0")
+        if adaptation not in ADAPTATIONS:
+            raise ConfigError("learner.maml.adaptation", adaptation,
+                              "allowed: " + ", ".join(ADAPTATIONS))
+        if adaptation == "low_rank" and not isinstance(model, MLP):
+            raise ConfigError("learner.maml.adaptation", adaptation,
+                              f"needs the package's MLP, not a {type(model).__name__}; use vmap")
         self.model, self.collector = model, collector
         self.inner_lr, self.inner_steps, self.first_order = inner_lr, int(inner_steps), first_order
         # The fused Adam kernel: one op for all parameters (foreach: ~3x slower on this MLP).
         self.optimizer = torch.optim.Adam(model.parameters(), lr=outer_lr, fused=True)
         self._inner_step = grad(self._descent_objective)
-        self._batched_loss = vmap(self._query_loss, in_dims=(None, 0, 0, 0, 0))
+        self._batched_loss = (
+            self._low_rank_losses if adaptation == "low_rank"
+            else vmap(self._query_loss, in_dims=(None, 0, 0, 0, 0))
+        )
         self._training_loss = maybe_compile(
             self._batched_loss, compile_backend("learner.maml.compile", compile)
         )
@@ -94,6 +115,16 @@ class MAMLLeader(OneNetworkLeader):
     ) -> Tensor:
         """L(D^Q_τ; θ'_τ) for one task, from plain tensors (vmapped over tasks)."""
         return self._mse(self.adapt(params, support_x, support_y), query_x, query_y)
+
+    def _low_rank_losses(
+        self, params: Params, support_x: Tensor, support_y: Tensor, query_x: Tensor,
+        query_y: Tensor,
+    ) -> Tensor:
+        """L(D^Q_τ; θ'_τ) of every task ``[K]`` with low-rank inner updates."""
+        return low_rank_query_losses(
+            self.model, params, support_x, support_y, query_x, query_y,
+            self.inner_lr, self.inner_steps, self.first_order,
+        )
 
     def _adapted_loss(self, params: Params, task: TensorDict) -> Tensor:
         """:meth:`_query_loss` of one task given as a TensorDict (the per-task reference)."""

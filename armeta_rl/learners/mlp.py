@@ -40,6 +40,12 @@ class MLP(nn.Module):
                 x = relu(x)
         return x
 
+    def layers(self, params: dict[str, Tensor] | None = None) -> list[tuple[Tensor, Tensor]]:
+        """``(W [fan_in, fan_out], b [fan_out])`` of every layer, in order, from ``params`` (named
+        as ``named_parameters()`` names them) or from the module's own parameters."""
+        params = dict(self.named_parameters()) if params is None else params
+        return [(params[f"weights.{i}"], params[f"biases.{i}"]) for i in range(len(self.weights))]
+
 
 def relu(x: Tensor) -> Tensor:
     """max(x, 0): ``torch.relu`` eagerly and, while ``torch.compile`` traces, the same function
