@@ -64,6 +64,10 @@ def _descent_objective(
     return -inner_lr * (out - y).pow(2).mean((1, 2)).sum(), inputs
 
 
+_inner_step = grad(_descent_objective, has_aux=True)
+"""The scaled gradients Δ of every layer (with respect to the shifts) and the layers' inputs."""
+
+
 def low_rank_query_losses(
     model: MLP,
     params: Params,
@@ -80,10 +84,9 @@ def low_rank_query_losses(
     ``[K, n, features]`` and θ = ``params`` (``model``'s parameter names)."""
     layers = model.layers(params)
     updates: list[Update] | None = None
-    inner_step = grad(_descent_objective, has_aux=True)
     for _ in range(inner_steps):
         shifts = [support_x.new_zeros(*support_x.shape[:2], w.shape[1]) for w, _ in layers]
-        deltas, inputs = inner_step(shifts, layers, updates, support_x, support_y, inner_lr)
+        deltas, inputs = _inner_step(shifts, layers, updates, support_x, support_y, inner_lr)
         if first_order:
             deltas, inputs = [d.detach() for d in deltas], [h.detach() for h in inputs]
         step = list(zip(inputs, deltas))
