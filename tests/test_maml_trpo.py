@@ -23,7 +23,13 @@ from armeta_rl.rl.baseline import (
     gae_advantages,
 )
 from armeta_rl.rl.maml_trpo import MAMLTRPOLeader, as_task_params
-from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
+from armeta_rl.rl.policy import (
+    GaussianMLP,
+    kl_divergence,
+    loc_scale,
+    loc_scale_batched,
+    log_prob,
+)
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
     conjugate_gradient,
@@ -221,6 +227,23 @@ def test_batched_inner_step_equals_per_task_loop() -> None:
     looped_grad = torch.autograd.grad(looped_loss, list(leader.net.parameters()))
     for batched, looped in zip(meta_grad, looped_grad):
         torch.testing.assert_close(batched, looped, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("batch", [(), (4, 5)])
+def test_rollout_policy_equals_each_tasks_network_and_the_vmapped_one(batch: tuple) -> None:
+    torch.manual_seed(3)
+    net = GaussianMLP()
+    params = TensorDict.from_module(net).detach().expand(3).clone()
+    params = params.apply(lambda p: p + 0.3 * torch.randn_like(p)).flatten_keys(".").to_dict()
+    observation = torch.randn(3, *batch, 2)
+    loc, scale = loc_scale_batched(net, params, observation)
+    for k in range(3):
+        task = {name: value[k] for name, value in params.items()}
+        expected = functional_call(net, task, (observation[k],))
+        torch.testing.assert_close(loc[k], expected[0])
+        torch.testing.assert_close(scale[k], expected[1])
+    vmapped = loc_scale(net, as_task_params(params), observation)
+    torch.testing.assert_close((loc, scale), vmapped, rtol=0, atol=1e-6)
 
 
 def meta_hvp_pair(dtype: torch.dtype, hidden: tuple[int, ...] = (8, 8)):
