@@ -1,6 +1,7 @@
 """MAML-TRPO pieces: returns, GAE and the linear baseline on hand-computed cases; conjugate
-gradient and KL Hessian-vector products against dense linear algebra; the batched inner step
-against a per-task loop; the TRPO trust region; and a short seeded training run."""
+gradient and KL Hessian-vector products against dense linear algebra; the batched inner step and
+the rollout policy against per-task loops; the TRPO trust region; and a short seeded training
+run."""
 
 from __future__ import annotations
 
@@ -230,7 +231,9 @@ def test_batched_inner_step_equals_per_task_loop() -> None:
 
 
 @pytest.mark.parametrize("batch", [(), (4, 5)])
-def test_rollout_policy_equals_each_tasks_network_and_the_vmapped_one(batch: tuple) -> None:
+def test_rollout_policy_equals_each_tasks_network_and_the_vmapped_one(
+    batch: tuple[int, ...],
+) -> None:
     torch.manual_seed(3)
     net = GaussianMLP()
     params = TensorDict.from_module(net).detach().expand(3).clone()
