@@ -13,7 +13,7 @@ state-independent log σ initialized at 0 (σ = 1). The same network serves two 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -24,6 +24,9 @@ from torch.nn import functional as F
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
 MIN_LOG_STD = math.log(1e-6)
+
+Linear = Callable[[Tensor, Tensor, Tensor], Tensor]
+"""A linear layer as a function of (input, weight, bias), laid out as ``F.linear``'s arguments."""
 
 
 class GaussianMLP(nn.Module):
@@ -53,18 +56,22 @@ class GaussianMLP(nn.Module):
         scale = self.log_std.clamp_min(MIN_LOG_STD).exp().expand_as(loc)
         return loc, scale
 
-    def forward_with(self, params: dict[str, Tensor], observation: Tensor) -> tuple[Tensor, Tensor]:
-        """:meth:`forward` with the parameters ``params`` (named as in ``named_parameters``).
+    def forward_with(
+        self, params: dict[str, Tensor], observation: Tensor, linear: Linear = F.linear
+    ) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` with the parameters ``params`` (named as in ``named_parameters``),
+        each linear layer applied as ``linear(hidden, weight, bias)``.
 
         The pure function that ``vmap`` batches over tasks: it walks the MLP's layers with
         ``F.linear`` instead of ``functional_call``, whose per-call swapping of the module's
-        tensors costs as much as this small network's arithmetic.
+        tensors costs as much as this small network's arithmetic. :func:`loc_scale_batched`
+        runs it on per-task parameters with a per-task ``linear`` instead.
         """
         hidden = observation
         for name, layer in self.mean.named_children():
             if isinstance(layer, nn.Linear):
                 weight, bias = params[f"mean.{name}.weight"], params[f"mean.{name}.bias"]
-                hidden = F.linear(hidden, weight, bias)
+                hidden = linear(hidden, weight, bias)
             else:
                 hidden = layer(hidden)
         scale = params["log_std"].clamp_min(MIN_LOG_STD).exp().expand_as(hidden)
@@ -103,16 +110,16 @@ def loc_scale_batched(
     a third of the post-adaptation rollout's time. The differentiable paths keep ``vmap``.
     """
     n_tasks, batch = observation.shape[0], observation.shape[1:-1]
-    hidden = observation.reshape(n_tasks, -1, observation.shape[-1])
-    for name, layer in net.mean.named_children():
-        if isinstance(layer, nn.Linear):
-            weight, bias = params[f"mean.{name}.weight"], params[f"mean.{name}.bias"]
-            hidden = torch.baddbmm(bias.unsqueeze(1), hidden, weight.transpose(1, 2))
-        else:
-            hidden = layer(hidden)
-    loc = hidden.reshape(n_tasks, *batch, hidden.shape[-1])
-    log_std = params["log_std"].reshape(n_tasks, *(1,) * len(batch), -1)
-    return loc, log_std.clamp_min(MIN_LOG_STD).exp().expand_as(loc)
+    flat = observation.reshape(n_tasks, -1, observation.shape[-1])
+    per_task = {**params, "log_std": params["log_std"].unsqueeze(1)}
+    loc, scale = net.forward_with(per_task, flat, linear=_per_task_linear)
+    shape = (n_tasks, *batch, loc.shape[-1])
+    return loc.reshape(shape), scale.reshape(shape)
+
+
+def _per_task_linear(hidden: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
+    """``F.linear`` with a leading task dimension on all three arguments: one ``baddbmm``."""
+    return torch.baddbmm(bias.unsqueeze(1), hidden, weight.transpose(1, 2))
 
 
 class PerTaskLocScale(TensorDictModuleBase):
