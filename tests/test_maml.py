@@ -117,17 +117,26 @@ def test_bad_adaptation_is_a_config_error():
         MAMLLeader(sequential, SinusoidCollector(5, 5), adaptation="low_rank")
 
 
-def test_mlp_is_the_linear_relu_network_with_the_same_initial_draws():
-    """make_mlp stores weights input-major but computes nn.Linear/ReLU layers, drawn alike."""
+@pytest.mark.parametrize("out_features", [1, 3, 16])
+def test_mlp_is_the_linear_relu_network_with_the_same_initial_draws(out_features):
+    """make_mlp stores weights input-major but computes nn.Linear/ReLU layers, drawn alike, with
+    the same gradients (3 outputs: the output layer's product runs zero-padded to 16 columns)."""
     torch.manual_seed(6)
-    mlp = make_mlp(2, 3, (16, 8))
+    mlp = make_mlp(2, out_features, (16, 8))
     torch.manual_seed(6)
     reference = nn.Sequential(
-        nn.Linear(2, 16), nn.ReLU(), nn.Linear(16, 8), nn.ReLU(), nn.Linear(8, 3)
+        nn.Linear(2, 16), nn.ReLU(), nn.Linear(16, 8), nn.ReLU(), nn.Linear(8, out_features)
     )
     x = torch.randn(7, 5, 2)
-    torch.testing.assert_close(mlp(x), reference(x))
+    out, expected = mlp(x), reference(x)
+    torch.testing.assert_close(out, expected)
     assert all(w.is_contiguous() for w in mlp.weights)
+    out.pow(2).sum().backward()
+    expected.pow(2).sum().backward()
+    linears = [layer for layer in reference if isinstance(layer, nn.Linear)]
+    for weight, bias, linear in zip(mlp.weights, mlp.biases, linears, strict=True):
+        torch.testing.assert_close(weight.grad, linear.weight.grad.T)
+        torch.testing.assert_close(bias.grad, linear.bias.grad)
 
 
 def test_evaluate_equals_task_losses_and_keeps_no_graph():

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 from torch.func import grad
 
-from armeta_rl.learners.mlp import MLP, relu
+from armeta_rl.learners.mlp import MLP, matmul, relu
 
 Params = dict[str, Tensor]
 Layers = list[tuple[Tensor, Tensor]]
@@ -44,7 +44,7 @@ def _forward(
     inputs, h, last = [], x, len(layers) - 1
     for index, (weight, bias) in enumerate(layers):
         inputs.append(h)
-        z = h @ weight + bias
+        z = matmul(h, weight) + bias
         if updates is not None:
             rows, steps = updates[index]
             z = torch.baddbmm(z, h @ rows.transpose(1, 2) + 1.0, steps)
