@@ -56,13 +56,15 @@ def matmul(x: Tensor, weight: Tensor) -> Tensor:
     """``x @ weight`` for a weight ``[fan_in, fan_out]``; a thin one (2 ≤ fan_out < 16) is
     zero-padded to 16 columns for the product and the extra outputs are dropped.
 
-    Single-precision GEMM in the MKL that torch ships takes longer for 2–10 output columns than
-    for 16 on this project's AVX2 machines (one thread, ``[16, 190, 128] × [16, 128, n]``, ms:
-    n = 3 0.82, n = 6 1.12, n = 10 1.23, n = 16 0.38), and so does the weight gradient of the
-    product. The system-identification networks end in 3 (pendulum) or 6 (acrobot) outputs, so
-    their output layer runs padded. Same values up to rounding (the summation order inside the
-    GEMM may change); gradients flow to the real columns only. One output column (the sinusoid)
-    takes MKL's matrix-vector path and is left alone.
+    Single-precision GEMM in the MKL that torch ships takes longer for every width from 2 to 14
+    output columns than for 16 on this project's AVX2 machines (one thread,
+    ``[16, 190, 128] × [16, 128, n]``, ms: n = 3 0.82, n = 6 1.12, n = 10 1.23, n = 14 0.72,
+    n = 16 0.38), and so does the weight gradient of the product. The system-identification
+    networks end in 3 (pendulum) or 6 (acrobot) outputs, so their output layer runs padded. Same
+    values up to rounding (the summation order inside the GEMM may change); gradients flow to the
+    real columns only. A single output column (the sinusoid's) is left alone: a shared ``mm`` runs
+    it as a matrix-vector product (0.06 ms for 3,040 rows against 0.25 ms padded), and the
+    sinusoid's per-task products are too small to matter.
     """
     columns = weight.shape[-1]
     if not 1 < columns < GEMM_COLUMNS:
