@@ -120,7 +120,7 @@ def test_bad_adaptation_is_a_config_error():
 @pytest.mark.parametrize("out_features", [1, 3, 16])
 def test_mlp_is_the_linear_relu_network_with_the_same_initial_draws(out_features):
     """make_mlp stores weights input-major but computes nn.Linear/ReLU layers, drawn alike, with
-    the same gradients (3 outputs: the output layer's product runs zero-padded to 16 columns)."""
+    the same gradients (the 8-unit layer and 3 outputs multiply zero-padded to 16 columns)."""
     torch.manual_seed(6)
     mlp = make_mlp(2, out_features, (16, 8))
     torch.manual_seed(6)

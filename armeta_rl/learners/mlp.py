@@ -56,8 +56,8 @@ def matmul(x: Tensor, weight: Tensor) -> Tensor:
     """``x @ weight`` for a weight ``[fan_in, fan_out]``; a thin one (2 ≤ fan_out < 16) is
     zero-padded to 16 columns for the product and the extra outputs are dropped.
 
-    Single-precision GEMM in the MKL that torch ships takes longer for every width from 2 to 14
-    output columns than for 16 on this project's AVX2 machines (one thread,
+    Single-precision GEMM in the MKL that torch ships takes longer for every width we measured
+    from 2 to 14 output columns than for 16 on this project's AVX2 machines (one thread,
     ``[16, 190, 128] × [16, 128, n]``, ms: n = 3 0.82, n = 6 1.12, n = 10 1.23, n = 14 0.72,
     n = 16 0.38), and so does the weight gradient of the product. The system-identification
     networks end in 3 (pendulum) or 6 (acrobot) outputs, so their output layer runs padded. Same
