@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
@@ -48,7 +49,13 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
             None if node is None else OmegaConf.to_container(node),
             "needs a collector with a '_target_'",
         )
-    return instantiate(node)
+    try:
+        return instantiate(node)
+    except InstantiationException as error:
+        # A collector's own ConfigError, not Hydra's wrapper around it, is what the CLI reports.
+        if isinstance(error.__cause__, ConfigError):
+            raise error.__cause__ from None
+        raise
 
 
 def _maml(cfg: DictConfig, collector: Collector) -> Leader:

@@ -28,11 +28,17 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
         ("trainer.iteratons=5", "trainer.iteratons", "did you mean 'trainer.iterations'?"),
         ("risk.ar.flow_kwargs.activation=leaky_relu", "risk.ar.flow_kwargs.activation",
          "+risk.ar.flow_kwargs.activation=leaky_relu"),
+        ("benchmark=pendulum_uniform benchmark.collector.target=state",
+         "benchmark.collector.target", "allowed: delta, next"),
+        ("benchmark=acrobot_uniform benchmark.collector.compile=fast",
+         "benchmark.collector.compile", "a backend (inductor"),
     ],
 )
 def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):
+    """``override``: one or more space-separated overrides."""
     result = subprocess.run(
-        [*TRAIN, override, f"hydra.run.dir={tmp_path}"], capture_output=True, text=True, timeout=120
+        [*TRAIN, *override.split(), f"hydra.run.dir={tmp_path}"], capture_output=True, text=True,
+        timeout=120,
     )
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
