@@ -1,5 +1,5 @@
-"""Opt-in ``torch.compile`` of the game's hot paths (config keys ``learner.maml.compile`` and
-``risk.ar.compile``).
+"""Opt-in ``torch.compile`` of the game's hot paths (config keys ``learner.maml.compile``,
+``risk.ar.compile`` and, for system identification, ``benchmark.collector.compile``).
 
 A meta-iteration on small tasks is bound by per-op overhead: thousands of small torch ops in the
 flow adversary's spline couplings and in the vmapped second-order MAML step. Compiling fuses them.
@@ -19,7 +19,7 @@ from armeta_rl.errors import ConfigError
 
 F = TypeVar("F", bound=Callable)
 
-COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile")
+COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile", "benchmark.collector.compile")
 """The config keys that switch compiling on."""
 
 BACKENDS = ("inductor", "aot_eager", "eager")
