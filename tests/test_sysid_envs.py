@@ -262,6 +262,28 @@ def test_compiled_collection_equals_eager_collection():
         torch.testing.assert_close(compiled.to_dict(), eager.to_dict())
 
 
+def test_compiled_env_steps_run_compiled_from_the_first_rollout():
+    """A fresh compiled env (as in a resumed run) steps through the compiled graphs from its first
+    step on, as it does later, so a resume computes what the uninterrupted run computed: a
+    ``torch.compile`` backend that counts the graph calls sees as many in the first rollout as
+    in the second."""
+    calls = []
+
+    def counting_backend(graph, example_inputs):
+        def run(*args):
+            calls.append(graph)
+            return graph(*args)
+        return run
+
+    collector = SysIdCollector("acrobot", episodes=5)
+    collector.backend = counting_backend
+    collector.collect(_tasks(4))
+    first = len(calls)
+    calls.clear()
+    collector.collect(_tasks(4))
+    assert first == len(calls) > 0
+
+
 @pytest.mark.parametrize(
     ("key", "kwargs"),
     [
