@@ -55,14 +55,13 @@ class SysIdCollector:
     The environment's initial-state seed is drawn from torch's global RNG at every call, so
     ``torch.manual_seed`` fixes the whole collection.
 
-    ``compile`` hands the envs to TorchRL's own ``EnvBase.compile`` (``torch.compile`` of
-    ``step_and_maybe_reset``, from the first call on, so that a resumed run steps through the
-    same compiled code as an uninterrupted one; the layout of a fresh reset costs one more
-    graph). It pays for the acrobot, whose
-    Runge–Kutta step is about 90 small torch ops: 3.2 ms less per compiled AR iteration
-    (36.2 against 39.4 ms, medians of 150 run alternately), and not for the pendulum (36.3
-    against 37.2 ms, its fastest iteration slower). Each batch shape (training and evaluation)
-    compiles once, 10–25 s with an empty compile cache, so it is for long runs.
+    ``compile`` hands the envs to TorchRL's own ``EnvBase.compile``: ``torch.compile`` of
+    ``step_and_maybe_reset`` from the first call on (no eager warm-up), so that a resumed run
+    steps through the same compiled code as an uninterrupted one. It pays for the acrobot, whose
+    Runge–Kutta step is about 90 small torch ops: 3.2 ms less per compiled AR iteration (36.2
+    against 39.4 ms, medians of 150 run alternately), and not for the pendulum (36.3 against
+    37.2 ms, its fastest iteration slower). Each batch shape (training and evaluation) compiles
+    once, 10–25 s with an empty compile cache, so it is for long runs.
 
     Args:
         env: ``"pendulum"`` or ``"acrobot"``.
