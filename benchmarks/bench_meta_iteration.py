@@ -9,6 +9,14 @@ second-order meta-gradient computed with a Python loop over tasks instead of ``v
 ``--compile`` adds rows with the adversary's flow and/or the leader's loss compiled
 (``risk.ar.compile=true``, ``learner.maml.compile=true``) and, on system identification, the env
 steps too (``benchmark.collector.compile=true``). Config overrides may follow on the command line.
+
+The rows of a benchmark take turns: every row runs ``TURN`` timed iterations, then the next row,
+``TURNS`` times over. A shared machine runs slower for spells of tens of seconds (up to 1.5x
+here); timed one after the other, one row could fall in such a spell and the next one not.
+Taking turns spreads the spells over all rows, so rows compare; short turns of consecutive
+iterations keep each trainer's data warm in the caches, as in a real run. The yardstick product
+is timed in every turn too.
+
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile]
 [--benchmarks sinusoid_uniform ...]``.
 """
@@ -16,7 +24,6 @@ Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile]
 from __future__ import annotations
 
 import argparse
-import math
 import statistics
 from collections.abc import Callable
 
@@ -31,16 +38,27 @@ from armeta_rl.trainers.runs import build_players
 
 BENCHMARKS = ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform")
 WARMUP = 10
+TURNS, TURN = 10, 10
 
 
-def milliseconds(
-    fn: Callable[[], object], repeats: int, warmup: int
-) -> tuple[float, float, float]:
-    """Median, interquartile range and minimum of ``fn``'s wall time in ms (on a shared machine
-    the minimum is the steadiest estimate of the code's own cost)."""
-    times = [1000 * t for t in wall_times(fn, repeats, warmup)]
+def summary(times: list[float]) -> tuple[float, float, float]:
+    """Median, interquartile range and minimum in ms of wall times in seconds (on a shared
+    machine the minimum is the steadiest estimate of the code's own cost)."""
+    times = [1000 * t for t in times]
     q1, median, q3 = statistics.quantiles(times, n=4)
     return median, q3 - q1, min(times)
+
+
+def taking_turns(rows: dict[str, Callable[[], object]], yardsticks: list[float]
+                 ) -> dict[str, list[float]]:
+    """Wall times of ``TURNS * TURN`` calls of every row's function, the rows taking turns of
+    ``TURN`` calls; appends the yardstick (ms) measured in every turn to ``yardsticks``."""
+    times: dict[str, list[float]] = {label: [] for label in rows}
+    for _ in range(TURNS):
+        for label, fn in rows.items():
+            times[label] += wall_times(fn, TURN, warmup=0)
+            yardsticks.append(reference_product_ms(repeats=5))
+    return times
 
 
 def trainer_for(method: str, *overrides: str) -> GameTrainer:
@@ -73,6 +91,7 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
     return step
 
 
+LOOPED = "maml, per-task Python loop"
 LEADER, ADVERSARY = "learner.maml.compile=true", "risk.ar.compile=true"
 ENV_STEPS = "benchmark.collector.compile=true"
 ROWS = (
@@ -103,21 +122,24 @@ def main() -> None:
     keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    reference_before = reference_product_ms()
-    rows = []
+    rows, yardsticks = [], []
     for benchmark in args.benchmarks:
         compiled = COMPILED_ROWS + (() if benchmark == "sinusoid_uniform" else SYSID_COMPILED_ROWS)
+        iterations, warmups = {}, {}
         for label, method, overrides in ROWS + (compiled if args.compile else ()):
             trainer = trainer_for(method, f"benchmark={benchmark}", *overrides, *extra)
-            warmup = sum(wall_times(trainer.train_iteration, WARMUP, warmup=0))
-            rows.append((benchmark, label, *milliseconds(trainer.train_iteration, 100, 0), warmup))
-    if "sinusoid_uniform" in args.benchmarks:
-        trainer = trainer_for("maml", *extra)
-        looped = milliseconds(looped_meta_gradient(trainer), 50, 5)
-        rows.append(("sinusoid_uniform", "maml, per-task Python loop", *looped, math.nan))
+            warmups[label] = sum(wall_times(trainer.train_iteration, WARMUP, warmup=0))
+            iterations[label] = trainer.train_iteration
+        if benchmark == "sinusoid_uniform":
+            looped = looped_meta_gradient(trainer_for("maml", *extra))
+            warmups[LOOPED] = sum(wall_times(looped, WARMUP, warmup=0))
+            iterations[LOOPED] = looped
+        for label, times in taking_turns(iterations, yardsticks).items():
+            rows.append((benchmark, label, *summary(times), warmups[label]))
     print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
-    print(f"machine yardstick (timing.reference_product_ms): {reference_before:.2f} ms before, "
-          f"{reference_product_ms():.2f} ms after (about 1.7 ms when the machine is idle)")
+    low, middle, high = min(yardsticks), statistics.median(yardsticks), max(yardsticks)
+    print(f"machine yardstick (timing.reference_product_ms) in the timed turns: median "
+          f"{middle:.2f} ms, range {low:.2f}–{high:.2f} ms")
     warmup_column = f"first {WARMUP} iterations s"
     print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | {warmup_column} |")
     print("|---|---|---|---|---|---|")
