@@ -25,7 +25,8 @@ METHODS = [
 ]
 
 
-def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path):
+@pytest.mark.parametrize("benchmark", ["sinusoid_uniform", "acrobot_normal"])
+def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path, benchmark):
     assert sorted(group_choices("method")) == sorted(METHODS)
     command = [
         sys.executable,
@@ -33,6 +34,7 @@ def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path):
         "from armeta_rl.cli import train; train()",
         "-m",
         f"method={','.join(METHODS)}",
+        f"benchmark={benchmark}",
         "trainer.iterations=3",
         "trainer.meta_batch=8",
         "eval.n_tasks=10",
@@ -43,9 +45,10 @@ def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path):
     result = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-2000:]
     for job, method in enumerate(METHODS):
-        run = tmp_path / f"{job}_sinusoid_uniform_{method}_seed0"
+        run = tmp_path / f"{job}_{benchmark}_{method}_seed0"
         report = json.loads((run / "eval.json").read_text())
-        assert report["method"] == method and report["initial"]["n_tasks"] == 10
+        assert report["method"] == method and report["benchmark"] == benchmark
+        assert report["metric"] == "mse" and report["initial"]["n_tasks"] == 10
         assert ("adversarial" in report) == method.startswith("ar_")
 
 
