@@ -16,6 +16,9 @@ of the simulator. Subclasses write the batched physics; this base class owns wha
 
 The physics runs on flat ``[tasks * episodes, ...]`` views with few, fused tensor ops: a step
 costs one small op per arithmetic stage, so its time is set by the op count, not the batch size.
+Inside a step the envs keep the state feature-major, ``[state_dim, n_envs]``, so that every op
+reads contiguous rows: an op on a column of ``[n_envs, state_dim]`` is strided, and a strided
+``sin`` costs about ten times a contiguous one here.
 Identifier-dependent constants are computed once per reset (:meth:`_physical_constants`), not per
 step.
 """

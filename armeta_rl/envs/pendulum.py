@@ -56,9 +56,7 @@ class PendulumEnv(IdentifiedSystemEnv):
     def _precompute(self) -> None:
         kwargs = {"dtype": self.dtype, "device": self.device}
         self.initial_scale = torch.tensor([math.pi, 1.0], **kwargs)
-        # The physics works on feature-major states [2, n_envs] (contiguous rows, as the
-        # acrobot's): an op on a column of [n_envs, 2] is strided, and e.g. a strided sin costs
-        # about ten times a contiguous one here.
+        # The physics works on feature-major states [2, n_envs] (contiguous rows).
         # (θ, θ̇) -> (θ + π/2, θ, θ̇): the sine of the first two rows is (cos θ, sin θ).
         self.observation_map = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]], **kwargs)
         self.observation_shift = torch.tensor([[math.pi / 2], [0.0], [0.0]], **kwargs)
