@@ -116,12 +116,9 @@ class AcrobotEnv(IdentifiedSystemEnv):
     def _initial_state(self) -> Tensor:
         return self._uniform(-0.1, 0.1)
 
-    def _observe(self, state: Tensor) -> Tensor:
-        return self._observe_with_tip(state.T)[:6].T
-
-    def _observe_with_tip(self, state: Tensor) -> Tensor:
+    def _observe_rows(self, state: Tensor) -> Tensor:
         """From feature-major states ``[4, n_envs]``: (cos θ1, sin θ1, cos θ2, sin θ2, θ̇1, θ̇2,
-        cos(θ1 + θ2)) ``[7, n_envs]``."""
+        cos(θ1 + θ2)) ``[7, n_envs]``; the last row, the tip height term, decides termination."""
         observation = torch.mm(self.observation_map, state).add_(self.observation_shift)
         observation[:4].sin_()
         observation[6].sin_()
@@ -159,12 +156,12 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return torch.add(state, slope, alpha=self.dt / 6.0)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        state = tensordict["state"].reshape(self.n_envs, 4).T.contiguous()
+        state = self._state_rows(tensordict["state"])
         torque = torch.sub(tensordict["action"].reshape(self.n_envs).to(self.dtype), self.one)
         state = self._rk4(state, torque)
         self._wrap_angles_(state[:2])
         state[2:].clamp_(self.min_velocity, self.max_velocity)
-        observation = self._observe_with_tip(state)
+        observation = self._observe_rows(state)
         terminated = (observation[0] + observation[6]) < self.minus_one
         reward = terminated.to(self.dtype).sub_(self.one)
         return self._output(state.T, observation[:6].T, reward, terminated)

@@ -130,8 +130,13 @@ class IdentifiedSystemEnv(EnvBase):
         """Random initial states ``[*batch, state_dim]`` drawn with the env's generator."""
         raise NotImplementedError
 
-    def _observe(self, state: Tensor) -> Tensor:
-        """Observations ``[n_envs, observation_dim]`` of flat states ``[n_envs, state_dim]``."""
+    def _state_rows(self, state: Tensor) -> Tensor:
+        """A feature-major copy ``[state_dim, n_envs]`` of states ``[*batch, state_dim]``."""
+        return state.reshape(self.n_envs, self.state_dim).T.contiguous()
+
+    def _observe_rows(self, state: Tensor) -> Tensor:
+        """Feature-major observations of feature-major states ``[state_dim, n_envs]``: the first
+        ``observation_dim`` rows are the observation; a subclass may append rows its step uses."""
         raise NotImplementedError
 
     def _set_seed(self, seed: int | None) -> None:
@@ -171,7 +176,7 @@ class IdentifiedSystemEnv(EnvBase):
         if not set_state or state is None:
             state = self._initial_state()
         state = state.to(self.dtype)
-        observation = self._observe(state.reshape(self.n_envs, self.state_dim))
+        observation = self._observe_rows(self._state_rows(state))[: self.observation_dim].T
         done = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
         return self._output(state, observation, None, done)
 

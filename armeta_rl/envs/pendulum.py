@@ -73,9 +73,6 @@ class PendulumEnv(IdentifiedSystemEnv):
     def _initial_state(self) -> Tensor:
         return self._uniform(-1.0, 1.0) * self.initial_scale
 
-    def _observe(self, state: Tensor) -> Tensor:
-        return self._observe_rows(state.T).T
-
     def _observe_rows(self, state: Tensor) -> Tensor:
         """From feature-major states ``[2, n_envs]``: (cos θ, sin θ, θ̇) ``[3, n_envs]``."""
         observation = torch.mm(self.observation_map, state).add_(self.observation_shift)
@@ -83,7 +80,7 @@ class PendulumEnv(IdentifiedSystemEnv):
         return observation
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        state = tensordict["state"].reshape(self.n_envs, 2).T.contiguous()
+        state = self._state_rows(tensordict["state"])
         theta, theta_dot = state
         torque = self.torque(tensordict["action"].reshape(self.n_envs)).to(self.dtype)
         gravity, inertia = self.constants
