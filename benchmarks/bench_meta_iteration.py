@@ -49,16 +49,17 @@ def summary(times: list[float]) -> tuple[float, float, float]:
     return median, q3 - q1, min(times)
 
 
-def taking_turns(rows: dict[str, Callable[[], object]], yardsticks: list[float]
-                 ) -> dict[str, list[float]]:
+def taking_turns(rows: dict[str, Callable[[], object]]
+                 ) -> tuple[dict[str, list[float]], list[float]]:
     """Wall times of ``TURNS * TURN`` calls of every row's function, the rows taking turns of
-    ``TURN`` calls; appends the yardstick (ms) measured in every turn to ``yardsticks``."""
+    ``TURN`` calls, and the yardstick (ms) measured after every turn."""
     times: dict[str, list[float]] = {label: [] for label in rows}
+    yardsticks = []
     for _ in range(TURNS):
         for label, fn in rows.items():
             times[label] += wall_times(fn, TURN, warmup=0)
             yardsticks.append(reference_product_ms(repeats=5))
-    return times
+    return times, yardsticks
 
 
 def trainer_for(method: str, *overrides: str) -> GameTrainer:
@@ -134,7 +135,9 @@ def main() -> None:
             looped = looped_meta_gradient(trainer_for("maml", *extra))
             warmups[LOOPED] = sum(wall_times(looped, WARMUP, warmup=0))
             iterations[LOOPED] = looped
-        for label, times in taking_turns(iterations, yardsticks).items():
+        row_times, turn_yardsticks = taking_turns(iterations)
+        yardsticks += turn_yardsticks
+        for label, times in row_times.items():
             rows.append((benchmark, label, *summary(times), warmups[label]))
     print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
     low, middle, high = min(yardsticks), statistics.median(yardsticks), max(yardsticks)

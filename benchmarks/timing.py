@@ -31,8 +31,9 @@ def wall_times(
 def reference_product_ms(repeats: int = 50) -> float:
     """Median ms of one ``[16, 190, 128] × [16, 128, 128]`` float32 ``bmm``, the largest product of
     the system-identification MAML step: a yardstick of how fast the machine runs at the moment
-    (1.1–1.9 ms on the development machine, which has fast and slow spells), so that tables taken
-    at different times can be compared."""
+    (medians of 1.2–1.7 ms over a benchmark run on the development machine, single turns
+    1.1–3.4 ms: it has fast and slow spells), so that tables taken at different times can be
+    compared."""
     activations, weights = torch.randn(16, 190, 128), torch.randn(16, 128, 128)
     times = wall_times(lambda: torch.bmm(activations, weights), repeats, warmup=5)
     return 1000 * statistics.median(times)

@@ -164,4 +164,4 @@ class AcrobotEnv(IdentifiedSystemEnv):
         observation = self._observe_rows(state)
         terminated = (observation[0] + observation[6]) < self.minus_one
         reward = terminated.to(self.dtype).sub_(self.one)
-        return self._output(state.T, observation[:6].T, reward, terminated)
+        return self._output(state.T, observation[: self.observation_dim].T, reward, terminated)
