@@ -11,13 +11,16 @@ second-order meta-gradient computed with a Python loop over tasks instead of ``v
 steps too (``benchmark.collector.compile=true``). Config overrides may follow on the command line.
 
 The rows of a benchmark take turns: every row runs ``TURN`` timed iterations, then the next row,
-``TURNS`` times over. A shared machine runs slower for spells of tens of seconds (up to 1.5x
+``--turns`` times over. A shared machine runs slower for spells of tens of seconds (up to 1.5x
 here); timed one after the other, one row could fall in such a spell and the next one not.
 Taking turns spreads the spells over all rows, so rows compare; short turns of consecutive
 iterations keep each trainer's data warm in the caches, as in a real run. The yardstick product
-is timed in every turn too.
+is timed between turns, and a turn's yardstick is the mean of the ones before and after it. The
+"fast-spell median" is the median iteration of the turns whose yardstick is at most the lower
+quartile of the benchmark's turn yardsticks (printed under the table): the cost of the code while
+the machine runs at its own speed, a steadier figure than the median of every turn.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile]
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile] [--turns 10]
 [--benchmarks sinusoid_uniform ...]``.
 """
 
@@ -38,28 +41,36 @@ from armeta_rl.trainers.runs import build_players
 
 BENCHMARKS = ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform")
 WARMUP = 10
-TURNS, TURN = 10, 10
+TURN = 10
+
+Turn = tuple[float, list[float]]
+"""One turn of a row: its yardstick in ms and the wall times in seconds of its iterations."""
 
 
-def summary(times: list[float]) -> tuple[float, float, float]:
-    """Median, interquartile range and minimum in ms of wall times in seconds (on a shared
-    machine the minimum is the steadiest estimate of the code's own cost)."""
-    times = [1000 * t for t in times]
+def summary(turns: list[Turn], fast_yardstick: float
+            ) -> tuple[float, float, float, float | None]:
+    """Median, interquartile range and minimum in ms of the iterations of every turn, and the
+    median of those of the turns whose yardstick is at most ``fast_yardstick`` (``None`` if no
+    turn of the row was that fast). On a shared machine the minimum and the fast-spell median are
+    the steadiest estimates of the code's own cost."""
+    times = [1000 * t for _, turn in turns for t in turn]
+    fast = [1000 * t for yardstick, turn in turns if yardstick <= fast_yardstick for t in turn]
     q1, median, q3 = statistics.quantiles(times, n=4)
-    return median, q3 - q1, min(times)
+    return median, q3 - q1, min(times), statistics.median(fast) if fast else None
 
 
-def taking_turns(rows: dict[str, Callable[[], object]]
-                 ) -> tuple[dict[str, list[float]], list[float]]:
-    """Wall times of ``TURNS * TURN`` calls of every row's function, the rows taking turns of
-    ``TURN`` calls, and the yardstick (ms) measured after every turn."""
-    times: dict[str, list[float]] = {label: [] for label in rows}
-    yardsticks = []
-    for _ in range(TURNS):
+def taking_turns(rows: dict[str, Callable[[], object]], turns: int) -> dict[str, list[Turn]]:
+    """Every row's ``turns`` turns of ``TURN`` calls of its function, the rows taking turns, each
+    turn with the mean of the yardsticks measured just before and just after it."""
+    turns_of: dict[str, list[Turn]] = {label: [] for label in rows}
+    before = reference_product_ms(repeats=5)
+    for _ in range(turns):
         for label, fn in rows.items():
-            times[label] += wall_times(fn, TURN, warmup=0)
-            yardsticks.append(reference_product_ms(repeats=5))
-    return times, yardsticks
+            times = wall_times(fn, TURN, warmup=0)
+            after = reference_product_ms(repeats=5)
+            turns_of[label].append(((before + after) / 2, times))
+            before = after
+    return turns_of
 
 
 def trainer_for(method: str, *overrides: str) -> GameTrainer:
@@ -119,11 +130,15 @@ def main() -> None:
     parser.add_argument("--compile", action="store_true",
                         help="also time the compiled leader and adversary (inductor); the warm-up "
                              "column then holds the compile time")
+    parser.add_argument("--turns", type=int, default=10,
+                        help=f"turns of {TURN} timed iterations per row")
     args, extra = parser.parse_known_args()
+    if args.turns < 1:
+        parser.error(f"--turns must be at least 1, got {args.turns}")
     keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    rows, yardsticks = [], []
+    rows, yardsticks, fast_yardsticks = [], [], {}
     for benchmark in args.benchmarks:
         compiled = COMPILED_ROWS + (() if benchmark == "sinusoid_uniform" else SYSID_COMPILED_ROWS)
         iterations, warmups = {}, {}
@@ -135,19 +150,27 @@ def main() -> None:
             looped = looped_meta_gradient(trainer_for("maml", *extra))
             warmups[LOOPED] = sum(wall_times(looped, WARMUP, warmup=0))
             iterations[LOOPED] = looped
-        row_times, turn_yardsticks = taking_turns(iterations)
+        turns_of = taking_turns(iterations, args.turns)
+        turn_yardsticks = [yardstick for turns in turns_of.values() for yardstick, _ in turns]
         yardsticks += turn_yardsticks
-        for label, times in row_times.items():
-            rows.append((benchmark, label, *summary(times), warmups[label]))
+        fast_yardsticks[benchmark] = statistics.quantiles(turn_yardsticks, n=4)[0]
+        for label, turns in turns_of.items():
+            summaries = summary(turns, fast_yardsticks[benchmark])
+            rows.append((benchmark, label, *summaries, warmups[label]))
     print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
     low, middle, high = min(yardsticks), statistics.median(yardsticks), max(yardsticks)
     print(f"machine yardstick (timing.reference_product_ms) in the timed turns: median "
           f"{middle:.2f} ms, range {low:.2f}–{high:.2f} ms")
     warmup_column = f"first {WARMUP} iterations s"
-    print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | {warmup_column} |")
-    print("|---|---|---|---|---|---|")
-    for benchmark, label, median, iqr, least, warmup in rows:
-        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} | {least:.1f} | {warmup:.1f} |")
+    print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | fast-spell median ms "
+          f"| {warmup_column} |")
+    print("|---|---|---|---|---|---|---|")
+    for benchmark, label, median, iqr, least, fast, warmup in rows:
+        fast_column = "–" if fast is None else f"{fast:.1f}"
+        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} | {least:.1f} | {fast_column} "
+              f"| {warmup:.1f} |")
+    for benchmark, yardstick in fast_yardsticks.items():
+        print(f"fast spells of {benchmark}: turns with a yardstick of at most {yardstick:.2f} ms")
 
 
 if __name__ == "__main__":
