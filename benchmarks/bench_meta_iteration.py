@@ -17,8 +17,9 @@ Taking turns spreads the spells over all rows, so rows compare; short turns of c
 iterations keep each trainer's data warm in the caches, as in a real run. The yardstick product
 is timed between turns, and a turn's yardstick is the mean of the ones before and after it. The
 "fast-spell median" is the median iteration of the turns whose yardstick is at most the lower
-quartile of the benchmark's turn yardsticks (printed under the table): the cost of the code while
-the machine runs at its own speed, a steadier figure than the median of every turn.
+quartile of the benchmark's turn yardsticks (printed under the table): the code's cost in the
+run's fastest spells, steadier than the median of every turn (in a run that is slow throughout,
+its fast spells are slow too).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile] [--turns 10]
 [--benchmarks sinusoid_uniform ...]``.
