@@ -20,6 +20,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 def valid_mask(done: torch.Tensor) -> torch.Tensor:
@@ -72,10 +73,10 @@ class EpisodeCollector:
         policy: GaussianMLP | None = None,
     ) -> TensorDict:
         """Roll out ``policy`` (with ``policy_params`` ``[K]`` if given, else its own parameters)
-        for every task in ``tasks["params"]`` (goals ``[K, 2]``)."""
+        for every task in ``tasks[TASK_KEY]`` (goals ``[K, 2]``)."""
         if policy is None:
             raise ValueError("EpisodeCollector.collect needs the policy network")
-        goals = tasks["params"]
+        goals = tasks[TASK_KEY]
         n_tasks = goals.shape[0]
         env = self.env(n_tasks)
         env.set_seed(int(torch.randint(0, 2**62, ())))

@@ -12,6 +12,7 @@ from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY
 
 ENVIRONMENTS: dict[str, type[IdentifiedSystemEnv]] = {
     "pendulum": PendulumEnv,
@@ -135,14 +136,14 @@ class SysIdCollector:
         env.set_seed(int(torch.randint(0, 2**62, ())))
         batch = (n_tasks, self.episodes)
         params = params.to(self.device)[:, None].expand(*batch, -1)
-        reset = env.reset(TensorDict({"params": params}, batch_size=batch, device=self.device))
+        reset = env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
         return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
                            auto_reset=False, break_when_any_done=False)
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query transitions for every task: TensorDict ``[K]`` with
         ``{"support", "query"}`` × ``{"x", "y"}``, tensors ``[K, points, features]``."""
-        params = tasks["params"]
+        params = tasks[TASK_KEY]
         n_tasks, n_points = params.shape[0], self.n_transitions
         data = self.rollout(params)
         observation = data["observation"].reshape(n_tasks, n_points, -1)

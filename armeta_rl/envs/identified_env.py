@@ -35,6 +35,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 class IdentifiedSystemEnv(EnvBase):
@@ -167,7 +168,7 @@ class IdentifiedSystemEnv(EnvBase):
         updated from ``tensordict["params"]`` when given."""
         tensordict = tensordict if tensordict is not None else TensorDict({}, self.batch_size)
         reset = tensordict.get("_reset", None)
-        params = tensordict.get("params", None)
+        params = tensordict.get(TASK_KEY, None)
         if params is not None:
             params = params.to(self.task_params).expand_as(self.task_params)
             self._identify(params.clone() if reset is None else torch.where(
@@ -188,7 +189,7 @@ class IdentifiedSystemEnv(EnvBase):
         out = {
             "state": state.reshape(*batch, self.state_dim),
             "observation": observation.reshape(*batch, self.observation_dim),
-            "params": self.task_params.clone(),
+            TASK_KEY: self.task_params.clone(),
             "done": terminated.reshape(*batch, 1),
             "terminated": terminated.reshape(*batch, 1).clone(),
         }

@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 
 LogFn = Callable[[dict[str, float], int], None]
@@ -60,7 +61,7 @@ class GameTrainer:
         """One meta-iteration t → t+1; returns its scalars."""
         start = time.perf_counter()
         tasks = self.principle.propose(self.meta_batch)
-        if not torch.isfinite(tasks["params"]).all() or torch.isnan(tasks["log_prob"]).any():
+        if not torch.isfinite(tasks[TASK_KEY]).all() or torch.isnan(tasks["log_prob"]).any():
             raise TrainingDiverged(
                 f"non-finite task identifiers proposed at iteration {self.iteration + 1}"
             )
