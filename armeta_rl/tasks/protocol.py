@@ -54,7 +54,7 @@ def read_identifiers(
         return None
     d, allowed_range = len(names), interval(low, high, open_low)
     spelled = f"{d} value{'s' if d > 1 else ''} ({', '.join(names)})"
-    for key in tensordict:
+    for key in tensordict.keys(include_nested=False):
         if key != TASK_KEY and (key in MISPLACED_TASK_KEYS or key in names):
             raise IdentifierError(
                 key, _describe(tensordict.get(key)),
