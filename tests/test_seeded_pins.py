@@ -20,7 +20,7 @@ from conftest import compose_train
 from armeta_rl.trainers.run import run_training
 
 COMMON = ("trainer.iterations=3", "trainer.checkpoint_every=3", "trainer.progress=false",
-          "logger=none", "seed=7")
+          "logger=none", "seed=7", "trainer.density_every=0")
 RUNS = {
     "sinusoid_uniform": ("eval.n_tasks=10",),
     "pendulum_uniform": ("eval.n_tasks=4", "trainer.meta_batch=4"),

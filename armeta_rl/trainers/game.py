@@ -35,6 +35,8 @@ class GameTrainer:
         log: called with the scalars of an iteration and its number, every ``log_every``.
         checkpoint: where to save every ``checkpoint_every`` iterations (``None``: never).
         progress: show a tqdm bar with the iteration and current losses.
+        after_iteration: called with the iteration number after every iteration (after its
+            logging and checkpoint), e.g. to draw the adversary's density.
     """
 
     def __init__(
@@ -49,12 +51,13 @@ class GameTrainer:
         checkpoint: RunCheckpoint | None = None,
         checkpoint_every: int = 500,
         progress: bool = True,
+        after_iteration: Callable[[int], None] | None = None,
     ) -> None:
         self.leader, self.principle = leader, principle
         self.iterations, self.meta_batch = iterations, meta_batch
         self.log, self.log_every = log, log_every
         self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
-        self.progress = progress
+        self.progress, self.after_iteration = progress, after_iteration
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
@@ -118,4 +121,6 @@ class GameTrainer:
                             f"non-finite training scalars at iteration {self.iteration}"
                         )
                     self.checkpoint.save(self.iteration)
+                if self.after_iteration is not None:
+                    self.after_iteration(self.iteration)
         return self.iteration
