@@ -132,7 +132,10 @@ def test_a_checkpoint_that_does_not_fit_its_config_gets_one_line(tmp_path):
 
 def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")
-    run_training(compose_train(*SMALL_RUN, "logger=wandb"), tmp_path)
+    run_training(compose_train(*SMALL_RUN, "logger=wandb", "trainer.density_every=3"), tmp_path)
     runs = list((tmp_path / "wandb").glob("offline-run-*"))
     assert len(runs) == 1
     assert list(runs[0].glob("run-*.wandb"))
+    # the density frames of iterations 0, 3 and 6, and the final density.png, as wandb images
+    images = list((runs[0] / "files" / "media" / "images" / "adversary").glob("density_*.png"))
+    assert len(images) == 4
