@@ -151,7 +151,6 @@ class PointNavigationCollector(EpisodeCollector):
         super().__init__(make_env, episodes, max_steps)
 
 
-
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:
     """Undiscounted return of every episode ``[K, episodes]``."""
     reward = trajectories["reward"].squeeze(-1)
