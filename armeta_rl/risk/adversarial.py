@@ -180,14 +180,36 @@ class AdversarialPrinciple(nn.Module):
                 "drawn": drawn}
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`get_extra_state` returned."""
+        """Restore what :meth:`get_extra_state` returned. A schedule saved with another horizon
+        (a run resumed with more ``trainer.iterations``) is re-planned for this one's
+        (:meth:`replan`)."""
+        total_updates = self.scheduler.T_max
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
+        if self.scheduler.T_max != total_updates:
+            self.replan(total_updates)
         drawn = state.get("drawn") or {}
         self._drawn = None
         if drawn:
             tasks = TensorDict(dict(drawn), batch_size=[len(drawn["params"])])
             self._drawn = {"tasks": tasks, "versions": None}
+
+    def replan(self, total_updates: int) -> None:
+        """Re-plan the cosine schedule for ``total_updates`` follower updates in all, keeping the
+        updates done: from the next update on, the learning rate is bit for bit the one a run
+        planned for ``total_updates`` from the start uses there (its recursion is replayed on a
+        probe optimizer), and it reaches 0 after ``total_updates`` updates."""
+        probe = torch.optim.SGD(
+            [{"params": [torch.zeros(1, requires_grad=True)], "lr": lr}
+             for lr in self.scheduler.base_lrs]
+        )
+        planned = torch.optim.lr_scheduler.CosineAnnealingLR(probe, T_max=total_updates)
+        for _ in range(self.scheduler.last_epoch):
+            probe.step()
+            planned.step()
+        self.scheduler.load_state_dict(planned.state_dict())
+        for group, lr in zip(self.optimizer.param_groups, planned.get_last_lr(), strict=True):
+            group["lr"] = lr
 
     def _stamp_drawn(self, *_: Any) -> None:
         """After ``load_state_dict`` has set φ, tie the restored draw to it."""
