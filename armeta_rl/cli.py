@@ -247,7 +247,7 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
         except TrainingDiverged as error:
             _fail(prog, f"training stopped: {error}", code=1)
         except RunDirectoryError as error:
-            _fail(prog, f"{error}; the checkpoints written before are kept", code=1)
+            _fail(prog, str(error), code=1)
         except OSError as error:
             _fail(prog, f"{error.strerror or error}: {error.filename or ''}".rstrip(": "), code=1)
 

@@ -285,7 +285,10 @@ def _check_node(schema: type, node: dict, prefix: str) -> None:
             continue
         name, value, hint = f"{prefix}{spec.name}", node[spec.name], hints[spec.name]
         if not _conforms(value, hint):
-            raise ConfigError(name, value, f"must be {_type_words(hint)}")
+            choices = spec.metadata["allowed"] if spec.metadata["allowed"].startswith(
+                "allowed:") else ""
+            raise ConfigError(name, value, f"must be {_type_words(hint)}" + (
+                f"; {choices}" if choices else ""))
         if value is None:
             continue
         nested = _optional(hint) or hint

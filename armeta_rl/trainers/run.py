@@ -17,7 +17,7 @@ from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, check_config
-from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.errors import ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, write_file
 from armeta_rl.trainers.evaluation import evaluate_on, format_table
@@ -149,7 +149,8 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         ConfigError: a bad value, a run directory that cannot be written or that another run
             holds, or (on resume) no intact checkpoint.
         TrainingDiverged: the losses left ``trainer.max_loss``; names the checkpoint kept.
-        RunDirectoryError: a checkpoint could not be written (e.g. a full disk).
+        RunDirectoryError: a checkpoint, log or report could not be written (e.g. a full disk);
+            names the checkpoint kept.
     """
     run_dir = Path(run_dir)
     key = "resume" if cfg.resume else "hydra.run.dir"
@@ -158,14 +159,17 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     with run_lock(run_dir, key):
         try:
             return _train_locked(cfg, run_dir, progress)
-        except TrainingDiverged as error:
+        except (TrainingDiverged, RunDirectoryError, OSError) as error:
+            kind = TrainingDiverged if isinstance(error, TrainingDiverged) else RunDirectoryError
+            if isinstance(error, OSError):  # e.g. a log or eval.json on a full disk
+                error = f"cannot write {error.filename or run_dir}: {error.strerror or error}"
             kept = newest_intact(run_dir / "checkpoints")
-            raise TrainingDiverged(
+            raise kind(
                 f"{error}; the last good checkpoint {kept.name} is kept: armeta-train "
                 f"resume={run_dir} continues from it"
                 if kept is not None
                 else f"{error}; no checkpoint had been written yet"
-            ) from error
+            ) from None
 
 
 def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None:
