@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import logging
+import math
 import os
 import random
 import shutil
@@ -16,9 +17,10 @@ import time
 
 import pytest
 from conftest import SMALL_RUN, compose_train
+from hydra import compose, initialize_config_dir
 
 import armeta_rl.trainers.checkpoint as checkpoint_module
-from armeta_rl.cli import _guarded
+from armeta_rl.cli import _eval_task, _guarded, config_dir, resume_config, train
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
@@ -277,3 +279,133 @@ def test_the_divergence_bound_stops_the_run_and_names_the_checkpoint(tmp_path, m
     monkeypatch.setattr(game.GameTrainer, "train_iteration", blows_up_at_3)
     with pytest.raises(TrainingDiverged, match="iteration 3.*checkpoint-000000000002 is kept"):
         run_training(compose_train(*RUN), run_dir, progress=False)
+
+
+def run_cli(monkeypatch, capsys, tool, *args):
+    """Run ``armeta-train`` or ``armeta-eval`` (``tool``: its function) in this process, for
+    commands refused before Hydra starts; returns (exit code, stderr lines)."""
+    monkeypatch.setattr(sys, "argv", [tool.__name__, *args])
+    with pytest.raises(SystemExit) as exit_:
+        tool()
+    return exit_.value.code, capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize("override,words", [
+    ("learner.maml.first_order=off", "must be a boolean (true or false)"),
+    ("learner.maml.first_order=maybe", "must be a boolean (true or false)"),
+    ("learner.maml.hidden=abc", "must be a list of integers"),
+    ("benchmark.model.in_features=0", "must be >= 1"),
+    ("seed=18446744073709551616", "must be in [-2^63, 2^64 - 1]"),
+    ("eval.seed=18446744073709551615", "must be in [-2^63, 2^64 - 2]"),
+    ("trainer.max_loss=-1", "must be > 0"),
+])
+def test_bad_values_are_refused_before_hydra(tmp_path, monkeypatch, capsys, override, words):
+    run_dir = tmp_path / "run"
+    code, err = run_cli(monkeypatch, capsys, train, override, f"hydra.run.dir={run_dir}")
+    key = override.split("=")[0]
+    assert code == 2 and len(err) == 1 and f"'{key}'" in err[0] and words in err[0], err
+    assert not run_dir.exists()
+
+
+def test_commands_refused_before_hydra_create_nothing(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    missing = tmp_path / "nonexistent"
+    code, err = run_cli(monkeypatch, capsys, train, f"resume={missing}")
+    assert code == 2 and len(err) == 1 and "'resume'" in err[0] and not missing.exists()
+    code, err = run_cli(monkeypatch, capsys, train, "-m", "trainer.iterations=5,0")
+    assert code == 2 and len(err) == 1, err
+    assert "'trainer.iterations' = 0" in err[0] and "(job trainer.iterations=0" in err[0]
+    a_file = tmp_path / "a_file"
+    a_file.write_text("")
+    code, err = run_cli(monkeypatch, capsys, train, f"hydra.run.dir={a_file}")
+    assert code == 2 and len(err) == 1 and "is an existing file" in err[0]
+    code, err = run_cli(monkeypatch, capsys, train, f"hydra.run.dir={a_file}/run")
+    assert code == 2 and len(err) == 1 and "is a file" in err[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]  # no job, no runs/
+
+
+def test_a_command_refused_inside_its_job_removes_the_directory_it_made(tmp_path):
+    refused = tmp_path / "refused"  # Hydra wrote .hydra/ and a log there before the job began
+    result = subprocess.run(
+        [sys.executable, "-c", "from armeta_rl.cli import train; train()",
+         "benchmark=point_nav_plain", "eval.support_noise=0.1", f"hydra.run.dir={refused}"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+    assert not refused.exists()
+
+
+def evaluate_in_process(capsys, *overrides):
+    """``armeta-eval``'s job on ``overrides``; returns (exit code, stderr lines)."""
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg = compose("eval", overrides=list(overrides))
+    try:
+        _guarded("armeta-eval", _eval_task)(cfg)
+    except SystemExit as exit_:
+        return exit_.code, capsys.readouterr().err.strip().splitlines()
+    return 0, capsys.readouterr().err.strip().splitlines()
+
+
+def test_eval_refuses_a_broken_checkpoint_and_an_unwritable_out_with_one_line(
+    tmp_path, stopped, capsys
+):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    out = tmp_path / "no" / "such" / "dir" / "eval.json"
+    code, err = evaluate_in_process(capsys, f"learner={run_dir}", f"out={out}")
+    assert code == 2 and len(err) == 1 and "'out'" in err[0] and "not a directory" in err[0]
+    corrupt(run_dir / "checkpoints" / "checkpoint-000000000004" / FILES["leader"], "half")
+    code, err = evaluate_in_process(capsys, f"learner={run_dir}")
+    assert code == 2 and len(err) == 1, err
+    assert "'learner'" in err[0] and "checkpoint-000000000004 is broken" in err[0]
+    (run_dir / "config.yaml").write_text("seed: [0\n")
+    code, err = evaluate_in_process(capsys, f"learner={run_dir}")
+    assert code == 2 and len(err) == 1 and "config.yaml cannot be read" in err[0], err
+
+
+def test_a_log_row_that_does_not_parse_is_a_clear_refusal(tmp_path, stopped):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    log = run_dir / CSV_LOG_DIR / "scalars" / "train" / "leader_loss.csv"
+    log.write_text(log.read_text() + "garbage,row\n")
+    with pytest.raises(ConfigError, match="leader_loss.csv has a row that does not parse"):
+        finish(run_dir)
+    log.write_text(log.read_text().replace("garbage,row\n", "5,0.3"))  # a torn last row
+    finish(run_dir)
+    assert "5,0.3" not in log.read_text()
+
+
+@pytest.mark.parametrize("override,refusal", [
+    ("seed=7", "'seed' = 7: cannot change on resume"),
+    ("risk.ar.lr=0.1", "'risk.ar.lr' = 0.1: cannot change on resume"),
+    ("+trainer.extra=1", "'trainer.extra' = 1: cannot change on resume"),
+    ("trainer.iterations=3", "'trainer.iterations' = 3: must be >= 6 on resume"),
+    ("trainer.iterations=abc", "'trainer.iterations' = 'abc': must be an integer"),
+])
+def test_resume_refuses_every_override_but_more_iterations(stopped, capsys, override, refusal):
+    with pytest.raises(SystemExit) as exit_:
+        resume_config(str(stopped), [f"resume={stopped}", override], "armeta-train")
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and refusal in err[0], err
+
+
+def test_resume_with_more_iterations_follows_the_longer_cosine_schedule(tmp_path):
+    """A run trained to N1 = 6 iterations and resumed with trainer.iterations = 10 uses, from
+    iteration 7 on, exactly the adversary learning rates of a run planned for 10 from the start
+    (η_t = η·(1 + cos(π t / 10)) / 2 at update t + 1); its config.yaml then says 10."""
+    longer = tmp_path / "longer"
+    run_training(compose_train(*RUN, "trainer.iterations=10"), longer, progress=False)
+    extended = tmp_path / "extended"
+    run_training(compose_train(*RUN), extended, progress=False)
+    cfg = resume_config(str(extended), [f"resume={extended}", "trainer.iterations=10"], "x")
+    run_training(cfg, extended, progress=False)
+    rates = {run: (run / CSV_LOG_DIR / "scalars" / "adversary" / "lr.csv").read_text()
+             .splitlines() for run in (longer, extended)}
+    assert [int(row.split(",")[0]) for row in rates[extended]] == list(range(1, 11))
+    assert rates[extended][6:] == rates[longer][6:]
+    assert rates[extended][:6] != rates[longer][:6]  # the first six followed the 6-step plan
+    assert float(rates[extended][-1].split(",")[1]) == pytest.approx(0.001 * (1 + math.cos(
+        math.pi * 9 / 10)) / 2, rel=1e-12)
+    assert "iterations: 10" in (extended / "config.yaml").read_text()
+    assert json.loads((extended / EVAL_FILE).read_text())["initial"]["n_tasks"] == 20

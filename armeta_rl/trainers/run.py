@@ -16,7 +16,7 @@ from armeta_rl.collectors.base import Collector
 from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
-from armeta_rl.config import CONFIG_FILE, check_config
+from armeta_rl.config import CONFIG_FILE, check_config, load_run_config
 from armeta_rl.errors import ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, write_file
@@ -183,6 +183,10 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
         if checkpoint.checkpoints():
             start = checkpoint.restore("resume")
         drop_csv_rows_after(run_dir, start)
+        saved = load_run_config(run_dir, "resume")
+        if saved.trainer.iterations != cfg.trainer.iterations:  # resumed to train longer
+            saved.trainer.iterations = cfg.trainer.iterations
+            write_config(saved, run_dir / CONFIG_FILE)
     else:
         if checkpoint.checkpoints() or (run_dir / CONFIG_FILE).exists():
             raise ConfigError(
