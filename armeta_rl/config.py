@@ -299,6 +299,18 @@ def _check_node(schema: type, node: dict, prefix: str) -> None:
             raise ConfigError(name, value, spec.metadata["allowed"])
 
 
+def check_keys(prefix: str, **values: Any) -> None:
+    """Check constructor arguments that are the config keys ``<prefix>.<name>`` (e.g.
+    ``check_keys("risk.dr", alpha=alpha)``) against their schema fields: an object built from
+    Python rather than from a config refuses a bad value with the same line as the CLI."""
+    schema = TrainSchema
+    for name in prefix.split("."):
+        hint = typing.get_type_hints(schema)[name]
+        schema = _optional(hint) or hint
+    plain = {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
+    _check_node(schema, plain, f"{prefix}.")
+
+
 def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, dataclasses.Field]:
     """Every key the schema declares (dotted) and its field, leaves and groups alike."""
     keys = {}

@@ -18,8 +18,9 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
+from armeta_rl.adversary.objective import adversary_surrogate
 from armeta_rl.compiling import compile_backend, maybe_compile
+from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.tasks.distributions import TaskDistribution
 
@@ -61,21 +62,12 @@ class AdversarialPrinciple(nn.Module):
         compile: bool | str | None = False,
     ) -> None:
         super().__init__()
-        if not (math.isfinite(lam) and lam >= 0):
-            raise ConfigError("risk.ar.lam", lam, "must be a finite number >= 0")
-        for key, value in (
-            ("update_every", update_every),
-            ("total_updates", total_updates),
-            ("initial_samples", initial_samples),
+        check_keys("risk.ar", lam=lam, update_every=update_every, lr=lr, grad_clip=grad_clip,
+                   baseline=baseline, initial_samples=initial_samples)
+        if isinstance(total_updates, bool) or not isinstance(total_updates, int) or (
+            total_updates < 1
         ):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"risk.ar.{key}", value, "must be an integer >= 1")
-        if not (math.isfinite(lr) and lr > 0):
-            raise ConfigError("risk.ar.lr", lr, "must be a finite number > 0")
-        if grad_clip is not None and not grad_clip > 0:
-            raise ConfigError("risk.ar.grad_clip", grad_clip, "must be > 0 or null")
-        if baseline not in BASELINES:
-            raise ConfigError("risk.ar.baseline", baseline, "allowed: " + ", ".join(BASELINES))
+            raise ConfigError("risk.ar.total_updates", total_updates, "must be an integer >= 1")
         self.adversary = adversary
         self.lam, self.update_every, self.grad_clip = float(lam), update_every, grad_clip
         self.baseline, self.initial_samples = baseline, initial_samples
