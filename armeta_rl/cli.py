@@ -1,8 +1,11 @@
 """Console entry points ``armeta-train`` and ``armeta-eval`` (Hydra).
 
 Bad input ends with one line naming the config key, the value and what is allowed, and exit
-code 2. Overrides (group choices such as ``benchmark=`` and the keys of the others) are checked
-before Hydra starts, values before any training work.
+code 2. Overrides (group choices such as ``benchmark=`` and the keys of the others) and the values
+of every job (against the schema in :mod:`armeta_rl.config`) are checked before Hydra starts; a
+single run's directory is checked and locked then too, so a refused command writes nothing. A
+run stopped by a diverged loss or a failed write ends with one line and exit code 1. See
+docs/configuration.md.
 """
 
 from __future__ import annotations
@@ -200,9 +203,9 @@ def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
     config, ``trainer.stop_at`` as given (default none) and ``trainer.iterations`` raised if
     given. Any other override, or fewer iterations, is refused (one line, exit code 2)."""
-    from armeta_rl.config import check_config, load_run_config, with_old_run_defaults
+    from armeta_rl.config import check_config, load_run_config
 
-    saved = with_old_run_defaults(_checked(prog, load_run_config, run_dir, "resume"))
+    saved = _checked(prog, load_run_config, run_dir, "resume")
     changes: dict[str, Any] = {"resume": run_dir, "trainer": {"stop_at": None}}
     for arg in overrides:
         override = _parse(arg, prog)

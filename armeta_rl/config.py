@@ -377,7 +377,8 @@ def check_task_split(cfg: DictConfig) -> None:
 
 
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
-    """The resolved config saved in ``run_dir``; ``key`` names the option that pointed there."""
+    """The resolved config saved in ``run_dir`` (with the keys added since, at their ``old_runs``
+    values); ``key`` names the option that pointed there."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
@@ -390,4 +391,4 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
         ) from None
     if not isinstance(cfg, DictConfig):
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
-    return cfg
+    return with_old_run_defaults(cfg)

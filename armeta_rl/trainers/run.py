@@ -178,6 +178,10 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
     noisy_support_collector(cfg, players)
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle)
     checkpoint.clean_staging()
+    staged = [*run_dir.glob(f".{CONFIG_FILE}.*"), *run_dir.glob(f".{EVAL_FILE}.*"),
+              *(run_dir / CSV_LOG_DIR).rglob(".*.csv.*")]
+    for path in staged:  # what write_text_atomically left when a crash interrupted it
+        path.unlink()
     start = 0
     if cfg.resume:
         if checkpoint.checkpoints():
