@@ -316,7 +316,9 @@ def train() -> None:
     run_dir = Path(resume) if resume else planned_run_dir(args)
     key = "resume" if resume else "hydra.run.dir"
     _checked(prog, check_run_dir, run_dir, key)
-    args = [a for a in args if not a.startswith("hydra.run.dir=")] + [f"hydra.run.dir={run_dir}"]
+    given = [a for a in args if a.startswith("hydra.run.dir=")]
+    if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
+        args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
     sys.argv = [sys.argv[0], *args]
     created = not run_dir.exists()
     with ExitStack() as stack:
