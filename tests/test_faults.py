@@ -4,6 +4,7 @@ uninterrupted run's evaluation and logs, or it is refused with a clear error."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import logging
@@ -91,14 +92,21 @@ def test_a_run_killed_at_random_points_resumes_exactly(tmp_path, whole, monkeypa
         counter = FaultPoints(patch, None)
         run_training(compose_train(*RUN), tmp_path / "counted", progress=False)
     points = counter.calls
-    kill_points = random.Random(29).sample(range(1, points + 1), KILLS)
+    rng = random.Random(29)
+    kill_points = rng.sample(range(1, points + 1), KILLS)
     expected = outcome(whole)
-    for kill_at in kill_points:
+    for n, kill_at in enumerate(kill_points):
         run_dir = tmp_path / f"killed_at_{kill_at}"
         with monkeypatch.context() as patch:
             FaultPoints(patch, kill_at)
             with pytest.raises(Killed):
                 run_training(compose_train(*RUN), run_dir, progress=False)
+        if n % 4 == 0:  # every fourth run is killed again while it resumes
+            with monkeypatch.context() as patch:
+                again = FaultPoints(patch, rng.randint(1, points // 2))
+                with contextlib.suppress(Killed):  # unless its resume had fewer points
+                    finish(run_dir)
+                assert again.calls >= 1
         finish(run_dir)
         assert outcome(run_dir) == expected, f"killed at fault point {kill_at} of {points}"
         assert not [p for p in (run_dir / "checkpoints").iterdir() if p.name.startswith(".")]
