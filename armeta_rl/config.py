@@ -89,6 +89,7 @@ class TrainerSchema:
     stop_at: int | None = at_least(1)
     progress: bool = key()
     max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
+    density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
 
 
 @dataclass

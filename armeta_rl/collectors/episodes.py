@@ -1,7 +1,8 @@
 """Episode collector for meta-RL: every task × episode rolls out in one batched env call.
 
-``collect(tasks, policy_params, policy)`` runs ``episodes`` episodes per task in a goal-conditioned
-env (point navigation, Ant goal) of batch size ``[K, episodes]`` with
+``collect(tasks, policy_params, policy)`` runs ``episodes`` episodes per task in a task-conditioned
+env (point navigation, Ant goal, any env taking its identifiers under
+:data:`~armeta_rl.tasks.TASK_KEY`) of batch size ``[K, episodes]`` with
 ``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
 ``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
 steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
@@ -18,8 +19,10 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
-from armeta_rl.errors import ConfigError
+from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
+from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.space import TaskSpace
 
 
 def valid_mask(done: torch.Tensor) -> torch.Tensor:
@@ -29,12 +32,13 @@ def valid_mask(done: torch.Tensor) -> torch.Tensor:
 
 
 class EpisodeCollector:
-    """Collects ``[K, episodes, max_steps]`` trajectories for ``K`` goals in any goal-conditioned
+    """Collects ``[K, episodes, max_steps]`` trajectories for ``K`` tasks in any task-conditioned
     env of batch size ``[tasks, episodes]`` (point navigation, Ant goal, ...).
 
     Args:
         make_env: builds the env, called as ``make_env(batch_size=(K, episodes),
-            max_steps=max_steps)``; the env reads ``"goal"`` from the reset TensorDict and keeps it.
+            max_steps=max_steps)``; the env reads the identifiers under ``"params"``
+            (``TASK_KEY``) from the reset TensorDict and keeps them.
             In a Hydra config this is a ``_partial_: true`` node.
         episodes: episodes per task (the paper: 20).
         max_steps: episode length limit.
@@ -42,8 +46,9 @@ class EpisodeCollector:
     The returned TensorDict has batch ``[K, episodes, max_steps]`` and keys ``"observation"``,
     ``"action"``, ``"log_prob"`` (of the action under the collecting policy), ``"reward"``,
     ``"done"``, ``"terminated"``, ``"truncated"`` (``[..., 1]``), ``"mask"`` (bool, the step is part
-    of the episode) and ``"goal"``. The env is reseeded from torch's global RNG at every call, so
-    ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes the whole collection.
+    of the episode) and ``"params"`` (the task identifiers). The env is reseeded from torch's
+    global RNG at every call, so ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes
+    the whole collection.
     """
 
     def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,
@@ -56,6 +61,30 @@ class EpisodeCollector:
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
         self._envs: dict[int, EnvBase] = {}
+
+    def probe_env(self) -> EnvBase:
+        """A one-episode env of batch size ``[1, 1]`` to check task boxes on."""
+        return self.make_env(batch_size=(1, 1), max_steps=1)
+
+    def check_space(self, space: TaskSpace) -> None:
+        """Refuse, before training, a task box the env cannot take: a probe env is reset at the
+        box's two corners and its own identifier check decides (the identifiers an env allows
+        form a box, so the corners stand for the whole box). The probe is built under a forked
+        RNG, so the run's random stream is untouched."""
+        dtype = torch.get_default_dtype()
+        with torch.random.fork_rng(devices=[]):
+            env = self.probe_env()
+            try:
+                for corner in (space.low, space.high):
+                    env.reset(TensorDict({TASK_KEY: torch.tensor([[corner]], dtype=dtype)},
+                                         [1, 1]))
+            except IdentifierError as error:
+                box = {"names": list(space.names), "low": list(space.low),
+                       "high": list(space.high)}
+                raise ConfigError("benchmark.space", box,
+                                  f"{type(env).__name__} refuses it: {error}") from None
+            finally:
+                env.close()
 
     def env(self, tasks: int) -> EnvBase:
         """The (cached) env of batch size ``[tasks, episodes]``."""
@@ -72,16 +101,15 @@ class EpisodeCollector:
         policy: GaussianMLP | None = None,
     ) -> TensorDict:
         """Roll out ``policy`` (with ``policy_params`` ``[K]`` if given, else its own parameters)
-        for every task in ``tasks["params"]`` (goals ``[K, 2]``)."""
+        for every task in ``tasks["params"]`` (identifiers ``[K, d]``)."""
         if policy is None:
             raise ValueError("EpisodeCollector.collect needs the policy network")
-        goals = tasks["params"]
-        n_tasks = goals.shape[0]
+        identifiers = tasks[TASK_KEY]
+        n_tasks = identifiers.shape[0]
         env = self.env(n_tasks)
         env.set_seed(int(torch.randint(0, 2**62, ())))
-        start = env.reset(
-            TensorDict({"goal": goals[:, None].expand(n_tasks, self.episodes, 2)}, env.batch_size)
-        )
+        start = env.reset(TensorDict(
+            {TASK_KEY: identifiers[:, None].expand(n_tasks, self.episodes, -1)}, env.batch_size))
         actor = make_actor(policy, policy_params)
         with set_exploration_type(ExplorationType.RANDOM):
             rollout = env.rollout(
@@ -98,7 +126,7 @@ class EpisodeCollector:
                 "terminated": rollout["next", "terminated"],
                 "truncated": rollout["next", "truncated"],
                 "mask": valid_mask(done),
-                "goal": rollout["goal"],
+                TASK_KEY: rollout[TASK_KEY],
             },
             batch_size=rollout.batch_size,
         )

@@ -23,6 +23,7 @@ from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 class AdversarialPrinciple(nn.Module):
@@ -183,7 +184,7 @@ class AdversarialPrinciple(nn.Module):
         drawn = state.get("drawn") or {}
         self._drawn = None
         if drawn:
-            tasks = TensorDict(dict(drawn), batch_size=[len(drawn["params"])])
+            tasks = TensorDict(dict(drawn), batch_size=[len(drawn[TASK_KEY])])
             self._drawn = {"tasks": tasks, "versions": None}
 
     def replan(self, total_updates: int) -> None:
