@@ -29,7 +29,7 @@ from armeta_rl.trainers.run import CSV_LOG_DIR, EVAL_FILE, cross_evaluate, run_t
 from armeta_rl.trainers.runs import LOCK_FILE
 
 RUN = (*SMALL_RUN, "method=ar_maml", "trainer.meta_batch=5", "logger=csv",
-       "trainer.log_every=1", "trainer.checkpoint_every=2")
+       "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.density_every=0")
 """A six-iteration AR-MAML run with checkpoints at 2, 4 and 6 (two kept) and CSV logs."""
 
 KILLS = 20
