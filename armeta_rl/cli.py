@@ -1,8 +1,11 @@
 """Console entry points ``armeta-train`` and ``armeta-eval`` (Hydra).
 
 Bad input ends with one line naming the config key, the value and what is allowed, and exit
-code 2. Overrides (group choices such as ``benchmark=`` and the keys of the others) are checked
-before Hydra starts, values before any training work.
+code 2. Overrides (group choices such as ``benchmark=`` and the keys of the others) and the values
+of every job (against the schema in :mod:`armeta_rl.config`) are checked before Hydra starts; a
+single run's directory is checked and locked then too, so a refused command writes nothing. A
+run stopped by a diverged loss or a failed write ends with one line and exit code 1. See
+docs/configuration.md.
 """
 
 from __future__ import annotations
@@ -10,10 +13,12 @@ from __future__ import annotations
 import difflib
 import itertools
 import json
+import os
 import sys
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
@@ -134,18 +139,120 @@ def check_overrides(
                     _fail(prog, _unknown_key_message(cfg, key, value, choices))
 
 
+def _parse(arg: str, prog: str) -> Any:
+    """The Hydra override ``arg`` parses to, or one line and exit code 2."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import HydraException
+
+    try:
+        (override,) = OverridesParser.create().parse_overrides([arg])
+    except HydraException as error:
+        _fail(prog, f"cannot read the override {arg!r}: {str(error).splitlines()[0]}")
+    return override
+
+
+def _is_hydra_key(key: str) -> bool:
+    return key.split(".")[0].split("/")[0] == "hydra"
+
+
+def job_overrides(args: list[str], prog: str) -> list[list[str]]:
+    """The config overrides (not ``hydra.*``) of every job the command line starts: one list for
+    each combination of the values of ``-m`` sweeps such as ``trainer.iterations=5,0``."""
+    per_arg = []
+    for arg in args:
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        override = _parse(arg, prog)
+        if _is_hydra_key(override.key_or_group):
+            continue
+        if override.is_sweep_override():
+            name = arg.split("=", 1)[0]
+            per_arg.append([f"{name}={value}" for value in override.sweep_string_iterator()])
+        else:
+            per_arg.append([arg])
+    return [list(job) for job in itertools.product(*per_arg)]
+
+
+def check_values(args: list[str], prog: str) -> None:
+    """Compose the ``armeta-train`` config of every job on the command line (each combination of
+    a ``-m`` sweep) and check it against the schema, so that no job trains before every job's
+    values are known to be good. One line and exit code 2 for the first bad one."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    from armeta_rl.config import check_config
+    from armeta_rl.errors import ConfigError
+
+    jobs = job_overrides(args, prog)
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        for job in jobs:
+            where = f" (job {' '.join(job)})" if len(jobs) > 1 else ""
+            try:
+                check_config(compose("train", overrides=job))
+            except HydraException as error:
+                _fail(prog, " ".join(str(error).split()) + where)
+            except ConfigError as error:
+                _fail(prog, f"{error}{where}")
+
+
+RESUMABLE = ("trainer.iterations", "trainer.stop_at")
+"""The keys a resumed run may change (``hydra.*`` aside): train longer, stop earlier."""
+
+
+def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
+    """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
+    config, ``trainer.stop_at`` as given (default none) and ``trainer.iterations`` raised if
+    given. Any other override, or fewer iterations, is refused (one line, exit code 2)."""
+    from armeta_rl.config import check_config, load_run_config
+
+    saved = _checked(prog, load_run_config, run_dir, "resume")
+    changes: dict[str, Any] = {"resume": run_dir, "trainer": {"stop_at": None}}
+    for arg in overrides:
+        override = _parse(arg, prog)
+        name = override.key_or_group
+        if name == "resume" or _is_hydra_key(name):
+            continue
+        value = arg.split("=", 1)[1] if "=" in arg else ""
+        if override.is_add() or override.is_delete() or name not in RESUMABLE:
+            _fail(prog, f"config key '{name.lstrip('+~')}' = {value}: cannot change on resume "
+                        f"(only {' and '.join(RESUMABLE)} can); train a new run to change it")
+        changes["trainer"][name.split(".")[1]] = override.value()
+    new = changes["trainer"].get("iterations", saved.trainer.iterations)
+    if isinstance(new, int) and not isinstance(new, bool) and new < saved.trainer.iterations:
+        _fail(prog, f"config key 'trainer.iterations' = {new}: must be >= "
+                    f"{saved.trainer.iterations} on resume (a run can train longer, not shorter)")
+    cfg = OmegaConf.merge(saved, changes)
+    _checked(prog, check_config, cfg)
+    return cfg
+
+
+def _checked(prog: str, check: Callable[..., Any], *args: Any) -> Any:
+    """``check(*args)``, with a :class:`ConfigError` as one line and exit code 2."""
+    from armeta_rl.errors import ConfigError
+
+    try:
+        return check(*args)
+    except ConfigError as error:
+        _fail(prog, str(error))
+
+
 def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
-    """Run ``task`` turning the package's user errors into one line and an exit code."""
+    """Run ``task`` turning the package's user errors into one line and an exit code: 2 for a
+    bad value, 1 for a run that diverged or a disk that failed it."""
 
     def wrapped(cfg: DictConfig) -> None:
-        from armeta_rl.errors import ConfigError, TrainingDiverged
+        from armeta_rl.errors import ConfigError, RunDirectoryError, TrainingDiverged
 
         try:
             task(cfg)
         except ConfigError as error:
             _fail(prog, str(error))
         except TrainingDiverged as error:
-            _fail(prog, f"training stopped: {error}; the last good checkpoint is kept", code=1)
+            _fail(prog, f"training stopped: {error}", code=1)
+        except RunDirectoryError as error:
+            _fail(prog, str(error), code=1)
+        except OSError as error:
+            _fail(prog, f"{error.strerror or error}: {error.filename or ''}".rstrip(": "), code=1)
 
     return wrapped
 
@@ -153,46 +260,111 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
 def _train_task(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from armeta_rl.config import check_config, load_run_config
+    from armeta_rl.trainers.run import run_training
 
     if cfg.resume:
-        saved = load_run_config(cfg.resume, "resume")
-        cfg = OmegaConf.merge(
-            saved, {"resume": cfg.resume, "trainer": {"stop_at": cfg.trainer.stop_at}}
-        )
+        cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task), "armeta-train")
         run_dir = Path(cfg.resume)
     else:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
-    check_config(cfg)
-    from armeta_rl.trainers.run import run_training
-
     run_training(cfg, run_dir)
 
 
+_NO_RUN_FLAGS = ("--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i",
+                 "--shell-completion", "-sc", "--resolve")
+
+
+def planned_run_dir(args: list[str]) -> Path:
+    """The directory Hydra will run a single job in: ``hydra.run.dir`` resolved now (its
+    ``${now:...}`` included), so the CLI can check and lock it before Hydra writes there."""
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        overrides = [a for a in args if not a.startswith("-") and "=" in a]
+        cfg = compose("train", overrides=overrides, return_hydra_config=True)
+        return Path(OmegaConf.select(cfg, "hydra.run.dir"))
+
+
 def train() -> None:
-    """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``)."""
+    """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``).
+
+    A single run's directory is checked and locked before Hydra starts (Hydra writes ``.hydra/``
+    and its log there); a run refused before it wrote a checkpoint removes the directory it
+    created. ``-m`` jobs lock their own directories.
+    """
+    from armeta_rl.trainers.runs import check_run_dir, run_lock
+
     keep_freed_memory()
+    prog = "armeta-train"
     args = sys.argv[1:]
-    check_overrides(args, "armeta-train", "train", GROUPS)
+    check_overrides(args, prog, "train", GROUPS)
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
-    if resume and not any(a.startswith("hydra.run.dir=") for a in args):
-        args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
-    sys.argv = [sys.argv[0], *args]
+    multirun = any(a in ("-m", "--multirun") for a in args)
+    if resume:
+        if multirun:
+            _fail(prog, f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
+        resume_config(resume, [a for a in args if not a.startswith("-")], prog)
+        if not any(a.startswith("hydra.run.dir=") for a in args):
+            args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
+    else:
+        check_values(args, prog)
     main = hydra.main(version_base=None, config_path=str(config_dir()), config_name="train")
-    main(_guarded("armeta-train", _train_task))()
+    if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
+        sys.argv = [sys.argv[0], *args]
+        main(_guarded(prog, _train_task))()
+        return
+    run_dir = Path(resume) if resume else planned_run_dir(args)
+    key = "resume" if resume else "hydra.run.dir"
+    _checked(prog, check_run_dir, run_dir, key)
+    given = [a for a in args if a.startswith("hydra.run.dir=")]
+    if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
+        args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
+    sys.argv = [sys.argv[0], *args]
+    created = not run_dir.exists()
+    with ExitStack() as stack:
+        _checked(prog, stack.enter_context, run_lock(run_dir, key))
+        try:
+            main(_guarded(prog, _train_task))()
+        except SystemExit as exit_:
+            if exit_.code == 2 and created and not (run_dir / "checkpoints").exists():
+                _remove_run_dir(run_dir)
+            raise
+
+
+def _remove_run_dir(run_dir: Path) -> None:
+    """Delete a run directory this command created for a run it then refused."""
+    import shutil
+
+    shutil.rmtree(run_dir, ignore_errors=True)
 
 
 def _eval_task(cfg: DictConfig) -> None:
     from armeta_rl.trainers.evaluation import format_table
-    from armeta_rl.trainers.run import cross_evaluate
+    from armeta_rl.trainers.run import cross_evaluate, write_text_atomically
 
-    overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    report = cross_evaluate(cfg.learner, cfg.adversary, overrides)
     suffix = "" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}"
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
-    out.write_text(json.dumps(report, indent=2) + "\n")
+    check_writable(out, "out")
+    overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
+    report = cross_evaluate(cfg.learner, cfg.adversary, overrides)
+    write_text_atomically(out, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     print(f"written: {out}")
+
+
+def check_writable(path: Path, key: str) -> None:
+    """Refuse an output file that cannot be written, before the work that fills it."""
+    from armeta_rl.errors import ConfigError
+
+    if path.is_dir():
+        raise ConfigError(key, str(path), "is a directory, not a file")
+    parent = path.parent
+    if not parent.is_dir():
+        raise ConfigError(key, str(path), f"cannot be written: {parent} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK) or (
+        path.exists() and not os.access(path, os.W_OK)
+    ):
+        raise ConfigError(key, str(path), "cannot be written: permission denied")
 
 
 def evaluate() -> None:

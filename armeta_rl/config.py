@@ -1,76 +1,352 @@
-"""Run configs: checks of user-facing values (so bad input fails with one line before any work
-starts) and loading the resolved config a run directory keeps."""
+"""Run configs: the typed schema of every known config key (its type and allowed range, declared
+once), its check, and loading the resolved config a run directory keeps.
+
+The schema is a tree of dataclasses, :class:`TrainSchema` at its root, mirroring
+``configs/train.yaml``. A field's annotation is the key's type (``bool``, ``int``, ``float``,
+``str``, ``list[...]``, ``X | None``, a nested schema, or ``Any`` / ``dict[str, Any]`` for parts
+a benchmark or method fills freely, such as collector arguments); its :func:`key` metadata is the
+range and its wording. The YAML files keep the values. :func:`check_config` checks a composed
+config against the schema, strictly: ``first_order: off`` is a string, not a boolean, and is
+refused. Keys present only with some benchmarks or methods (``learner.maml_trpo``,
+``benchmark.collector.workers``) are checked when present. See docs/configuration.md.
+"""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import types
+import typing
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Union
 
-from omegaconf import DictConfig, OmegaConf
+import yaml
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from armeta_rl.errors import ConfigError
 
 _MISSING = object()
 CONFIG_FILE = "config.yaml"
+SEED_RANGE = (-(2**63), 2**64 - 1)
+"""The seeds ``torch.manual_seed`` accepts."""
 
 
-def _is_int(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
+def key(
+    allowed: str = "", test: Callable[[Any], bool] | None = None, old_runs: Any = _MISSING
+) -> Any:
+    """A schema field: ``test`` (on a value of the right type) and ``allowed``, the end of the
+    error line when it fails (``must be >= 1``, ``allowed: a, b``); ``old_runs`` is the value a
+    run directory saved before the key existed gets when it is loaded (only for keys added after
+    runs were saved)."""
+    return field(default=None, metadata={"allowed": allowed, "test": test, "old_runs": old_runs})
 
 
-def _is_number(value: Any) -> bool:
-    return (_is_int(value) or isinstance(value, float)) and math.isfinite(value)
+def at_least(low: float) -> Any:
+    return key(f"must be >= {low:g}", lambda v: v >= low)
 
 
-def _positive_int(value: Any) -> bool:
-    return _is_int(value) and value >= 1
+def above(low: float) -> Any:
+    return key(f"must be > {low:g}", lambda v: v > low)
 
 
-def _fractions(value: Any) -> bool:
-    return (
-        isinstance(value, (list, tuple))
-        and len(value) > 0
-        and all(_is_number(a) and 0.0 < a < 1.0 for a in value)
+def inside(low: float, high: float, closed: str = "()") -> Any:
+    """In the interval from ``low`` to ``high``; ``closed`` gives its brackets, e.g. ``"(]"``."""
+    lo = (lambda v: v >= low) if closed[0] == "[" else (lambda v: v > low)
+    hi = (lambda v: v <= high) if closed[1] == "]" else (lambda v: v < high)
+    return key(f"must be in {closed[0]}{low:g}, {high:g}{closed[1]}", lambda v: lo(v) and hi(v))
+
+
+def one_of(*choices: str) -> Any:
+    return key(f"allowed: {', '.join(choices)}", lambda v: v in choices)
+
+
+def each(check: Any, nonempty: bool = False) -> Any:
+    """Every element of a list passes ``check`` (a field made by :func:`at_least` and the like);
+    with ``nonempty`` the list must have one at least."""
+    words, test = check.metadata["allowed"].removeprefix("must be "), check.metadata["test"]
+    allowed = f"must be a non-empty list, every element {words}" if nonempty else (
+        f"every element must be {words}")
+    return key(allowed, lambda v: (len(v) > 0 or not nonempty) and all(test(a) for a in v))
+
+
+def seeds(top: int = SEED_RANGE[1]) -> Any:
+    low = SEED_RANGE[0]
+    return key(
+        f"must be in [-2^63, {'2^64 - 1' if top == SEED_RANGE[1] else '2^64 - 2'}] "
+        "(torch's seed range)",
+        lambda v: low <= v <= top,
     )
 
 
-CHECKS: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
-    ("seed", _is_int, "must be an integer"),
-    ("threads", _positive_int, "must be an integer >= 1"),
-    ("trainer.iterations", _positive_int, "must be an integer >= 1"),
-    ("trainer.meta_batch", _positive_int, "must be an integer >= 1"),
-    ("trainer.log_every", _positive_int, "must be an integer >= 1"),
-    ("trainer.checkpoint_every", _positive_int, "must be an integer >= 1"),
-    ("trainer.stop_at", lambda v: v is None or _positive_int(v), "must be null or an integer >= 1"),
-    ("trainer.density_every", lambda v: _is_int(v) and v >= 0,
-     "must be an integer >= 0 (0: no density frames)"),
-    ("eval.n_tasks", _positive_int, "must be an integer >= 1"),
-    ("eval.alphas", _fractions, "must be a non-empty list of numbers in (0, 1)"),
-    ("eval.seed", _is_int, "must be an integer"),
-    ("eval.support_noise", lambda v: _is_number(v) and v >= 0, "must be a number >= 0"),
-    ("risk.ar.lam", lambda v: _is_number(v) and v >= 0, "must be a number >= 0 (λ ≥ 0)"),
-    ("risk.ar.update_every", _positive_int, "must be an integer >= 1"),
-    ("risk.ar.lr", lambda v: _is_number(v) and v > 0, "must be a number > 0"),
-    ("risk.dr.alpha", lambda v: _is_number(v) and 0 < v < 1, "must be a number in (0, 1)"),
-    ("learner.maml.inner_lr", lambda v: _is_number(v) and v > 0, "must be a number > 0"),
-    ("learner.maml.inner_steps", _positive_int, "must be an integer >= 1"),
-    ("learner.maml.outer_lr", lambda v: _is_number(v) and v > 0, "must be a number > 0"),
-)
-"""(config key, predicate, what is allowed); a key absent from the config is not checked."""
+@dataclass
+class TrainerSchema:
+    iterations: int = at_least(1)
+    meta_batch: int = at_least(1)
+    log_every: int = at_least(1)
+    checkpoint_every: int = at_least(1)
+    stop_at: int | None = at_least(1)
+    progress: bool = key()
+    max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
+    density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
+
+
+@dataclass
+class EvalSchema:
+    n_tasks: int = at_least(1)
+    alphas: list[float] = each(inside(0, 1), nonempty=True)
+    seed: int = seeds(SEED_RANGE[1] - 1)  # the adversarial distribution is scored at seed + 1
+    support_noise: float = at_least(0)
+
+
+@dataclass
+class MamlSchema:
+    hidden: list[int] = each(at_least(1))
+    inner_lr: float = above(0)
+    inner_steps: int = at_least(1)
+    first_order: bool = key()
+    outer_lr: float = above(0)
+    adaptation: str = one_of("vmap", "low_rank")
+    compile: Any = key()  # false, true or a backend: checked by armeta_rl.compiling
+
+
+@dataclass
+class CnpSchema:
+    lr: float = above(0)
+    hidden: int = at_least(1)
+    likelihood: str = one_of("gaussian", "mse")
+
+
+@dataclass
+class MamlTrpoSchema:
+    hidden_sizes: list[int] = each(at_least(1))
+    inner_lr: float = above(0)
+    gamma: float = inside(0, 1, "(]")
+    gae_lambda: float = inside(0, 1, "[]")
+    max_kl: float = above(0)
+    cg_iterations: int = at_least(1)
+    cg_damping: float = at_least(0)
+    ls_max_steps: int = at_least(1)
+    ls_backtrack_ratio: float = inside(0, 1)
+    baseline_reg: float = at_least(0)
+    first_order: bool = key()
+    hvp_episodes: int | None = at_least(1)
+    obs_dim: int = at_least(1)
+    action_dim: int = at_least(1)
+
+
+@dataclass
+class LearnerSchema:
+    maml: MamlSchema = key()
+    cnp: CnpSchema = key()
+    maml_trpo: MamlTrpoSchema | None = key()
+
+
+@dataclass
+class ArSchema:
+    flow: str = one_of("spline", "planar")
+    flow_kwargs: dict[str, Any] = key()  # the flow's own arguments: checked by the flow
+    lam: float = key("must be >= 0 (λ ≥ 0)", lambda v: v >= 0)
+    update_every: int = at_least(1)
+    lr: float = above(0)
+    grad_clip: float | None = above(0)
+    baseline: str = one_of("mean", "leave_one_out")
+    initial_samples: int = at_least(1)
+    compile: Any = key()
+
+
+@dataclass
+class DrSchema:
+    alpha: float = inside(0, 1)
+    oversample: bool = key()
+
+
+@dataclass
+class GroupsSchema:
+    groups_per_axis: int = at_least(1)
+    step_size: float = above(0)
+
+
+@dataclass
+class RiskSchema:
+    ar: ArSchema = key()
+    dr: DrSchema = key()
+    tr: GroupsSchema = key()
+    dro: GroupsSchema = key()
+
+
+@dataclass
+class MethodSchema:
+    name: str = key()
+    learner: str = one_of("maml", "cnp")
+    risk: str = one_of("erm", "ar", "dr", "tr", "dro")
+
+
+@dataclass
+class LoggerSchema:
+    kind: str = one_of("csv", "wandb", "none")
+    project: str | None = key()
+
+
+@dataclass
+class SpaceSchema:
+    names: list[str] = key("needs at least one identifier", lambda v: len(v) > 0)
+    low: list[float] = key()
+    high: list[float] = key()
+
+
+@dataclass
+class InitialSchema:
+    kind: str = one_of("uniform", "normal")
+    loc: list[float] | None = key()
+    scale: list[float] | None = each(above(0))
+
+
+@dataclass
+class ModelSchema:
+    in_features: int = at_least(1)
+    out_features: int = at_least(1)
+
+
+@dataclass
+class BenchmarkSchema:
+    name: str = key()
+    space: SpaceSchema = key()
+    initial: InitialSchema = key()
+    collector: dict[str, Any] = key()  # the collector's arguments: checked by the collector
+    eval_collector: dict[str, Any] = key()
+    model: ModelSchema = key()
+    leaders: dict[str, str] = key()
+
+
+@dataclass
+class TrainSchema:
+    """The root of the ``armeta-train`` config (``configs/train.yaml``)."""
+
+    seed: int = seeds()
+    threads: int = at_least(1)
+    resume: str | None = key()
+    trainer: TrainerSchema = key()
+    eval: EvalSchema = key()
+    learner: LearnerSchema = key()
+    risk: RiskSchema = key()
+    method: MethodSchema = key()
+    logger: LoggerSchema = key()
+    benchmark: BenchmarkSchema = key()
+
+
+def _type_words(hint: Any) -> str:
+    """What a value of type ``hint`` is, in words: ``an integer``, ``a list of numbers``, ..."""
+    if _optional(hint) is not None:
+        return f"{_type_words(_optional(hint))} or null"
+    origin = typing.get_origin(hint)
+    if origin is list:
+        inner = _type_words(typing.get_args(hint)[0]).split(" ", 1)[1]
+        return f"a list of {inner}s"
+    if origin is dict or dataclasses.is_dataclass(hint):
+        return "a group of keys"
+    return {bool: "a boolean (true or false)", int: "an integer", float: "a finite number",
+            str: "a string"}[hint]
+
+
+def _optional(hint: Any) -> Any:
+    """``X`` for ``X | None``, else ``None``."""
+    if typing.get_origin(hint) in (Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        return args[0]
+    return None
+
+
+def _conforms(value: Any, hint: Any) -> bool:
+    """Whether ``value`` (plain Python) has type ``hint``, strictly (no string is a boolean)."""
+    if hint is Any:
+        return True
+    if _optional(hint) is not None:
+        return value is None or _conforms(value, _optional(hint))
+    origin = typing.get_origin(hint)
+    if origin is list:
+        return isinstance(value, list) and all(
+            _conforms(v, typing.get_args(hint)[0]) for v in value
+        )
+    if origin is dict or dataclasses.is_dataclass(hint):
+        return isinstance(value, dict)
+    if hint is float:
+        return (isinstance(value, (int, float)) and not isinstance(value, bool)
+                and math.isfinite(value))
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, hint)
+
+
+def _check_node(schema: type, node: dict, prefix: str) -> None:
+    hints = typing.get_type_hints(schema)
+    for spec in dataclasses.fields(schema):
+        if spec.name not in node:
+            continue
+        name, value, hint = f"{prefix}{spec.name}", node[spec.name], hints[spec.name]
+        if not _conforms(value, hint):
+            choices = spec.metadata["allowed"] if spec.metadata["allowed"].startswith(
+                "allowed:") else ""
+            raise ConfigError(name, value, f"must be {_type_words(hint)}" + (
+                f"; {choices}" if choices else ""))
+        if value is None:
+            continue
+        nested = _optional(hint) or hint
+        if dataclasses.is_dataclass(nested):
+            _check_node(nested, value, f"{name}.")
+        test = spec.metadata["test"]
+        if test is not None and not test(value):
+            raise ConfigError(name, value, spec.metadata["allowed"])
+
+
+def check_keys(prefix: str, **values: Any) -> None:
+    """Check constructor arguments that are the config keys ``<prefix>.<name>`` (e.g.
+    ``check_keys("risk.dr", alpha=alpha)``) against their schema fields: an object built from
+    Python rather than from a config refuses a bad value with the same line as the CLI."""
+    schema = TrainSchema
+    for name in prefix.split("."):
+        hint = typing.get_type_hints(schema)[name]
+        schema = _optional(hint) or hint
+    plain = {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
+    _check_node(schema, plain, f"{prefix}.")
+
+
+def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, dataclasses.Field]:
+    """Every key the schema declares (dotted) and its field, leaves and groups alike."""
+    keys = {}
+    hints = typing.get_type_hints(schema)
+    for spec in dataclasses.fields(schema):
+        name = f"{prefix}{spec.name}"
+        keys[name] = spec
+        nested = _optional(hints[spec.name]) or hints[spec.name]
+        if dataclasses.is_dataclass(nested):
+            keys.update(schema_keys(nested, f"{name}."))
+    return keys
+
+
+def with_old_run_defaults(cfg: DictConfig) -> DictConfig:
+    """``cfg`` (a run directory's saved config) with the keys added since it was saved, at the
+    values that keep such a run behaving as it did (their ``old_runs``)."""
+    added = {}
+    for name, spec in schema_keys().items():
+        if spec.metadata["old_runs"] is not _MISSING and OmegaConf.select(
+            cfg, name, default=_MISSING
+        ) is _MISSING:
+            added[name] = spec.metadata["old_runs"]
+    if not added:
+        return cfg
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        for name, value in added.items():
+            OmegaConf.update(cfg, name, value, force_add=True)
+    return cfg
 
 
 def check_config(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` for the first value in ``cfg`` that :data:`CHECKS` rejects."""
-    for key, allowed, message in CHECKS:
-        value = OmegaConf.select(cfg, key, default=_MISSING)
-        if value is _MISSING:
-            continue
-        if OmegaConf.is_config(value):
-            value = OmegaConf.to_container(value, resolve=True)
-        if not allowed(value):
-            raise ConfigError(key, value, message)
+    """Raise :class:`ConfigError` for the first value in ``cfg`` that the schema rejects (its
+    type, then its range), then for the rules between keys (identifier box, task split)."""
+    _check_node(TrainSchema, OmegaConf.to_container(cfg, resolve=True), "")
     space = OmegaConf.select(cfg, "benchmark.space")
     if space is not None:
         for name, low, high in zip(space.names, space.low, space.high):
@@ -91,7 +367,7 @@ def check_task_split(cfg: DictConfig) -> None:
     workers = OmegaConf.select(cfg, "benchmark.collector.workers", default=None)
     if workers is None:
         return
-    if not _positive_int(workers):
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError("benchmark.collector.workers", workers, "must be an integer >= 1")
     for key in ("trainer.meta_batch", "eval.n_tasks"):
         count = OmegaConf.select(cfg, key)
@@ -102,8 +378,18 @@ def check_task_split(cfg: DictConfig) -> None:
 
 
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
-    """The resolved config saved in ``run_dir``; ``key`` names the option that pointed there."""
+    """The resolved config saved in ``run_dir`` (with the keys added since, at their ``old_runs``
+    values); ``key`` names the option that pointed there."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
-    return OmegaConf.load(path)
+    try:
+        cfg = OmegaConf.load(path)
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        reason = " ".join(str(error).split())
+        raise ConfigError(
+            key, str(run_dir), f"its {CONFIG_FILE} cannot be read: {reason}"
+        ) from None
+    if not isinstance(cfg, DictConfig):
+        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
+    return with_old_run_defaults(cfg)

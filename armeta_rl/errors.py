@@ -1,4 +1,5 @@
-"""Errors a user can act on: a bad configuration value, a diverged run."""
+"""Errors a user can act on: a bad configuration value, a broken checkpoint, a run directory that
+cannot be written or is in use, a diverged run."""
 
 from __future__ import annotations
 
@@ -17,8 +18,18 @@ class ConfigError(ValueError):
         super().__init__(f"config key '{key}' = {value!r}: {allowed}")
 
 
+class CheckpointBroken(ConfigError):
+    """The run directory a key points at has no intact checkpoint to load (exit code 2)."""
+
+
+class RunDirectoryError(RuntimeError):
+    """The run directory cannot be written (a full disk, a read-only file system) or another
+    process holds it; the checkpoints already there are kept."""
+
+
 class TrainingDiverged(RuntimeError):
-    """A loss or a flow output stopped being finite; the last good checkpoint is kept."""
+    """A loss or a flow output stopped being finite or left ``trainer.max_loss``; the last good
+    checkpoint, if any, is kept."""
 
 
 class IdentifierError(ConfigError):

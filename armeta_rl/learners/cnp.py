@@ -19,10 +19,9 @@ from torch.nn import functional as F
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import Collector
-from armeta_rl.errors import ConfigError
+from armeta_rl.config import check_keys
 from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
 
-LIKELIHOODS = ("gaussian", "mse")
 MIN_STD = 0.1
 
 
@@ -80,15 +79,8 @@ class CNPLeader(OneNetworkLeader):
 
     def __init__(self, in_features: int, out_features: int, collector: Collector,
                  lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian") -> None:
-        for key, value in (("in_features", in_features), ("out_features", out_features),
-                           ("hidden", hidden)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"learner.cnp.{key}", value, "must be an integer >= 1")
-        if not (isinstance(lr, (int, float)) and lr > 0):
-            raise ConfigError("learner.cnp.lr", lr, "must be a number > 0")
-        if likelihood not in LIKELIHOODS:
-            raise ConfigError("learner.cnp.likelihood", likelihood,
-                              f"allowed: {', '.join(LIKELIHOODS)}")
+        check_keys("benchmark.model", in_features=in_features, out_features=out_features)
+        check_keys("learner.cnp", hidden=hidden, lr=lr, likelihood=likelihood)
         self.collector = collector
         self.likelihood = likelihood
         self.model = ConditionalNeuralProcess(in_features, out_features, hidden)

@@ -25,6 +25,7 @@ from torch.func import functional_call, grad, vmap
 
 from armeta_rl.collectors.base import Collector
 from armeta_rl.compiling import compile_backend, maybe_compile
+from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
 from armeta_rl.learners.low_rank import low_rank_query_losses
@@ -66,15 +67,8 @@ class MAMLLeader(OneNetworkLeader):
         adaptation: str = "vmap",
         compile: bool | str | None = False,
     ) -> None:
-        if not inner_lr > 0:
-            raise ConfigError("learner.maml.inner_lr", inner_lr, "must be > 0")
-        if int(inner_steps) != inner_steps or inner_steps < 1:
-            raise ConfigError("learner.maml.inner_steps", inner_steps, "must be an integer >= 1")
-        if not outer_lr > 0:
-            raise ConfigError("learner.maml.outer_lr", outer_lr, "must be > 0")
-        if adaptation not in ADAPTATIONS:
-            raise ConfigError("learner.maml.adaptation", adaptation,
-                              "allowed: " + ", ".join(ADAPTATIONS))
+        check_keys("learner.maml", inner_lr=inner_lr, inner_steps=inner_steps,
+                   first_order=first_order, outer_lr=outer_lr, adaptation=adaptation)
         if adaptation == "low_rank" and not isinstance(model, MLP):
             raise ConfigError("learner.maml.adaptation", adaptation,
                               f"needs the package's MLP, not a {type(model).__name__}; use vmap")

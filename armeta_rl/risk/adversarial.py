@@ -18,8 +18,9 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
+from armeta_rl.adversary.objective import adversary_surrogate
 from armeta_rl.compiling import compile_backend, maybe_compile
+from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
@@ -62,21 +63,12 @@ class AdversarialPrinciple(nn.Module):
         compile: bool | str | None = False,
     ) -> None:
         super().__init__()
-        if not (math.isfinite(lam) and lam >= 0):
-            raise ConfigError("risk.ar.lam", lam, "must be a finite number >= 0")
-        for key, value in (
-            ("update_every", update_every),
-            ("total_updates", total_updates),
-            ("initial_samples", initial_samples),
+        check_keys("risk.ar", lam=lam, update_every=update_every, lr=lr, grad_clip=grad_clip,
+                   baseline=baseline, initial_samples=initial_samples)
+        if isinstance(total_updates, bool) or not isinstance(total_updates, int) or (
+            total_updates < 1
         ):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ConfigError(f"risk.ar.{key}", value, "must be an integer >= 1")
-        if not (math.isfinite(lr) and lr > 0):
-            raise ConfigError("risk.ar.lr", lr, "must be a finite number > 0")
-        if grad_clip is not None and not grad_clip > 0:
-            raise ConfigError("risk.ar.grad_clip", grad_clip, "must be > 0 or null")
-        if baseline not in BASELINES:
-            raise ConfigError("risk.ar.baseline", baseline, "allowed: " + ", ".join(BASELINES))
+            raise ConfigError("risk.ar.total_updates", total_updates, "must be an integer >= 1")
         self.adversary = adversary
         self.lam, self.update_every, self.grad_clip = float(lam), update_every, grad_clip
         self.baseline, self.initial_samples = baseline, initial_samples
@@ -181,14 +173,36 @@ class AdversarialPrinciple(nn.Module):
                 "drawn": drawn}
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
-        """Restore what :meth:`get_extra_state` returned."""
+        """Restore what :meth:`get_extra_state` returned. A schedule saved with another horizon
+        (a run resumed with more ``trainer.iterations``) is re-planned for this one's
+        (:meth:`replan`)."""
+        total_updates = self.scheduler.T_max
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
+        if self.scheduler.T_max != total_updates:
+            self.replan(total_updates)
         drawn = state.get("drawn") or {}
         self._drawn = None
         if drawn:
             tasks = TensorDict(dict(drawn), batch_size=[len(drawn[TASK_KEY])])
             self._drawn = {"tasks": tasks, "versions": None}
+
+    def replan(self, total_updates: int) -> None:
+        """Re-plan the cosine schedule for ``total_updates`` follower updates in all, keeping the
+        updates done: from the next update on, the learning rate is bit for bit the one a run
+        planned for ``total_updates`` from the start uses there (its recursion is replayed on a
+        probe optimizer), and it reaches 0 after ``total_updates`` updates."""
+        probe = torch.optim.SGD(
+            [{"params": [torch.zeros(1, requires_grad=True)], "lr": lr}
+             for lr in self.scheduler.base_lrs]
+        )
+        planned = torch.optim.lr_scheduler.CosineAnnealingLR(probe, T_max=total_updates)
+        for _ in range(self.scheduler.last_epoch):
+            probe.step()
+            planned.step()
+        self.scheduler.load_state_dict(planned.state_dict())
+        for group, lr in zip(self.optimizer.param_groups, planned.get_last_lr(), strict=True):
+            group["lr"] = lr
 
     def _stamp_drawn(self, *_: Any) -> None:
         """After ``load_state_dict`` has set φ, tie the restored draw to it."""

@@ -17,13 +17,11 @@ the groups only decide how the leader weighs them.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from armeta_rl.errors import ConfigError
+from armeta_rl.config import check_keys
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
 
@@ -52,13 +50,7 @@ class _GroupPrinciple(nn.Module):
 
     def __init__(self, initial: TaskDistribution, groups_per_axis: int, step_size: float) -> None:
         super().__init__()
-        valid_count = isinstance(groups_per_axis, int) and not isinstance(groups_per_axis, bool)
-        if not valid_count or groups_per_axis < 1:
-            raise ConfigError(f"{self.config_key}.groups_per_axis", groups_per_axis,
-                              "must be an integer >= 1")
-        if not (isinstance(step_size, (int, float)) and math.isfinite(step_size) and step_size > 0):
-            raise ConfigError(f"{self.config_key}.step_size", step_size,
-                              "must be a finite number > 0")
+        check_keys(self.config_key, groups_per_axis=groups_per_axis, step_size=step_size)
         self.initial = initial
         self.groups_per_axis = groups_per_axis
         self.step_size = float(step_size)

@@ -15,7 +15,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from armeta_rl.errors import ConfigError
+from armeta_rl.config import check_keys
 from armeta_rl.tasks.distributions import TaskDistribution
 
 
@@ -50,11 +50,7 @@ class TailRiskPrinciple(nn.Module):
     def __init__(self, initial: TaskDistribution, alpha: float = 0.5,
                  oversample: bool = False) -> None:
         super().__init__()
-        if not (isinstance(alpha, (int, float)) and 0.0 < alpha < 1.0):
-            raise ConfigError("risk.dr.alpha", alpha,
-                              "must be a number in the open interval (0, 1)")
-        if not isinstance(oversample, bool):
-            raise ConfigError("risk.dr.oversample", oversample, "must be true or false")
+        check_keys("risk.dr", alpha=alpha, oversample=oversample)
         self.initial = initial
         self.alpha = float(alpha)
         self.oversample = oversample

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from armeta_rl.collectors.base import Collector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.errors import ConfigError
+from armeta_rl.config import check_keys
 from armeta_rl.learners.base import TaskWeights
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
 from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale_flat, log_prob
@@ -116,23 +116,13 @@ class MAMLTRPOLeader:
         first_order: bool = False,
         hvp_episodes: int | None = None,
     ) -> None:
-        checks = {
-            "learner.maml_trpo.inner_lr": (inner_lr, inner_lr > 0, "must be > 0"),
-            "learner.maml_trpo.gamma": (gamma, 0 < gamma <= 1, "must be in (0, 1]"),
-            "learner.maml_trpo.gae_lambda": (gae_lambda, 0 <= gae_lambda <= 1, "must be in [0, 1]"),
-            "learner.maml_trpo.max_kl": (max_kl, max_kl > 0, "must be > 0"),
-            "learner.maml_trpo.cg_iterations": (cg_iterations, cg_iterations >= 1, "must be >= 1"),
-            "learner.maml_trpo.ls_max_steps": (ls_max_steps, ls_max_steps >= 1, "must be >= 1"),
-            "learner.maml_trpo.ls_backtrack_ratio": (
-                ls_backtrack_ratio, 0 < ls_backtrack_ratio < 1, "must be in (0, 1)"
-            ),
-            "learner.maml_trpo.hvp_episodes": (
-                hvp_episodes, hvp_episodes is None or hvp_episodes >= 1, "must be null or >= 1"
-            ),
-        }
-        for key, (value, ok, allowed) in checks.items():
-            if not ok:
-                raise ConfigError(key, value, allowed)
+        check_keys(
+            "learner.maml_trpo", obs_dim=obs_dim, action_dim=action_dim,
+            hidden_sizes=hidden_sizes, inner_lr=inner_lr, gamma=gamma, gae_lambda=gae_lambda,
+            max_kl=max_kl, cg_iterations=cg_iterations, cg_damping=cg_damping,
+            ls_max_steps=ls_max_steps, ls_backtrack_ratio=ls_backtrack_ratio,
+            baseline_reg=baseline_reg, first_order=first_order, hvp_episodes=hvp_episodes,
+        )
         self.collector = collector
         self.net = GaussianMLP(obs_dim, action_dim, tuple(hidden_sizes))
         self.inner_lr = float(inner_lr)

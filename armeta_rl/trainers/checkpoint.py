@@ -1,14 +1,154 @@
-"""Run checkpoints through ``torchrl.checkpoint``: leader, principle, RNG state and iteration."""
+"""Run checkpoints through ``torchrl.checkpoint``: leader, principle, RNG state and iteration.
+
+A checkpoint is a ``torchrl.checkpoint`` directory ``checkpoints/checkpoint-<12-digit step>``
+whose ``manifest.json`` also records, under ``metadata.integrity``, the size and SHA-256 of every
+payload file and the SHA-256 of the manifest itself. A load verifies them first, so a truncated,
+garbled or half-deleted checkpoint is recognised as broken before any payload is read.
+
+Writes are atomic and durable: a checkpoint is written into a hidden staging directory, sealed
+(checksums added, every file and directory fsynced) and only then renamed to its final name.
+Payloads are written by :func:`write_file` with plain writes (``torch.save`` into memory first):
+no file is memory-mapped, so a full disk raises ``OSError(ENOSPC)`` instead of killing the
+process with SIGBUS.
+"""
 
 from __future__ import annotations
 
+import hashlib
+import io
+import json
+import logging
+import os
+import re
+import shutil
+from collections.abc import Collection, Mapping
 from pathlib import Path
+from typing import Any
 
-from torchrl.checkpoint import Checkpoint, CheckpointError, CheckpointRotation, GlobalRNGState
+import torch
+from torchrl.checkpoint import (
+    Checkpoint,
+    CheckpointError,
+    CheckpointRotation,
+    GlobalRNGState,
+    StateDictCheckpointAdapter,
+)
 
-from armeta_rl.errors import ConfigError
+from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
+
+log = logging.getLogger(__name__)
+
+PREFIX = "checkpoint"
+MANIFEST = "manifest.json"
+BROKEN_SUFFIX = ".broken"
+_NAME = re.compile(rf"{PREFIX}-(\d{{12}})")
+
+
+def write_file(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` with plain writes and fsync it: the one writer of checkpoint
+    payloads and manifests (fault-injection tests replace it to simulate a full disk)."""
+    with open(path, "wb") as file:
+        file.write(data)
+        file.flush()
+        os.fsync(file.fileno())
+
+
+def _fsync(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _manifest_digest(manifest: Mapping[str, Any]) -> str:
+    """SHA-256 of the manifest's canonical JSON without its own digest."""
+    body = json.loads(json.dumps(manifest))
+    body["metadata"]["integrity"].pop("manifest_sha256", None)
+    return _sha256(json.dumps(body, sort_keys=True, separators=(",", ":")).encode())
+
+
+class TorchPayload(StateDictCheckpointAdapter):
+    """``state_dict`` payloads as one ``state.pt`` per component (torchrl's ``"torch"`` payload
+    format, read back with ``torch.load(weights_only=True)``), serialised in memory and written
+    by :func:`write_file`. TensorDict directory payloads memory-map their files, and a write into
+    a memory map on a full disk is a SIGBUS rather than an error."""
+
+    def __init__(self) -> None:
+        super().__init__("torch")
+
+    def save(
+        self, component: Any, path: Path, *, args: tuple[Any, ...], kwargs: Mapping[str, Any]
+    ) -> Any:
+        path.mkdir(parents=True, exist_ok=True)
+        state = component.state_dict(*args, **kwargs)
+        buffer = io.BytesIO()
+        torch.save(state, buffer)
+        write_file(path / self.state_torch, buffer.getvalue())
+        return state
+
+
+def seal(stage: Path) -> None:
+    """Add the size and SHA-256 of every file below ``stage`` and the manifest's own SHA-256 to
+    its manifest, then fsync every file and directory there."""
+    manifest_path = stage / MANIFEST
+    manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    files = {}
+    for path in sorted(stage.rglob("*")):
+        if path.is_file() and path != manifest_path:
+            data = path.read_bytes()
+            files[path.relative_to(stage).as_posix()] = {"size": len(data), "sha256": _sha256(data)}
+            _fsync(path)
+    manifest["metadata"]["integrity"] = {"algorithm": "sha256", "files": files}
+    manifest["metadata"]["integrity"]["manifest_sha256"] = _manifest_digest(manifest)
+    write_file(manifest_path, (json.dumps(manifest, indent=2, sort_keys=True) + "\n").encode())
+    for directory in sorted({p.parent for p in stage.rglob("*")} | {stage}, reverse=True):
+        _fsync(directory)
+
+
+def verify(path: Path) -> str | None:
+    """Why the checkpoint at ``path`` is broken, or ``None`` if it is intact.
+
+    Checks the manifest's own digest, then that every file the manifest records exists with the
+    recorded size and SHA-256, and that every component's listed files are among them.
+    Checkpoints written before integrity records existed (no ``metadata.integrity``) are only
+    checked for their listed files being present."""
+    try:
+        manifest = Checkpoint.manifest(path)
+    except (CheckpointError, OSError, ValueError) as error:
+        return f"unreadable manifest: {error}"
+    components = manifest["components"]
+    listed = {
+        f"{record['path']}/{name}" for record in components.values() for name in record["files"]
+    }
+    integrity = manifest.get("metadata", {}).get("integrity")
+    if integrity is None:
+        missing = sorted(name for name in listed if not (path / name).is_file())
+        return f"missing {missing[0]}" if missing else None
+    if not isinstance(integrity, dict) or integrity.get("manifest_sha256") != _manifest_digest(
+        manifest
+    ):
+        return f"{MANIFEST} does not match its checksum"
+    files = integrity.get("files", {})
+    unrecorded = sorted(listed.difference(files))
+    if unrecorded:
+        return f"{unrecorded[0]} has no checksum"
+    for name, record in sorted(files.items()):
+        file = path / name
+        if not file.is_file():
+            return f"missing {name}"
+        size = file.stat().st_size
+        if size != record["size"]:
+            return f"{name} has {size} bytes, {record['size']} expected"
+        if _sha256(file.read_bytes()) != record["sha256"]:
+            return f"{name} does not match its SHA-256"
+    return None
 
 
 class RunCheckpoint:
@@ -16,42 +156,130 @@ class RunCheckpoint:
 
     Components: the leader (parameters and optimizer), the risk principle (adversary, its
     optimizer and scheduler, group weights), the process-global RNG states and the number of
-    completed iterations. Payloads are TensorDict directories, loadable without pickle.
+    completed iterations. Payloads are ``torch.save`` files loaded with ``weights_only=True``
+    (no arbitrary pickle); the ``keep_last`` newest checkpoints are kept.
     """
 
     def __init__(
         self, directory: str | Path, leader: Leader, principle: RiskPrinciple, keep_last: int = 2
     ) -> None:
+        self.directory = Path(directory)
         self.progress = {"iteration": 0}
-        self.checkpoint = Checkpoint(
-            leader=leader, principle=principle, rng=GlobalRNGState(), progress=self.progress
-        )
-        self.rotation = CheckpointRotation(directory, keep_last=keep_last)
+        payload = TorchPayload()
+        self.checkpoint = Checkpoint()
+        self.checkpoint.register("leader", leader, adapter=payload)
+        self.checkpoint.register("principle", principle, adapter=payload)
+        self.checkpoint.register("rng", GlobalRNGState(), adapter=payload)
+        self.checkpoint.register("progress", self.progress)
+        self.rotation = CheckpointRotation(self.directory, keep_last=keep_last, prefix=PREFIX)
+
+    def checkpoints(self) -> list[Path]:
+        """Every checkpoint directory on disk, intact or not, oldest first."""
+        if not self.directory.is_dir():
+            return []
+        found = [p for p in self.directory.iterdir() if _NAME.fullmatch(p.name) and p.is_dir()]
+        return sorted(found, key=lambda p: p.name)
+
+    def clean_staging(self) -> list[Path]:
+        """Remove what interrupted writes left behind (hidden staging, backup and deletion
+        directories); call only while holding the run's lock. Returns the removed paths."""
+        if not self.directory.is_dir():
+            return []
+        leftovers = [p for p in self.directory.iterdir() if p.name.startswith(".")]
+        for path in leftovers:
+            remove_tree(path)
+        return leftovers
 
     def save(self, iteration: int) -> Path:
-        """Write a checkpoint after ``iteration`` completed iterations."""
-        self.progress["iteration"] = iteration
-        return self.rotation.save(self.checkpoint, step=iteration)
-
-    def latest(self) -> Path | None:
-        """The newest checkpoint on disk, if any."""
-        return self.rotation.latest()
-
-    def restore(self, key: str, components: tuple[str, ...] | None = None) -> int:
-        """Load the newest checkpoint (all components, or ``components``); returns its iteration.
+        """Write a checkpoint after ``iteration`` completed iterations, atomically.
 
         Raises:
-            ConfigError: naming ``key`` (the option that pointed at the run) if the checkpoint does
-                not fit the players built from the run's config, e.g. a run saved by a version of
-                armeta_rl whose defaults built other networks.
+            RunDirectoryError: the checkpoint could not be written (a full disk, a read-only
+                directory); the checkpoints written before are untouched.
         """
+        self.progress["iteration"] = iteration
+        final = self.directory / f"{PREFIX}-{iteration:012d}"
+        stage = self.directory / f".{final.name}.staging-{os.getpid()}"
         try:
-            self.rotation.load_latest(self.checkpoint, components=components)
+            self.directory.mkdir(parents=True, exist_ok=True)
+            remove_tree(stage)
+            self.checkpoint.save(stage)
+            seal(stage)
+            if final.exists():
+                replaced = self.directory / f".{final.name}.replaced-{os.getpid()}"
+                os.replace(final, replaced)
+                os.replace(stage, final)
+                remove_tree(replaced)
+            else:
+                os.replace(stage, final)
+            _fsync(self.directory)
+            self.rotation.prune()
+        except OSError as error:
+            remove_tree(stage)
+            raise RunDirectoryError(
+                f"cannot write the checkpoint {final}: {error.strerror or error}"
+            ) from error
+        return final
+
+    def restore(
+        self, key: str, components: Collection[str] | None = None, fallback: bool = True
+    ) -> int:
+        """Load the newest intact checkpoint (all components, or ``components``); returns its
+        iteration.
+
+        With ``fallback`` a broken checkpoint is renamed ``<name>.broken``, logged as a warning
+        naming it and why, and the next older one is tried; without, it is refused.
+
+        Raises:
+            CheckpointBroken: no intact checkpoint (or, without ``fallback``, the newest is
+                broken), naming ``key`` (the option that pointed at the run).
+            ConfigError: naming ``key`` if an intact checkpoint does not fit the players built
+                from the run's config, e.g. a run saved by a version of armeta_rl whose defaults
+                built other networks.
+        """
+        run_dir = str(self.directory.parent)
+        broken = []
+        for path in reversed(self.checkpoints()):
+            reason = verify(path)
+            if reason is None:
+                self._load(path, key, components)
+                return int(self.progress["iteration"])
+            if not fallback:
+                raise CheckpointBroken(
+                    key, run_dir,
+                    f"its newest checkpoint {path.name} is broken ({reason}); "
+                    f"armeta-train resume={run_dir} falls back to the newest intact one",
+                )
+            aside = path.with_name(path.name + BROKEN_SUFFIX)
+            os.replace(path, aside)
+            log.warning("checkpoint %s is broken (%s): moved to %s", path, reason, aside.name)
+            broken.append(f"{path.name} ({reason})")
+        found = f"; broken: {', '.join(broken)}" if broken else ""
+        raise CheckpointBroken(key, run_dir, f"has no intact checkpoint{found}")
+
+    def _load(self, path: Path, key: str, components: Collection[str] | None) -> None:
+        try:
+            self.checkpoint.load(path, components=components)
         except CheckpointError as error:
             raise ConfigError(
-                key, str(self.rotation.directory.parent),
+                key, str(self.directory.parent),
                 f"its checkpoint does not fit the players its config.yaml builds ({error}); runs "
                 "saved before one spline coupling became the default on 2-D boxes need "
                 "'layers: 2' under risk.ar.flow_kwargs there",
             ) from error
-        return int(self.progress["iteration"])
+
+
+def newest_intact(directory: Path) -> Path | None:
+    """The newest checkpoint below ``directory`` that :func:`verify` accepts, if any."""
+    for path in sorted(directory.glob(f"{PREFIX}-*"), reverse=True):
+        if _NAME.fullmatch(path.name) and verify(path) is None:
+            return path
+    return None
+
+
+def remove_tree(path: Path) -> None:
+    """Delete a file or directory tree if it exists."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists() or path.is_symlink():
+        path.unlink()

@@ -35,6 +35,8 @@ class GameTrainer:
         log: called with the scalars of an iteration and its number, every ``log_every``.
         checkpoint: where to save every ``checkpoint_every`` iterations (``None``: never).
         progress: show a tqdm bar with the iteration and current losses.
+        max_loss: the divergence guard: a task loss beyond ±``max_loss`` stops the run like a
+            non-finite one (``None``: only non-finite losses stop it).
         after_iteration: called with the iteration number after every iteration (after its
             logging and checkpoint), e.g. to draw the adversary's density.
     """
@@ -51,13 +53,15 @@ class GameTrainer:
         checkpoint: RunCheckpoint | None = None,
         checkpoint_every: int = 500,
         progress: bool = True,
+        max_loss: float | None = None,
         after_iteration: Callable[[int], None] | None = None,
     ) -> None:
         self.leader, self.principle = leader, principle
         self.iterations, self.meta_batch = iterations, meta_batch
         self.log, self.log_every = log, log_every
         self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
-        self.progress, self.after_iteration = progress, after_iteration
+        self.progress, self.max_loss = progress, max_loss
+        self.after_iteration = after_iteration
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
@@ -70,9 +74,15 @@ class GameTrainer:
             )
         out = self.leader.step(tasks, self.principle.weights)
         losses = out["loss"]
-        if not torch.isfinite(losses).all():
+        worst = float(losses.detach().abs().max())
+        if not math.isfinite(worst):
             raise TrainingDiverged(
                 f"the leader loss is not finite at iteration {self.iteration + 1}"
+            )
+        if self.max_loss is not None and worst > self.max_loss:
+            raise TrainingDiverged(
+                f"a task loss reached {worst:.3g} at iteration {self.iteration + 1}, beyond "
+                f"trainer.max_loss = {self.max_loss:g}"
             )
         logs = {
             "train/leader_loss": float((self.principle.weights(losses) * losses).sum()),

@@ -16,14 +16,20 @@ from armeta_rl.collectors.base import Collector
 from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
-from armeta_rl.config import CONFIG_FILE, check_config
-from armeta_rl.errors import ConfigError
+from armeta_rl.config import CONFIG_FILE, check_config, load_run_config
+from armeta_rl.errors import ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.tasks import TaskDistribution
-from armeta_rl.trainers.checkpoint import RunCheckpoint
+from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, write_file
 from armeta_rl.trainers.density import DensityFrames
 from armeta_rl.trainers.evaluation import evaluate_on, format_table
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.runs import Players, build_players, load_players
+from armeta_rl.trainers.runs import (
+    Players,
+    build_players,
+    check_run_dir,
+    load_players,
+    run_lock,
+)
 
 EVAL_FILE = "eval.json"
 DENSITY_FILE = "density.png"
@@ -135,31 +141,65 @@ def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
 
 
 def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) -> dict | None:
-    """Train ``cfg`` in ``run_dir`` (resuming from its checkpoint if ``cfg.resume`` is set).
+    """Train ``cfg`` in ``run_dir`` (resuming from its checkpoint if ``cfg.resume`` is set),
+    holding the run directory's lock throughout.
 
     Returns the evaluation report, or ``None`` when the run stopped early at ``trainer.stop_at``.
+
+    Raises:
+        ConfigError: a bad value, a run directory that cannot be written or that another run
+            holds, or (on resume) no intact checkpoint.
+        TrainingDiverged: the losses left ``trainer.max_loss``; names the checkpoint kept.
+        RunDirectoryError: a checkpoint, log or report could not be written (e.g. a full disk);
+            names the checkpoint kept.
     """
     run_dir = Path(run_dir)
+    key = "resume" if cfg.resume else "hydra.run.dir"
     check_config(cfg)
+    check_run_dir(run_dir, key)
+    with run_lock(run_dir, key):
+        try:
+            return _train_locked(cfg, run_dir, progress)
+        except (TrainingDiverged, RunDirectoryError, OSError) as error:
+            kind = TrainingDiverged if isinstance(error, TrainingDiverged) else RunDirectoryError
+            if isinstance(error, OSError):  # e.g. a log or eval.json on a full disk
+                error = f"cannot write {error.filename or run_dir}: {error.strerror or error}"
+            kept = newest_intact(run_dir / "checkpoints")
+            raise kind(
+                f"{error}; the last good checkpoint {kept.name} is kept: armeta-train "
+                f"resume={run_dir} continues from it"
+                if kept is not None
+                else f"{error}; no checkpoint had been written yet"
+            ) from None
+
+
+def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None:
     torch.set_num_threads(cfg.threads)
     players = build_players(cfg)
     noisy_support_collector(cfg, players)
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle)
+    checkpoint.clean_staging()
+    staged = [*run_dir.glob(f".{CONFIG_FILE}.*"), *run_dir.glob(f".{EVAL_FILE}.*"),
+              *(run_dir / CSV_LOG_DIR).rglob(".*.csv.*")]
+    for path in staged:  # what write_text_atomically left when a crash interrupted it
+        path.unlink()
     start = 0
     if cfg.resume:
-        if checkpoint.latest() is None:
-            raise ConfigError("resume", str(cfg.resume), "has no checkpoint to resume from")
-        start = checkpoint.restore("resume")
+        if checkpoint.checkpoints():
+            start = checkpoint.restore("resume")
         drop_csv_rows_after(run_dir, start)
+        saved = load_run_config(run_dir, "resume")
+        if saved.trainer.iterations != cfg.trainer.iterations:  # resumed to train longer
+            saved.trainer.iterations = cfg.trainer.iterations
+            write_config(saved, run_dir / CONFIG_FILE)
     else:
-        if checkpoint.latest() is not None:
+        if checkpoint.checkpoints() or (run_dir / CONFIG_FILE).exists():
             raise ConfigError(
                 "hydra.run.dir", str(run_dir),
-                "already holds a run's checkpoints: continue it with resume=<dir>, or train into "
-                "a new directory",
+                "already holds a run: continue it with resume=<dir>, or train into a new "
+                "directory",
             )
-        run_dir.mkdir(parents=True, exist_ok=True)
-        OmegaConf.save(cfg, run_dir / CONFIG_FILE, resolve=True)
+        write_config(cfg, run_dir / CONFIG_FILE)
     logger = make_logger(cfg, run_dir)
     compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
     if compiled:
@@ -181,6 +221,7 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         checkpoint_every=cfg.trainer.checkpoint_every,
         log=None if logger is None else logger.log_metrics,
         progress=progress and cfg.trainer.progress,
+        max_loss=cfg.trainer.max_loss,
         after_iteration=frames,
     )
     trainer.iteration = start
@@ -191,7 +232,7 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         )
         return None
     report = evaluate_players(cfg, players)
-    (run_dir / EVAL_FILE).write_text(json.dumps(report, indent=2) + "\n")
+    write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     if players.adversary is not None:
         _save_density(players, run_dir / DENSITY_FILE, logger)
@@ -202,15 +243,48 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     return report
 
 
+def write_config(cfg: DictConfig, path: Path) -> None:
+    """Save the resolved ``cfg`` as ``path`` atomically (a crash leaves the old file or none)."""
+    write_text_atomically(path, OmegaConf.to_yaml(cfg, resolve=True))
+
+
+def write_text_atomically(path: Path, text: str) -> None:
+    """Write ``text`` to a hidden sibling of ``path``, fsync it and rename it over ``path``."""
+    staged = path.with_name(f".{path.name}.{os.getpid()}")
+    try:
+        write_file(staged, text.encode())
+        os.replace(staged, path)
+    finally:
+        staged.unlink(missing_ok=True)
+
+
 def drop_csv_rows_after(run_dir: Path, iteration: int) -> None:
     """Delete the CSV log rows of iterations after ``iteration`` (the checkpoint a run resumes
     from): a run that crashed logged past its last checkpoint, and the resumed run logs those
-    iterations again, so without this every scalar would hold them twice."""
+    iterations again, so without this every scalar would hold them twice. A last row without
+    its line end (a write the crash cut short) is dropped too.
+
+    Raises:
+        ConfigError: a complete row does not start with an iteration number.
+    """
     for path in (run_dir / CSV_LOG_DIR / "scalars").rglob("*.csv"):
-        rows = path.read_text().splitlines(keepends=True)
-        kept = [row for row in rows if int(row.split(",", 1)[0]) <= iteration]
-        if len(kept) < len(rows):
-            path.write_text("".join(kept))
+        rows = path.read_text(errors="replace").splitlines(keepends=True)
+        if rows and not rows[-1].endswith("\n"):
+            rows[-1] = ""
+        kept = [row for row in rows if row and _csv_step(row, path, run_dir) <= iteration]
+        if kept != rows:
+            write_text_atomically(path, "".join(kept))
+
+
+def _csv_step(row: str, path: Path, run_dir: Path) -> int:
+    try:
+        return int(row.split(",", 1)[0])
+    except ValueError:
+        raise ConfigError(
+            "resume", str(run_dir),
+            f"its log {path.relative_to(run_dir)} has a row that does not parse "
+            f"({row.strip()[:40]!r}): delete that row or file to resume",
+        ) from None
 
 
 def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
