@@ -138,13 +138,13 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
     """Run ``task`` turning the package's user errors into one line and an exit code."""
 
     def wrapped(cfg: DictConfig) -> None:
-        from armeta_rl.errors import ConfigError, TrainingDiverged
+        from armeta_rl.errors import CollectionFailed, ConfigError, TrainingDiverged
 
         try:
             task(cfg)
         except ConfigError as error:
             _fail(prog, str(error))
-        except TrainingDiverged as error:
+        except (TrainingDiverged, CollectionFailed) as error:
             _fail(prog, f"training stopped: {error}; the last good checkpoint is kept", code=1)
 
     return wrapped

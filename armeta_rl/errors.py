@@ -19,3 +19,7 @@ class ConfigError(ValueError):
 
 class TrainingDiverged(RuntimeError):
     """A loss or a flow output stopped being finite; the last good checkpoint is kept."""
+
+
+class CollectionFailed(RuntimeError):
+    """A collection worker died or stopped answering; the run stops, keeping its last checkpoint."""
