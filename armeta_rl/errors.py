@@ -16,6 +16,11 @@ class ConfigError(ValueError):
         self.key, self.value, self.allowed = key, value, allowed
         super().__init__(f"config key '{key}' = {value!r}: {allowed}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, Any, str]]:
+        """Pickle by the constructor's arguments, so that the error crosses process boundaries
+        (a Ray actor's or a worker process's env raising it)."""
+        return type(self), (self.key, self.value, self.allowed)
+
 
 class TrainingDiverged(RuntimeError):
     """A loss or a flow output stopped being finite; the last good checkpoint is kept."""

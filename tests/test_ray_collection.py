@@ -129,8 +129,13 @@ def test_a_silent_worker_times_out_instead_of_hanging(local_cluster):
     collector.close()
 
 
-def test_workers_must_divide_the_tasks(local_cluster):
+def test_bad_values_are_config_errors_also_from_inside_the_actors(local_cluster):
     with pytest.raises(ConfigError, match="benchmark.collector.workers"):
         _collect(RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=3), 0)
     with pytest.raises(ConfigError, match="benchmark.collector.timeout_s"):
         RayEpisodeCollector(MAKE_ENV, timeout_s=0)
+    bad_env = partial(AntGoalEnv, goal_range=-1.0)
+    collector = RayEpisodeCollector(bad_env, EPISODES, STEPS, workers=1, cpus_per_worker=0)
+    with pytest.raises(ConfigError, match="benchmark.collector.goal_range"):
+        _collect(collector, 0)
+    collector.close()

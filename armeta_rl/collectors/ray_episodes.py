@@ -110,18 +110,20 @@ def connect_ray(address: str | None, connect_timeout_s: float = 10.0) -> None:
 
 @ray.remote
 class EnvWorker:
-    """A Ray actor owning one slice of the tasks: ``make_env(batch_size=..., max_steps=...,
-    seed=...)`` built in the actor's process, with one torch thread and the driver's default
-    dtype (the env's outputs are in it)."""
+    """A Ray actor owning one slice of the tasks: its env, built by :meth:`build` in the actor's
+    process with one torch thread and the driver's default dtype (the env's outputs are in it)."""
 
-    def __init__(self, make_env: Callable[..., EnvBase], batch_size: Sequence[int],
-                 max_steps: int, seed: int, dtype: torch.dtype) -> None:
+    def __init__(self, dtype: torch.dtype) -> None:
         torch.set_num_threads(1)
         torch.set_default_dtype(dtype)
-        self.env = make_env(batch_size=tuple(batch_size), max_steps=max_steps, seed=seed)
+        self.env: EnvBase | None = None
 
-    def specs(self) -> tuple[TensorDictBase, TensorDictBase]:
-        """The env's ``output_spec`` and ``input_spec``."""
+    def build(self, make_env: Callable[..., EnvBase], batch_size: Sequence[int], max_steps: int,
+              seed: int) -> tuple[TensorDictBase, TensorDictBase]:
+        """Build ``make_env(batch_size=..., max_steps=..., seed=...)``; its ``output_spec`` and
+        ``input_spec``. (A method rather than the constructor, so that an error raised by
+        ``make_env``, such as a :class:`ConfigError`, reaches the driver as itself.)"""
+        self.env = make_env(batch_size=tuple(batch_size), max_steps=max_steps, seed=seed)
         return self.env.output_spec, self.env.input_spec
 
     def set_seed(self, seed: int | None) -> int | None:
@@ -160,10 +162,10 @@ class RayTaskSplitEnv(EnvBase):
         super().__init__(batch_size=torch.Size((workers, *batch_size)))
         self.timeout_s = float(timeout_s)
         actor = EnvWorker.options(num_cpus=cpus_per_worker, scheduling_strategy="SPREAD")
-        dtype = torch.get_default_dtype()
-        self.workers = [actor.remote(make_env, tuple(batch_size), max_steps, seed, dtype)
-                        for _ in range(workers)]
-        output_spec, input_spec = self._gather([self.workers[0].specs.remote()], [0])[0]
+        self.workers = [actor.remote(torch.get_default_dtype()) for _ in range(workers)]
+        builds = [worker.build.remote(make_env, tuple(batch_size), max_steps, seed)
+                  for worker in self.workers]
+        output_spec, input_spec = self._gather(builds, range(workers))[0]
         # the worker's specs gain the leading worker dimension
         self.full_observation_spec = output_spec["full_observation_spec"].expand(
             workers, *output_spec.shape)
@@ -194,6 +196,8 @@ class RayTaskSplitEnv(EnvBase):
                 f"a Ray worker died during collection ({type(error).__name__}: "
                 f"{_first_line(error)})") from None
         except RayTaskError as error:
+            if isinstance(error.cause, ConfigError):  # one line for the CLI
+                raise error.cause from None
             raise error.as_instanceof_cause() from None
 
     def set_seed(self, seed: int | None = None, static_seed: bool = False) -> int | None:
