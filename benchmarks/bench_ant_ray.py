@@ -15,8 +15,8 @@ alike. Times are scaled linearly to the paper's 40 tasks (as ``bench_ant_goal.py
 500-iteration run. The table, with the command and the date, replaces the section between this
 script's markers in ``docs/scale.md``.
 
-Ray: ``--address`` as ``benchmark.collector.address`` (none: a Ray instance in this process on
-127.0.0.1). The actors reserve ``--cpus-per-worker`` CPUs each (default 0, so that the actors of
+Ray: ``--address`` as ``benchmark.collector.address`` (none: a Ray instance of this machine in
+this process). The actors reserve ``--cpus-per-worker`` CPUs each (default 0, so that the actors of
 every worker count stay alive side by side on one machine between turns).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_ray.py --tasks 4 --workers 1 2``; on a
@@ -102,7 +102,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2],
                         help="Ray worker counts (1 to 16), each dividing --tasks")
     parser.add_argument("--turns", type=int, default=2, help="timed meta-iterations per row")
-    parser.add_argument("--address", default=None, help="Ray cluster (none: local, 127.0.0.1)")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster (none: a Ray instance of this machine)")
     parser.add_argument("--cpus-per-worker", type=float, default=0.0)
     parser.add_argument("--doc", type=Path, default=DOC)
     parser.add_argument("--no-doc", action="store_true", help="print the table only")

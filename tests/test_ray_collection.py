@@ -1,11 +1,13 @@
-"""RayEpisodeCollector on a local Ray cluster (127.0.0.1, 2 CPUs): its data for a seed equal the
-single-process collectors' bit for bit; a dead or silent worker ends the collection with a clear
-error instead of a hang; an address where no cluster answers is a one-line config error."""
+"""RayEpisodeCollector on a local Ray instance (this machine alone, 2 CPUs): its data for a seed
+equal the single-process collectors' bit for bit; a dead or silent worker ends the collection with
+a clear error instead of a hang; an address where no cluster answers is a one-line config
+error."""
 
 import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from functools import partial
 from pathlib import Path
@@ -64,12 +66,13 @@ def test_cli_unreachable_ray_address_is_one_line_and_exit_2(tmp_path):
 
 @pytest.fixture(scope="module")
 def local_cluster():
-    """A Ray instance on 127.0.0.1 with 2 CPUs; its workers import armeta_rl from this checkout."""
+    """A Ray instance of this machine alone, with 2 CPUs; its workers import armeta_rl from this
+    checkout."""
     if ray.is_initialized():
         ray.shutdown()
     path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-    ray.init(address="local", num_cpus=2, include_dashboard=False, _node_ip_address="127.0.0.1",
-             logging_level="ERROR", log_to_driver=False,
+    ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="ERROR",
+             log_to_driver=False,
              runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}})
     yield
     ray.shutdown()
@@ -111,11 +114,15 @@ def test_ray_workers_equal_the_single_process_collectors(local_cluster):
     ray1.close()
 
 
-def test_a_dead_worker_stops_the_collection_with_a_clear_error(local_cluster):
-    collector = RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=2, timeout_s=120)
-    _collect(collector, 0)
-    ray.kill(collector.env(TASKS).base_env.workers[1])
+def test_a_worker_killed_mid_collection_stops_it_with_a_clear_error(local_cluster):
+    """Worker 1 is killed while a long collection runs: the collection ends with
+    CollectionFailed soon after, not at the end of the horizon nor at the timeout."""
+    collector = RayEpisodeCollector(partial(AntGoalEnv, healthy_z_range=(-1.0, 10.0)), EPISODES,
+                                    100_000, workers=2, timeout_s=120)
+    env = collector.env(TASKS)  # starts the actors
+    killer = threading.Timer(1.0, ray.kill, [env.base_env.workers[1]])
     start = time.monotonic()
+    killer.start()
     with pytest.raises(CollectionFailed, match="Ray worker died during collection"):
         _collect(collector, 0)
     assert time.monotonic() - start < 30

@@ -76,7 +76,8 @@ def _host_port(address: str) -> tuple[str, int] | None:
 def connect_ray(address: str | None, connect_timeout_s: float = 10.0) -> None:
     """Join the Ray cluster at ``address``; a process that has joined one already keeps it.
 
-    ``address``: ``None`` starts a Ray instance inside this process (all local cores);
+    ``address``: ``None`` starts a Ray instance of this machine alone inside this process (all
+    local cores);
     ``"auto"`` joins the cluster started on this machine with ``ray start --head``;
     ``"host:port"`` joins a cluster by its head's GCS address (``ray start`` prints it; port 6379
     by default) and ``"ray://host:port"`` through the Ray Client server (port 10001 by default).
@@ -99,8 +100,7 @@ def connect_ray(address: str | None, connect_timeout_s: float = 10.0) -> None:
             raise ConfigError(ADDRESS_KEY, address,
                               f"no Ray cluster answers there within {connect_timeout_s:g} s "
                               f"({KEY}.connect_timeout_s); allowed: {allowed}")
-    # a Ray instance of this process listens on the loopback interface only
-    local = {"include_dashboard": False, "_node_ip_address": "127.0.0.1"} if address is None else {}
+    local = {"include_dashboard": False} if address is None else {}
     try:
         ray.init(address=address or "local", logging_level="ERROR", log_to_driver=False, **local)
     except (ConnectionError, RuntimeError, ValueError) as error:
