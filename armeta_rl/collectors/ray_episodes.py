@@ -30,8 +30,10 @@ answers within ``connect_timeout_s`` is a :class:`~armeta_rl.errors.ConfigError`
 
 from __future__ import annotations
 
+import contextlib
+import os
 import socket
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from functools import partial
 from typing import Any
 
@@ -45,9 +47,11 @@ from torchrl.envs.transforms import BatchSizeTransform
 from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.parallel_episodes import WORKERS_KEY, _reshape
 from armeta_rl.errors import CollectionFailed, ConfigError
+from armeta_rl.quiet import native_stderr_silenced
 
 KEY = "benchmark.collector"
 ADDRESS_KEY = f"{KEY}.address"
+GCS_WAIT = "RAY_gcs_server_port_wait_time_s"  # Ray's connection attempts to a cluster's GCS
 
 
 def _first_line(error: BaseException) -> str:
@@ -100,12 +104,33 @@ def connect_ray(address: str | None, connect_timeout_s: float = 10.0) -> None:
             raise ConfigError(ADDRESS_KEY, address,
                               f"no Ray cluster answers there within {connect_timeout_s:g} s "
                               f"({KEY}.connect_timeout_s); allowed: {allowed}")
-    local = {"include_dashboard": False} if address is None else {}
+    if address is None:
+        ray.init(address="local", include_dashboard=False, logging_level="ERROR",
+                 log_to_driver=False)
+        return
+    # Something answers, yet it may not be Ray: one connection attempt then (Ray's own retries
+    # would take minutes; each attempt takes about 40 s), its core worker's log lines on stderr
+    # summed up in the error.
     try:
-        ray.init(address=address or "local", logging_level="ERROR", log_to_driver=False, **local)
+        with native_stderr_silenced(), _environment(GCS_WAIT, os.environ.get(GCS_WAIT, "1")):
+            ray.init(address=address, logging_level="ERROR", log_to_driver=False)
     except (ConnectionError, RuntimeError, ValueError) as error:
         raise ConfigError(ADDRESS_KEY, address,
                           f"Ray cannot join it ({_first_line(error)})") from None
+
+
+@contextlib.contextmanager
+def _environment(name: str, value: str) -> Iterator[None]:
+    """Environment variable ``name`` set to ``value`` for the block, then restored."""
+    before = os.environ.get(name)
+    os.environ[name] = value
+    try:
+        yield
+    finally:
+        if before is None:
+            del os.environ[name]
+        else:
+            os.environ[name] = before
 
 
 @ray.remote

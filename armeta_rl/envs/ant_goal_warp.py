@@ -22,10 +22,7 @@ and fails with a :class:`~armeta_rl.errors.ConfigError` where there is none.
 
 from __future__ import annotations
 
-import contextlib
-import os
-import sys
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from functools import partial
 
 import mujoco
@@ -34,25 +31,11 @@ import torch
 
 from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.quiet import native_stderr_silenced
 
 DEVICE_KEY = "benchmark.collector.make_env.warp_device"
 STATE = ("qpos", "qvel", "ctrl")
 OUTPUTS = ("cfrc_ext", "xpos", "xmat")
-
-
-@contextlib.contextmanager
-def _native_stderr_silenced() -> Iterator[None]:
-    """File descriptor 2 to /dev/null: warp's native start-up warns on stderr of a machine
-    without a CUDA driver, which :func:`find_warp_device` reports as one :class:`ConfigError`."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with open(os.devnull, "w") as null:
-        os.dup2(null.fileno(), 2)
-    try:
-        yield
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
 
 
 def _import_warp():
@@ -65,7 +48,7 @@ def _import_warp():
                           "pip install 'armeta-rl[gpu]' (mujoco-warp)") from None
     warp.config.quiet = True  # no start-up banner on stdout
     warp.config.log_level = warp.LOG_WARNING  # no line per kernel module loaded
-    with _native_stderr_silenced():
+    with native_stderr_silenced():  # its CUDA warning: find_warp_device says it in one line
         warp.init()
     import mujoco_warp
 
