@@ -46,8 +46,7 @@ def _import_warp():
     except ImportError:
         raise ConfigError(DEVICE_KEY, None, "MuJoCo Warp is not installed: "
                           "pip install 'armeta-rl[gpu]' (mujoco-warp)") from None
-    warp.config.quiet = True  # no start-up banner on stdout
-    warp.config.log_level = warp.LOG_WARNING  # no line per kernel module loaded
+    warp.config.log_level = warp.LOG_WARNING  # no start-up banner, no line per module loaded
     with native_stderr_silenced():  # its CUDA warning: find_warp_device says it in one line
         warp.init()
     import mujoco_warp
