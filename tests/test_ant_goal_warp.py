@@ -7,7 +7,8 @@ step), for 200 physics steps of the gymnasium Ant MJCF with random controls, whi
 lands and kicks (0 to 3 contacts). MuJoCo Warp computes in float32, CPU MuJoCo in float64:
 
 * frame-invariant friction (elliptic cone): |Δqpos| <= 1e-5 and |Δqvel| <= 1e-3 on every step,
-  contacts included; the torso position and orientation within 1e-5;
+  contacts included; the torso position and orientation within 1e-5, the observed contact
+  forces clip(cfrc_ext, -1, 1) within 1e-2;
 * the MJCF as it is (pyramidal cone): away from contacts (none in either engine at the step's
   start or end, nor at the next step's end), 95 % of the steps agree within |Δqpos| <= 1e-6 and
   |Δqvel| <= 1e-5 (the rest touch the floor inside a Runge-Kutta stage); on every step
@@ -49,9 +50,9 @@ HAS_CUDA = warp.is_cuda_available()
 
 
 def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
-    """Per step and world: max |Δqpos|, max |Δqvel|, max |Δ torso xpos, xmat| and the contact
-    count after the step (the larger of the two engines'), stepping MjData (mj_step, then
-    mj_forward at the new state) and WarpBatch from the same state."""
+    """Per step and world: max |Δqpos|, max |Δqvel|, max |Δ torso xpos, xmat|, max |Δ clipped
+    cfrc_ext| and the contact count after the step (the larger of the two engines'), stepping
+    MjData (mj_step, then mj_forward at the new state) and WarpBatch from the same state."""
     model = load_ant_model()
     model.opt.cone = cone
     datas = [mujoco.MjData(model) for _ in range(WORLDS)]
@@ -61,7 +62,7 @@ def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
         data.qpos[:] = model.qpos0 + rng.uniform(-0.1, 0.1, model.nq)
         data.qvel[:] = rng.normal(0.0, 0.1, model.nv)
     torso = model.body("torso").id
-    out = {"qpos": [], "qvel": [], "torso": [], "ncon": []}
+    out = {"qpos": [], "qvel": [], "torso": [], "forces": [], "ncon": []}
     for _ in range(STEPS):
         ctrl = rng.uniform(-1.0, 1.0, (WORLDS, model.nu))
         for name in ("qpos", "qvel"):
@@ -77,6 +78,8 @@ def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
         pose = np.concatenate([batch.bind("xpos")[:, torso], batch.bind("xmat")[:, torso]], -1)
         reference = [np.concatenate([d.xpos[torso], d.xmat[torso]]) for d in datas]
         out["torso"].append(np.abs(pose - reference).max(-1))
+        forces = [np.clip(d.cfrc_ext, -1, 1) for d in datas]
+        out["forces"].append(np.abs(np.clip(batch.bind("cfrc_ext"), -1, 1) - forces).max((-2, -1)))
         nacon = int(batch.data.nacon.numpy()[0])
         warp_ncon = np.bincount(batch.data.contact.worldid.numpy()[:nacon], minlength=WORLDS)
         out["ncon"].append(np.maximum([d.ncon for d in datas], warp_ncon))
@@ -91,6 +94,7 @@ def test_warp_equals_cpu_mujoco_with_frame_invariant_friction(device):
     assert errors["qpos"].max() <= 1e-5
     assert errors["qvel"].max() <= 1e-3
     assert errors["torso"].max() <= 1e-5
+    assert errors["forces"].max() <= 1e-2  # the observation's clip(cfrc_ext, -1, 1)
 
 
 def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
