@@ -241,13 +241,18 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
     bad value, 1 for a run that diverged or a disk that failed it."""
 
     def wrapped(cfg: DictConfig) -> None:
-        from armeta_rl.errors import ConfigError, RunDirectoryError, TrainingDiverged
+        from armeta_rl.errors import (
+            CollectionFailed,
+            ConfigError,
+            RunDirectoryError,
+            TrainingDiverged,
+        )
 
         try:
             task(cfg)
         except ConfigError as error:
             _fail(prog, str(error))
-        except TrainingDiverged as error:
+        except (TrainingDiverged, CollectionFailed) as error:
             _fail(prog, f"training stopped: {error}", code=1)
         except RunDirectoryError as error:
             _fail(prog, str(error), code=1)

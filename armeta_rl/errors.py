@@ -17,6 +17,11 @@ class ConfigError(ValueError):
         self.key, self.value, self.allowed = key, value, allowed
         super().__init__(f"config key '{key}' = {value!r}: {allowed}")
 
+    def __reduce__(self) -> tuple[type, tuple[str, Any, str]]:
+        """Pickle by the constructor's arguments, so that the error crosses process boundaries
+        (a Ray actor's or a worker process's env raising it)."""
+        return type(self), (self.key, self.value, self.allowed)
+
 
 class CheckpointBroken(ConfigError):
     """The run directory a key points at has no intact checkpoint to load (exit code 2)."""
@@ -44,3 +49,7 @@ class IdentifierError(ConfigError):
     def __init__(self, key: str, value: Any, allowed: str) -> None:
         self.key, self.value, self.allowed = key, value, allowed
         ValueError.__init__(self, f"tensordict key '{key}' = {value}: {allowed}")
+
+
+class CollectionFailed(RuntimeError):
+    """A collection worker died or stopped answering; the run stops, keeping its last checkpoint."""

@@ -14,6 +14,9 @@ from armeta_rl.cli import config_dir
 torch.set_num_threads(1)
 os.environ.setdefault("WANDB_MODE", "offline")
 os.environ.setdefault("WANDB_SILENT", "true")
+# Ray nodes started by the tests listen on the loopback only: Ray otherwise advertises this
+# machine's network address even for a single-machine instance.
+os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")
 
 SMALL_RUN = (
     "trainer.iterations=6",

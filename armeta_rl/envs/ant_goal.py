@@ -156,7 +156,7 @@ class AntGoalEnv(EnvBase):
         self.model = load_ant_model()
         self.n_sims = math.prod(self.batch_size)
         threads = (os.cpu_count() or 1) if threads is None else int(threads)
-        self.sim = Batch(self.model, self.n_sims, nthread=threads)
+        self.sim = self._make_batch(threads)
         self._torso = self.model.body(TORSO).id
         self._qpos, self._qvel, self._ctrl = (self.sim.bind(k) for k in ("qpos", "qvel", "ctrl"))
         self._cfrc_ext, self._xpos, self._xmat = (
@@ -195,6 +195,11 @@ class AntGoalEnv(EnvBase):
         self._goal = self.goal_range * (2 * unit - 1)
         self._steps = torch.zeros(*shape, 1, dtype=torch.long)
         self.sim.reset()
+
+    def _make_batch(self, threads: int) -> Batch:
+        """The ``n_sims`` simulations of the model, stepped natively on ``threads`` threads
+        (:class:`armeta_rl.envs.ant_goal_warp.AntGoalWarpEnv` puts them on MuJoCo Warp)."""
+        return Batch(self.model, self.n_sims, nthread=threads)
 
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:

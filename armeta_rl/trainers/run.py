@@ -17,7 +17,7 @@ from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, check_config, load_run_config
-from armeta_rl.errors import ConfigError, RunDirectoryError, TrainingDiverged
+from armeta_rl.errors import CollectionFailed, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, write_file
 from armeta_rl.trainers.density import DensityFrames
@@ -160,8 +160,9 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     with run_lock(run_dir, key):
         try:
             return _train_locked(cfg, run_dir, progress)
-        except (TrainingDiverged, RunDirectoryError, OSError) as error:
-            kind = TrainingDiverged if isinstance(error, TrainingDiverged) else RunDirectoryError
+        except (TrainingDiverged, CollectionFailed, RunDirectoryError, OSError) as error:
+            stopped = isinstance(error, (TrainingDiverged, CollectionFailed))
+            kind = type(error) if stopped else RunDirectoryError
             if isinstance(error, OSError):  # e.g. a log or eval.json on a full disk
                 error = f"cannot write {error.filename or run_dir}: {error.strerror or error}"
             kept = newest_intact(run_dir / "checkpoints")

@@ -1,0 +1,155 @@
+"""Seconds per MAML-TRPO meta-iteration on Ant goal-position against the number of Ray workers
+(issue "Scale: GPUs and distributed collection", item 4).
+
+A meta-iteration (``MAMLTRPOLeader.step``: rollouts before and after the inner step and the TRPO
+step) with ``--tasks`` tasks × ``--episodes`` episodes × ``--horizon`` steps (the paper: 40 × 20 ×
+200) is timed with
+
+* the single-process collector of ``ant_goal`` (``TaskSplitEpisodeCollector`` with one worker,
+  one MuJoCo thread per core), and
+* ``RayEpisodeCollector`` with each of ``--workers`` Ray actors (one MuJoCo thread each),
+
+in turns (local, Ray 1, Ray 2, ..., local, ...) so that every Ray row is a ratio to the local
+collector measured in the same turn: the machine's other load affects both sides of each ratio
+alike. Times are scaled linearly to the paper's 40 tasks (as ``bench_ant_goal.py``) and to a
+500-iteration run. The table, with the command and the date, replaces the section between this
+script's markers in ``docs/scale.md``.
+
+Ray: ``--address`` as ``benchmark.collector.address`` (none: a Ray instance of this machine in
+this process). The actors reserve ``--cpus-per-worker`` CPUs each (default 0, so that the actors of
+every worker count stay alive side by side on one machine between turns).
+
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_ray.py --tasks 4 --workers 1 2``; on a
+16-core machine ``--tasks 48 --workers 1 2 4 8 16`` (the worker counts must divide ``--tasks``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import re
+import shlex
+import statistics
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
+from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray
+from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, observation_size
+from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+from armeta_rl.tasks import BoxUniform, TaskSpace
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "scale.md"
+START, END = "<!-- bench_ant_ray:start -->", "<!-- bench_ant_ray:end -->"
+PAPER_TASKS, RUN_ITERATIONS = 40, 500
+
+
+def make_leader(collector, seed: int) -> MAMLTRPOLeader:
+    """MAML-TRPO with ant_goal's policy sizes, its network initialised from ``seed``."""
+    model = load_ant_model()
+    torch.manual_seed(seed)
+    return MAMLTRPOLeader(collector, obs_dim=observation_size(model), action_dim=model.nu)
+
+
+def timed_step(leader: MAMLTRPOLeader, tasks: TensorDict, seed: int) -> float:
+    """Seconds of one meta-iteration on ``tasks`` with equal task weights."""
+    count = tasks.batch_size[0]
+    torch.manual_seed(seed)
+    start = time.perf_counter()
+    leader.step(tasks, lambda losses: torch.full_like(losses, 1 / count))
+    return time.perf_counter() - start
+
+
+def table(names: list[str], times: dict[str, list[float]], tasks: int) -> list[str]:
+    """Markdown rows: median seconds, median ratio to the local collector of the same turn,
+    and the paper-size and 500-iteration figures."""
+    local = times[names[0]]
+    rows = ["| collector | s / iteration (median) | × local (median of turns) | "
+            f"s / iteration at {PAPER_TASKS} tasks | {RUN_ITERATIONS} iterations |",
+            "|---|---:|---:|---:|---:|"]
+    for name in names:
+        seconds = statistics.median(times[name])
+        ratio = statistics.median(t / ref for t, ref in zip(times[name], local))
+        scaled = seconds * PAPER_TASKS / tasks
+        rows.append(f"| {name} | {seconds:.1f} | {ratio:.2f} | {scaled:.0f} | "
+                    f"{RUN_ITERATIONS * scaled / 3600:.1f} h |")
+    return rows
+
+
+def write_section(lines: list[str], doc: Path) -> None:
+    """Replace the text between the markers in ``doc`` (appended if they are missing)."""
+    text = doc.read_text() if doc.exists() else ""
+    section = "\n".join([START, *lines, END])
+    pattern = re.compile(re.escape(START) + ".*?" + re.escape(END), re.DOTALL)
+    text = pattern.sub(lambda _: section, text) if pattern.search(text) else \
+        f"{text.rstrip()}\n\n{section}\n"
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    doc.write_text(text)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--tasks", type=int, default=PAPER_TASKS, help="meta-batch timed")
+    parser.add_argument("--episodes", type=int, default=20)
+    parser.add_argument("--horizon", type=int, default=200)
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2],
+                        help="Ray worker counts (1 to 16), each dividing --tasks")
+    parser.add_argument("--turns", type=int, default=2, help="timed meta-iterations per row")
+    parser.add_argument("--address", default=None,
+                        help="Ray cluster (none: a Ray instance of this machine)")
+    parser.add_argument("--cpus-per-worker", type=float, default=0.0)
+    parser.add_argument("--doc", type=Path, default=DOC)
+    parser.add_argument("--no-doc", action="store_true", help="print the table only")
+    args = parser.parse_args()
+    for workers in args.workers:
+        if not 1 <= workers <= 16 or args.tasks % workers:
+            parser.error(f"--workers {workers}: must be in 1..16 and divide --tasks {args.tasks}")
+    torch.set_num_threads(1)
+    connect_ray(args.address)
+
+    collectors = {"local (1 process, MuJoCo threads: one per core)": TaskSplitEpisodeCollector(
+        partial(AntGoalEnv, threads=None), args.episodes, args.horizon)}
+    for workers in args.workers:
+        collectors[f"Ray, {workers} worker{'s' if workers > 1 else ''}"] = RayEpisodeCollector(
+            partial(AntGoalEnv, threads=1), args.episodes, args.horizon, workers=workers,
+            address=args.address, cpus_per_worker=args.cpus_per_worker)
+    space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
+    torch.manual_seed(0)
+    tasks = BoxUniform(space).sample(args.tasks)
+    leaders = {name: make_leader(collector, 0) for name, collector in collectors.items()}
+    for leader in leaders.values():  # untimed: starts the actors and builds the envs
+        leader.collector.collect(tasks, policy=leader.net)
+
+    times: dict[str, list[float]] = {name: [] for name in leaders}
+    for turn in range(args.turns):
+        for name, leader in leaders.items():
+            times[name].append(timed_step(leader, tasks, turn))
+            print(f"turn {turn + 1}: {name}: {times[name][-1]:.1f} s", flush=True)
+    for collector in collectors.values():
+        collector.close()
+
+    names = list(leaders)
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    command = "OMP_NUM_THREADS=1 python benchmarks/bench_ant_ray.py " + shlex.join(sys.argv[1:])
+    lines = [
+        f"Measured {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC with "
+        f"`{command}` on {os.cpu_count()} CPUs (load average at the end: {load}); "
+        f"{args.tasks} tasks × {args.episodes} episodes × {args.horizon} steps, "
+        f"{args.turns} turns, scaled linearly to {PAPER_TASKS} tasks.",
+        "",
+        *table(names, times, args.tasks),
+    ]
+    print("\n".join(lines))
+    if not args.no_doc:
+        write_section(lines, args.doc)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,146 @@
+"""MuJoCo Warp Ant (AntGoalWarpEnv / WarpBatch) against the CPU MuJoCo dynamics, on warp's CPU
+device (and on CUDA where there is one).
+
+Tolerance (stated in docs/scale.md). Each check starts both engines from the same state and steps
+them with the same controls ("teacher forcing": the CPU state is copied into warp before every
+step), for 200 physics steps of the gymnasium Ant MJCF with random controls, while the Ant falls,
+lands and kicks (0 to 3 contacts). MuJoCo Warp computes in float32, CPU MuJoCo in float64:
+
+* frame-invariant friction (elliptic cone): |Δqpos| <= 1e-5 and |Δqvel| <= 1e-3 on every step,
+  contacts included; the torso position and orientation within 1e-5, the observed contact
+  forces clip(cfrc_ext, -1, 1) within 1e-2;
+* the MJCF as it is (pyramidal cone): away from contacts (none in either engine at the step's
+  start or end, nor at the next step's end), 95 % of the steps agree within |Δqpos| <= 1e-6 and
+  |Δqvel| <= 1e-5 (the rest touch the floor inside a Runge-Kutta stage); on every step
+  |Δqpos| <= 5e-3. With contacts the engines orient the friction pyramid's edges differently
+  about the contact normal (each a valid pyramid around the same Coulomb cone: their contact
+  frames differ, and with the frame-invariant elliptic cone the engines agree), so their contact
+  forces, and the velocities after an impact, differ.
+"""
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
+from armeta_rl.errors import ConfigError
+
+warp = pytest.importorskip("warp", reason="MuJoCo Warp is not installed (pip install "
+                                          "'armeta-rl[gpu]')")
+pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed")
+
+from armeta_rl.envs.ant_goal_warp import (  # noqa: E402
+    AntGoalWarpEnv,
+    WarpBatch,
+    ant_goal_warp,
+    find_warp_device,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+STEPS, WORLDS = 200, 2
+HAS_CUDA = warp.is_cuda_available()
+
+
+def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
+    """Per step and world: max |Δqpos|, max |Δqvel|, max |Δ torso xpos, xmat|, max |Δ clipped
+    cfrc_ext| and the contact count after the step (the larger of the two engines'), stepping
+    MjData (mj_step, then mj_forward at the new state) and WarpBatch from the same state."""
+    model = load_ant_model()
+    model.opt.cone = cone
+    datas = [mujoco.MjData(model) for _ in range(WORLDS)]
+    batch = WarpBatch(model, WORLDS, device)
+    rng = np.random.default_rng(0)
+    for data in datas:
+        data.qpos[:] = model.qpos0 + rng.uniform(-0.1, 0.1, model.nq)
+        data.qvel[:] = rng.normal(0.0, 0.1, model.nv)
+    torso = model.body("torso").id
+    out = {"qpos": [], "qvel": [], "torso": [], "forces": [], "ncon": []}
+    for _ in range(STEPS):
+        ctrl = rng.uniform(-1.0, 1.0, (WORLDS, model.nu))
+        for name in ("qpos", "qvel"):
+            batch.bind(name)[:] = [getattr(data, name) for data in datas]
+        batch.bind("ctrl")[:] = ctrl
+        batch.step(nstep=1)
+        for data, row in zip(datas, ctrl):
+            data.ctrl[:] = row
+            mujoco.mj_step(model, data)
+            mujoco.mj_forward(model, data)
+        out["qpos"].append(np.abs(batch.bind("qpos") - [d.qpos for d in datas]).max(-1))
+        out["qvel"].append(np.abs(batch.bind("qvel") - [d.qvel for d in datas]).max(-1))
+        pose = np.concatenate([batch.bind("xpos")[:, torso], batch.bind("xmat")[:, torso]], -1)
+        reference = [np.concatenate([d.xpos[torso], d.xmat[torso]]) for d in datas]
+        out["torso"].append(np.abs(pose - reference).max(-1))
+        forces = [np.clip(d.cfrc_ext, -1, 1) for d in datas]
+        out["forces"].append(np.abs(np.clip(batch.bind("cfrc_ext"), -1, 1) - forces).max((-2, -1)))
+        nacon = int(batch.data.nacon.numpy()[0])
+        warp_ncon = np.bincount(batch.data.contact.worldid.numpy()[:nacon], minlength=WORLDS)
+        out["ncon"].append(np.maximum([d.ncon for d in datas], warp_ncon))
+    return {key: np.array(value) for key, value in out.items()}
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not HAS_CUDA, reason="no CUDA device: MuJoCo Warp on the GPU is checked where there is one"))])
+def test_warp_equals_cpu_mujoco_with_frame_invariant_friction(device):
+    errors = _teacher_forced(mujoco.mjtCone.mjCONE_ELLIPTIC, device)
+    assert errors["ncon"].max() >= 2  # the check covers contact dynamics
+    assert errors["qpos"].max() <= 1e-5
+    assert errors["qvel"].max() <= 1e-3
+    assert errors["torso"].max() <= 1e-5
+    assert errors["forces"].max() <= 1e-2  # the observation's clip(cfrc_ext, -1, 1)
+
+
+def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
+    errors = _teacher_forced(mujoco.mjtCone.mjCONE_PYRAMIDAL, "cpu")
+    air = errors["ncon"] == 0
+    # no contact in either engine at the step's start, its end, or the next step's end
+    free = air & np.roll(air, 1, axis=0) & np.roll(air, -1, axis=0)
+    free[0], free[-1] = air[0] & air[1], False
+    assert free.sum() >= 40 and (~free).sum() >= 40  # both regimes are covered
+    assert np.quantile(errors["qpos"][free], 0.95) <= 1e-6
+    assert np.quantile(errors["qvel"][free], 0.95) <= 1e-5
+    assert np.quantile(errors["torso"][free], 0.95) <= 1e-6
+    assert np.isfinite(errors["qvel"]).all() and errors["qpos"].max() <= 5e-3
+
+
+def test_warp_env_resets_like_the_cpu_env_and_rolls_out():
+    """Same seed, same reset noise and goals: the first observations agree to float32 precision;
+    the env satisfies TorchRL's spec check and terminates like the CPU env's rule says."""
+    goals = TensorDict({"goal": torch.tensor([[[1.0, -2.0]], [[0.5, 3.0]]])}, [2, 1])
+    cpu = AntGoalEnv((2, 1), max_steps=5, seed=3)
+    env = AntGoalWarpEnv((2, 1), max_steps=5, seed=3, warp_device="cpu")
+    start, reference = env.reset(goals.clone()), cpu.reset(goals.clone())
+    torch.testing.assert_close(start["observation"], reference["observation"], atol=1e-6, rtol=0)
+    assert torch.equal(start["goal"], reference["goal"])
+    check_env_specs(env)
+    rollout = env.rollout(5, auto_reset=True)
+    height = rollout["next", "observation"][..., 2]
+    healthy = (height >= 0.2) & (height <= 1.0)
+    assert torch.equal(rollout["next", "terminated"].squeeze(-1), ~healthy)
+    assert rollout["next", "truncated"][..., -1, :].all()  # max_steps = 5
+
+
+@pytest.mark.skipif(HAS_CUDA, reason="this machine has CUDA")
+def test_warp_on_cuda_without_cuda_is_a_config_error(tmp_path):
+    with pytest.raises(ConfigError, match="benchmark.collector.make_env.warp_device"):
+        find_warp_device("cuda")
+    with pytest.raises(ConfigError, match="benchmark.collector.make_env.warp_device"):
+        ant_goal_warp(warp_device="cuda")
+    result = subprocess.run(
+        [sys.executable, "-c", "from armeta_rl.cli import train; train()",
+         "benchmark=ant_goal_warp", "logger=none", "trainer.iterations=1",
+         "trainer.meta_batch=2", "benchmark.collector.episodes=1",
+         "benchmark.collector.max_steps=2", f"hydra.run.dir={tmp_path}"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "warp_device" in lines[0] and "cuda" in lines[0]

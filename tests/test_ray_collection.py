@@ -1,0 +1,148 @@
+"""RayEpisodeCollector on a local Ray instance (this machine alone, 2 CPUs): its data for a seed
+equal the single-process collectors' bit for bit; a dead or silent worker ends the collection with
+a clear error instead of a hang; an address where no cluster answers is a one-line config
+error."""
+
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from functools import partial
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+ray = pytest.importorskip("ray", reason="Ray is not installed (pip install 'armeta-rl[ray]')")
+
+from armeta_rl.collectors.episodes import EpisodeCollector, valid_mask  # noqa: E402
+from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector  # noqa: E402
+from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray  # noqa: E402
+from armeta_rl.envs.ant_goal import AntGoalEnv  # noqa: E402
+from armeta_rl.errors import CollectionFailed, ConfigError  # noqa: E402
+from armeta_rl.rl.policy import GaussianMLP  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TASKS, EPISODES, STEPS = 4, 2, 15
+MAKE_ENV = partial(AntGoalEnv, healthy_z_range=(0.3, 0.7))  # early, staggered terminations
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.mark.parametrize("address", ["127.0.0.1:{port}", "ray://127.0.0.1:{port}", "nowhere"])
+def test_an_address_without_a_cluster_is_a_config_error(address):
+    if ray.is_initialized():
+        pytest.skip("this process has joined a Ray cluster already")
+    address = address.format(port=_free_port())
+    start = time.monotonic()
+    with pytest.raises(ConfigError, match="benchmark.collector.address"):
+        connect_ray(address, connect_timeout_s=2)
+    assert time.monotonic() - start < 10
+    assert not ray.is_initialized()
+
+
+def test_cli_unreachable_ray_address_is_one_line_and_exit_2(tmp_path):
+    address = f"127.0.0.1:{_free_port()}"
+    start = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-c", "from armeta_rl.cli import train; train()",
+         "benchmark=ant_goal_ray", f"benchmark.collector.address={address}",
+         "benchmark.collector.connect_timeout_s=2", "logger=none", f"hydra.run.dir={tmp_path}"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "benchmark.collector.address" in lines[0] and address in lines[0]
+    assert time.monotonic() - start < 60
+
+
+@pytest.fixture(scope="module")
+def local_cluster():
+    """A Ray instance of this machine alone, with 2 CPUs; its workers import armeta_rl from this
+    checkout."""
+    if ray.is_initialized():
+        ray.shutdown()
+    path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="ERROR",
+             log_to_driver=False,
+             runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}})
+    yield
+    ray.shutdown()
+
+
+def _policy_and_tasks() -> tuple[GaussianMLP, TensorDict, TensorDict]:
+    torch.manual_seed(3)
+    net = GaussianMLP(119, 8)
+    params = TensorDict(dict(net.named_parameters()), []).expand(TASKS).clone()
+    params["log_std"] = torch.linspace(-1.0, 0.5, TASKS)[:, None].expand(TASKS, 8).clone()
+    goals = TensorDict({"params": torch.tensor([[2.0, 1.0], [-1.0, 0.5], [0.0, -3.0], [3.0, 3.0]])},
+                       [TASKS])
+    return net, params, goals
+
+
+def _collect(collector, seed: int) -> TensorDict:
+    net, params, goals = _policy_and_tasks()
+    torch.manual_seed(seed)
+    return collector.collect(goals, params, policy=net)
+
+
+def test_ray_workers_equal_the_single_process_collectors(local_cluster):
+    """2 Ray actors give the data of the same split stepped in this process (TorchRL SerialEnv)
+    bit for bit, through terminations and automatic resets; 1 actor gives the data of the plain
+    single-process EpisodeCollector; the seed matters."""
+    ray2 = RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=2, timeout_s=120)
+    ray1 = RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=1, timeout_s=120)
+    serial = TaskSplitEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=2, in_process=True)
+    single = EpisodeCollector(partial(MAKE_ENV, seed=0), EPISODES, STEPS)
+    data = _collect(ray2, 0)
+    assert data.batch_size == torch.Size([TASKS, EPISODES, STEPS])
+    assert not data["mask"].all() and data["terminated"].any()  # resets inside the rollout
+    assert torch.equal(data["mask"], valid_mask(data["done"].squeeze(-1)))
+    assert (data == _collect(serial, 0)).all()
+    assert (data == _collect(ray2, 0)).all()  # the actors' envs are reseeded at every collect
+    assert not torch.equal(data["observation"], _collect(ray2, 1)["observation"])
+    ray2.close()  # hands its 2 CPUs back to the cluster
+    assert (_collect(ray1, 0) == _collect(single, 0)).all()
+    ray1.close()
+
+
+def test_a_worker_killed_mid_collection_stops_it_with_a_clear_error(local_cluster):
+    """The worker is killed while a long collection runs: the collection ends with
+    CollectionFailed soon after, not at the end of the horizon nor at the timeout."""
+    collector = RayEpisodeCollector(partial(AntGoalEnv, healthy_z_range=(-1.0, 10.0)), EPISODES,
+                                    100_000, workers=1, timeout_s=120)
+    env = collector.env(TASKS)  # starts the actor
+    killer = threading.Timer(1.0, ray.kill, [env.base_env.workers[0]])
+    start = time.monotonic()
+    killer.start()
+    with pytest.raises(CollectionFailed, match="Ray worker died during collection"):
+        _collect(collector, 0)
+    assert time.monotonic() - start < 30
+    collector.close()
+
+
+def test_a_silent_worker_times_out_instead_of_hanging(local_cluster):
+    collector = RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=1, timeout_s=0.001)
+    with pytest.raises(CollectionFailed, match=r"did not answer within 0.001 s"):
+        _collect(collector, 0)
+    collector.close()
+
+
+def test_bad_values_are_config_errors_also_from_inside_the_actors(local_cluster):
+    with pytest.raises(ConfigError, match="benchmark.collector.workers"):
+        _collect(RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=3), 0)
+    with pytest.raises(ConfigError, match="benchmark.collector.timeout_s"):
+        RayEpisodeCollector(MAKE_ENV, timeout_s=0)
+    bad_env = partial(AntGoalEnv, goal_range=-1.0)
+    collector = RayEpisodeCollector(bad_env, EPISODES, STEPS, workers=1, cpus_per_worker=0)
+    with pytest.raises(ConfigError, match="benchmark.collector.goal_range"):
+        _collect(collector, 0)
+    collector.close()
