@@ -32,6 +32,7 @@ from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks import TASK_KEY
 
 warp = pytest.importorskip("warp", reason="MuJoCo Warp is not installed (pip install "
                                           "'armeta-rl[gpu]')")
@@ -113,12 +114,12 @@ def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
 def test_warp_env_resets_like_the_cpu_env_and_rolls_out():
     """Same seed, same reset noise and goals: the first observations agree to float32 precision;
     the env satisfies TorchRL's spec check and terminates like the CPU env's rule says."""
-    goals = TensorDict({"goal": torch.tensor([[[1.0, -2.0]], [[0.5, 3.0]]])}, [2, 1])
+    goals = TensorDict({TASK_KEY: torch.tensor([[[1.0, -2.0]], [[0.5, 3.0]]])}, [2, 1])
     cpu = AntGoalEnv((2, 1), max_steps=5, seed=3)
     env = AntGoalWarpEnv((2, 1), max_steps=5, seed=3, warp_device="cpu")
     start, reference = env.reset(goals.clone()), cpu.reset(goals.clone())
     torch.testing.assert_close(start["observation"], reference["observation"], atol=1e-6, rtol=0)
-    assert torch.equal(start["goal"], reference["goal"])
+    assert torch.equal(start[TASK_KEY], reference[TASK_KEY])
     check_env_specs(env)
     rollout = env.rollout(5, auto_reset=True)
     height = rollout["next", "observation"][..., 2]
