@@ -69,10 +69,17 @@ def _maml(cfg: DictConfig, collector: Collector) -> Leader:
     from armeta_rl.learners.mlp import make_mlp
 
     opts = _section(cfg, "learner.maml")
+    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
+    target = OmegaConf.select(cfg, "benchmark.collector.target", default=None)
+    if head == "tied_angle" and target != "next":
+        raise ConfigError("benchmark.model.head", head,
+                          f"predicts the next observation: needs benchmark.collector.target=next, "
+                          f"not {target}")
     model = make_mlp(
         cfg.benchmark.model.in_features,
         cfg.benchmark.model.out_features,
         opts.pop("hidden", (128, 128, 128)),
+        head,
     )
     return MAMLLeader(model, collector, **opts)
 
@@ -80,6 +87,9 @@ def _maml(cfg: DictConfig, collector: Collector) -> Leader:
 def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
     from armeta_rl.learners.cnp import CNPLeader
 
+    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
+    if head != "none":
+        raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
     return CNPLeader(
         cfg.benchmark.model.in_features,
         cfg.benchmark.model.out_features,

@@ -5,10 +5,16 @@ The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. m
     ∇_φ J ≈ (1/K) Σ_k (L_k − V_k) ∇_φ ln p_φ(τ_k) + (λ/M) Σ_m ∇_φ ln p_φ(τ_m^0)
 
 with τ_k ~ p_φ the tasks the leader was scored on (held fixed) and V a baseline (Eq.
-meta_adversary_obj_1). The second term is the exact gradient of λ·E_{p0}[ln p_φ]: it needs samples
-τ_m^0 ~ p0 drawn independently, not the pre-images g⁻¹(τ_k) of the adversary's own samples as in
-the paper's Eq. meta_adversary_obj (those are distributed as p0 only at φ = φ_0 and are tied to
-the τ_k).
+meta_adversary_obj_1). The second term is the gradient of λ·E_{p0}[ln p_φ], estimated at draws
+τ_m^0 ~ p0. The paper's Eq. meta_adversary_obj evaluates it at the base draws τ_k^{-M} whose
+images NN_φ(τ_k^{-M}) are the tasks τ_k: those are draws of p0 for every φ (the flow moves their
+images, not them), so that estimate is unbiased as well. What differs is its variance and its
+coupling to the loss term: here the M = ``risk.ar.initial_samples`` (default 256) draws are fresh
+and independent of the tasks, where the paper reuses the K (16 to 25) draws that generated them,
+so its two terms are estimated from the same K points. The price is M extra log-density
+evaluations per update. (The authors' code, lvyiqin/AR-MAML, also evaluates this term under the
+flow before its batch min–max map into the box and only at draws whose inverse image lies in the
+box; docs/protocol.md.)
 """
 
 from __future__ import annotations
