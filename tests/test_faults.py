@@ -446,8 +446,6 @@ def test_a_run_saved_before_a_key_existed_resumes_with_its_old_behaviour(tmp_pat
     assert outcome(run_dir)[0] == outcome(whole)[0]
 
 
-@pytest.mark.xfail(strict=True, reason="EpisodeCollector builds its env at the first collect, "
-                   "drawing its seed from torch's global RNG: a resumed run draws it once more")
 def test_an_rl_run_resumes_exactly(tmp_path):
     overrides = (*SMALL_RUN, "benchmark=point_nav_plain", "method=maml", "trainer.iterations=4",
                  "trainer.checkpoint_every=2", "trainer.meta_batch=4", "eval.n_tasks=4")

@@ -8,7 +8,10 @@ collectors, learners, the flow) shows up here.
 
 PINNED was recorded on 2026-11-24 from commit 84c0d25 (the code before the one-task-key env
 changes of issue 26: envs reading "goal" for point navigation and Ant), torch 2.13.0 CPU,
-torchrl 0.14, one thread, on a CPU whose torch kernels are the AVX-512 ones. Kernels for other
+torchrl 0.14, one thread, on a CPU whose torch kernels are the AVX-512 ones. The point_nav_plain
+and ant_goal_smoke pins were re-recorded the same day when EpisodeCollector stopped drawing its
+env's construction seed from the run's RNG stream (that draw made resumed RL runs differ from
+uninterrupted ones). Kernels for other
 instruction sets round differently, so the pins hold for the capability they were recorded on
 and the test skips elsewhere. Re-record it only for a change that is meant to alter seeded
 numbers, and say so in the commit.
@@ -82,38 +85,38 @@ PINNED = {'sinusoid_uniform': {'initial': {'mean': 2.9855936586856844,
                                      'n_tasks': 4,
                                      'entropy': 0.36453136754952803,
                                      'kl_p0': 0.0004105643529592977}},
- 'point_nav_plain': {'initial': {'mean': -2.230182111263275,
-                                 'sem': 0.25218588113784784,
-                                 'cvar': {'0.5': -2.482367992401123,
-                                          '0.7': -2.482367992401123,
-                                          '0.9': -2.482367992401123},
+ 'point_nav_plain': {'initial': {'mean': -3.672600507736206,
+                                 'sem': 1.9705765247344968,
+                                 'cvar': {'0.5': -5.643177032470703,
+                                          '0.7': -5.643177032470703,
+                                          '0.9': -5.643177032470703},
                                  'n_tasks': 2,
                                  'entropy': 0.0,
                                  'kl_p0': 0.0},
-                     'adversarial': {'mean': -5.232632398605347,
-                                     'sem': 0.006286382675170898,
-                                     'cvar': {'0.5': -5.238918781280518,
-                                              '0.7': -5.238918781280518,
-                                              '0.9': -5.238918781280518},
+                     'adversarial': {'mean': -5.98090672492981,
+                                     'sem': 0.4990293979644775,
+                                     'cvar': {'0.5': -6.479936122894287,
+                                              '0.7': -6.479936122894287,
+                                              '0.9': -6.479936122894287},
                                      'n_tasks': 2,
-                                     'entropy': -0.00026990683798893577,
-                                     'kl_p0': -0.000152352109952795}},
- 'ant_goal_smoke': {'initial': {'mean': -24.478143215179443,
-                                'sem': 16.98555612564087,
-                                'cvar': {'0.5': -41.46369934082031,
-                                         '0.7': -41.46369934082031,
-                                         '0.9': -41.46369934082031},
+                                     'entropy': 6.409488244820384e-05,
+                                     'kl_p0': 0.00032133783362245523}},
+ 'ant_goal_smoke': {'initial': {'mean': -23.782832622528076,
+                                'sem': 17.656097888946533,
+                                'cvar': {'0.5': -41.43893051147461,
+                                         '0.7': -41.43893051147461,
+                                         '0.9': -41.43893051147461},
                                 'n_tasks': 2,
                                 'entropy': 3.58351893845611,
                                 'kl_p0': 0.0},
-                    'adversarial': {'mean': -37.27812385559082,
-                                    'sem': 3.8716526031494136,
-                                    'cvar': {'0.5': -41.149776458740234,
-                                             '0.7': -41.149776458740234,
-                                             '0.9': -41.149776458740234},
+                    'adversarial': {'mean': -37.8247013092041,
+                                    'sem': 4.223184585571289,
+                                    'cvar': {'0.5': -42.04788589477539,
+                                             '0.7': -42.04788589477539,
+                                             '0.9': -42.04788589477539},
                                     'n_tasks': 2,
-                                    'entropy': 3.583112296170637,
-                                    'kl_p0': 5.5068461004072395e-05}}}
+                                    'entropy': 3.5830550395446776,
+                                    'kl_p0': -0.0001179061922666184}}}
 
 
 @pytest.mark.parametrize("benchmark", list(RUNS))

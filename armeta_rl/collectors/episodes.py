@@ -87,10 +87,13 @@ class EpisodeCollector:
                 env.close()
 
     def env(self, tasks: int) -> EnvBase:
-        """The (cached) env of batch size ``[tasks, episodes]``."""
+        """The (cached) env of batch size ``[tasks, episodes]``. It is built under a forked RNG:
+        every :meth:`collect` reseeds it, so building it must draw nothing from the run's stream,
+        or a resumed run (which builds it again) would draw once more than an uninterrupted one."""
         if tasks not in self._envs:
-            self._envs[tasks] = self.make_env(batch_size=(tasks, self.episodes),
-                                              max_steps=self.max_steps)
+            with torch.random.fork_rng(devices=[]):
+                self._envs[tasks] = self.make_env(batch_size=(tasks, self.episodes),
+                                                  max_steps=self.max_steps)
         return self._envs[tasks]
 
     @torch.no_grad()
