@@ -286,7 +286,8 @@ def _simulations(env: EnvBase) -> _ModelList | _BatchSims:
     while isinstance(env, TransformedEnv):
         env = env.base_env
     if isinstance(env, SerialEnv):
-        env.start()
+        if env.is_closed:
+            env.start()
         subs = [_simulations(sub) for sub in env._envs]
         if all(isinstance(s, _ModelList) and len(s.models) == 1 for s in subs):
             return _ModelList([s.models[0] for s in subs], [s.datas[0] for s in subs])
