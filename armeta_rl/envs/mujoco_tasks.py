@@ -98,7 +98,9 @@ class PhysicsParameter:
     high: float
 
 
-def parse_parameters(entries: Sequence[Mapping[str, Any]], key: str = KEY) -> list[PhysicsParameter]:
+def parse_parameters(
+    entries: Sequence[Mapping[str, Any]], key: str = KEY
+) -> list[PhysicsParameter]:
     """The parameters of a YAML mapping list ``[{name, kind, target, low, high}, ...]``.
 
     Raises:
@@ -204,7 +206,7 @@ def _resolve(model: mujoco.MjModel, parameters: Sequence[PhysicsParameter]) -> l
                 count = getattr(model, _COUNTS[objtype])
                 names = [mujoco.mj_id2name(model, _OBJECTS[objtype], j) for j in range(count)]
                 raise ConfigError(f"{KEY}[{i}].target", parameter.target,
-                                  f"the model's {objtype}s are: "
+                                  f"allowed {objtype} names: "
                                   + ", ".join(n for n in names if n) + f", or '{ALL}'")
             ids = np.array([found])
         parameter_edits = []
@@ -256,7 +258,8 @@ class _ModelList:
             model = self.models[row]
             for j, parameter_edits in enumerate(edits):
                 for edit in parameter_edits:
-                    _field(model, edit.field)[edit.index] = _new_values(edit, params[row, j : j + 1])[0]
+                    values = _new_values(edit, params[row, j : j + 1])[0]
+                    _field(model, edit.field)[edit.index] = values
             mujoco.mj_setConst(model, self.datas[row])
 
 
@@ -337,6 +340,13 @@ class PhysicsTaskTransform(Transform):
         self._edits: list[list[_Edit]] = []
         self._params: torch.Tensor | None = None
 
+    def set_container(self, container: Transform | EnvBase) -> None:
+        """Attach to ``container``; inside a TransformedEnv, find the models at once, so that a
+        target the model lacks is reported when the env is built."""
+        super().set_container(container)
+        if isinstance(container, TransformedEnv):
+            self._bind()
+
     def _bind(self) -> None:
         """Find the simulations of the parent env and the model entries each parameter writes."""
         if self._sims is not None:
@@ -388,7 +398,9 @@ class PhysicsTaskTransform(Transform):
             self._params = torch.where(mask.reshape(*shape[:-1], 1), new, self._params)
         return tensordict
 
-    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+    def _reset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
         self._bind()
         tensordict_reset.set(PARAMS, self._params.to(tensordict_reset.device).clone())
         return tensordict_reset
