@@ -216,3 +216,17 @@ def test_bad_input_raises_one_clear_error():
     stepped = TransformedEnv(make_gym_task_env(load_task_family(CHEETAH)), StepCounter(2))
     with pytest.raises(ValueError, match="outside the task box"):
         stepped.reset(TensorDict({"params": torch.tensor([1.0, 1.0, 1.0, 1.0, 0.0])}))
+
+
+def test_another_key_and_every_joint():
+    """``key`` moves the identifiers to another entry; ``target: all`` scales the damping of
+    every degree of freedom of every simulation."""
+    parameters = [{"name": "damping", "kind": "joint_damping_scale", "target": "all",
+                   "low": 0.5, "high": 2.0}]
+    env = TransformedEnv(AntGoalEnv((1, 2), max_steps=5, seed=0),
+                         PhysicsTaskTransform(parameters, key="physics"))
+    td = env.reset(TensorDict({"physics": torch.full((1, 2, 1), 1.5)}, [1, 2]))
+    assert "params" not in td and (td["physics"] == 1.5).all()
+    nominal = load_ant_model().dof_damping
+    damping = env.base_env.sim.expanded("dof_damping")
+    np.testing.assert_array_equal(damping, np.broadcast_to(1.5 * nominal, damping.shape))

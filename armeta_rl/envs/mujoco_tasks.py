@@ -215,10 +215,7 @@ def _resolve(model: mujoco.MjModel, parameters: Sequence[PhysicsParameter]) -> l
             if field == "opt.gravity":
                 index = np.array([2])
             elif field == "dof_damping":
-                index = np.concatenate([
-                    np.arange(model.jnt_dofadr[j], model.jnt_dofadr[j] + _dof_count(model, j))
-                    for j in ids
-                ])
+                index = np.flatnonzero(np.isin(model.dof_jntid, ids))
             else:
                 width = flat.size // max(1, getattr(model, field).shape[0])
                 columns = np.arange(width) if column is None else np.array([column])
@@ -226,11 +223,6 @@ def _resolve(model: mujoco.MjModel, parameters: Sequence[PhysicsParameter]) -> l
             parameter_edits.append(_Edit(field, index, flat[index].copy(), scale))
         edits.append(parameter_edits)
     return edits
-
-
-def _dof_count(model: mujoco.MjModel, joint: int) -> int:
-    kind = model.jnt_type[joint]
-    return {mujoco.mjtJoint.mjJNT_FREE: 6, mujoco.mjtJoint.mjJNT_BALL: 3}.get(kind, 1)
 
 
 def nominal_params(edits: Sequence[Sequence[_Edit]]) -> list[float]:
@@ -319,6 +311,8 @@ class PhysicsTaskTransform(Transform):
 
     Args:
         parameters: the identifier dimensions, as :class:`PhysicsParameter` or YAML mappings.
+        key: the TensorDict key of the identifiers: ``"params"``, the package's one task key;
+            another only to stack this family on an env that already reads ``"params"``.
 
     Raises:
         ConfigError (a ValueError): a bad parameter list, a target the model lacks (when the
@@ -326,8 +320,13 @@ class PhysicsTaskTransform(Transform):
         ValueError: identifiers of the wrong width, non-finite, or outside the box.
     """
 
-    def __init__(self, parameters: Sequence[PhysicsParameter | Mapping[str, Any]]) -> None:
-        super().__init__(in_keys=[], out_keys=[PARAMS])
+    def __init__(
+        self,
+        parameters: Sequence[PhysicsParameter | Mapping[str, Any]],
+        key: str = PARAMS,
+    ) -> None:
+        super().__init__(in_keys=[], out_keys=[key])
+        self.key = key
         if all(isinstance(p, PhysicsParameter) for p in parameters):
             parameters = list(parameters)
             if not parameters:
@@ -364,7 +363,7 @@ class PhysicsTaskTransform(Transform):
         """``params`` as float64 ``[n, d]`` rows, or a ValueError naming the value and the box."""
         dim = self.space.dim
         if params.shape[-1] != dim:
-            raise ValueError(f"'{PARAMS}' has width {params.shape[-1]} (shape "
+            raise ValueError(f"'{self.key}' has width {params.shape[-1]} (shape "
                              f"{tuple(params.shape)}): the task family has {dim} identifiers "
                              f"{list(self.space.names)}")
         rows = params.detach().to("cpu", torch.float64).reshape(-1, dim)
@@ -374,19 +373,19 @@ class PhysicsTaskTransform(Transform):
             bad = rows[outside][0].tolist()
             box = ", ".join(f"{n} in [{lo:g}, {hi:g}]"
                             for n, lo, hi in zip(self.space.names, self.space.low, self.space.high))
-            raise ValueError(f"'{PARAMS}' = {bad}: outside the task box ({box})")
+            raise ValueError(f"'{self.key}' = {bad}: outside the task box ({box})")
         return rows
 
     def _reset_env_preprocess(self, tensordict: TensorDictBase | None) -> TensorDictBase | None:
         """Write the identifiers of the simulations being reset into their models."""
         self._bind()
-        params = None if tensordict is None else tensordict.get(PARAMS, None)
+        params = None if tensordict is None else tensordict.get(self.key, None)
         if params is None:
             return tensordict
         shape = self._params.shape
         rows = self.check_params(params.expand(shape) if params.dim() < len(shape) else params)
         if rows.shape[0] != math.prod(shape[:-1]):
-            raise ValueError(f"'{PARAMS}' has shape {tuple(params.shape)}: the env needs "
+            raise ValueError(f"'{self.key}' has shape {tuple(params.shape)}: the env needs "
                              f"{tuple(shape)}, one task per simulation")
         reset = tensordict.get("_reset", None)
         mask = (torch.ones(rows.shape[0], dtype=torch.bool) if reset is None
@@ -402,11 +401,11 @@ class PhysicsTaskTransform(Transform):
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
         self._bind()
-        tensordict_reset.set(PARAMS, self._params.to(tensordict_reset.device).clone())
+        tensordict_reset.set(self.key, self._params.to(tensordict_reset.device).clone())
         return tensordict_reset
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(PARAMS, self._params.to(next_tensordict.device).clone())
+        next_tensordict.set(self.key, self._params.to(next_tensordict.device).clone())
         return next_tensordict
 
     def _params_spec(self, shape: torch.Size, device: torch.device | None) -> Bounded:
@@ -416,12 +415,12 @@ class PhysicsTaskTransform(Transform):
                        shape=(*shape, dim), dtype=torch.get_default_dtype(), device=device)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        observation_spec[PARAMS] = self._params_spec(observation_spec.shape,
+        observation_spec[self.key] = self._params_spec(observation_spec.shape,
                                                      observation_spec.device)
         return observation_spec
 
     def transform_state_spec(self, state_spec: Composite) -> Composite:
-        state_spec[PARAMS] = self._params_spec(state_spec.shape, state_spec.device)
+        state_spec[self.key] = self._params_spec(state_spec.shape, state_spec.device)
         return state_spec
 
 
