@@ -8,8 +8,9 @@ physics family of a YAML file (default: HalfCheetah, torso mass scale × frictio
                  of each batch and ascends on the negative returns of those episodes
 
 Both start from the same seed and are evaluated on the same held-out grid of the box (the cell
-midpoints of a regular grid, one deterministic episode each): mean return, CVaR0.5 (the mean of
-the lowest half of the cell returns) and the worst cell. Results go to ``<out>/results.json``.
+midpoints of a 5 × 5 grid, the mean of 4 deterministic episodes each): mean return, CVaR0.5 (the
+mean of the lowest half of the cell returns) and the worst cell. Results go to
+``<out>/results.json``, the policies to ``<out>/actor_<source>_seed<seed>.pt``.
 
     python examples/ppo_domain_randomization.py --quick        # seconds: a smoke run
     python examples/ppo_domain_randomization.py --out runs/dr  # the full comparison
@@ -71,9 +72,11 @@ class Settings:
     adversary_lr: float = 3e-3
     adversary_lam: float = 0.0
     grid: int = 5
+    eval_episodes: int = 4
 
 
-QUICK = Settings(iterations=2, tasks=2, episode_steps=10, epochs=1, minibatch=10, grid=2)
+QUICK = Settings(iterations=2, tasks=2, episode_steps=10, epochs=1, minibatch=10, grid=2,
+                 eval_episodes=2)
 
 
 def make_env(family: TaskFamily, tasks: int, steps: int) -> TransformedEnv:
@@ -121,17 +124,20 @@ def cvar(returns: torch.Tensor, alpha: float = 0.5) -> float:
 
 def evaluate(actor: ProbabilisticActor, family: TaskFamily, settings: Settings,
              seed: int) -> dict[str, object]:
-    """Deterministic returns of ``actor`` on the grid midpoints of the box, one episode each."""
+    """Deterministic returns of ``actor`` on the grid midpoints of the box: each cell's return is
+    the mean of ``eval_episodes`` episodes (from different initial states), all in one batch."""
     grid, _ = family.space.grid(settings.grid, torch.float64)
-    env = make_env(family, len(grid), settings.episode_steps)
+    episodes = settings.eval_episodes
+    params = grid.to(torch.get_default_dtype()).repeat_interleave(episodes, 0)
+    env = make_env(family, len(params), settings.episode_steps)
     env.set_seed(seed)
-    params = grid.to(torch.get_default_dtype())
     with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        start = env.reset(TensorDict({"params": params}, [len(params)]))
         rollout = env.rollout(settings.episode_steps, actor, auto_reset=False,
-                              break_when_any_done=False,
-                              tensordict=env.reset(TensorDict({"params": params}, [len(grid)])))
+                              break_when_any_done=False, tensordict=start)
     env.close()
-    returns = rollout["next", "reward"].squeeze(-1).sum(-1).to(torch.float64)
+    episode_returns = rollout["next", "reward"].squeeze(-1).sum(-1).to(torch.float64)
+    returns = episode_returns.reshape(len(grid), episodes).mean(-1)
     return {
         "mean_return": float(returns.mean()),
         "cvar_0.5": cvar(returns),
@@ -139,12 +145,14 @@ def evaluate(actor: ProbabilisticActor, family: TaskFamily, settings: Settings,
         "worst_params": grid[int(returns.argmin())].tolist(),
         "grid_params": grid.tolist(),
         "grid_returns": returns.tolist(),
+        "episode_returns": episode_returns.reshape(len(grid), episodes).tolist(),
     }
 
 
-def train(source: str, family: TaskFamily, settings: Settings, seed: int,
+def train(source: str, family: TaskFamily, settings: Settings, seed: int, out: Path,
           log=print) -> dict[str, object]:
-    """Train PPO with tasks from ``source`` (``uniform`` or ``adversarial``); evaluate it."""
+    """Train PPO with tasks from ``source`` (``uniform`` or ``adversarial``), save the policy to
+    ``out/actor_<source>_seed<seed>.pt`` and evaluate it."""
     torch.manual_seed(seed)
     env = make_env(family, settings.tasks, settings.episode_steps)
     env.set_seed(seed)
@@ -195,6 +203,7 @@ def train(source: str, family: TaskFamily, settings: Settings, seed: int,
                                                   [settings.tasks]))
     collector.shutdown()
     result = {"train_seconds": time.perf_counter() - start, "history": history}
+    torch.save(actor.state_dict(), out / f"actor_{source}_seed{seed}.pt")
     result["eval"] = evaluate(actor, family, settings, seed + 1)
     if sampler is not None:
         result["adversary_samples"] = sampler.sample(256)["params"].tolist()
@@ -238,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
                    "seeds": args.seeds, "runs": {s: [] for s in args.sources}, "summary": {}}
         for seed in args.seeds:
             for source in args.sources:
-                results["runs"][source].append(train(source, family, settings, seed))
+                results["runs"][source].append(train(source, family, settings, seed, out))
                 results["summary"][source] = summary(results["runs"][source])
                 (out / "results.json").write_text(json.dumps(results, indent=1))
     except (ValueError, OSError) as error:

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -29,6 +30,11 @@ def test_ppo_domain_randomization_quick(tmp_path):
         evaluation = run["eval"]
         returns = sorted(evaluation["grid_returns"])
         assert len(returns) == example.QUICK.grid ** 2
+        episodes = torch.tensor(evaluation["episode_returns"], dtype=torch.float64)
+        assert episodes.shape == (len(returns), example.QUICK.eval_episodes)
+        assert torch.allclose(episodes.mean(-1), torch.tensor(evaluation["grid_returns"],
+                                                               dtype=torch.float64))
+        assert (tmp_path / f"actor_{source}_seed0.pt").exists()
         assert evaluation["worst_cell"] == returns[0]
         assert math.isclose(evaluation["cvar_0.5"], sum(returns[:2]) / 2, rel_tol=1e-12)
         assert math.isclose(evaluation["mean_return"], sum(returns) / len(returns), rel_tol=1e-12)
