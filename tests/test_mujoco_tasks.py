@@ -2,6 +2,7 @@
 identifiers survive automatic resets and a Collector, and bad input raises one clear error."""
 
 import os
+from functools import partial
 
 import gymnasium
 import mujoco
@@ -10,7 +11,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 from torchrl.collectors import Collector
-from torchrl.envs import StepCounter, TransformedEnv
+from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import RandomPolicy, check_env_specs
 
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
@@ -230,3 +231,20 @@ def test_another_key_and_every_joint():
     nominal = load_ant_model().dof_damping
     damping = env.base_env.sim.expanded("dof_damping")
     np.testing.assert_array_equal(damping, np.broadcast_to(1.5 * nominal, damping.shape))
+
+
+def test_transform_inside_each_sub_env_of_a_batched_env():
+    """The ParallelEnv layout (one transform per worker's env), here in a SerialEnv: the batched
+    env forwards each sub-env's row of "params" at reset and keeps it through auto-resets."""
+    family = load_task_family(CHEETAH)
+    env = SerialEnv(2, partial(make_gym_task_env, family, max_steps=2))
+    params = torch.tensor([PARAMS, [0.5, 1.5, 2.0, 2.0, -6.0]])
+    td = env.reset(TensorDict({"params": params}, [2]))
+    rollout = env.rollout(5, RandomPolicy(env.action_spec), tensordict=td, auto_reset=False,
+                          break_when_any_done=False)
+    assert rollout["next", "done"].sum() == 4
+    assert (rollout["next", "params"] == params[:, None]).all()
+    torso = mujoco.MjModel.from_xml_path(CHEETAH_XML).body("torso")
+    for sub, row in zip(env._envs, params.tolist()):
+        model = sub.base_env._env.unwrapped.model
+        assert model.body_mass[torso.id] == torso.mass[0] * row[0]

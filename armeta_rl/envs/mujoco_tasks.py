@@ -55,8 +55,8 @@ from typing import Any
 import mujoco
 import numpy as np
 import torch
-import yaml
 from mujoco.batch import Batch
+from omegaconf import OmegaConf
 from tensordict import TensorDictBase
 from torchrl.data import Bounded, Composite
 from torchrl.envs import EnvBase, GymEnv, SerialEnv, StepCounter, Transform, TransformedEnv
@@ -159,8 +159,7 @@ def load_task_family(source: str | os.PathLike | Mapping[str, Any]) -> TaskFamil
     if isinstance(source, Mapping):
         config = dict(source)
     else:
-        with open(source) as file:
-            config = yaml.safe_load(file)
+        config = OmegaConf.to_container(OmegaConf.load(source), resolve=True)
         if not isinstance(config, dict):
             raise ConfigError("task_family", config, "a mapping with 'env' and 'parameters'")
     unknown = set(config) - {"env", "parameters"}
