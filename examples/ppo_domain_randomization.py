@@ -29,6 +29,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -150,7 +151,7 @@ def evaluate(actor: ProbabilisticActor, family: TaskFamily, settings: Settings,
 
 
 def train(source: str, family: TaskFamily, settings: Settings, seed: int, out: Path,
-          log=print) -> dict[str, object]:
+          log: Callable[[str], None] = print) -> dict[str, object]:
     """Train PPO with tasks from ``source`` (``uniform`` or ``adversarial``), save the policy to
     ``out/actor_<source>_seed<seed>.pt`` and evaluate it."""
     torch.manual_seed(seed)

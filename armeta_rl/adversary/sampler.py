@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
@@ -77,7 +77,9 @@ class TaskSampler:
             raise ConfigError("n", n, "must be an integer >= 1")
         return self.adversary.sample(n)
 
-    def update(self, tasks: TensorDict | torch.Tensor, losses: torch.Tensor) -> dict[str, float]:
+    def update(
+        self, tasks: TensorDictBase | torch.Tensor, losses: torch.Tensor
+    ) -> dict[str, float]:
         """One ascent step of φ on the losses ``[K]`` of ``tasks`` (``{"params": [K, d]}`` or the
         params themselves; they need not come from :meth:`sample`, but the estimate is unbiased
         only for samples of the current p_φ). Returns the surrogate's statistics at the φ before
@@ -88,7 +90,7 @@ class TaskSampler:
             ValueError: losses that are not one per task.
             TrainingDiverged: non-finite losses or gradient; φ and Adam are left as they were.
         """
-        params = tasks["params"] if isinstance(tasks, TensorDict) else tasks
+        params = tasks["params"] if isinstance(tasks, TensorDictBase) else tasks
         losses = torch.as_tensor(losses).detach().to(torch.float64)
         if losses.shape != (len(params),):
             raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "

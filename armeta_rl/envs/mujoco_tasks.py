@@ -224,7 +224,7 @@ def _resolve(model: mujoco.MjModel, parameters: Sequence[PhysicsParameter]) -> l
     return edits
 
 
-def nominal_params(edits: Sequence[Sequence[_Edit]]) -> list[float]:
+def _nominal_params(edits: Sequence[Sequence[_Edit]]) -> list[float]:
     """The identifier that leaves the model as compiled: 1 for a scale, the nominal value of a
     replaced parameter (its first entry)."""
     return [1.0 if e[0].scale else float(e[0].nominal[0]) for e in edits]
@@ -338,6 +338,10 @@ class PhysicsTaskTransform(Transform):
         self._edits: list[list[_Edit]] = []
         self._params: torch.Tensor | None = None
 
+    def clone(self) -> PhysicsTaskTransform:
+        """A fresh copy, not yet bound to any env (it finds its models in its next parent)."""
+        return type(self)(self.parameters, key=self.key)
+
     def set_container(self, container: Transform | EnvBase) -> None:
         """Attach to ``container``; inside a TransformedEnv, find the models at once, so that a
         target the model lacks is reported when the env is built."""
@@ -354,7 +358,7 @@ class PhysicsTaskTransform(Transform):
             raise ConfigError("env", None, "PhysicsTaskTransform must be inside a TransformedEnv")
         sims = _simulations(parent)
         self._edits = _resolve(sims.model, self.parameters)
-        nominal = torch.tensor(nominal_params(self._edits), dtype=torch.get_default_dtype())
+        nominal = torch.tensor(_nominal_params(self._edits), dtype=torch.get_default_dtype())
         self._params = nominal.expand(*parent.batch_size, self.space.dim).clone()
         self._sims = sims
 
