@@ -44,6 +44,8 @@ CHECKS: tuple[tuple[str, Callable[[Any], bool], str], ...] = (
     ("trainer.log_every", _positive_int, "must be an integer >= 1"),
     ("trainer.checkpoint_every", _positive_int, "must be an integer >= 1"),
     ("trainer.stop_at", lambda v: v is None or _positive_int(v), "must be null or an integer >= 1"),
+    ("trainer.density_every", lambda v: _is_int(v) and v >= 0,
+     "must be an integer >= 0 (0: no density frames)"),
     ("eval.n_tasks", _positive_int, "must be an integer >= 1"),
     ("eval.alphas", _fractions, "must be a non-empty list of numbers in (0, 1)"),
     ("eval.seed", _is_int, "must be an integer"),

@@ -19,3 +19,15 @@ class ConfigError(ValueError):
 
 class TrainingDiverged(RuntimeError):
     """A loss or a flow output stopped being finite; the last good checkpoint is kept."""
+
+
+class IdentifierError(ValueError):
+    """Task identifiers handed to an env are not allowed (misplaced key, wrong width, a value
+    outside the env's range).
+
+    The message names the TensorDict key, the value given and what is allowed, on one line.
+    """
+
+    def __init__(self, key: str, value: Any, allowed: str) -> None:
+        self.key, self.value, self.allowed = key, value, allowed
+        super().__init__(f"tensordict key '{key}' = {value}: {allowed}")

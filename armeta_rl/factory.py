@@ -41,7 +41,9 @@ def build_initial(cfg: DictConfig, space: TaskSpace) -> TaskDistribution:
 
 
 def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collector:
-    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node)."""
+    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node); a collector
+    with a ``check_space`` method is handed the benchmark's box, so a box its env cannot take
+    (other identifier names or width, values outside the env's range) fails before training."""
     node = OmegaConf.select(cfg, key)
     if node is None or "_target_" not in node:
         raise ConfigError(
@@ -50,12 +52,16 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
             "needs a collector with a '_target_'",
         )
     try:
-        return instantiate(node)
+        collector = instantiate(node)
     except InstantiationException as error:
         # A collector's own ConfigError, not Hydra's wrapper around it, is what the CLI reports.
         if isinstance(error.__cause__, ConfigError):
             raise error.__cause__ from None
         raise
+    check_space = getattr(collector, "check_space", None)
+    if check_space is not None:
+        check_space(build_space(cfg))
+    return collector
 
 
 def _maml(cfg: DictConfig, collector: Collector) -> Leader:

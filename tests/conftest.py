@@ -22,6 +22,7 @@ SMALL_RUN = (
     "trainer.progress=false",
     "eval.n_tasks=20",
     "logger=none",
+    "trainer.density_every=0",
 )
 """Overrides that make any benchmark/method run in a couple of seconds."""
 

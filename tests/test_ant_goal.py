@@ -27,7 +27,7 @@ CTRL, CONTACT, SURVIVE = 5e-3, 5e-4, 0.05
 
 def goals_td(env: AntGoalEnv, goals: torch.Tensor) -> TensorDict:
     tasks, episodes = env.batch_size
-    return TensorDict({"goal": goals[:, None].expand(tasks, episodes, 2)}, env.batch_size)
+    return TensorDict({"params": goals[:, None].expand(tasks, episodes, 2)}, env.batch_size)
 
 
 def reward_from_transition(td: TensorDict) -> torch.Tensor:
@@ -35,7 +35,7 @@ def reward_from_transition(td: TensorDict) -> torch.Tensor:
     obs = td["next", "observation"]
     xy, forces = obs[..., 116:118], obs[..., 29:107]
     return (
-        -(xy - td["goal"]).abs().sum(-1)
+        -(xy - td["params"]).abs().sum(-1)
         - CTRL * td["action"].square().sum(-1)
         - CONTACT * forces.square().sum(-1)
         + SURVIVE
@@ -121,8 +121,8 @@ def test_goals_survive_automatic_resets_in_rollout():
         break_when_any_done=False,
     )
     expected = goals[:, None, None].expand(2, 3, 17, 2)
-    assert torch.equal(rollout["goal"], expected)
-    assert torch.equal(rollout["next", "goal"], expected)
+    assert torch.equal(rollout["params"], expected)
+    assert torch.equal(rollout["next", "params"], expected)
     truncated = rollout["next", "truncated"][0, 0, :, 0]
     assert truncated.nonzero().flatten().tolist() == [4, 9, 14]  # three automatic resets
     reward = rollout["next", "reward"].squeeze(-1)
@@ -134,9 +134,9 @@ def test_goals_reach_the_env_through_transforms():
     env.append_transform(RewardSum())
     check_env_specs(env)
     goals = torch.tensor([[-2.5, 1.0], [0.0, 2.0]])
-    start = env.reset(TensorDict({"goal": goals[:, None]}, [2, 1]))
+    start = env.reset(TensorDict({"params": goals[:, None]}, [2, 1]))
     rollout = env.rollout(7, tensordict=start, auto_reset=False, break_when_any_done=False)
-    assert torch.equal(rollout["next", "goal"], goals[:, None, None].expand(2, 1, 7, 2))
+    assert torch.equal(rollout["next", "params"], goals[:, None, None].expand(2, 1, 7, 2))
     assert rollout["next", "step_count"].max() == 3
 
 
@@ -149,7 +149,7 @@ def test_goals_survive_resets_in_collector():
     )
     for data in collector:
         assert data.batch_size == torch.Size([2, 2, 10])
-        assert torch.equal(data["goal"], goals[:, None, None].expand(2, 2, 10, 2))
+        assert torch.equal(data["params"], goals[:, None, None].expand(2, 2, 10, 2))
         assert data["next", "done"].any()
         torch.testing.assert_close(
             data["next", "reward"].squeeze(-1), reward_from_transition(data),
@@ -209,7 +209,7 @@ def test_task_split_collector_equals_per_worker_single_process_envs():
         assert (data == other).all()
     assert not torch.allclose(data["observation"], runs[3]["observation"])
     assert data.batch_size == torch.Size([tasks, episodes, steps])
-    assert torch.equal(data["goal"], goals["params"][:, None, None].expand_as(data["goal"]))
+    assert torch.equal(data["params"], goals["params"][:, None, None].expand_as(data["params"]))
     assert torch.equal(data["mask"], valid_mask(data["done"].squeeze(-1)))
     assert not data["mask"].all() and data["terminated"].any()
 

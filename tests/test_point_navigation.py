@@ -17,7 +17,7 @@ from armeta_rl.rl.policy import GaussianMLP, make_actor
 
 
 def reset_with_goals(env: PointNavigationEnv, goals: torch.Tensor) -> TensorDict:
-    return env.reset(TensorDict({"goal": goals}, env.batch_size))
+    return env.reset(TensorDict({"params": goals}, env.batch_size))
 
 
 def test_check_env_specs_plain_and_sparse() -> None:
@@ -67,8 +67,8 @@ def test_goals_survive_automatic_resets() -> None:
     # after each reset the robot is back at the origin ...
     assert (rollout["observation"][..., [10, 20], :] == 0).all()
     # ... and every step, before and after the resets, was played against the same goal
-    assert (rollout["goal"] == goals[:, :, None]).all()
-    assert (rollout["next", "goal"] == goals[:, :, None]).all()
+    assert (rollout["params"] == goals[:, :, None]).all()
+    assert (rollout["next", "params"] == goals[:, :, None]).all()
     offset = rollout["next", "observation"] - goals[:, :, None]
     torch.testing.assert_close(rollout["next", "reward"], -offset.norm(dim=-1, keepdim=True))
 
@@ -77,24 +77,24 @@ def test_goals_survive_reset_and_automatic_resets_under_transformed_env() -> Non
     env = TransformedEnv(PointNavigationEnv((2, 3), max_steps=4, seed=0), StepCounter())
     env.append_transform(RewardSum())
     goals = torch.tensor([[0.4, -0.3], [-0.2, 0.1]])[:, None].expand(2, 3, 2).clone()
-    start = env.reset(TensorDict({"goal": goals}, env.batch_size))
-    assert torch.equal(start["goal"], goals)
+    start = env.reset(TensorDict({"params": goals}, env.batch_size))
+    assert torch.equal(start["params"], goals)
     rollout = env.rollout(10, tensordict=start, auto_reset=False, break_when_any_done=False)
     assert rollout["next", "done"].squeeze(-1)[..., 3].all()  # reset inside the rollout
-    assert (rollout["goal"] == goals[:, :, None]).all()
+    assert (rollout["params"] == goals[:, :, None]).all()
     offset = rollout["next", "observation"] - goals[:, :, None]
     torch.testing.assert_close(rollout["next", "reward"], -offset.norm(dim=-1, keepdim=True))
 
 
 def test_reset_without_goal_keeps_goals_and_seed_draws_defaults() -> None:
     a, b, c = (PointNavigationEnv((4, 2), seed=s) for s in (3, 3, 4))
-    goals_a = a.reset()["goal"]
-    torch.testing.assert_close(goals_a, b.reset()["goal"])
-    assert not torch.equal(goals_a, c.reset()["goal"])
+    goals_a = a.reset()["params"]
+    torch.testing.assert_close(goals_a, b.reset()["params"])
+    assert not torch.equal(goals_a, c.reset()["params"])
     assert goals_a.abs().max() <= 0.5
     new = torch.full((4, 2, 2), 0.2)
     reset_with_goals(a, new)
-    assert torch.equal(a.reset()["goal"], new)
+    assert torch.equal(a.reset()["params"], new)
 
 
 @pytest.mark.parametrize(
@@ -154,7 +154,7 @@ def test_runs_under_collector_with_probabilistic_actor_and_transforms() -> None:
     assert len(batches) == 2
     for batch in batches:
         assert batch.batch_size == (2, 3, 8)
-        goals = batch["goal"]
+        goals = batch["params"]
         assert (goals == goals[:, :, :1]).all()  # constant across the resets at steps 5 and 10
         assert (batch["next", "step_count"] <= 5).all()
         # the actor's samples are stochastic and its log-probs match a diagonal Gaussian
@@ -181,7 +181,7 @@ def test_episode_collector_shapes_goals_and_masked_returns() -> None:
     goals = torch.tensor([[0.0, 0.005], [0.3, -0.4]])
     data = collector.collect(TensorDict({"params": goals}, [2]), policy=net)
     assert data.batch_size == (2, 3, 20)
-    assert (data["goal"] == goals[:, None, None]).all()
+    assert (data["params"] == goals[:, None, None]).all()
     # returns count only the steps of the first episode of each batch entry
     manual = torch.zeros(2, 3)
     for k in range(2):

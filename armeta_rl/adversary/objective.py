@@ -21,6 +21,7 @@ from torch import Tensor
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY
 
 BASELINES = ("mean", "leave_one_out")
 
@@ -65,7 +66,7 @@ def adversary_surrogate(
         λ·mean ln p_φ(τ^0) of J, ``loss_mean``, ``entropy`` −mean ln p_φ(τ_k) (the τ_k are
         samples of p_φ) and ``kl_p0`` mean[ln p0(τ^0) − ln p_φ(τ^0)].
     """
-    params = tasks["params"] if isinstance(tasks, TensorDictBase) else tasks
+    params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
     losses = losses.detach().to(torch.float64)
     advantages = losses - score_baseline(losses, baseline)
     points = torch.cat([params.to(torch.float64), initial_params.to(torch.float64)]).detach()

@@ -1,7 +1,8 @@
 """Episode collector for meta-RL: every task × episode rolls out in one batched env call.
 
-``collect(tasks, policy_params, policy)`` runs ``episodes`` episodes per task in a goal-conditioned
-env (point navigation, Ant goal) of batch size ``[K, episodes]`` with
+``collect(tasks, policy_params, policy)`` runs ``episodes`` episodes per task in a task-conditioned
+env (point navigation, Ant goal, any env taking its identifiers under
+:data:`~armeta_rl.tasks.TASK_KEY`) of batch size ``[K, episodes]`` with
 ``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
 ``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
 steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
@@ -17,9 +18,18 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
+from armeta_rl.envs.point_navigation import (
+    GOAL_HIGH,
+    GOAL_LOW,
+    GOAL_NAMES,
+    PointNavigationEnv,
+    Region,
+    check_regions,
+)
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
+from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.space import TaskSpace
 
 
 def valid_mask(done: torch.Tensor) -> torch.Tensor:
@@ -29,12 +39,13 @@ def valid_mask(done: torch.Tensor) -> torch.Tensor:
 
 
 class EpisodeCollector:
-    """Collects ``[K, episodes, max_steps]`` trajectories for ``K`` goals in any goal-conditioned
+    """Collects ``[K, episodes, max_steps]`` trajectories for ``K`` tasks in any task-conditioned
     env of batch size ``[tasks, episodes]`` (point navigation, Ant goal, ...).
 
     Args:
         make_env: builds the env, called as ``make_env(batch_size=(K, episodes),
-            max_steps=max_steps)``; the env reads ``"goal"`` from the reset TensorDict and keeps it.
+            max_steps=max_steps)``; the env reads the identifiers under ``"params"``
+            (``TASK_KEY``) from the reset TensorDict and keeps them.
             In a Hydra config this is a ``_partial_: true`` node.
         episodes: episodes per task (the paper: 20).
         max_steps: episode length limit.
@@ -42,8 +53,9 @@ class EpisodeCollector:
     The returned TensorDict has batch ``[K, episodes, max_steps]`` and keys ``"observation"``,
     ``"action"``, ``"log_prob"`` (of the action under the collecting policy), ``"reward"``,
     ``"done"``, ``"terminated"``, ``"truncated"`` (``[..., 1]``), ``"mask"`` (bool, the step is part
-    of the episode) and ``"goal"``. The env is reseeded from torch's global RNG at every call, so
-    ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes the whole collection.
+    of the episode) and ``"params"`` (the task identifiers). The env is reseeded from torch's
+    global RNG at every call, so ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes
+    the whole collection.
     """
 
     def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,
@@ -72,16 +84,15 @@ class EpisodeCollector:
         policy: GaussianMLP | None = None,
     ) -> TensorDict:
         """Roll out ``policy`` (with ``policy_params`` ``[K]`` if given, else its own parameters)
-        for every task in ``tasks["params"]`` (goals ``[K, 2]``)."""
+        for every task in ``tasks["params"]`` (identifiers ``[K, d]``)."""
         if policy is None:
             raise ValueError("EpisodeCollector.collect needs the policy network")
-        goals = tasks["params"]
-        n_tasks = goals.shape[0]
+        identifiers = tasks[TASK_KEY]
+        n_tasks = identifiers.shape[0]
         env = self.env(n_tasks)
         env.set_seed(int(torch.randint(0, 2**62, ())))
-        start = env.reset(
-            TensorDict({"goal": goals[:, None].expand(n_tasks, self.episodes, 2)}, env.batch_size)
-        )
+        start = env.reset(TensorDict(
+            {TASK_KEY: identifiers[:, None].expand(n_tasks, self.episodes, -1)}, env.batch_size))
         actor = make_actor(policy, policy_params)
         with set_exploration_type(ExplorationType.RANDOM):
             rollout = env.rollout(
@@ -98,7 +109,7 @@ class EpisodeCollector:
                 "terminated": rollout["next", "terminated"],
                 "truncated": rollout["next", "truncated"],
                 "mask": valid_mask(done),
-                "goal": rollout["goal"],
+                TASK_KEY: rollout[TASK_KEY],
             },
             batch_size=rollout.batch_size,
         )
@@ -121,6 +132,16 @@ class PointNavigationCollector(EpisodeCollector):
         make_env = partial(PointNavigationEnv, sparse_regions=check_regions(sparse_regions),
                            squared_distance=bool(squared_distance), seed=seed)
         super().__init__(make_env, episodes, max_steps)
+
+    def check_space(self, space: TaskSpace) -> None:
+        """Refuse a task box other than goals (x, y) inside the env's ``[-0.5, 0.5]²``."""
+        if space.dim != len(GOAL_NAMES):
+            raise ConfigError("benchmark.space.names", list(space.names),
+                              "point navigation takes 2 identifiers (goal_x, goal_y)")
+        if min(space.low) < GOAL_LOW or max(space.high) > GOAL_HIGH:
+            raise ConfigError("benchmark.space", {"low": list(space.low),
+                                                  "high": list(space.high)},
+                              f"goals must lie in [{GOAL_LOW}, {GOAL_HIGH}]²")
 
 
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:

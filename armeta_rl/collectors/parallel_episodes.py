@@ -3,12 +3,12 @@ meta-RL on MuJoCo": use every core through several processes, each worker owning
 tasks).
 
 :class:`TaskSplitEpisodeCollector` is an :class:`~armeta_rl.collectors.episodes.EpisodeCollector`
-whose env of batch size ``[K, episodes]`` is ``workers`` copies of the goal-conditioned env, each
+whose env of batch size ``[K, episodes]`` is ``workers`` copies of the task-conditioned env, each
 of batch size ``[K / workers, episodes]`` in its own process (TorchRL ``ParallelEnv``), seen
 through a TorchRL ``BatchSizeTransform`` that reshapes ``[workers, K / workers, episodes]`` to
 ``[K, episodes]`` and back (task ``k`` lives in worker ``k // (K / workers)``). The per-task
 policy of the collector (task ``k``'s parameters on row ``k``) therefore runs unchanged in the
-main process, and workers exchange only TensorDicts of observations, actions and goals, so the
+main process, and workers exchange only TensorDicts of observations, actions and identifiers, so the
 same split maps onto TorchRL's remote collectors later.
 
 Seeding: every ``collect`` reseeds the env from torch's global RNG (as ``EpisodeCollector``);
@@ -65,7 +65,7 @@ def make_task_split_env(
         split = ParallelEnv(workers, make, mp_start_method=mp_start_method, num_sub_threads=1,
                             num_threads=torch.get_num_threads())
     reshape = BatchSizeTransform(reshape_fn=partial(_reshape, shape=(tasks, episodes)))
-    reshape.enable_inv_on_reset = True  # reset TensorDicts ("goal", "_reset") go to the workers
+    reshape.enable_inv_on_reset = True  # reset TensorDicts ("params", "_reset") go to the workers
     return TransformedEnv(split, reshape)
 
 
@@ -87,7 +87,7 @@ class TaskSplitEpisodeCollector(EpisodeCollector):
 
     Output and seeding as :class:`EpisodeCollector`: ``[K, episodes, max_steps]`` with
     ``"observation"``, ``"action"``, ``"log_prob"``, ``"reward"``, ``"done"``, ``"terminated"``,
-    ``"truncated"``, ``"mask"`` and ``"goal"``.
+    ``"truncated"``, ``"mask"`` and ``"params"``.
     """
 
     def __init__(

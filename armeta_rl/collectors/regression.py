@@ -6,12 +6,13 @@ import torch
 from tensordict import TensorDict
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 class SinusoidCollector:
     """Draws ``n_support + n_query`` points per task from y = a·sin(x − b), x ~ U[x_low, x_high].
 
-    ``tasks["params"]`` is ``[K, 2]`` with columns (amplitude a, phase b). Returns a TensorDict
+    ``tasks[TASK_KEY]`` is ``[K, 2]`` with columns (amplitude a, phase b). Returns a TensorDict
     ``[K]`` ``{"support": {"x", "y"}, "query": {"x", "y"}}`` of shapes ``[K, points, 1]``. All K
     tasks are drawn in one batched call from torch's global generator.
     """
@@ -29,7 +30,7 @@ class SinusoidCollector:
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query points for every task (``policy_params`` is unused here)."""
-        params = tasks["params"]
+        params = tasks[TASK_KEY]
         k, n = params.shape[0], self.n_support + self.n_query
         amplitude, phase = params[:, 0, None, None], params[:, 1, None, None]
         x = self.x_low + (self.x_high - self.x_low) * torch.rand(

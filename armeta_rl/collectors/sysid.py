@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from tensordict import TensorDict
 from torch import Tensor
@@ -12,6 +14,8 @@ from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.space import TaskSpace
 
 ENVIRONMENTS: dict[str, type[IdentifiedSystemEnv]] = {
     "pendulum": PendulumEnv,
@@ -73,11 +77,16 @@ class SysIdCollector:
         device: torch device of the environments and the returned data.
         compile: compile the env steps: ``False``, ``True`` (inductor) or a backend name; see
             :mod:`armeta_rl.compiling`.
+        identifiers: the env's task identifiers, in the order of ``"params"`` (default: the
+            env's :attr:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.param_names`, e.g.
+            ``[m, l]``; the pendulum also takes ``g``). A benchmark sets it to
+            ``${benchmark.space.names}``.
     """
 
     def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
                  episodes: int = 20, target: str = "delta", normalize: str = "none",
-                 device: str = "cpu", compile: bool | str | None = False) -> None:
+                 device: str = "cpu", compile: bool | str | None = False,
+                 identifiers: Sequence[str] | None = None) -> None:
         if env not in ENVIRONMENTS:
             raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
         if not isinstance(n_transitions, int) or n_transitions < 2:
@@ -96,6 +105,13 @@ class SysIdCollector:
             raise ConfigError("benchmark.collector.normalize", normalize,
                               f"allowed: {', '.join(NORMALIZATIONS)}")
         self.env_name, self.env_cls = env, ENVIRONMENTS[env]
+        known = tuple(self.env_cls.identifier_defaults)
+        if identifiers is not None and (
+                not identifiers or len(set(identifiers)) < len(identifiers)
+                or not set(identifiers) <= set(known)):
+            raise ConfigError("benchmark.collector.identifiers", list(identifiers),
+                              f"distinct names among {', '.join(known)} ({env})")
+        self.identifiers = tuple(self.env_cls.param_names if identifiers is None else identifiers)
         self.n_transitions, self.n_support, self.episodes = n_transitions, n_support, episodes
         self.target, self.normalize, self.device = target, normalize, torch.device(device)
         self.backend = compile_backend("benchmark.collector.compile", compile)
@@ -125,8 +141,20 @@ class SysIdCollector:
             compile = None if self.backend is None else {
                 "backend": self.backend, "dynamic": False}
             self._envs[n_tasks] = self.env_cls(batch_size=(n_tasks, self.episodes), seed=0,
-                                               device=self.device, compile=compile)
+                                               device=self.device, compile=compile,
+                                               identifiers=self.identifiers)
         return self._envs[n_tasks]
+
+    def check_space(self, space: TaskSpace) -> None:
+        """Refuse a task box the env cannot take: names other than its identifiers, or a lower
+        corner that is not positive (masses, lengths and gravity are > 0)."""
+        if space.names != self.identifiers:
+            raise ConfigError("benchmark.space.names", list(space.names),
+                              f"the {self.env_name} collector takes the identifiers "
+                              f"{list(self.identifiers)} (benchmark.collector.identifiers)")
+        if not all(low > 0 for low in space.low):
+            raise ConfigError("benchmark.space.low", list(space.low),
+                              f"{self.env_name} identifiers must be > 0")
 
     def rollout(self, params: Tensor) -> TensorDict:
         """Random-policy rollout ``[K, episodes, steps]`` of the systems ``params`` ``[K, d]``."""
@@ -135,14 +163,14 @@ class SysIdCollector:
         env.set_seed(int(torch.randint(0, 2**62, ())))
         batch = (n_tasks, self.episodes)
         params = params.to(self.device)[:, None].expand(*batch, -1)
-        reset = env.reset(TensorDict({"params": params}, batch_size=batch, device=self.device))
+        reset = env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
         return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
                            auto_reset=False, break_when_any_done=False)
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query transitions for every task: TensorDict ``[K]`` with
         ``{"support", "query"}`` × ``{"x", "y"}``, tensors ``[K, points, features]``."""
-        params = tasks["params"]
+        params = tasks[TASK_KEY]
         n_tasks, n_points = params.shape[0], self.n_transitions
         data = self.rollout(params)
         observation = data["observation"].reshape(n_tasks, n_points, -1)

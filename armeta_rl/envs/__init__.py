@@ -1,7 +1,15 @@
 """Batched TorchRL environments (batch size ``[tasks, episodes]``) whose task identifiers are
-set through the reset TensorDict and kept across automatic resets."""
+set under ``"params"`` (:data:`armeta_rl.tasks.TASK_KEY`) in the reset TensorDict and kept across
+automatic resets.
+
+All four are imported eagerly: ``torchrl.envs`` already imports MuJoCo, so the Ant env adds no
+measurable start-up time.
+"""
 
 from armeta_rl.envs.acrobot import AcrobotEnv
+from armeta_rl.envs.ant_goal import AntGoalEnv
+from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
+from armeta_rl.envs.point_navigation import PointNavigationEnv
 
-__all__ = ["AcrobotEnv", "PendulumEnv"]
+__all__ = ["AcrobotEnv", "AntGoalEnv", "IdentifiedSystemEnv", "PendulumEnv", "PointNavigationEnv"]

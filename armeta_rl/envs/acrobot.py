@@ -36,7 +36,7 @@ class AcrobotEnv(IdentifiedSystemEnv):
     """
 
     param_names = ("m1", "m2")
-    default_params = (1.0, 1.0)
+    identifier_defaults = {"m1": 1.0, "m2": 1.0}
     state_dim = 4
     observation_dim = 6
     dt = 0.2
@@ -156,12 +156,12 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return torch.add(state, slope, alpha=self.dt / 6.0)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        state = self._state_rows(tensordict["state"])
         torque = torch.sub(tensordict["action"].reshape(self.n_envs).to(self.dtype), self.one)
-        state = self._rk4(state, torque)
+        state = self._rk4(self._state, torque)
         self._wrap_angles_(state[:2])
         state[2:].clamp_(self.min_velocity, self.max_velocity)
         observation = self._observe_rows(state)
         terminated = (observation[0] + observation[6]) < self.minus_one
         reward = terminated.to(self.dtype).sub_(self.one)
+        self._state = state
         return self._output(state.T, observation[: self.observation_dim].T, reward, terminated)

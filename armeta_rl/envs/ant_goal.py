@@ -39,12 +39,14 @@ sensor changes nothing else. Training splits the tasks over worker processes (To
 :class:`armeta_rl.collectors.parallel_episodes.TaskSplitEpisodeCollector`
 (``benchmark.collector.workers``).
 
-Goals are passed as ``"goal"`` (``[*batch, 2]``) in the reset TensorDict and kept in the env's
-state across automatic (partial) resets; a reset without ``"goal"`` keeps the current goals, and
-goals never set are drawn uniformly from ``[-goal_range, goal_range]²`` with the env's seeded
-generator. ``"goal"`` is emitted with every observation so trajectories carry their task; it is
-also declared in the state spec so that resets through TorchRL transforms (``TransformedEnv``
-forwards only reset and state keys) still deliver it.
+Goals are passed as ``"params"`` (:data:`~armeta_rl.tasks.TASK_KEY`, ``[*batch, 2]``: goal_x,
+goal_y) in the reset TensorDict and kept in the env's state across automatic (partial) resets; a
+reset without ``"params"`` keeps the current goals, and goals never set are drawn uniformly from
+``[-goal_range, goal_range]²`` with the env's seeded generator. Goals under another key
+(``"goal"``), of another width or not finite raise :class:`~armeta_rl.errors.IdentifierError`.
+``"params"`` is emitted with every observation so trajectories carry their task; it is also
+declared in the state spec so that resets through TorchRL transforms (``TransformedEnv`` forwards
+only reset and state keys) still deliver it.
 """
 
 from __future__ import annotations
@@ -63,9 +65,11 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
 
 ANT_XML = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "ant.xml")
 TORSO = "torso"
+GOAL_NAMES = ("goal_x", "goal_y")
 KEY = "benchmark.collector"
 _ACC = mujoco.mjtStage.mjSTAGE_ACC.value
 _NONE = mujoco.mjtStage.mjSTAGE_NONE.value
@@ -164,13 +168,14 @@ class AntGoalEnv(EnvBase):
         shape, dtype = self.batch_size, torch.get_default_dtype()
         low, high = self.model.actuator_ctrlrange.T
         self.observation_spec = Composite(
-            observation=Unbounded(shape=(*shape, self._obs.shape[1]), dtype=dtype),
-            goal=Unbounded(shape=(*shape, 2), dtype=dtype),
+            {"observation": Unbounded(shape=(*shape, self._obs.shape[1]), dtype=dtype),
+             TASK_KEY: Unbounded(shape=(*shape, 2), dtype=dtype)},
             shape=shape,
         )
-        # "goal" is also a state entry, so that TransformedEnv (which passes only reset and state
-        # keys to the base env's reset) forwards it; the env's own copy stays authoritative.
-        self.state_spec = Composite(goal=Unbounded(shape=(*shape, 2), dtype=dtype), shape=shape)
+        # The goal is also a state entry, so that TransformedEnv (which passes only reset and
+        # state keys to the base env's reset) forwards it; the env's own copy stays authoritative.
+        self.state_spec = Composite({TASK_KEY: Unbounded(shape=(*shape, 2), dtype=dtype)},
+                                    shape=shape)
         self.action_spec = Bounded(
             torch.as_tensor(low, dtype=dtype).expand(*shape, self.model.nu),
             torch.as_tensor(high, dtype=dtype).expand(*shape, self.model.nu),
@@ -213,7 +218,7 @@ class AntGoalEnv(EnvBase):
         shape, dtype = self.batch_size, torch.get_default_dtype()
         observation = torch.from_numpy(self._obs).to(dtype).reshape(*shape, -1)
         return TensorDict(
-            {"observation": observation, "goal": self._goal.to(dtype), **extra},
+            {"observation": observation, TASK_KEY: self._goal.to(dtype), **extra},
             batch_size=shape,
             device=self.device,
         )
@@ -226,9 +231,9 @@ class AntGoalEnv(EnvBase):
             if reset is None
             else reset.reshape(*shape, 1).cpu()
         )
-        goal = None if tensordict is None else tensordict.get("goal", None)
+        goal = read_identifiers(tensordict, GOAL_NAMES, -math.inf, math.inf, shape)
         if goal is not None:
-            goal = goal.to("cpu", torch.float64).expand_as(self._goal)
+            goal = goal.to("cpu", torch.float64)
             self._goal = torch.where(mask, goal, self._goal)
         self._steps = torch.where(mask, torch.zeros_like(self._steps), self._steps)
         ids = np.flatnonzero(mask.reshape(-1).numpy())

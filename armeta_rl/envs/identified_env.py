@@ -5,13 +5,20 @@ task: the task identifiers (pendulum mass and length, acrobot link masses) are p
 of the simulator. Subclasses write the batched physics; this base class owns what they share:
 
 * batch size ``[tasks, episodes]``; every tensor entry carries it as leading dimensions;
-* ``"params"`` ``[*batch, d]`` (identifiers in the order of :attr:`param_names`) is read from the
-  reset TensorDict and kept: the env stores the last identifiers it was given, so an automatic
-  (partial) reset inside ``env.rollout`` or ``torchrl.collectors.Collector`` — which passes only
-  ``"_reset"`` — restores them. Steps simulate the stored identifiers and report them under
-  ``"params"`` like an observation. A reset TensorDict without ``"params"`` keeps the stored ones;
-* ``"state"`` ``[*batch, state_dim]`` is the exact simulator state (the observation is a function
-  of it); ``env.reset(td, set_state=True)`` starts from ``td["state"]`` instead of a random one;
+* ``"params"`` (:data:`~armeta_rl.tasks.TASK_KEY`) ``[*batch, d]`` (identifiers in the order of
+  :attr:`param_names`, chosen with ``identifiers=`` among :attr:`identifier_defaults`) is read
+  from the reset TensorDict and kept: the env stores the last identifiers it was given, so an
+  automatic (partial) reset inside ``env.rollout`` or ``torchrl.collectors.Collector`` restores
+  them. ``"params"`` is declared in the state spec as well as the observation spec, so
+  ``TransformedEnv`` (which hands the base env only reset and state keys) and batched envs forward
+  it. Steps simulate the stored identifiers and report them under ``"params"`` like an
+  observation. A reset TensorDict without ``"params"`` keeps the stored ones; identifiers under
+  another key, of another width, or not positive and finite raise
+  :class:`~armeta_rl.errors.IdentifierError` (:func:`armeta_rl.tasks.protocol.read_identifiers`);
+* the exact simulator state is kept by the env (the observation is a function of it) and reported
+  as the observation ``"state"`` ``[*batch, state_dim]``; a step reads only ``"action"``, so
+  transforms may drop or cast ``"state"``. ``env.reset(td, set_state=True)`` starts from
+  ``td["state"]`` instead of a random one;
 * a ``torch.Generator`` owned by the env draws the random initial states (``set_seed``).
 
 The physics runs on flat ``[tasks * episodes, ...]`` views with few, fused tensor ops: a step
@@ -35,6 +42,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
 
 
 class IdentifiedSystemEnv(EnvBase):
@@ -46,10 +54,13 @@ class IdentifiedSystemEnv(EnvBase):
         device: torch device of every tensor.
         dtype: floating dtype of the state, observation and reward (float64 to compare with
             gymnasium, which integrates in float64).
+        identifiers: the names of the task identifiers, in the order of ``"params"``'s last
+            dimension, among :attr:`identifier_defaults` (default :attr:`param_names`); the
+            others stay at their defaults.
     """
 
     param_names: tuple[str, ...] = ()
-    default_params: tuple[float, ...] = ()
+    identifier_defaults: dict[str, float] = {}
     state_dim: int = 0
     observation_dim: int = 0
     observation_high: tuple[float, ...] = ()
@@ -57,10 +68,18 @@ class IdentifiedSystemEnv(EnvBase):
     _supports_set_state = True
 
     def __init__(self, batch_size: Sequence[int] = (1, 1), seed: int | None = None,
-                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32) -> None:
+                 device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
+                 identifiers: Sequence[str] | None = None) -> None:
         batch_size = torch.Size(batch_size)
         if any(n < 1 for n in batch_size):
             raise ConfigError("env.batch_size", list(batch_size), "every dimension must be >= 1")
+        if identifiers is not None:
+            names = tuple(str(name) for name in identifiers)
+            known = tuple(self.identifier_defaults)
+            if not names or len(set(names)) < len(names) or not set(names) <= set(known):
+                raise ConfigError("env.identifiers", list(identifiers),
+                                  f"distinct names among {', '.join(known)}")
+            self.param_names = names
         super().__init__(device=device, batch_size=batch_size)
         self.dtype = dtype
         self.n_envs = batch_size.numel()
@@ -69,8 +88,11 @@ class IdentifiedSystemEnv(EnvBase):
         self.pi = torch.tensor(math.pi, dtype=dtype, device=self.device)
         self.two_pi = 2 * self.pi
         self._precompute()
-        default = torch.tensor(self.default_params, dtype=dtype, device=self.device)
+        default = [self.identifier_defaults[name] for name in self.param_names]
+        default = torch.tensor(default, dtype=dtype, device=self.device)
         self._identify(default.expand(*batch_size, len(self.param_names)).clone())
+        self._state = self._state_rows(torch.zeros(*batch_size, self.state_dim, dtype=dtype,
+                                                  device=self.device))
         self._make_specs()
         if seed is None:
             seed = int(torch.randint(0, 2**62, ()))
@@ -78,12 +100,14 @@ class IdentifiedSystemEnv(EnvBase):
 
     def _make_specs(self) -> None:
         batch, kwargs = self.batch_size, {"dtype": self.dtype, "device": self.device}
+        params = Unbounded(shape=(*batch, len(self.param_names)), **kwargs)
         self.observation_spec = Composite(
-            observation=self._observation_bounds(),
-            state=Unbounded(shape=(*batch, self.state_dim), **kwargs),
-            params=Unbounded(shape=(*batch, len(self.param_names)), **kwargs),
+            {"observation": self._observation_bounds(),
+             "state": Unbounded(shape=(*batch, self.state_dim), **kwargs),
+             TASK_KEY: params},
             shape=batch,
         )
+        self.state_spec = Composite({TASK_KEY: params.clone()}, shape=batch)
         self.action_spec = self._make_action_spec()
         self.reward_spec = Unbounded(shape=(*batch, 1), **kwargs)
         done = Categorical(n=2, shape=(*batch, 1), dtype=torch.bool, device=self.device)
@@ -161,24 +185,36 @@ class IdentifiedSystemEnv(EnvBase):
         tensordict.set("action", action)
         return tensordict
 
+    def _input_td_has_state(self, tensordict: TensorDictBase | None) -> bool:
+        """Whether a reset TensorDict carries a simulator state to start from: ``"state"`` only.
+        TorchRL counts every state-spec entry, and would warn about ``set_state`` on every reset
+        that hands the env its identifiers."""
+        return tensordict is not None and "state" in tensordict
+
     def _reset(self, tensordict: TensorDictBase | None, set_state: bool = False,
                **kwargs) -> TensorDictBase:
         """New episodes where ``"_reset"`` is set (all if absent), with the stored identifiers
-        updated from ``tensordict["params"]`` when given."""
+        updated from ``tensordict["params"]`` when given (checked by
+        :func:`~armeta_rl.tasks.protocol.read_identifiers`: positive and finite)."""
         tensordict = tensordict if tensordict is not None else TensorDict({}, self.batch_size)
         reset = tensordict.get("_reset", None)
-        params = tensordict.get("params", None)
+        params = read_identifiers(tensordict, self.param_names, 0.0, math.inf, self.batch_size,
+                                  open_low=True)
         if params is not None:
-            params = params.to(self.task_params).expand_as(self.task_params)
+            params = params.to(self.task_params)
             self._identify(params.clone() if reset is None else torch.where(
                 reset, params, self.task_params))
         state = tensordict.get("state", None)
         if not set_state or state is None:
             state = self._initial_state()
         state = state.to(self.dtype)
-        observation = self._observe_rows(self._state_rows(state))[: self.observation_dim].T
+        rows = self._state_rows(state)
+        if reset is not None:
+            rows = torch.where(reset.reshape(1, self.n_envs), rows, self._state)
+        self._state = rows
+        observation = self._observe_rows(rows)[: self.observation_dim].T
         done = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
-        return self._output(state, observation, None, done)
+        return self._output(rows.T, observation, None, done)
 
     def _output(self, state: Tensor, observation: Tensor, reward: Tensor | None,
                 terminated: Tensor) -> TensorDictBase:
@@ -188,7 +224,7 @@ class IdentifiedSystemEnv(EnvBase):
         out = {
             "state": state.reshape(*batch, self.state_dim),
             "observation": observation.reshape(*batch, self.observation_dim),
-            "params": self.task_params.clone(),
+            TASK_KEY: self.task_params.clone(),
             "done": terminated.reshape(*batch, 1),
             "terminated": terminated.reshape(*batch, 1).clone(),
         }

@@ -1,5 +1,5 @@
-"""Batched pendulum with mass and length as task identifiers (paper, appendix "System
-Identification"; the dynamics of gymnasium's ``Pendulum-v1``)."""
+"""Batched pendulum with mass and length (and optionally gravity) as task identifiers (paper,
+appendix "System Identification"; the dynamics of gymnasium's ``Pendulum-v1``)."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 class PendulumEnv(IdentifiedSystemEnv):
     """Gymnasium's ``Pendulum-v1`` for a batch ``[tasks, episodes]`` of pendulums.
 
-    Each step (dt = 0.05, g = 10), with torque ``u`` clipped to ``[-2, 2]``::
+    Each step (dt = 0.05, g = 10 unless an identifier), with torque ``u`` clipped to
+    ``[-2, 2]``::
 
         θ̇' = clip(θ̇ + (3g / (2l) sin θ + 3 / (m l²) u) dt, -8, 8),   θ' = θ + θ̇' dt
 
@@ -25,12 +26,13 @@ class PendulumEnv(IdentifiedSystemEnv):
     θ ∈ [-π, π], θ̇ ∈ [-1, 1]. The pendulum never terminates; wrap the env in
     ``torchrl.envs.StepCounter(max_steps=200)`` for gymnasium's time limit.
 
-    Entries: ``"observation"`` (cos θ, sin θ, θ̇), ``"state"`` (θ, θ̇), ``"params"`` (m, l),
-    ``"action"`` ``[*batch, 1]`` (the torque).
+    Entries: ``"observation"`` (cos θ, sin θ, θ̇), ``"state"`` (θ, θ̇), ``"params"`` (m, l by
+    default; ``identifiers=("m", "l", "g")`` adds gravity, any subset of the three may be
+    chosen), ``"action"`` ``[*batch, 1]`` (the torque).
     """
 
     param_names = ("m", "l")
-    default_params = (1.0, 1.0)
+    identifier_defaults = {"m": 1.0, "l": 1.0, "g": 10.0}
     state_dim = 2
     observation_dim = 3
     dt = 0.05
@@ -64,9 +66,14 @@ class PendulumEnv(IdentifiedSystemEnv):
 
     def _physical_constants(self, params: Tensor) -> Tensor:
         """Per env ``(3g / (2l) dt, 3 / (m l²) dt)``: the velocity change per unit of sin θ
-        and of torque."""
-        mass, length = params.unbind(-1)
-        gravity = 3 * self.g / (2 * length) * self.dt
+        and of torque; m, l and g are the identifiers or their defaults."""
+        named = dict(zip(self.param_names, params.unbind(-1), strict=True))
+        ones = params.new_ones(params.shape[0])
+        mass, length, g = (named.get(name, ones * self.identifier_defaults[name])
+                           for name in ("m", "l", "g"))
+        # reciprocal then product, as ``3 * 10.0 / tensor`` computes it (Tensor.__rtruediv__):
+        # the same rounding as before gravity became an identifier
+        gravity = (2 * length).reciprocal() * (3 * g) * self.dt
         inertia = 3.0 / (mass * length**2) * self.dt
         return torch.stack([gravity, inertia], -1)
 
@@ -80,17 +87,17 @@ class PendulumEnv(IdentifiedSystemEnv):
         return observation
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        state = self._state_rows(tensordict["state"])
-        theta, theta_dot = state
+        theta, theta_dot = self._state
         torque = self.torque(tensordict["action"].reshape(self.n_envs)).to(self.dtype)
         gravity, inertia = self.constants
         costs = torch.stack([theta, theta_dot, torque])
         self._wrap_angles_(costs[0])
         reward = torch.mm(self.cost_weights, costs.square_())
-        new_state = torch.empty_like(state)
+        new_state = torch.empty_like(self._state)
         new_theta, new_theta_dot = new_state
         torch.addcmul(theta_dot, gravity, theta.sin(), out=new_theta_dot).addcmul_(inertia, torque)
         new_theta_dot.clamp_(-self.max_speed, self.max_speed)
         self._wrap_angles_(torch.add(theta, new_theta_dot, alpha=self.dt, out=new_theta))
         terminated = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
+        self._state = new_state
         return self._output(new_state.T, self._observe_rows(new_state).T, reward, terminated)

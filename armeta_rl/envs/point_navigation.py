@@ -25,6 +25,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
 
 Region = tuple[tuple[float, float], tuple[float, float], float]
 """((x_low, x_high), (y_low, y_high), reward_scale)."""
@@ -35,6 +36,7 @@ PAPER_SPARSE_REGIONS: tuple[Region, ...] = (
 )
 
 GOAL_LOW, GOAL_HIGH = -0.5, 0.5
+GOAL_NAMES = ("goal_x", "goal_y")
 MAX_SPEED = 0.1
 GOAL_TOLERANCE = 0.01
 REGIONS_KEY = "benchmark.collector.sparse_regions"
@@ -72,12 +74,14 @@ def goal_reward_scale(goal: torch.Tensor, regions: Sequence[Region]) -> torch.Te
 class PointNavigationEnv(EnvBase):
     """Point-robot navigation with batch size ``[tasks, episodes]`` (pure batched torch).
 
-    The goal of every batch entry is set through ``"goal"`` (shape ``[*batch, 2]``) in the reset
-    TensorDict and is kept in the env's state, so automatic (partial) resets inside
-    ``env.rollout`` or a collector keep each entry's task. A reset without ``"goal"`` keeps the
-    current goals; goals that were never set are drawn uniformly from ``[-0.5, 0.5]²`` with the
-    env's seeded generator. ``"goal"`` is also emitted with every observation, so trajectories
-    carry their task; policies read only ``"observation"``.
+    The goal of every batch entry is set through ``"params"`` (:data:`~armeta_rl.tasks.TASK_KEY`,
+    shape ``[*batch, 2]``: goal_x, goal_y) in the reset TensorDict and is kept in the env's state,
+    so automatic (partial) resets inside ``env.rollout`` or a collector keep each entry's task. A
+    reset without ``"params"`` keeps the current goals; goals that were never set are drawn
+    uniformly from ``[-0.5, 0.5]²`` with the env's seeded generator. Goals under another key
+    (``"goal"``), of another width or outside ``[-0.5, 0.5]²`` raise
+    :class:`~armeta_rl.errors.IdentifierError`. ``"params"`` is also emitted with every
+    observation, so trajectories carry their task; policies read only ``"observation"``.
 
     Args:
         batch_size: ``[tasks, episodes]`` (any batch shape works).
@@ -105,19 +109,16 @@ class PointNavigationEnv(EnvBase):
         self.squared_distance = bool(squared_distance)
         shape = self.batch_size
         dtype = torch.get_default_dtype()
+        goal = Bounded(GOAL_LOW, GOAL_HIGH, shape=(*shape, 2), dtype=dtype, device=self.device)
         self.observation_spec = Composite(
-            observation=Unbounded(shape=(*shape, 2), dtype=dtype, device=self.device),
-            goal=Bounded(GOAL_LOW, GOAL_HIGH, shape=(*shape, 2), dtype=dtype, device=self.device),
+            {"observation": Unbounded(shape=(*shape, 2), dtype=dtype, device=self.device),
+             TASK_KEY: goal},
             shape=shape,
             device=self.device,
         )
-        # "goal" is also a state entry, so that TransformedEnv (which passes only reset and state
-        # keys to the base env's reset) forwards it; the env's own copy stays authoritative.
-        self.state_spec = Composite(
-            goal=Bounded(GOAL_LOW, GOAL_HIGH, shape=(*shape, 2), dtype=dtype, device=self.device),
-            shape=shape,
-            device=self.device,
-        )
+        # The goal is also a state entry, so that TransformedEnv (which passes only reset and
+        # state keys to the base env's reset) forwards it; the env's own copy stays authoritative.
+        self.state_spec = Composite({TASK_KEY: goal.clone()}, shape=shape, device=self.device)
         self.action_spec = Bounded(
             -MAX_SPEED, MAX_SPEED, shape=(*shape, 2), dtype=dtype, device=self.device
         )
@@ -151,7 +152,7 @@ class PointNavigationEnv(EnvBase):
         if reset is None:
             reset = torch.ones(*shape, 1, dtype=torch.bool, device=self.device)
         mask = reset.reshape(*shape, 1)
-        goal = None if tensordict is None else tensordict.get("goal", None)
+        goal = read_identifiers(tensordict, GOAL_NAMES, GOAL_LOW, GOAL_HIGH, shape)
         if goal is not None:
             goal = goal.to(self._goal.dtype).expand_as(self._goal)
             self._goal = torch.where(mask, goal, self._goal)
@@ -162,7 +163,7 @@ class PointNavigationEnv(EnvBase):
         return TensorDict(
             {
                 "observation": self._position.clone(),
-                "goal": self._goal.clone(),
+                TASK_KEY: self._goal.clone(),
                 "done": false,
                 "terminated": false.clone(),
                 "truncated": false.clone(),
@@ -184,7 +185,7 @@ class PointNavigationEnv(EnvBase):
         return TensorDict(
             {
                 "observation": self._position.clone(),
-                "goal": self._goal.clone(),
+                TASK_KEY: self._goal.clone(),
                 "reward": reward,
                 "done": terminated | truncated,
                 "terminated": terminated,

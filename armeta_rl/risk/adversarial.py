@@ -22,6 +22,7 @@ from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 class AdversarialPrinciple(nn.Module):
@@ -186,7 +187,7 @@ class AdversarialPrinciple(nn.Module):
         drawn = state.get("drawn") or {}
         self._drawn = None
         if drawn:
-            tasks = TensorDict(dict(drawn), batch_size=[len(drawn["params"])])
+            tasks = TensorDict(dict(drawn), batch_size=[len(drawn[TASK_KEY])])
             self._drawn = {"tasks": tasks, "versions": None}
 
     def _stamp_drawn(self, *_: Any) -> None:

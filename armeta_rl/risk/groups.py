@@ -25,6 +25,7 @@ from torch import Tensor, nn
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 def project_to_simplex(v: Tensor) -> Tensor:
@@ -81,7 +82,7 @@ class _GroupPrinciple(nn.Module):
     def propose(self, n: int) -> TensorDict:
         """``n`` tasks from p0; their groups are kept for the :meth:`weights` call that follows."""
         tasks = self.initial.sample(n)
-        self._last_groups = self.group_of(tasks["params"])
+        self._last_groups = self.group_of(tasks[TASK_KEY])
         return tasks
 
     def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
@@ -95,7 +96,7 @@ class _GroupPrinciple(nn.Module):
         trainer's ``propose`` → ``leader.step(tasks, principle.weights)``).
         """
         if tasks is not None:
-            groups = self.group_of(tasks["params"])
+            groups = self.group_of(tasks[TASK_KEY])
         elif self._last_groups is not None:
             groups = self._last_groups
         else:
@@ -112,7 +113,7 @@ class _GroupPrinciple(nn.Module):
 
     def group_losses(self, tasks: TensorDict, losses: Tensor) -> tuple[Tensor, Tensor]:
         """Mean loss per group ``[G]`` (0 where absent) and the mask of groups present ``[G]``."""
-        groups = self.group_of(tasks["params"]).to(self.q.device)
+        groups = self.group_of(tasks[TASK_KEY]).to(self.q.device)
         losses = losses.detach().to(self.q)
         counts = torch.bincount(groups, minlength=self.num_groups).to(self.q)
         sums = torch.zeros_like(self.q).index_add(0, groups, losses)

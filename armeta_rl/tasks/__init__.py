@@ -6,6 +6,14 @@ from armeta_rl.tasks.distributions import (
     TruncatedNormal,
     make_initial,
 )
+from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 
-__all__ = ["BoxUniform", "TaskDistribution", "TaskSpace", "TruncatedNormal", "make_initial"]
+__all__ = [
+    "TASK_KEY",
+    "BoxUniform",
+    "TaskDistribution",
+    "TaskSpace",
+    "TruncatedNormal",
+    "make_initial",
+]

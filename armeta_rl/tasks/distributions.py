@@ -16,6 +16,7 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 
 
@@ -52,7 +53,7 @@ class TaskDistribution(nn.Module):
         log-densities ``[n]``, in the default dtype."""
         dtype = torch.get_default_dtype()
         return TensorDict(
-            {"params": self._cast_inside(params, dtype), "log_prob": log_prob.to(dtype)},
+            {TASK_KEY: self._cast_inside(params, dtype), "log_prob": log_prob.to(dtype)},
             batch_size=[len(params)],
         )
 

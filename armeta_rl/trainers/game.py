@@ -18,6 +18,7 @@ from tqdm.auto import tqdm
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 
 LogFn = Callable[[dict[str, float], int], None]
@@ -34,6 +35,8 @@ class GameTrainer:
         log: called with the scalars of an iteration and its number, every ``log_every``.
         checkpoint: where to save every ``checkpoint_every`` iterations (``None``: never).
         progress: show a tqdm bar with the iteration and current losses.
+        after_iteration: called with the iteration number after every iteration (after its
+            logging and checkpoint), e.g. to draw the adversary's density.
     """
 
     def __init__(
@@ -48,19 +51,20 @@ class GameTrainer:
         checkpoint: RunCheckpoint | None = None,
         checkpoint_every: int = 500,
         progress: bool = True,
+        after_iteration: Callable[[int], None] | None = None,
     ) -> None:
         self.leader, self.principle = leader, principle
         self.iterations, self.meta_batch = iterations, meta_batch
         self.log, self.log_every = log, log_every
         self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
-        self.progress = progress
+        self.progress, self.after_iteration = progress, after_iteration
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
         """One meta-iteration t → t+1; returns its scalars."""
         start = time.perf_counter()
         tasks = self.principle.propose(self.meta_batch)
-        if not torch.isfinite(tasks["params"]).all() or torch.isnan(tasks["log_prob"]).any():
+        if not torch.isfinite(tasks[TASK_KEY]).all() or torch.isnan(tasks["log_prob"]).any():
             raise TrainingDiverged(
                 f"non-finite task identifiers proposed at iteration {self.iteration + 1}"
             )
@@ -117,4 +121,6 @@ class GameTrainer:
                             f"non-finite training scalars at iteration {self.iteration}"
                         )
                     self.checkpoint.save(self.iteration)
+                if self.after_iteration is not None:
+                    self.after_iteration(self.iteration)
         return self.iteration

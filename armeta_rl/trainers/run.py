@@ -20,6 +20,7 @@ from armeta_rl.config import CONFIG_FILE, check_config
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.trainers.checkpoint import RunCheckpoint
+from armeta_rl.trainers.density import DensityFrames
 from armeta_rl.trainers.evaluation import evaluate_on, format_table
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.runs import Players, build_players, load_players
@@ -164,6 +165,12 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     if compiled:
         print(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
               "(about 2 minutes with an empty compile cache)")
+    frames = None
+    if players.adversary is not None and cfg.trainer.density_every > 0:
+        frames = DensityFrames(players.adversary, players.initial, run_dir,
+                               cfg.trainer.density_every, logger)
+        if start == 0:
+            frames.draw(0)  # p_φ = p0
     trainer = GameTrainer(
         players.leader,
         players.principle,
@@ -174,6 +181,7 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         checkpoint_every=cfg.trainer.checkpoint_every,
         log=None if logger is None else logger.log_metrics,
         progress=progress and cfg.trainer.progress,
+        after_iteration=frames,
     )
     trainer.iteration = start
     if trainer.run(stop_at=cfg.trainer.stop_at) < cfg.trainer.iterations:
@@ -185,8 +193,10 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
     report = evaluate_players(cfg, players)
     (run_dir / EVAL_FILE).write_text(json.dumps(report, indent=2) + "\n")
     print(format_table(report))
-    if players.adversary is not None and players.space.dim == 2:
+    if players.adversary is not None:
         _save_density(players, run_dir / DENSITY_FILE, logger)
+    if frames is not None:
+        frames.finish(trainer.iteration)
     if logger is not None:
         logger.log_metrics(eval_scalars(report), cfg.trainer.iterations)
     return report

@@ -1,0 +1,87 @@
+"""The task protocol: the one TensorDict key under which task identifiers travel.
+
+Every task distribution (p0, the flow adversary p_φ) returns its samples under :data:`TASK_KEY`,
+every collector reads the identifiers of its tasks there, and every env takes them under the same
+key in its reset TensorDict (declared in its state spec, so TorchRL transforms, batched envs and
+collectors forward it) and reports them there with every step.
+
+:func:`read_identifiers` is the one check every env applies to a reset TensorDict:
+
+* a key that looks like task identifiers but is not :data:`TASK_KEY` — one of
+  :data:`MISPLACED_TASK_KEYS` or one of the env's own identifier names (``"m"``, ``"goal_x"``) —
+  is refused rather than ignored;
+* the identifiers must have the env's width ``d`` in their last dimension and broadcast to its
+  batch size;
+* every value must be finite and inside the env's allowed interval.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from torch import Tensor
+
+from armeta_rl.errors import IdentifierError
+
+TASK_KEY = "params"
+"""TensorDict key of the task identifiers, a float tensor ``[..., task_dim]``."""
+
+MISPLACED_TASK_KEYS = ("goal", "goals", "task", "tasks", "task_params", "identifiers")
+"""Keys under which identifiers are commonly (and here wrongly) passed; an env refuses them."""
+
+
+def interval(low: float, high: float, open_low: bool = False) -> str:
+    """``[low, high]`` (or ``(low, high]``) as text; infinite ends print as ``inf``."""
+    return f"{'(' if open_low else '['}{low:g}, {high:g}{')' if math.isinf(high) else ']'}"
+
+
+def read_identifiers(
+    tensordict: TensorDictBase | None,
+    names: Sequence[str],
+    low: float,
+    high: float,
+    batch_size: torch.Size,
+    open_low: bool = False,
+) -> Tensor | None:
+    """The identifiers ``[*batch_size, d]`` under :data:`TASK_KEY` of a reset TensorDict (expanded
+    to the batch), or ``None`` when it has none; :class:`~armeta_rl.errors.IdentifierError` for a
+    misplaced key, a wrong width or batch shape, or a value outside ``[low, high]`` (``(low,
+    high]`` with ``open_low``) or not finite. ``names`` are the env's identifier names in order."""
+    if tensordict is None:
+        return None
+    d, allowed_range = len(names), interval(low, high, open_low)
+    spelled = f"{d} value{'s' if d > 1 else ''} ({', '.join(names)})"
+    for key in tensordict.keys(include_nested=False):
+        if key != TASK_KEY and (key in MISPLACED_TASK_KEYS or key in names):
+            raise IdentifierError(
+                key, _describe(tensordict.get(key)),
+                f"task identifiers go under '{TASK_KEY}': {spelled} per batch entry",
+            )
+    params = tensordict.get(TASK_KEY, None)
+    if params is None:
+        return None
+    if not torch.is_floating_point(params) or params.shape[-1:] != (d,):
+        raise IdentifierError(TASK_KEY, _describe(params),
+                              f"a float tensor [..., {d}]: {spelled} per batch entry")
+    try:
+        params = params.expand(*batch_size, d)
+    except RuntimeError:
+        raise IdentifierError(TASK_KEY, _describe(params),
+                              f"needs a shape that broadcasts to {[*batch_size, d]}") from None
+    above = params > low if open_low else params >= low
+    bad = ~(above & (params <= high) & params.isfinite()).all(-1)
+    if bad.any():
+        raise IdentifierError(TASK_KEY, params[bad][0].tolist(),
+                              f"every identifier ({', '.join(names)}) must be finite and in "
+                              f"{allowed_range}")
+    return params
+
+
+def _describe(value: object) -> object:
+    """A short stand-in for a tensor in an error message: its shape and dtype."""
+    if isinstance(value, Tensor):
+        return f"tensor of shape {list(value.shape)}, {value.dtype}"
+    return value

@@ -1,0 +1,120 @@
+"""Seeded runs of every benchmark reproduce pinned numbers bit for bit.
+
+Each benchmark trains ar_maml for 3 meta-iterations (seed 7, a shrunken meta-batch and episode
+count) and evaluates on a few tasks; the whole ``eval.json`` (means, standard errors, CVaRs, the
+adversary's entropy and KL from p0) must equal the values below exactly, so a change of the RNG
+stream or of the order of floating-point operations anywhere on the way (task sampling, envs,
+collectors, learners, the flow) shows up here.
+
+PINNED was recorded on 2026-11-24 from commit 84c0d25 (the code before the one-task-key env
+changes of issue 26: envs reading "goal" for point navigation and Ant), torch 2.13.0 CPU,
+torchrl 0.14, one thread. Re-record it only for a change that is meant to alter seeded numbers,
+and say so in the commit.
+"""
+
+from __future__ import annotations
+
+import pytest
+from conftest import compose_train
+
+from armeta_rl.trainers.run import run_training
+
+COMMON = ("trainer.iterations=3", "trainer.checkpoint_every=3", "trainer.progress=false",
+          "logger=none", "seed=7", "trainer.density_every=0")
+RUNS = {
+    "sinusoid_uniform": ("eval.n_tasks=10",),
+    "pendulum_uniform": ("eval.n_tasks=4", "trainer.meta_batch=4"),
+    "acrobot_uniform": ("eval.n_tasks=4", "trainer.meta_batch=4"),
+    "point_nav_plain": ("eval.n_tasks=2", "trainer.meta_batch=2", "benchmark.collector.episodes=2",
+                        "benchmark.collector.max_steps=10"),
+    "ant_goal_smoke": ("eval.n_tasks=2", "benchmark.collector.make_env.threads=1"),
+}
+
+PINNED = {'sinusoid_uniform': {'initial': {'mean': 2.9855936586856844,
+                                  'sem': 0.9210396428681562,
+                                  'cvar': {'0.5': 4.996101117134094,
+                                           '0.7': 6.99187167485555,
+                                           '0.9': 8.729284286499023},
+                                  'n_tasks': 10,
+                                  'entropy': 2.733965090965981,
+                                  'kl_p0': 0.0},
+                      'adversarial': {'mean': 3.938874822854996,
+                                      'sem': 1.0364891817791666,
+                                      'cvar': {'0.5': 6.842565441131592,
+                                               '0.7': 7.738734086354573,
+                                               '0.9': 8.107134819030762},
+                                      'n_tasks': 10,
+                                      'entropy': 2.734026211208694,
+                                      'kl_p0': 0.00038562022347014065}},
+ 'pendulum_uniform': {'initial': {'mean': 0.22821134887635708,
+                                  'sem': 0.09270540540402741,
+                                  'cvar': {'0.5': 0.35284920036792755,
+                                           '0.7': 0.35284920036792755,
+                                           '0.9': 0.49335557222366333},
+                                  'n_tasks': 4,
+                                  'entropy': 0.3646431135879096,
+                                  'kl_p0': 0.0},
+                      'adversarial': {'mean': 0.19218567200005054,
+                                      'sem': 0.11030286796710462,
+                                      'cvar': {'0.5': 0.3256675526499748,
+                                               '0.7': 0.3256675526499748,
+                                               '0.9': 0.5169764757156372},
+                                      'n_tasks': 4,
+                                      'entropy': 0.36445891463922164,
+                                      'kl_p0': -4.9707975773483204e-05}},
+ 'acrobot_uniform': {'initial': {'mean': 0.020803923718631268,
+                                 'sem': 0.001457775846845375,
+                                 'cvar': {'0.5': 0.022870399057865143,
+                                          '0.7': 0.022870399057865143,
+                                          '0.9': 0.023959798738360405},
+                                 'n_tasks': 4,
+                                 'entropy': 0.3646431135879096,
+                                 'kl_p0': 0.0},
+                     'adversarial': {'mean': 0.022459713276475668,
+                                     'sem': 0.0022733396026548146,
+                                     'cvar': {'0.5': 0.02569336723536253,
+                                              '0.7': 0.02569336723536253,
+                                              '0.9': 0.02873382158577442},
+                                     'n_tasks': 4,
+                                     'entropy': 0.36453136754952803,
+                                     'kl_p0': 0.0004105643529592977}},
+ 'point_nav_plain': {'initial': {'mean': -2.230182111263275,
+                                 'sem': 0.25218588113784784,
+                                 'cvar': {'0.5': -2.482367992401123,
+                                          '0.7': -2.482367992401123,
+                                          '0.9': -2.482367992401123},
+                                 'n_tasks': 2,
+                                 'entropy': 0.0,
+                                 'kl_p0': 0.0},
+                     'adversarial': {'mean': -5.232632398605347,
+                                     'sem': 0.006286382675170898,
+                                     'cvar': {'0.5': -5.238918781280518,
+                                              '0.7': -5.238918781280518,
+                                              '0.9': -5.238918781280518},
+                                     'n_tasks': 2,
+                                     'entropy': -0.00026990683798893577,
+                                     'kl_p0': -0.000152352109952795}},
+ 'ant_goal_smoke': {'initial': {'mean': -24.478143215179443,
+                                'sem': 16.98555612564087,
+                                'cvar': {'0.5': -41.46369934082031,
+                                         '0.7': -41.46369934082031,
+                                         '0.9': -41.46369934082031},
+                                'n_tasks': 2,
+                                'entropy': 3.58351893845611,
+                                'kl_p0': 0.0},
+                    'adversarial': {'mean': -37.27812385559082,
+                                    'sem': 3.8716526031494136,
+                                    'cvar': {'0.5': -41.149776458740234,
+                                             '0.7': -41.149776458740234,
+                                             '0.9': -41.149776458740234},
+                                    'n_tasks': 2,
+                                    'entropy': 3.583112296170637,
+                                    'kl_p0': 5.5068461004072395e-05}}}
+
+
+@pytest.mark.parametrize("benchmark", list(RUNS))
+def test_seeded_run_reproduces_pinned_numbers(tmp_path, benchmark):
+    cfg = compose_train(*COMMON, f"benchmark={benchmark}", *RUNS[benchmark])
+    report = run_training(cfg, tmp_path, progress=False)
+    sections = {name: section for name, section in report.items() if isinstance(section, dict)}
+    assert sections == PINNED[benchmark]
