@@ -20,7 +20,7 @@ from armeta_rl.envs.mujoco_tasks import (
     load_task_family,
     make_gym_task_env,
 )
-from armeta_rl.errors import ConfigError
+from armeta_rl.errors import ConfigError, IdentifierError
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHEETAH_XML = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets",
@@ -140,8 +140,9 @@ def test_params_survive_automatic_resets_and_a_collector():
 
 
 def test_ant_goal_env_per_simulation_physics_equal_hand_edited_models():
-    """AntGoalEnv's batch of [tasks, episodes] simulations runs one task's physics per row of
-    tasks, each equal to a hand-edited MjModel stepped on its own MjData."""
+    """On AntGoalEnv the physics identifiers follow the goal under "params" (one task box of goal
+    × physics); each simulation of the [tasks, episodes] batch runs its task's goal and physics,
+    equal to a hand-edited MjModel stepped on its own MjData."""
     parameters = [
         {"name": "torso_mass", "kind": "body_mass_scale", "target": "torso", "low": 0.5,
          "high": 2.0},
@@ -152,14 +153,17 @@ def test_ant_goal_env_per_simulation_physics_equal_hand_edited_models():
     env = TransformedEnv(AntGoalEnv((2, 2), max_steps=10, seed=0),
                          PhysicsTaskTransform(parameters))
     check_env_specs(env)
-    params = torch.tensor([[1.75, 0.25, -6.5], [0.5, 1.5, -11.0]])
-    td = env.reset(TensorDict({"params": params[:, None].expand(2, 2, 3)}, [2, 2]))
+    assert env.state_spec["params"].shape == (2, 2, 5)
+    goals = torch.tensor([[2.0, -1.0], [-0.5, 3.0]])
+    physics = torch.tensor([[1.75, 0.25, -6.5], [0.5, 1.5, -11.0]])
+    params = torch.cat([goals, physics], -1)[:, None].expand(2, 2, 5)
+    td = env.reset(TensorDict({"params": params}, [2, 2]))
     sim = env.base_env.sim
     start = sim.bind("qpos").copy(), sim.bind("qvel").copy()
     torch.manual_seed(0)
     rollout = env.rollout(8, RandomPolicy(env.action_spec), tensordict=td, auto_reset=False)
     actions = rollout["action"].to(torch.float64).reshape(4, 8, -1).numpy()
-    for i, (mass, friction, gravity) in enumerate(params[:, None].expand(2, 2, 3).reshape(4, 3)
+    for i, (mass, friction, gravity) in enumerate(physics[:, None].expand(2, 2, 3).reshape(4, 3)
                                                   .tolist()):
         model = load_ant_model()
         torso = model.body("torso").id
@@ -176,7 +180,14 @@ def test_ant_goal_env_per_simulation_physics_equal_hand_edited_models():
             observed = rollout["next", "observation"].reshape(4, 8, -1)[i, t, :29].numpy()
             expected = np.concatenate([data.qpos, data.qvel]).astype(observed.dtype)
             np.testing.assert_array_equal(observed, expected)
-    assert (rollout["params"] == params[:, None, None]).all()
+    assert (rollout["params"] == params[:, :, None]).all()
+    assert (rollout["next", "params"] == params[:, :, None]).all()
+    # the reward's goal term uses the goals, the first two columns (AntGoalEnv's reward)
+    obs = rollout["next", "observation"]
+    reward = (-(obs[..., 116:118] - goals[:, None, None]).abs().sum(-1)
+              - 5e-3 * rollout["action"].square().sum(-1)
+              - 5e-4 * obs[..., 29:107].square().sum(-1) + 0.05)
+    torch.testing.assert_close(rollout["next", "reward"].squeeze(-1), reward)
 
 
 def test_shipped_task_families_resolve_on_their_models():
@@ -189,10 +200,11 @@ def test_shipped_task_families_resolve_on_their_models():
 
 def test_bad_input_raises_one_clear_error():
     env = make_gym_task_env(load_task_family(CHEETAH))
-    with pytest.raises(ValueError, match=r"'params' = \[3\.0, .*outside the task box.*"
-                                         r"torso_mass in \[0\.5, 2\]"):
+    with pytest.raises(IdentifierError, match=r"'params' = \[3\.0, .*outside the task box.*"
+                                              r"torso_mass in \[0\.5, 2\]"):
         env.reset(TensorDict({"params": torch.tensor([3.0, 1.0, 1.0, 1.0, -9.0])}))
-    with pytest.raises(ValueError, match="'params' has width 2.*5 identifiers"):
+    with pytest.raises(IdentifierError, match=r"'params' = shape \(2,\): a float tensor "
+                                              r"\[\.\.\., 5\]: torso_mass, friction"):
         env.reset(TensorDict({"params": torch.tensor([1.0, 1.0])}))
     wrong = {"env": "HalfCheetah-v5", "parameters": [
         {"name": "m", "kind": "body_mass_scale", "target": "no_such_body", "low": 0.5,
@@ -212,7 +224,7 @@ def test_bad_input_raises_one_clear_error():
     with pytest.raises(ConfigError, match="at least one"):
         load_task_family({"env": "HalfCheetah-v5", "parameters": []})
     serial = make_gym_task_env(load_task_family(CHEETAH), num_tasks=2)
-    with pytest.raises(ValueError, match=r"'params' has shape \(2, 2, 5\).*needs \(2, 5\)"):
+    with pytest.raises(IdentifierError, match=r"'params' = shape \(2, 2, 5\): needs \[2, 5\]"):
         serial.reset(TensorDict({"params": torch.tensor([[PARAMS] * 2] * 2)}, [2]))
     stepped = TransformedEnv(make_gym_task_env(load_task_family(CHEETAH)), StepCounter(2))
     with pytest.raises(ValueError, match="outside the task box"):
@@ -227,7 +239,7 @@ def test_another_key_and_every_joint():
     env = TransformedEnv(AntGoalEnv((1, 2), max_steps=5, seed=0),
                          PhysicsTaskTransform(parameters, key="physics"))
     td = env.reset(TensorDict({"physics": torch.full((1, 2, 1), 1.5)}, [1, 2]))
-    assert "params" not in td and (td["physics"] == 1.5).all()
+    assert td["params"].shape == (1, 2, 2) and (td["physics"] == 1.5).all()
     nominal = load_ant_model().dof_damping
     damping = env.base_env.sim.expanded("dof_damping")
     np.testing.assert_array_equal(damping, np.broadcast_to(1.5 * nominal, damping.shape))

@@ -23,10 +23,13 @@ MuJoCo's documentation prescribes for a model edited after compilation; so an id
 exactly as a hand-edited model on which ``mj_setConst`` was called.
 
 :class:`PhysicsTaskTransform` is the TorchRL component: identifiers arrive under ``"params"``
-(``[*batch, d]``) in the reset TensorDict; the transform writes them into the model(s) before the
-base env resets, and emits them with every observation. ``"params"`` is declared in the state and
-observation specs, so ``TransformedEnv``, SerialEnv/ParallelEnv, automatic resets and
-``Collector`` carry them; a reset without ``"params"`` keeps the current physics. Supported base
+(:data:`~armeta_rl.tasks.TASK_KEY`, ``[*batch, d]``) in the reset TensorDict; the transform writes
+them into the model(s) before the base env resets, and emits them with every observation.
+``"params"`` is declared in the state and observation specs, so ``TransformedEnv``,
+SerialEnv/ParallelEnv, automatic resets and ``Collector`` carry them; a reset without ``"params"``
+keeps the current physics. On an env with identifiers of its own under ``"params"`` (AntGoalEnv's
+goal), the physics identifiers follow them: ``"params"`` is ``[goal_x, goal_y, *physics]``, one
+task box of goal × physics, and the base env sees its own columns only. Supported base
 envs: a TorchRL ``GymEnv`` of a gymnasium MuJoCo env (one simulation, batch ``[]``), a
 ``SerialEnv`` of them (one task per sub-env, batch ``[n]``), and any env that steps a
 :class:`mujoco.batch.Batch` under ``env.sim`` with its model under ``env.model`` (our
@@ -58,13 +61,13 @@ import torch
 from mujoco.batch import Batch
 from omegaconf import OmegaConf
 from tensordict import TensorDictBase
-from torchrl.data import Bounded, Composite
+from torchrl.data import Bounded, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, GymEnv, SerialEnv, StepCounter, Transform, TransformedEnv
 
-from armeta_rl.errors import ConfigError
+from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 
-PARAMS = "params"
 ALL = "all"
 KEY = "task_family.parameters"
 
@@ -306,7 +309,9 @@ class PhysicsTaskTransform(Transform):
     At reset, the identifiers ``"params"`` (``[*batch, d]``, one task per simulation) of the
     simulations being reset are checked against the box and written into their models before the
     base env resets; a reset without ``"params"`` keeps the current ones (the nominal physics
-    until the first one). ``"params"`` is emitted with every reset and step output.
+    until the first one). ``"params"`` is emitted with every reset and step output. If the base
+    env has identifiers of its own under the key (width w), the key holds ``w + d`` columns: the
+    base env's, handed to it at reset, then the physics.
 
     Args:
         parameters: the identifier dimensions, as :class:`PhysicsParameter` or YAML mappings.
@@ -316,13 +321,14 @@ class PhysicsTaskTransform(Transform):
     Raises:
         ConfigError (a ValueError): a bad parameter list, a target the model lacks (when the
             transform first meets its env), or an env whose MjModel it cannot reach.
-        ValueError: identifiers of the wrong width, non-finite, or outside the box.
+        IdentifierError (a ValueError): identifiers of the wrong width or batch shape,
+            non-finite, or outside the box.
     """
 
     def __init__(
         self,
         parameters: Sequence[PhysicsParameter | Mapping[str, Any]],
-        key: str = PARAMS,
+        key: str = TASK_KEY,
     ) -> None:
         super().__init__(in_keys=[], out_keys=[key])
         self.key = key
@@ -337,6 +343,7 @@ class PhysicsTaskTransform(Transform):
         self._sims: _ModelList | _BatchSims | None = None
         self._edits: list[list[_Edit]] = []
         self._params: torch.Tensor | None = None
+        self._base_width = 0
 
     def clone(self) -> PhysicsTaskTransform:
         """A fresh copy, not yet bound to any env (it finds its models in its next parent)."""
@@ -350,7 +357,8 @@ class PhysicsTaskTransform(Transform):
             self._bind()
 
     def _bind(self) -> None:
-        """Find the simulations of the parent env and the model entries each parameter writes."""
+        """Find the simulations of the parent env, the model entries each parameter writes and the
+        width of the parent's own identifiers under the key."""
         if self._sims is not None:
             return
         parent = self.parent
@@ -358,38 +366,45 @@ class PhysicsTaskTransform(Transform):
             raise ConfigError("env", None, "PhysicsTaskTransform must be inside a TransformedEnv")
         sims = _simulations(parent)
         self._edits = _resolve(sims.model, self.parameters)
+        base = parent.state_spec.get(self.key, None)
+        self._base_width = 0 if base is None else base.shape[-1]
         nominal = torch.tensor(_nominal_params(self._edits), dtype=torch.get_default_dtype())
         self._params = nominal.expand(*parent.batch_size, self.space.dim).clone()
         self._sims = sims
 
     def check_params(self, params: torch.Tensor) -> torch.Tensor:
-        """``params`` as float64 ``[n, d]`` rows, or a ValueError naming the value and the box."""
-        dim = self.space.dim
-        if params.shape[-1] != dim:
-            raise ValueError(f"'{self.key}' has width {params.shape[-1]} (shape "
-                             f"{tuple(params.shape)}): the task family has {dim} identifiers "
-                             f"{list(self.space.names)}")
-        rows = params.detach().to("cpu", torch.float64).reshape(-1, dim)
+        """The physics identifiers of ``params`` (its last ``d`` columns, after the base env's
+        own) as float64 rows ``[n, d]``; an IdentifierError naming the value and what is
+        allowed."""
+        width, dim = self._base_width + self.space.dim, self.space.dim
+        names = [*(["<env's own>"] * self._base_width), *self.space.names]
+        if not torch.is_floating_point(params) or params.shape[-1:] != (width,):
+            raise IdentifierError(self.key, f"shape {tuple(params.shape)}",
+                                  f"a float tensor [..., {width}]: {', '.join(names)}")
+        rows = params[..., self._base_width :].detach().to("cpu", torch.float64)
+        rows = rows.reshape(-1, dim)
         low, high = self.space.bounds(torch.float64)
         outside = ~(torch.isfinite(rows).all(-1) & ((rows >= low) & (rows <= high)).all(-1))
         if outside.any():
-            bad = rows[outside][0].tolist()
             box = ", ".join(f"{n} in [{lo:g}, {hi:g}]"
                             for n, lo, hi in zip(self.space.names, self.space.low, self.space.high))
-            raise ValueError(f"'{self.key}' = {bad}: outside the task box ({box})")
+            raise IdentifierError(self.key, rows[outside][0].tolist(),
+                                  f"outside the task box ({box})")
         return rows
 
     def _reset_env_preprocess(self, tensordict: TensorDictBase | None) -> TensorDictBase | None:
-        """Write the identifiers of the simulations being reset into their models."""
+        """Write the identifiers of the simulations being reset into their models, and hand the
+        base env its own identifiers (the leading columns) only."""
         self._bind()
         params = None if tensordict is None else tensordict.get(self.key, None)
         if params is None:
             return tensordict
         shape = self._params.shape
-        rows = self.check_params(params.expand(shape) if params.dim() < len(shape) else params)
+        rows = self.check_params(params)
         if rows.shape[0] != math.prod(shape[:-1]):
-            raise ValueError(f"'{self.key}' has shape {tuple(params.shape)}: the env needs "
-                             f"{tuple(shape)}, one task per simulation")
+            raise IdentifierError(self.key, f"shape {tuple(params.shape)}",
+                                  f"needs {[*shape[:-1], self._base_width + shape[-1]]}, one "
+                                  "task per simulation")
         reset = tensordict.get("_reset", None)
         mask = (torch.ones(rows.shape[0], dtype=torch.bool) if reset is None
                 else reset.reshape(rows.shape[0], -1).any(-1).cpu())
@@ -398,32 +413,52 @@ class PhysicsTaskTransform(Transform):
             self._sims.write(ids, self._edits, rows.numpy())
             new = rows.to(self._params.dtype).reshape(shape)
             self._params = torch.where(mask.reshape(*shape[:-1], 1), new, self._params)
+        if self._base_width:
+            tensordict.set(self.key, params[..., : self._base_width])
+        else:
+            del tensordict[self.key]
+        return tensordict
+
+    def _with_physics(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Set the key to the base env's identifiers (if any) followed by the physics ones."""
+        physics = self._params.to(tensordict.device)
+        if self._base_width:
+            physics = torch.cat([tensordict.get(self.key), physics.to(tensordict.get(self.key))],
+                                -1)
+        tensordict.set(self.key, physics.clone())
         return tensordict
 
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
         self._bind()
-        tensordict_reset.set(self.key, self._params.to(tensordict_reset.device).clone())
-        return tensordict_reset
+        return self._with_physics(tensordict_reset)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(self.key, self._params.to(next_tensordict.device).clone())
-        return next_tensordict
+        return self._with_physics(next_tensordict)
 
-    def _params_spec(self, shape: torch.Size, device: torch.device | None) -> Bounded:
+    def _params_spec(self, spec: Composite) -> TensorSpec:
+        """The key's spec: the base env's identifiers (if any) followed by the physics box."""
         low, high = self.space.bounds()
-        dim = self.space.dim
-        return Bounded(low.expand(*shape, dim), high.expand(*shape, dim),
-                       shape=(*shape, dim), dtype=torch.get_default_dtype(), device=device)
+        shape, dim = spec.shape, self.space.dim
+        base = spec.get(self.key, None)
+        if base is not None:
+            if not isinstance(base, Bounded):
+                return Unbounded(shape=(*shape, base.shape[-1] + dim), dtype=base.dtype,
+                                 device=spec.device)
+            low = torch.cat([base.space.low, low.to(base.dtype).expand(*shape, dim)], -1)
+            high = torch.cat([base.space.high, high.to(base.dtype).expand(*shape, dim)], -1)
+            dim = low.shape[-1]
+        return Bounded(low.expand(*shape, dim), high.expand(*shape, dim), shape=(*shape, dim),
+                       dtype=torch.get_default_dtype() if base is None else base.dtype,
+                       device=spec.device)
 
     def transform_observation_spec(self, observation_spec: Composite) -> Composite:
-        observation_spec[self.key] = self._params_spec(observation_spec.shape,
-                                                     observation_spec.device)
+        observation_spec[self.key] = self._params_spec(observation_spec)
         return observation_spec
 
     def transform_state_spec(self, state_spec: Composite) -> Composite:
-        state_spec[self.key] = self._params_spec(state_spec.shape, state_spec.device)
+        state_spec[self.key] = self._params_spec(state_spec)
         return state_spec
 
 
