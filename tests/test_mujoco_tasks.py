@@ -9,6 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
+from conftest import SMALL_RUN, compose_train
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
@@ -21,6 +22,8 @@ from armeta_rl.envs.mujoco_tasks import (
     make_gym_task_env,
 )
 from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.factory import build_collector
+from armeta_rl.trainers.run import run_training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHEETAH_XML = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets",
@@ -260,3 +263,34 @@ def test_transform_inside_each_sub_env_of_a_batched_env():
     for sub, row in zip(env._envs, params.tolist()):
         model = sub.base_env._env.unwrapped.model
         assert model.body_mass[torso.id] == torso.mass[0] * row[0]
+
+
+def test_ant_goal_physics_benchmark_builds_its_env_and_trains(tmp_path):
+    """The benchmark YAML's collector runs the [goal, physics] family (its box is 4-D), and
+    ar_maml trains on it end to end."""
+    cfg = compose_train(*SMALL_RUN, "benchmark=ant_goal_physics", "method=ar_maml",
+                        "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
+                        "benchmark.collector.make_env.threads=1")
+    env = build_collector(cfg).env(2)
+    params = torch.tensor([[1.0, -2.0, 1.75, 0.5], [0.0, 2.5, 0.5, 1.25]])
+    td = env.reset(TensorDict({"params": params[:, None].expand(2, 2, 4)}, [2, 2]))
+    assert (td["params"] == params[:, None]).all()
+    torso = load_ant_model().body("torso")
+    masses = env.base_env.sim.expanded("body_mass")[:, torso.id]
+    np.testing.assert_array_equal(masses, torso.mass[0] * np.repeat([1.75, 0.5], 2))
+    report = run_training(cfg, tmp_path)
+    assert report["metric"] == "return" and "adversarial" in report
+
+
+@pytest.mark.parametrize("override,match", [
+    ("benchmark.space.high=[3,3,2.5,1.5]", r"'benchmark\.space' = .*torso_mass in \[0\.5, 2\]"),
+    ("benchmark.space.names=[x,y,m,f]", r"'benchmark\.space' = .*then the physics parameters"),
+    ("benchmark.collector.make_env.parameters.0.target=nope",
+     r"'benchmark\.collector\.make_env\.parameters\[0\]\.target' = 'nope'"),
+])
+def test_ant_goal_physics_benchmark_refuses_a_box_or_target_that_does_not_fit(override, match):
+    cfg = compose_train("benchmark=ant_goal_physics", "benchmark.collector.episodes=1",
+                        "benchmark.collector.make_env.threads=1", override)
+    with pytest.raises(ConfigError, match=match):
+        build_collector(cfg).env(1)

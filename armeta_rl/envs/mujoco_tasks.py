@@ -51,7 +51,7 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,7 +59,7 @@ import mujoco
 import numpy as np
 import torch
 from mujoco.batch import Batch
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 from tensordict import TensorDictBase
 from torchrl.data import Bounded, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, GymEnv, SerialEnv, StepCounter, Transform, TransformedEnv
@@ -189,8 +189,11 @@ def _field(model: mujoco.MjModel, field: str) -> np.ndarray:
     return array.reshape(-1)
 
 
-def _resolve(model: mujoco.MjModel, parameters: Sequence[PhysicsParameter]) -> list[list[_Edit]]:
-    """For each parameter, the edits it makes on ``model``.
+def _resolve(
+    model: mujoco.MjModel, parameters: Sequence[PhysicsParameter], key: str = KEY
+) -> list[list[_Edit]]:
+    """For each parameter, the edits it makes on ``model`` (``key``: the parameters' config key,
+    for errors).
 
     Raises:
         ConfigError: a target the model does not have.
@@ -207,7 +210,7 @@ def _resolve(model: mujoco.MjModel, parameters: Sequence[PhysicsParameter]) -> l
             if found < 0:
                 count = getattr(model, _COUNTS[objtype])
                 names = [mujoco.mj_id2name(model, _OBJECTS[objtype], j) for j in range(count)]
-                raise ConfigError(f"{KEY}[{i}].target", parameter.target,
+                raise ConfigError(f"{key}[{i}].target", parameter.target,
                                   f"allowed {objtype} names: "
                                   + ", ".join(n for n in names if n) + f", or '{ALL}'")
             ids = np.array([found])
@@ -317,6 +320,7 @@ class PhysicsTaskTransform(Transform):
         parameters: the identifier dimensions, as :class:`PhysicsParameter` or YAML mappings.
         key: the TensorDict key of the identifiers: ``"params"``, the package's one task key;
             another only to stack this family on an env that already reads ``"params"``.
+        config_key: the config key of ``parameters``, named by configuration errors.
 
     Raises:
         ConfigError (a ValueError): a bad parameter list, a target the model lacks (when the
@@ -329,15 +333,16 @@ class PhysicsTaskTransform(Transform):
         self,
         parameters: Sequence[PhysicsParameter | Mapping[str, Any]],
         key: str = TASK_KEY,
+        config_key: str = KEY,
     ) -> None:
         super().__init__(in_keys=[], out_keys=[key])
-        self.key = key
+        self.key, self.config_key = key, config_key
         if all(isinstance(p, PhysicsParameter) for p in parameters):
             parameters = list(parameters)
             if not parameters:
-                raise ConfigError(KEY, [], "needs at least one parameter")
+                raise ConfigError(config_key, [], "needs at least one parameter")
         else:
-            parameters = parse_parameters(parameters)
+            parameters = parse_parameters(parameters, config_key)
         self.parameters = tuple(parameters)
         self.space = task_space(self.parameters)
         self._sims: _ModelList | _BatchSims | None = None
@@ -347,7 +352,7 @@ class PhysicsTaskTransform(Transform):
 
     def clone(self) -> PhysicsTaskTransform:
         """A fresh copy, not yet bound to any env (it finds its models in its next parent)."""
-        return type(self)(self.parameters, key=self.key)
+        return type(self)(self.parameters, key=self.key, config_key=self.config_key)
 
     def set_container(self, container: Transform | EnvBase) -> None:
         """Attach to ``container``; inside a TransformedEnv, find the models at once, so that a
@@ -365,7 +370,7 @@ class PhysicsTaskTransform(Transform):
         if parent is None:
             raise ConfigError("env", None, "PhysicsTaskTransform must be inside a TransformedEnv")
         sims = _simulations(parent)
-        self._edits = _resolve(sims.model, self.parameters)
+        self._edits = _resolve(sims.model, self.parameters, self.config_key)
         base = parent.state_spec.get(self.key, None)
         self._base_width = 0 if base is None else base.shape[-1]
         nominal = torch.tensor(_nominal_params(self._edits), dtype=torch.get_default_dtype())
@@ -484,3 +489,48 @@ def make_gym_task_env(
     if max_steps is not None:
         env.append_transform(StepCounter(max_steps))
     return env
+
+
+def physics_task_env(
+    make_env: Callable[..., EnvBase],
+    parameters: Sequence[Mapping[str, Any]],
+    space: Mapping[str, Any] | None = None,
+    config_key: str = "benchmark.collector.make_env.parameters",
+    **kwargs: Any,
+) -> TransformedEnv:
+    """``make_env(**kwargs)`` with a :class:`PhysicsTaskTransform` over ``parameters``: the
+    ``make_env`` a collector calls as ``make_env(batch_size=..., max_steps=..., seed=...)``, so a
+    benchmark YAML turns an env into a physics family (``configs/benchmark/ant_goal_physics.yaml``).
+
+    Args:
+        make_env: builds the base env from ``kwargs``.
+        parameters: the physics parameters (YAML mappings).
+        space: the benchmark's box ``{names, low, high}``; if given, it must be the env's own
+            identifiers followed by exactly the physics parameters (names and ranges).
+        config_key: the config key of ``parameters``, named by errors.
+
+    Raises:
+        ConfigError: bad parameters, or a box that does not match them.
+    """
+    if isinstance(parameters, (DictConfig, ListConfig)):
+        parameters = OmegaConf.to_container(parameters, resolve=True)
+    transform = PhysicsTaskTransform(parameters, config_key=config_key)
+    env = TransformedEnv(make_env(**kwargs), transform)
+    if space is not None:
+        _check_box(space, transform, env.state_spec[transform.key].shape[-1])
+    return env
+
+
+def _check_box(space: Mapping[str, Any], transform: PhysicsTaskTransform, width: int) -> None:
+    """A ConfigError unless the box has ``width`` identifiers whose last ones are the physics
+    parameters, with their names and ranges."""
+    box = TaskSpace(list(space["names"]), list(space["low"]), list(space["high"]))
+    physics = transform.space
+    tail = (box.names[-physics.dim :], box.low[-physics.dim :], box.high[-physics.dim :])
+    if box.dim != width or tail != (physics.names, physics.low, physics.high):
+        wanted = ", ".join(f"{n} in [{lo:g}, {hi:g}]"
+                           for n, lo, hi in zip(physics.names, physics.low, physics.high))
+        raise ConfigError("benchmark.space", {"names": list(box.names), "low": list(box.low),
+                                              "high": list(box.high)},
+                          f"{width} identifiers: the env's own {width - physics.dim}, then the "
+                          f"physics parameters of {transform.config_key} ({wanted})")
