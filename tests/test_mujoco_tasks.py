@@ -224,6 +224,15 @@ def test_bad_input_raises_one_clear_error():
     for entry, key in bad_entries:
         with pytest.raises(ConfigError, match=rf"parameters\[0\]\.{key}'"):
             load_task_family({"env": "HalfCheetah-v5", "parameters": [entry]})
+    overlap = {"env": "HalfCheetah-v5", "parameters": [
+        {"name": "floor", "kind": "geom_friction_scale", "target": "floor", "low": 0.5, "high": 1},
+        {"name": "all", "kind": "geom_friction_scale", "target": "all", "low": 0.5, "high": 1}]}
+    with pytest.raises(ConfigError, match=r"parameters\[1\]\.target' = 'all': .*parameters\[0\] "
+                                          r"\(floor\) writes the same geom_friction"):
+        make_gym_task_env(load_task_family(overlap))
+    twice = [{"name": "m", "kind": "gravity_z", "low": -9, "high": -8}] * 2
+    with pytest.raises(ConfigError, match=r"parameters\[1\]\.name' = 'm': names must differ"):
+        load_task_family({"env": "HalfCheetah-v5", "parameters": twice})
     with pytest.raises(ConfigError, match="at least one"):
         load_task_family({"env": "HalfCheetah-v5", "parameters": []})
     serial = make_gym_task_env(load_task_family(CHEETAH), num_tasks=2)

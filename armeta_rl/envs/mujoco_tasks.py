@@ -138,6 +138,8 @@ def parse_parameters(
         if not (math.isfinite(low) and math.isfinite(high) and low < high):
             raise ConfigError(f"{where}.low", [low, high], "finite numbers with low < high")
         name = str(entry.get("name") or f"{kind}:{target}")
+        if name in [p.name for p in parameters]:
+            raise ConfigError(f"{where}.name", name, "names must differ")
         parameters.append(PhysicsParameter(name, kind, target, low, high))
     return parameters
 
@@ -196,9 +198,10 @@ def _resolve(
     for errors).
 
     Raises:
-        ConfigError: a target the model does not have.
+        ConfigError: a target the model does not have, or one that another parameter writes too.
     """
-    edits = []
+    edits: list[list[_Edit]] = []
+    written: dict[str, dict[int, int]] = {}  # field → flat index → the parameter writing it
     for i, parameter in enumerate(parameters):
         objtype, fields, scale = _KINDS[parameter.kind]
         if objtype is None:
@@ -225,6 +228,12 @@ def _resolve(
                 width = flat.size // max(1, getattr(model, field).shape[0])
                 columns = np.arange(width) if column is None else np.array([column])
                 index = (ids[:, None] * width + columns[None, :]).reshape(-1)
+            owners = written.setdefault(field, {})
+            for j in {owners[k] for k in index.tolist() if k in owners}:
+                raise ConfigError(f"{key}[{i}].target", parameter.target,
+                                  f"{key}[{j}] ({parameters[j].name}) writes the same {field} "
+                                  "entries; each entry may follow one identifier")
+            owners.update(dict.fromkeys(index.tolist(), i))
             parameter_edits.append(_Edit(field, index, flat[index].copy(), scale))
         edits.append(parameter_edits)
     return edits
