@@ -218,6 +218,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--out", default="runs/ppo_domain_randomization", help="output folder")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="one run per seed")
     parser.add_argument("--iterations", type=int, default=None, help="override the iterations")
+    parser.add_argument("--adversary-lam", type=float, default=None,
+                        help="override λ, the weight of the adversary's KL(p0 ‖ p_φ) term")
     parser.add_argument("--sources", nargs="+", default=list(SOURCES), choices=SOURCES)
     return parser.parse_args(argv)
 
@@ -241,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
             if args.iterations < 1:
                 raise ValueError(f"'--iterations' = {args.iterations}: must be >= 1")
             settings = Settings(**{**asdict(settings), "iterations": args.iterations})
+        if args.adversary_lam is not None:
+            settings = Settings(**{**asdict(settings), "adversary_lam": args.adversary_lam})
         family = load_task_family(args.family)
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
