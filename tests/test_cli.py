@@ -32,6 +32,11 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
          "benchmark.collector.target", "allowed: delta, next"),
         ("benchmark=acrobot_uniform benchmark.collector.compile=fast",
          "benchmark.collector.compile", "a backend (inductor"),
+        ("benchmark=pendulum_uniform benchmark.space.low=[0.0,0.4]", "benchmark.space.low",
+         "must be > 0"),
+        ("benchmark=ant_goal_smoke trainer.progress=false benchmark.space.names=[x,y,z] "
+         "benchmark.space.low=[0,0,0] benchmark.space.high=[1,1,1]", "benchmark.space",
+         "AntGoalEnv refuses it: tensordict key 'params'"),
     ],
 )
 def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):
@@ -127,7 +132,10 @@ def test_a_checkpoint_that_does_not_fit_its_config_gets_one_line(tmp_path):
 
 def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch):
     monkeypatch.setenv("WANDB_MODE", "offline")
-    run_training(compose_train(*SMALL_RUN, "logger=wandb"), tmp_path)
+    run_training(compose_train(*SMALL_RUN, "logger=wandb", "trainer.density_every=3"), tmp_path)
     runs = list((tmp_path / "wandb").glob("offline-run-*"))
     assert len(runs) == 1
     assert list(runs[0].glob("run-*.wandb"))
+    # the density frames of iterations 0, 3 and 6, and the final density.png, as wandb images
+    images = list((runs[0] / "files" / "media" / "images" / "adversary").glob("density_*.png"))
+    assert len(images) == 4

@@ -18,15 +18,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from armeta_rl.envs.point_navigation import (
-    GOAL_HIGH,
-    GOAL_LOW,
-    GOAL_NAMES,
-    PointNavigationEnv,
-    Region,
-    check_regions,
-)
-from armeta_rl.errors import ConfigError
+from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
+from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
 from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
@@ -68,6 +61,30 @@ class EpisodeCollector:
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
         self._envs: dict[int, EnvBase] = {}
+
+    def probe_env(self) -> EnvBase:
+        """A one-episode env of batch size ``[1, 1]`` to check task boxes on."""
+        return self.make_env(batch_size=(1, 1), max_steps=1)
+
+    def check_space(self, space: TaskSpace) -> None:
+        """Refuse, before training, a task box the env cannot take: a probe env is reset at the
+        box's two corners and its own identifier check decides (the identifiers an env allows
+        form a box, so the corners stand for the whole box). The probe is built under a forked
+        RNG, so the run's random stream is untouched."""
+        dtype = torch.get_default_dtype()
+        with torch.random.fork_rng(devices=[]):
+            env = self.probe_env()
+            try:
+                for corner in (space.low, space.high):
+                    env.reset(TensorDict({TASK_KEY: torch.tensor([[corner]], dtype=dtype)},
+                                         [1, 1]))
+            except IdentifierError as error:
+                box = {"names": list(space.names), "low": list(space.low),
+                       "high": list(space.high)}
+                raise ConfigError("benchmark.space", box,
+                                  f"{type(env).__name__} refuses it: {error}") from None
+            finally:
+                env.close()
 
     def env(self, tasks: int) -> EnvBase:
         """The (cached) env of batch size ``[tasks, episodes]``."""
@@ -132,16 +149,6 @@ class PointNavigationCollector(EpisodeCollector):
         make_env = partial(PointNavigationEnv, sparse_regions=check_regions(sparse_regions),
                            squared_distance=bool(squared_distance), seed=seed)
         super().__init__(make_env, episodes, max_steps)
-
-    def check_space(self, space: TaskSpace) -> None:
-        """Refuse a task box other than goals (x, y) inside the env's ``[-0.5, 0.5]²``."""
-        if space.dim != len(GOAL_NAMES):
-            raise ConfigError("benchmark.space.names", list(space.names),
-                              "point navigation takes 2 identifiers (goal_x, goal_y)")
-        if min(space.low) < GOAL_LOW or max(space.high) > GOAL_HIGH:
-            raise ConfigError("benchmark.space", {"low": list(space.low),
-                                                  "high": list(space.high)},
-                              f"goals must lie in [{GOAL_LOW}, {GOAL_HIGH}]²")
 
 
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:

@@ -106,10 +106,15 @@ class TaskSplitEpisodeCollector(EpisodeCollector):
             raise ConfigError("benchmark.collector.mp_start_method", mp_start_method,
                               "one of fork, spawn, forkserver")
         self.workers = int(workers)
+        self.worker_env = make_env
         if self.workers > 1:
             make_env = partial(make_task_split_env, make_env, self.workers, seed=seed,
                                in_process=in_process, mp_start_method=mp_start_method)
         super().__init__(make_env, episodes, max_steps)
+
+    def probe_env(self) -> EnvBase:
+        """One worker's env of batch size ``[1, 1]`` (no processes), to check task boxes on."""
+        return self.worker_env(batch_size=(1, 1), max_steps=1)
 
     def close(self) -> None:
         """Stop the worker processes (they are started again by the next ``collect``)."""

@@ -28,8 +28,9 @@ NORMALIZATIONS = ("none", "scale")
 class SysIdCollector:
     """Few-shot transition data for system identification (the ``Collector`` protocol).
 
-    For tasks ``[K]`` with identifiers ``"params"`` ``[K, 2]`` ((m, l) for the pendulum,
-    (m1, m2) for the acrobot), one batched env ``[K, episodes]`` is reset with those identifiers
+    For tasks ``[K]`` with identifiers ``"params"`` (``TASK_KEY``) ``[K, d]`` ((m, l) for the
+    pendulum by default, any of (m, l, g) with ``identifiers``; (m1, m2) for the acrobot), one
+    batched env ``[K, episodes]`` is reset with those identifiers
     and a uniformly random policy acts for ``n_transitions / episodes`` steps in a single
     ``env.rollout`` (finished acrobot episodes are reset and collection goes on). Each task's
     ``n_transitions`` transitions are split at random (torch's global RNG) into ``n_support``
