@@ -1,0 +1,118 @@
+"""The flow adversary for any training loop: draw tasks, then ascend on their losses.
+
+:class:`TaskSampler` is the follower of the paper's game without the rest of our trainer: a loop
+(TorchRL PPO, say) asks it for ``n`` tasks, runs them, and hands back one loss per task; the
+sampler takes one ascent step of J(φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. main_obj) with
+the score-function surrogate of Eq. meta_adversary_obj_1
+(:func:`~armeta_rl.adversary.objective.adversary_surrogate`), Adam and, optionally, the cosine
+learning-rate schedule of :class:`~armeta_rl.risk.adversarial.AdversarialPrinciple`. It keeps no
+state between calls beyond φ, Adam's moments and the schedule: the tasks a loss belongs to are
+passed back with it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+
+from armeta_rl.adversary.flow_adversary import FlowAdversary
+from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
+from armeta_rl.errors import ConfigError, TrainingDiverged
+
+
+class TaskSampler:
+    """Tasks from the flow adversary p_φ, and its follower update on their losses.
+
+    Args:
+        adversary: p_φ (its ``base`` is p0), e.g. ``FlowAdversary(space, BoxUniform(space))``.
+        lam: Lagrange multiplier λ ≥ 0 of the KL(p0 ‖ p_φ) constraint (the paper uses 0 for
+            continuous control).
+        lr: Adam learning rate (> 0).
+        total_updates: ``T_max`` of a cosine schedule that takes the rate to 0 after that many
+            updates, or ``None`` for a constant rate.
+        grad_clip: maximum gradient norm, or ``None`` for no clipping.
+        baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
+        initial_samples: M, the fresh p0 samples of the λ term's gradient (≥ 1).
+    """
+
+    def __init__(
+        self,
+        adversary: FlowAdversary,
+        lam: float = 0.0,
+        lr: float = 1e-3,
+        total_updates: int | None = None,
+        grad_clip: float | None = 1.0,
+        baseline: str = "mean",
+        initial_samples: int = 256,
+    ) -> None:
+        if not (math.isfinite(lam) and lam >= 0):
+            raise ConfigError("lam", lam, "must be a finite number >= 0")
+        if not (math.isfinite(lr) and lr > 0):
+            raise ConfigError("lr", lr, "must be a finite number > 0")
+        if total_updates is not None and not (isinstance(total_updates, int)
+                                               and total_updates >= 1):
+            raise ConfigError("total_updates", total_updates, "an integer >= 1 or null")
+        if grad_clip is not None and not grad_clip > 0:
+            raise ConfigError("grad_clip", grad_clip, "must be > 0 or null")
+        if baseline not in BASELINES:
+            raise ConfigError("baseline", baseline, "allowed: " + ", ".join(BASELINES))
+        if isinstance(initial_samples, bool) or not (isinstance(initial_samples, int)
+                                                     and initial_samples >= 1):
+            raise ConfigError("initial_samples", initial_samples, "must be an integer >= 1")
+        self.adversary = adversary
+        self.lam, self.grad_clip = float(lam), grad_clip
+        self.baseline, self.initial_samples = baseline, initial_samples
+        self.optimizer = torch.optim.Adam(adversary.parameters(), lr=lr, maximize=True,
+                                          fused=True)
+        self.scheduler = (
+            None if total_updates is None
+            else torch.optim.lr_scheduler.CosineAnnealingLR(self.optimizer, T_max=total_updates)
+        )
+
+    def sample(self, n: int) -> TensorDict:
+        """``n`` tasks ``{"params": [n, d], "log_prob": [n]}`` drawn from p_φ."""
+        if isinstance(n, bool) or not (isinstance(n, int) and n >= 1):
+            raise ConfigError("n", n, "must be an integer >= 1")
+        return self.adversary.sample(n)
+
+    def update(
+        self, tasks: TensorDictBase | torch.Tensor, losses: torch.Tensor
+    ) -> dict[str, float]:
+        """One ascent step of φ on the losses ``[K]`` of ``tasks`` (``{"params": [K, d]}`` or the
+        params themselves; they need not come from :meth:`sample`, but the estimate is unbiased
+        only for samples of the current p_φ). Returns the surrogate's statistics at the φ before
+        the step (``objective``, ``loss_mean``, ``entropy``, ``kl_p0``), ``lr`` and
+        ``grad_norm`` (before clipping).
+
+        Raises:
+            ValueError: losses that are not one per task.
+            TrainingDiverged: non-finite losses or gradient; φ and Adam are left as they were.
+        """
+        params = tasks["params"] if isinstance(tasks, TensorDictBase) else tasks
+        losses = torch.as_tensor(losses).detach().to(torch.float64)
+        if losses.shape != (len(params),):
+            raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
+                             f"shape ({len(params)},)")
+        if not torch.isfinite(losses).all():
+            raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
+        phi = [p for group in self.optimizer.param_groups for p in group["params"]]
+        initial = self.adversary.base.sample_params(self.initial_samples)
+        surrogate, stats = adversary_surrogate(
+            self.adversary, params, losses, self.lam, initial, self.baseline
+        )
+        self.optimizer.zero_grad(set_to_none=True)
+        surrogate.backward()
+        max_norm = math.inf if self.grad_clip is None else self.grad_clip
+        grad_norm = torch.nn.utils.clip_grad_norm_(phi, max_norm, foreach=True)
+        if not (torch.isfinite(surrogate) and torch.isfinite(grad_norm)):
+            self.optimizer.zero_grad(set_to_none=True)
+            raise TrainingDiverged(f"adversary surrogate or gradient is not finite "
+                                   f"(surrogate {float(surrogate)}, norm {float(grad_norm)})")
+        lr = self.optimizer.param_groups[0]["lr"]
+        self.optimizer.step()
+        if self.scheduler is not None:
+            self.scheduler.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        return {**stats, "lr": float(lr), "grad_norm": float(grad_norm)}
