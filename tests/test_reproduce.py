@@ -112,6 +112,10 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
     removed = [p for p in removed if "seed1" in str(p)]
     for path in removed:
         path.unlink()
+    assert reproduce("table1", "tiny", table1_dir, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1  # aggregates only: incomplete
+    assert "**partial**: 9/10 training runs and 15/20 evaluations" in (
+        table1_dir / "table1.md").read_text()
     assert reproduce("table1", "tiny", table1_dir, launcher="basic",
                      benchmarks=("sinusoid_uniform",)) == 0
     assert "(1 to run)" in capsys.readouterr().out
@@ -186,7 +190,8 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["table1", "profile=huge"], "'profile' = 'huge': allowed: quick, paper, tiny"),
         (["table1", "launcher=mpi"], "'launcher' = 'mpi': allowed: local"),
         (["table1", "benchmarks=point_nav"], "'benchmarks' = 'point_nav': table1 has:"),
-        (["table1", "seeds=3"], "'seeds' = '3': no such option"),
+        (["table1", "seeds=7"], "'seeds' = 7: table1 at profile quick has: 0, 1"),
+        (["table1", "iterations=3"], "'iterations' = '3': no such option"),
         (["profile=quick"], "name an experiment first"),
     ],
 )

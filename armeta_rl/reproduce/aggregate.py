@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from armeta_rl.config import CONFIG_FILE
 from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished
 
 INITIAL = "initial"
@@ -78,9 +79,19 @@ def section_records(report: dict[str, Any], section: str, distribution: str,
     return [record]
 
 
+def run_seconds(run_dir: Path) -> float | None:
+    """A finished run's wall time: from its ``config.yaml`` (written as it starts) to its
+    ``eval.json`` (written as it ends), interruptions of a resumed run included."""
+    config = run_dir / CONFIG_FILE
+    if not config.is_file():
+        return None
+    return (run_dir / EVAL_FILE).stat().st_mtime - config.stat().st_mtime
+
+
 def collect(plan: Plan, results: Path) -> list[dict[str, Any]]:
-    """One record per finished run and distribution: p0 from the run's ``eval.json``, each named
-    adversary from its ``eval_vs_<name>.json``; with noisy support labels as extra records."""
+    """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
+    run's wall time), each named adversary from its ``eval_vs_<name>.json``; with noisy support
+    labels as extra records."""
     records = []
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
     sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals]
@@ -89,11 +100,13 @@ def collect(plan: Plan, results: Path) -> list[dict[str, Any]]:
         if not path.is_file():
             continue
         report = json.loads(path.read_text())
+        seconds = run_seconds(path.parent) if file == EVAL_FILE else None
         for noisy in (False, True):
             name = f"{section}_noisy" if noisy else section
             for record in section_records(report, name, distribution, noisy):
                 records.append({"benchmark": run.benchmark, "method": run.method,
-                                "variant": run.variant, "seed": run.seed, **record})
+                                "variant": run.variant, "seed": run.seed, **record,
+                                "train_seconds": seconds})
     return records
 
 

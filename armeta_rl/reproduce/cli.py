@@ -1,15 +1,15 @@
-"""``armeta-reproduce <experiment> [profile=quick|paper|tiny] [benchmarks=a,b] [results=DIR]
-[launcher=local|basic|ray|slurm] [jobs=N] [hydra.launcher.…=…] [+train.<key>=<value>]``: one
-artefact of the paper.
+"""``armeta-reproduce <experiment> [profile=quick|paper|tiny] [benchmarks=a,b] [seeds=0,1]
+[results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N] [hydra.launcher.…=…]
+[+train.<key>=<value>]``: one artefact of the paper.
 
 It trains the experiment's runs (one ``armeta-train`` multirun), scores them on the adversaries
 (one ``armeta-eval`` multirun) and aggregates everything into ``<experiment>.csv``,
 ``<experiment>.md`` and PNG figures in the results directory (default ``results/<experiment>``).
 Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
 interrupted resumes from its checkpoint, so running the same command again continues a sweep.
-``benchmarks=`` restricts the experiment to some of its benchmarks, ``hydra.*`` arguments go to
-both multiruns (launcher settings) and ``+train.<key>=<value>`` is appended to every training
-run's overrides.
+``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds,
+``launcher=none`` only aggregates, ``hydra.*`` arguments go to both multiruns (launcher settings)
+and ``+train.<key>=<value>`` is appended to every training run's overrides.
 """
 
 from __future__ import annotations
@@ -22,14 +22,14 @@ from typing import NoReturn
 from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.reproduce.aggregate import collect, progress_note, write_csv
+from armeta_rl.reproduce.aggregate import INITIAL, collect, display, progress_note, write_csv
 from armeta_rl.reproduce.launch import LAUNCHERS, eval_job, launch, launcher_overrides, train_job
 from armeta_rl.reproduce.plan import Plan, experiment_names, finished, make_plan
 from armeta_rl.reproduce.reports import LAYOUTS
 
 PROG = "armeta-reproduce"
 MANIFEST = "reproduce.yaml"
-OPTIONS = ("profile", "benchmarks", "results", "launcher", "jobs")
+OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs")
 
 
 def _fail(message: str) -> NoReturn:
@@ -82,6 +82,19 @@ def check_runs(plan: Plan) -> None:
             check_config(cfg)
 
 
+def run_times(records: list[dict]) -> str:
+    """``; a training run: <benchmark> <minutes>, …`` (the mean wall time of a benchmark's runs,
+    measured as they ran: parallel jobs share the cores)."""
+    times: dict[str, list[float]] = {}
+    for record in records:
+        if record["distribution"] == INITIAL and not record["noisy"] and record["train_seconds"]:
+            times.setdefault(record["benchmark"], []).append(record["train_seconds"])
+    if not times:
+        return ""
+    return "; a training run: " + ", ".join(
+        f"{display(b)} {sum(t) / len(t) / 60:.1f} min" for b, t in times.items())
+
+
 def write_report(plan: Plan, results: Path, wall_seconds: float) -> Path:
     """``<experiment>.csv`` and ``<experiment>.md`` (with its figures) from the finished runs."""
     records = collect(plan, results)
@@ -89,7 +102,8 @@ def write_report(plan: Plan, results: Path, wall_seconds: float) -> Path:
     body = LAYOUTS[plan.spec["layout"]](plan, records, results) if records else "No run finished."
     minutes = wall_seconds / 60
     text = (f"# {plan.spec['title']}\n\n{plan.spec.get('description', '').strip()}\n\n"
-            f"{progress_note(plan, results)} Wall time of the sweeps so far: {minutes:.1f} min.\n"
+            f"{progress_note(plan, results)} Wall time of the sweeps so far: {minutes:.1f} min"
+            f"{run_times(records)}.\n"
             f"Cells: mean ± std over seeds unless marked s.e.; every run's numbers are in "
             f"`{plan.experiment}.csv`.\n\n{body}\n")
     path = results / f"{plan.experiment}.md"
@@ -100,7 +114,8 @@ def write_report(plan: Plan, results: Path, wall_seconds: float) -> Path:
 def reproduce(experiment: str, profile: str = "quick", results: Path | None = None,
               launcher: str = "local", jobs: int | None = None,
               hydra_args: tuple[str, ...] = (), extra: tuple[str, ...] = (),
-              benchmarks: tuple[str, ...] | None = None) -> int:
+              benchmarks: tuple[str, ...] | None = None,
+              seeds: tuple[int, ...] | None = None) -> int:
     """Run what is missing of ``experiment`` at ``profile`` and aggregate; the exit code (0 when
     every run and evaluation finished).
 
@@ -110,7 +125,7 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     """
     from armeta_rl.cli import evaluate, train
 
-    plan = make_plan(experiment, profile, extra, benchmarks)
+    plan = make_plan(experiment, profile, extra, benchmarks, seeds)
     results = (results or Path("results") / experiment).resolve()
     selected = launcher_overrides(launcher, jobs)
     manifest = claim(results, plan, extra)
@@ -122,13 +137,15 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
           f"({len(runs)} to run), {len(plan.evals)} evaluations; launcher {launcher}", flush=True)
     code = 0
+    if launcher == "none":
+        runs = []
     if runs:
         code = launch(train, "armeta-train", [train_job(results, r) for r in runs], results,
                       f"{experiment} train", len(plan.runs) - len(runs),
                       (*selected, *hydra_args))
     evals = [e for e in plan.evals if not finished(results, e)]
     ready = [e for e in evals if finished(results, e.learner) and finished(results, e.adversary)]
-    if ready:
+    if ready and launcher != "none":
         code = launch(evaluate, "armeta-eval", [eval_job(results, e) for e in ready], results,
                       f"{experiment} eval", len(plan.evals) - len(evals),
                       (*selected, *hydra_args)) or code
@@ -161,6 +178,10 @@ def parse(args: list[str]) -> dict:
             options["jobs"] = int(value)
         elif key == "benchmarks":
             options["benchmarks"] = tuple(value.split(","))
+        elif key == "seeds":
+            if not all(part.isdigit() for part in value.split(",")):
+                _fail(f"config key 'seeds' = {value!r}: must be comma-separated integers")
+            options["seeds"] = tuple(int(part) for part in value.split(","))
         elif key == "results":
             options["results"] = Path(value)
         elif key in OPTIONS:

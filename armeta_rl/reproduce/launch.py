@@ -18,18 +18,19 @@ from omegaconf import OmegaConf
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.plan import EvalJob, TrainRun, has_checkpoint
 
-LAUNCHERS = ("local", "basic", "ray", "slurm")
+LAUNCHERS = ("local", "basic", "ray", "slurm", "none")
 """``local``: joblib processes on this machine (``jobs=`` of them, default all cores);
 ``basic``: one job after the other in this process; ``ray``: Ray tasks (the cluster of
 ``RAY_ADDRESS`` or ``hydra.launcher.ray.init.address=``, else a new local one); ``slurm``:
-submitit's Slurm launcher (``hydra.launcher.partition=`` etc.)."""
+submitit's Slurm launcher (``hydra.launcher.partition=`` etc.); ``none``: launch nothing, only
+aggregate what has finished (e.g. while a sweep runs elsewhere)."""
 
 
 def launcher_overrides(launcher: str, jobs: int | None) -> list[str]:
     """The Hydra overrides that select ``launcher`` (``jobs``: parallel jobs of ``local``)."""
     if launcher == "local":
         return ["hydra/launcher=joblib", f"hydra.launcher.n_jobs={jobs or -1}"]
-    if launcher == "basic":
+    if launcher in ("basic", "none"):
         return []
     if launcher == "ray":
         return ["hydra/launcher=ray"]

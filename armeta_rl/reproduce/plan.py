@@ -99,10 +99,13 @@ def load_profiles() -> dict[str, Any]:
 
 
 def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
-              benchmarks: tuple[str, ...] | None = None) -> Plan:
+              benchmarks: tuple[str, ...] | None = None,
+              seeds: tuple[int, ...] | None = None) -> Plan:
     """The runs and evaluation jobs of ``experiment`` at ``profile``; ``extra`` overrides are
-    appended to every training run (last, so they win); ``benchmarks`` restricts the experiment
-    to some of its benchmarks (their runs are the same as in the whole experiment)."""
+    appended to every training run (last, so they win). ``benchmarks`` and ``seeds`` restrict
+    the experiment to some of its benchmarks and seeds: their runs are the same as in the whole
+    experiment, and the evaluations kept are those with the learner or the adversary among them
+    (an evaluation runs once both exist)."""
     spec = load_spec(experiment)
     profiles = load_profiles()
     if profile not in profiles:
@@ -113,7 +116,11 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
             raise ConfigError("benchmarks", name, f"{experiment} has: {', '.join(declared)}")
     shared = profiles[profile]
     own = spec.get("profiles", {}).get(profile, {})
-    seeds = [int(s) for s in own.get("seeds", shared["seeds"])]
+    all_seeds = [int(s) for s in own.get("seeds", shared["seeds"])]
+    for seed in seeds or ():
+        if seed not in all_seeds:
+            raise ConfigError("seeds", seed, f"{experiment} at profile {profile} has: "
+                              f"{', '.join(map(str, all_seeds))}")
     runs: list[TrainRun] = []
     for group in spec["groups"]:
         variants = group.get("variants") or {"": []}
@@ -131,9 +138,13 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
                     runs.extend(
                         TrainRun(benchmark, method, variant, seed,
                                  (*settings, *variant_overrides, *extra))
-                        for seed in seeds
+                        for seed in all_seeds
                     )
-    return Plan(experiment, profile, spec, tuple(runs), tuple(eval_jobs(spec, runs, seeds)))
+    jobs = eval_jobs(spec, runs, all_seeds)
+    if seeds:
+        runs = [run for run in runs if run.seed in seeds]
+        jobs = [job for job in jobs if job.learner.seed in seeds or job.adversary.seed in seeds]
+    return Plan(experiment, profile, spec, tuple(runs), tuple(jobs))
 
 
 def eval_jobs(spec: dict[str, Any], runs: list[TrainRun], seeds: list[int]) -> list[EvalJob]:
