@@ -130,8 +130,12 @@ def test_over_seeds_by_hand():
     assert math.isclose(summary.std, math.sqrt((4 + 1 + 0 + 9) / 3))
     assert math.isclose(summary.se, summary.std / 2)
     assert summary.format() == "3.000 ± 2.160"
+    assert summary.format("se") == "3.000 ± 1.080"
     one = over_seeds([0.25])
     assert one.mean == 0.25 and math.isnan(one.std) and one.format() == "0.250"
+    # Small MSEs keep three significant digits, returns one decimal.
+    assert over_seeds([0.00123, 0.00127]).format() == "0.00125 ± 0.00003"
+    assert over_seeds([-15.3, -14.1]).format() == "-14.7 ± 0.8"
 
 
 def test_cvar_curves_by_hand():

@@ -32,11 +32,24 @@ class SeedSummary:
     se: float
     n: int
 
-    def format(self, digits: int = 3) -> str:
-        """``mean ± std`` (just the mean for one seed)."""
+    def format(self, spread: str = "std") -> str:
+        """``mean ± std`` (``spread="se"``: ± the standard error; just the mean for one seed),
+        both with the decimals :func:`decimals` gives the mean."""
+        places = decimals(self.mean)
         if self.n < 2:
-            return f"{self.mean:.{digits}f}"
-        return f"{self.mean:.{digits}f} ± {self.std:.{digits}f}"
+            return f"{self.mean:.{places}f}"
+        return f"{self.mean:.{places}f} ± {getattr(self, spread):.{places}f}"
+
+
+def decimals(value: float) -> int:
+    """Decimal places to show ``value`` with: 3 as the paper writes MSEs, 1 from 10 on (returns),
+    3 significant digits below 0.1 (the system-identification MSEs)."""
+    size = abs(value)
+    if size >= 10:
+        return 1
+    if size >= 0.1 or size == 0 or not math.isfinite(size):
+        return 3
+    return 2 - math.floor(math.log10(size))
 
 
 def over_seeds(values: Sequence[float]) -> SeedSummary:

@@ -8,8 +8,9 @@ It trains the experiment's runs (one ``armeta-train`` multirun), scores them on 
 Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
 interrupted resumes from its checkpoint, so running the same command again continues a sweep.
 ``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds,
-``launcher=none`` only aggregates, ``hydra.*`` arguments go to both multiruns (launcher settings)
-and ``+train.<key>=<value>`` is appended to every training run's overrides.
+``launcher=none`` only aggregates, ``hydra.*`` and ``hydra/<group>=`` arguments go to both
+multiruns (launcher settings) and ``+train.<key>=<value>`` is appended to every training run's
+overrides.
 """
 
 from __future__ import annotations
@@ -168,7 +169,7 @@ def parse(args: list[str]) -> dict:
         key, sep, value = arg.partition("=")
         if not sep:
             _fail(f"cannot read the argument {arg!r}: expected key=value")
-        if key.startswith("hydra."):
+        if key.startswith(("hydra.", "hydra/")):
             options["hydra_args"].append(arg)
         elif key.startswith("+train."):
             options["extra"].append(arg[len("+train."):])
@@ -188,7 +189,7 @@ def parse(args: list[str]) -> dict:
             options[key] = value
         else:
             _fail(f"config key '{key}' = {value!r}: no such option; allowed: "
-                  f"{', '.join(OPTIONS)}, hydra.<key>, +train.<key>")
+                  f"{', '.join(OPTIONS)}, hydra.<key>, hydra/<group>, +train.<key>")
     if options.get("launcher", "local") not in LAUNCHERS:
         _fail(f"config key 'launcher' = {options['launcher']!r}: allowed: {', '.join(LAUNCHERS)}")
     options["hydra_args"] = tuple(options["hydra_args"])

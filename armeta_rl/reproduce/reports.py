@@ -45,7 +45,7 @@ def _cvar_key(plan: Plan) -> str:
 def _cell(value: SeedSummary | None, bold: bool = False, se: bool = False) -> str:
     if value is None:
         return "–"
-    text = f"{value.mean:.3f} ± {value.se:.3f}" if se and value.n >= 2 else value.format()
+    text = value.format("se" if se else "std")
     return f"**{text}**" if bold else text
 
 
