@@ -117,8 +117,9 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
               hydra_args: tuple[str, ...] = (), extra: tuple[str, ...] = (),
               benchmarks: tuple[str, ...] | None = None,
               seeds: tuple[int, ...] | None = None) -> int:
-    """Run what is missing of ``experiment`` at ``profile`` and aggregate; the exit code (0 when
-    every run and evaluation finished).
+    """Run what is missing of ``experiment`` at ``profile`` (restricted to ``benchmarks`` and
+    ``seeds``) and aggregate the experiment's benchmarks over all its seeds; the exit code (0
+    when every run and evaluation of the restriction finished).
 
     Raises:
         ConfigError: an unknown experiment, profile or launcher, a results directory that is not
@@ -153,8 +154,9 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     wall = manifest["wall_seconds"]
     wall[experiment] = wall.get(experiment, 0.0) + (time.time() - started)
     OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
-    report = write_report(plan, results, wall[experiment])
-    print(f"{PROG}: {progress_note(plan, results)} Report: {report}")
+    whole = make_plan(experiment, profile, extra, benchmarks)  # the report covers every seed
+    report = write_report(whole, results, wall[experiment])
+    print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
     incomplete = any(not finished(results, r) for r in (*plan.runs, *plan.evals))
     return code or int(incomplete)
 
