@@ -260,3 +260,14 @@ def test_a_ray_launched_sweep_equals_the_local_one(tmp_path):
         for key in ("initial", "initial_noisy", "adversarial", "adversarial_noisy"):
             if key in ours:
                 assert ours[key] == theirs[key], (relative, key)
+
+
+def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
+    whole = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",))
+    part = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",), seeds=(1,))
+    assert {run.seed for run in part.runs} == {1} and len(part.runs) == 5
+    assert set(part.runs) < set(whole.runs) and set(part.evals) < set(whole.evals)
+    # Same seed: learner seed 1 on adversary seed 1; next seed: seed 0 on 1 and seed 1 on 2.
+    pairs = {(job.name, job.learner.seed, job.adversary.seed) for job in part.evals}
+    assert pairs == {("same_seed", 1, 1), ("next_seed", 0, 1), ("next_seed", 1, 2)}
+    assert len(part.evals) == 15
