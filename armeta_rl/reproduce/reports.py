@@ -42,6 +42,10 @@ def _cvar_key(plan: Plan) -> str:
     return f"cvar_{float(plan.spec.get('alpha', 0.5))}"
 
 
+def _cvar_label(plan: Plan) -> str:
+    return f"CVaR{float(plan.spec.get('alpha', 0.5))}"
+
+
 def _cell(value: SeedSummary | None, bold: bool = False, se: bool = False) -> str:
     if value is None:
         return "–"
@@ -153,7 +157,7 @@ def noise(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
               for distribution, label in _distributions(plan).items()
               for noisy in (False, True)]
     figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
-                 cvar.replace("_", ""))
+                 _cvar_label(plan))
     rows = []
     for benchmark in _benchmarks(plan):
         for method in methods:
@@ -161,7 +165,7 @@ def noise(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
                 _cell(summary(records, column, benchmark=benchmark, method=method, **where),
                       se=True) for _, where, column in groups)])
     header = ["Benchmark", "Method", *(label for label, _, _ in groups)]
-    return (f"![{plan.experiment}]({plan.experiment}.png)\n\n{cvar.replace('_', '')}, mean ± s.e. "
+    return (f"![{plan.experiment}]({plan.experiment}.png)\n\n{_cvar_label(plan)}, mean ± s.e. "
             "over seeds.\n\n" + markdown_table(header, rows))
 
 
@@ -171,7 +175,7 @@ def bar_chart(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     methods, cvar = _methods(plan), _cvar_key(plan)
     groups = [(f"{label}, {name}", {"distribution": distribution, "noisy": False}, column)
               for distribution, label in _distributions(plan).items()
-              for name, column in (("average", "mean"), (cvar.replace("_", ""), cvar))]
+              for name, column in (("average", "mean"), (_cvar_label(plan), cvar))]
     figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
                  "return")
     rows = []
@@ -214,7 +218,7 @@ def entropy(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             if quoted:
                 rows.append(["", "paper", *quoted])
     cvar = _cvar_key(plan)
-    columns = {"mean": "average", cvar: cvar.replace("_", "")}
+    columns = {"mean": "average", cvar: _cvar_label(plan)}
     figures.lambda_curves(records, _benchmarks(plan), method, lambdas, columns,
                           results / f"{plan.experiment}_lambda.png")
     mse_rows = []
