@@ -73,6 +73,18 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
     assert len(rows) == 1 + 10 + 20  # p0 of every run, two adversaries of every run
 
 
+def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
+    from conftest import compose_train
+
+    from armeta_rl.trainers.run import run_training
+
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    run = next(r for r in plan.runs if r.method == "ar_maml" and r.seed == 1)
+    report = run_training(compose_train(*run.command()), tmp_path / "by_hand", progress=False)
+    swept = json.loads((table1_dir / run.subdir / "eval.json").read_text())
+    assert json.loads(json.dumps(report)) == swept
+
+
 @pytest.mark.parametrize("experiment", ["cvar_curves", "scatter"])
 def test_experiments_sharing_table1s_runs_only_aggregate(table1_dir, experiment):
     before = _eval_files(table1_dir)
