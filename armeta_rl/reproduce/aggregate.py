@@ -164,9 +164,12 @@ def progress_note(plan: Plan, results: Path) -> str:
     runs = sum(finished(results, r) for r in plan.runs)
     evals = sum(finished(results, e) for e in plan.evals)
     total = len(plan.runs) + len(plan.evals)
-    state = "complete" if runs + evals == total else "**partial**"
-    return (f"Profile `{plan.profile}`, {state}: {runs}/{len(plan.runs)} training runs and "
-            f"{evals}/{len(plan.evals)} evaluations finished.")
+    if runs + evals == total:
+        return (f"Profile `{plan.profile}`, complete: {runs}/{len(plan.runs)} training runs and "
+                f"{evals}/{len(plan.evals)} evaluations finished.")
+    return (f"Profile `{plan.profile}`, **partial**: {runs}/{len(plan.runs)} training runs and "
+            f"{evals}/{len(plan.evals)} evaluations finished (each cell summarizes the seeds "
+            "finished so far, so cells may rest on different numbers of seeds).")
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
