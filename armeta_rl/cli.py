@@ -376,7 +376,8 @@ def evaluate() -> None:
     """``armeta-eval``: score a saved learner on p0 and on a saved adversary."""
     keep_freed_memory()
     args = sys.argv[1:]
-    if not any(a.startswith("learner=") for a in args):
+    multirun = "-m" in args or "--multirun" in args  # a sweep's jobs carry their own learner=
+    if not multirun and not any(a.startswith("learner=") for a in args):
         _fail(
             "armeta-eval",
             "config key 'learner' is missing: give the run directory to score, "

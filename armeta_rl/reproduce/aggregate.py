@@ -1,0 +1,179 @@
+"""Aggregation of an experiment's runs: one record per (run, distribution) in ``<experiment>.csv``,
+mean ± standard deviation over seeds, CVaR_α curves, and ``<experiment>.md`` laid out like the
+paper's table or figure, with the paper's numbers beside ours where the paper prints them.
+
+Over seeds, ``std`` is the sample standard deviation (n − 1; the paper's "± … (5 runs)") and
+``se`` the standard error std/√n (the paper's error bars and shaded bands).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from armeta_rl.config import CONFIG_FILE
+from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished
+
+INITIAL = "initial"
+NUMBER_COLUMNS = ("mean", "sem", "entropy", "kl_p0", "n_tasks")
+
+
+@dataclass(frozen=True)
+class SeedSummary:
+    """A quantity over seeds: mean, sample standard deviation, standard error, count."""
+
+    mean: float
+    std: float
+    se: float
+    n: int
+
+    def format(self, spread: str = "std") -> str:
+        """``mean ± std`` (``spread="se"``: ± the standard error; just the mean for one seed),
+        both with the decimals :func:`decimals` gives the mean."""
+        places = decimals(self.mean)
+        if self.n < 2:
+            return f"{self.mean:.{places}f}"
+        return f"{self.mean:.{places}f} ± {getattr(self, spread):.{places}f}"
+
+
+def decimals(value: float) -> int:
+    """Decimal places to show ``value`` with: 3 as the paper writes MSEs, 1 from 10 on (returns),
+    3 significant digits below 0.1 (the system-identification MSEs)."""
+    size = abs(value)
+    if size >= 10:
+        return 1
+    if size >= 0.1 or size == 0 or not math.isfinite(size):
+        return 3
+    return 2 - math.floor(math.log10(size))
+
+
+def over_seeds(values: Sequence[float]) -> SeedSummary:
+    """Mean, sample std (n − 1) and standard error of ``values`` (std and se NaN for one value)."""
+    n = len(values)
+    if n == 0:
+        raise ValueError("no values to summarize")
+    mean = math.fsum(values) / n
+    if n < 2:
+        return SeedSummary(mean, math.nan, math.nan, n)
+    std = math.sqrt(math.fsum((v - mean) ** 2 for v in values) / (n - 1))
+    return SeedSummary(mean, std, std / math.sqrt(n), n)
+
+
+def cvar_curve(record: dict[str, Any]) -> tuple[list[float], list[float]]:
+    """CVaR_α of one record for α = 0 (the mean: the whole distribution is the tail) and every α
+    it holds, in increasing α."""
+    alphas = sorted(float(key[5:]) for key in record if key.startswith("cvar_")
+                    and record[key] != "")
+    return [0.0, *alphas], [record["mean"], *(record[f"cvar_{a}"] for a in alphas)]
+
+
+def curve_over_seeds(records: Sequence[dict[str, Any]]) -> tuple[list[float], list[SeedSummary]]:
+    """CVaR_α curves of several seeds: for each α, the mean and standard error over seeds (the
+    α grid is the one all records share)."""
+    curves = [cvar_curve(r) for r in records]
+    alphas = sorted(set.intersection(*(set(a) for a, _ in curves)))
+    return alphas, [over_seeds([dict(zip(a, v))[alpha] for a, v in curves]) for alpha in alphas]
+
+
+def section_records(report: dict[str, Any], section: str, distribution: str,
+                    noisy: bool) -> list[dict[str, Any]]:
+    """The record of ``report[section]`` (one distribution of an ``eval.json``), if present."""
+    if section not in report:
+        return []
+    data = report[section]
+    record = {"distribution": distribution, "noisy": noisy, "metric": report["metric"]}
+    record.update({key: data.get(key) for key in NUMBER_COLUMNS})
+    record.update({f"cvar_{float(a)}": v for a, v in data["cvar"].items()})
+    return [record]
+
+
+def run_seconds(run_dir: Path) -> float | None:
+    """A finished run's wall time: from its ``config.yaml`` (written as it starts) to its
+    ``eval.json`` (written as it ends), interruptions of a resumed run included."""
+    config = run_dir / CONFIG_FILE
+    if not config.is_file():
+        return None
+    return (run_dir / EVAL_FILE).stat().st_mtime - config.stat().st_mtime
+
+
+def collect(plan: Plan, results: Path) -> list[dict[str, Any]]:
+    """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
+    run's wall time), each named adversary from its ``eval_vs_<name>.json``; with noisy support
+    labels as extra records."""
+    records = []
+    sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
+    sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals]
+    for run, file, section, distribution in sources:
+        path = results / run.subdir / file
+        if not path.is_file():
+            continue
+        report = json.loads(path.read_text())
+        seconds = run_seconds(path.parent) if file == EVAL_FILE else None
+        for noisy in (False, True):
+            name = f"{section}_noisy" if noisy else section
+            for record in section_records(report, name, distribution, noisy):
+                records.append({"benchmark": run.benchmark, "method": run.method,
+                                "variant": run.variant, "seed": run.seed, **record,
+                                "train_seconds": seconds})
+    return records
+
+
+def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:
+    """The records as CSV, one column per key (CVaR columns in increasing α)."""
+    keys: list[str] = []
+    for record in records:
+        keys += [k for k in record if k not in keys]
+    cvars = sorted((k for k in keys if k.startswith("cvar_")), key=lambda k: float(k[5:]))
+    columns = [k for k in keys if not k.startswith("cvar_")] + cvars
+    with path.open("w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(records)
+
+
+def select(records: Iterable[dict[str, Any]], **where: Any) -> list[dict[str, Any]]:
+    """The records whose fields equal ``where``, in seed order."""
+    chosen = [r for r in records if all(r.get(k) == v for k, v in where.items())]
+    return sorted(chosen, key=lambda r: r["seed"])
+
+
+def summary(records: Iterable[dict[str, Any]], key: str, **where: Any) -> SeedSummary | None:
+    """``key`` of the matching records over seeds, or ``None`` when none has finished."""
+    values = [r[key] for r in select(records, **where) if r.get(key) is not None]
+    return over_seeds(values) if values else None
+
+
+def display(name: str) -> str:
+    """A method or benchmark as the paper writes it: ``tr_maml`` → TR-MAML, ``sinusoid_normal``
+    → Sinusoid-N; other names unchanged."""
+    parts = name.split("_")
+    if parts[-1] in ("maml", "cnp"):
+        return "-".join(p.upper() for p in parts)
+    if parts[-1] in ("uniform", "normal") and len(parts) == 2:
+        return f"{parts[0].capitalize()}-{parts[1][0].upper()}"
+    return name
+
+
+def progress_note(plan: Plan, results: Path) -> str:
+    """How many of the plan's runs and evaluations have finished (a partial sweep says so)."""
+    runs = sum(finished(results, r) for r in plan.runs)
+    evals = sum(finished(results, e) for e in plan.evals)
+    total = len(plan.runs) + len(plan.evals)
+    if runs + evals == total:
+        return (f"Profile `{plan.profile}`, complete: {runs}/{len(plan.runs)} training runs and "
+                f"{evals}/{len(plan.evals)} evaluations finished.")
+    return (f"Profile `{plan.profile}`, **partial**: {runs}/{len(plan.runs)} training runs and "
+            f"{evals}/{len(plan.evals)} evaluations finished (each cell summarizes the seeds "
+            "finished so far, so cells may rest on different numbers of seeds).")
+
+
+def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:
+    """A Markdown table."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines)

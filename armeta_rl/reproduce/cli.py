@@ -1,0 +1,213 @@
+"""``armeta-reproduce <experiment> [profile=quick|paper|tiny] [benchmarks=a,b] [seeds=0,1]
+[results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N] [hydra.launcher.…=…]
+[+train.<key>=<value>]``: one artefact of the paper.
+
+It trains the experiment's runs (one ``armeta-train`` multirun), scores them on the adversaries
+(one ``armeta-eval`` multirun) and aggregates everything into ``<experiment>.csv``,
+``<experiment>.md`` and PNG figures in the results directory (default ``results/<experiment>``).
+Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
+interrupted resumes from its checkpoint, so running the same command again continues a sweep.
+``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds,
+``launcher=none`` only aggregates, ``hydra.*`` and ``hydra/<group>=`` arguments go to both
+multiruns (launcher settings) and ``+train.<key>=<value>`` is appended to every training run's
+overrides.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import NoReturn
+
+from omegaconf import OmegaConf
+
+from armeta_rl.errors import ConfigError
+from armeta_rl.reproduce.aggregate import INITIAL, collect, display, progress_note, write_csv
+from armeta_rl.reproduce.launch import LAUNCHERS, eval_job, launch, launcher_overrides, train_job
+from armeta_rl.reproduce.plan import Plan, experiment_names, finished, make_plan
+from armeta_rl.reproduce.reports import LAYOUTS
+
+PROG = "armeta-reproduce"
+MANIFEST = "reproduce.yaml"
+OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs")
+
+
+def _fail(message: str) -> NoReturn:
+    print(f"{PROG}: error: {message}", file=sys.stderr)
+    sys.exit(2)
+
+
+def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
+    """The results directory's manifest (a new one for a new directory; nothing is written). A
+    directory of another experiment (unless the plan shares its runs: ``shares_runs_with``),
+    another profile or other ``+train.`` overrides, or a non-empty directory without a manifest,
+    is refused."""
+    path = results / MANIFEST
+    if path.is_file():
+        manifest = OmegaConf.to_container(OmegaConf.load(path))
+        allowed = {plan.experiment, *plan.spec.get("shares_runs_with", [])}
+        if manifest["experiment"] not in allowed:
+            raise ConfigError("results", str(results),
+                              f"holds the runs of experiment {manifest['experiment']}, not "
+                              f"{plan.experiment}: choose another results directory")
+        if manifest["profile"] != plan.profile or manifest["train"] != list(extra):
+            raise ConfigError("results", str(results),
+                              f"holds profile {manifest['profile']} with +train overrides "
+                              f"{manifest['train']}: choose another results directory")
+        return manifest
+    if results.is_dir() and any(results.iterdir()):
+        raise ConfigError("results", str(results),
+                          f"is not empty and has no {MANIFEST}: not an {PROG} results directory")
+    return {"experiment": plan.experiment, "profile": plan.profile, "train": list(extra),
+            "wall_seconds": {}}
+
+
+def check_runs(plan: Plan) -> None:
+    """Compose and check the config of every distinct run (seeds aside) before launching, so a
+    bad override in an experiment's YAML fails with one line instead of in every job."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+
+    from armeta_rl.cli import config_dir
+    from armeta_rl.config import check_config
+
+    distinct = {(*run.command()[:2], *run.overrides): None for run in plan.runs}
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        for overrides in distinct:
+            try:
+                cfg = compose("train", overrides=list(overrides))
+            except HydraException as error:
+                raise ConfigError("overrides", " ".join(overrides),
+                                  str(error).splitlines()[0]) from None
+            check_config(cfg)
+
+
+def run_times(records: list[dict]) -> str:
+    """``; a training run: <benchmark> <minutes>, …`` (the mean wall time of a benchmark's runs,
+    measured as they ran: parallel jobs share the cores)."""
+    times: dict[str, list[float]] = {}
+    for record in records:
+        if record["distribution"] == INITIAL and not record["noisy"] and record["train_seconds"]:
+            times.setdefault(record["benchmark"], []).append(record["train_seconds"])
+    if not times:
+        return ""
+    return "; a training run: " + ", ".join(
+        f"{display(b)} {sum(t) / len(t) / 60:.1f} min" for b, t in times.items())
+
+
+def write_report(plan: Plan, results: Path, wall_seconds: float) -> Path:
+    """``<experiment>.csv`` and ``<experiment>.md`` (with its figures) from the finished runs."""
+    records = collect(plan, results)
+    write_csv(records, results / f"{plan.experiment}.csv")
+    body = LAYOUTS[plan.spec["layout"]](plan, records, results) if records else "No run finished."
+    minutes = wall_seconds / 60
+    text = (f"# {plan.spec['title']}\n\n{plan.spec.get('description', '').strip()}\n\n"
+            f"{progress_note(plan, results)} Wall time of the sweeps so far: {minutes:.1f} min"
+            f"{run_times(records)}.\n"
+            f"Cells: mean ± std over seeds unless marked s.e.; every run's numbers are in "
+            f"`{plan.experiment}.csv`.\n\n{body}\n")
+    path = results / f"{plan.experiment}.md"
+    path.write_text(text)
+    return path
+
+
+def reproduce(experiment: str, profile: str = "quick", results: Path | None = None,
+              launcher: str = "local", jobs: int | None = None,
+              hydra_args: tuple[str, ...] = (), extra: tuple[str, ...] = (),
+              benchmarks: tuple[str, ...] | None = None,
+              seeds: tuple[int, ...] | None = None) -> int:
+    """Run what is missing of ``experiment`` at ``profile`` (restricted to ``benchmarks`` and
+    ``seeds``) and aggregate the experiment's benchmarks over all its seeds; the exit code (0
+    when every run and evaluation of the restriction finished).
+
+    Raises:
+        ConfigError: an unknown experiment, profile or launcher, a results directory that is not
+            this experiment's, or a run config that does not compose.
+    """
+    from armeta_rl.cli import evaluate, train
+
+    plan = make_plan(experiment, profile, extra, benchmarks, seeds)
+    results = (results or Path("results") / experiment).resolve()
+    selected = launcher_overrides(launcher, jobs)
+    manifest = claim(results, plan, extra)
+    check_runs(plan)
+    results.mkdir(parents=True, exist_ok=True)
+    OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
+    started = time.time()
+    runs = [r for r in plan.runs if not finished(results, r)]
+    print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
+          f"({len(runs)} to run), {len(plan.evals)} evaluations; launcher {launcher}", flush=True)
+    code = 0
+    if launcher == "none":
+        runs = []
+    if runs:
+        code = launch(train, "armeta-train", [train_job(results, r) for r in runs], results,
+                      f"{experiment} train", len(plan.runs) - len(runs),
+                      (*selected, *hydra_args))
+    evals = [e for e in plan.evals if not finished(results, e)]
+    ready = [e for e in evals if finished(results, e.learner) and finished(results, e.adversary)]
+    if ready and launcher != "none":
+        code = launch(evaluate, "armeta-eval", [eval_job(results, e) for e in ready], results,
+                      f"{experiment} eval", len(plan.evals) - len(evals),
+                      (*selected, *hydra_args)) or code
+    wall = manifest["wall_seconds"]
+    wall[experiment] = wall.get(experiment, 0.0) + (time.time() - started)
+    OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
+    whole = make_plan(experiment, profile, extra, benchmarks)  # the report covers every seed
+    report = write_report(whole, results, wall[experiment])
+    print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
+    incomplete = any(not finished(results, r) for r in (*plan.runs, *plan.evals))
+    return code or int(incomplete)
+
+
+def parse(args: list[str]) -> dict:
+    """The command line as :func:`reproduce`'s keyword arguments."""
+    if not args or "=" in args[0] or args[0].startswith("-"):
+        _fail(f"name an experiment first: {PROG} <experiment> [profile=quick|paper] "
+              f"(experiments: {', '.join(experiment_names())})")
+    options: dict = {"experiment": args[0], "hydra_args": [], "extra": []}
+    for arg in args[1:]:
+        key, sep, value = arg.partition("=")
+        if not sep:
+            _fail(f"cannot read the argument {arg!r}: expected key=value")
+        if key.startswith(("hydra.", "hydra/")):
+            options["hydra_args"].append(arg)
+        elif key.startswith("+train."):
+            options["extra"].append(arg[len("+train."):])
+        elif key == "jobs":
+            if not value.isdigit() or int(value) < 1:
+                _fail(f"config key 'jobs' = {value!r}: must be an integer >= 1")
+            options["jobs"] = int(value)
+        elif key == "benchmarks":
+            options["benchmarks"] = tuple(value.split(","))
+        elif key == "seeds":
+            if not all(part.isdigit() for part in value.split(",")):
+                _fail(f"config key 'seeds' = {value!r}: must be comma-separated integers")
+            options["seeds"] = tuple(int(part) for part in value.split(","))
+        elif key == "results":
+            options["results"] = Path(value)
+        elif key in OPTIONS:
+            options[key] = value
+        else:
+            _fail(f"config key '{key}' = {value!r}: no such option; allowed: "
+                  f"{', '.join(OPTIONS)}, hydra.<key>, hydra/<group>, +train.<key>")
+    if options.get("launcher", "local") not in LAUNCHERS:
+        _fail(f"config key 'launcher' = {options['launcher']!r}: allowed: {', '.join(LAUNCHERS)}")
+    options["hydra_args"] = tuple(options["hydra_args"])
+    options["extra"] = tuple(options["extra"])
+    return options
+
+
+def main() -> None:
+    """``armeta-reproduce``: exit code 0 when the experiment is complete, 1 when runs failed or
+    are missing, 2 for bad input (one line)."""
+    from armeta_rl.allocator import keep_freed_memory
+
+    keep_freed_memory()
+    options = parse(sys.argv[1:])
+    try:
+        code = reproduce(**options)
+    except ConfigError as error:
+        _fail(str(error))
+    sys.exit(code)

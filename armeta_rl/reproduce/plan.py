@@ -1,0 +1,173 @@
+"""An experiment of the paper as data: which ``armeta-train`` runs and ``armeta-eval`` scorings
+it needs, read from ``configs/reproduce/<experiment>.yaml`` and the shared profiles in
+``configs/reproduce/profiles.yaml``.
+
+An experiment lists *groups* of training runs, each the product benchmarks × methods × variants ×
+seeds, and *adversaries*: for every learner run, ``armeta-eval`` scores it on the adversary of
+another run of the same benchmark and variant (an AR method at the same seed, or at the next
+seed). A *profile* (``quick``, ``paper``, ``tiny``) sets the seeds and the overrides per
+benchmark (iterations, evaluation tasks); the experiment may add its own per profile.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from omegaconf import OmegaConf
+
+from armeta_rl.cli import config_dir
+from armeta_rl.errors import ConfigError
+
+PROFILES_FILE = "profiles.yaml"
+EVAL_FILE = "eval.json"
+
+
+@dataclass(frozen=True)
+class TrainRun:
+    """One ``armeta-train`` run: its directory (relative to the results directory) and overrides
+    (benchmark, method, seed and the profile's settings)."""
+
+    benchmark: str
+    method: str
+    variant: str
+    seed: int
+    overrides: tuple[str, ...]
+
+    @property
+    def subdir(self) -> str:
+        """``runs/<benchmark>/<method>[-<variant>]/seed<seed>``."""
+        name = self.method if not self.variant else f"{self.method}-{self.variant}"
+        return f"runs/{self.benchmark}/{name}/seed{self.seed}"
+
+    def command(self) -> list[str]:
+        """The run's overrides as ``armeta-train`` takes them."""
+        return [f"benchmark={self.benchmark}", f"method={self.method}", f"seed={self.seed}",
+                *self.overrides]
+
+
+@dataclass(frozen=True)
+class EvalJob:
+    """One ``armeta-eval``: ``learner`` scored on the adversary of ``adversary`` (two runs of the
+    same benchmark and variant), written to ``<learner>/eval_vs_<name>.json``."""
+
+    name: str
+    learner: TrainRun
+    adversary: TrainRun
+
+    @property
+    def out(self) -> str:
+        """The report's path relative to the results directory."""
+        return f"{self.learner.subdir}/eval_vs_{self.name}.json"
+
+    def command(self, results: Path) -> list[str]:
+        """The job's overrides as ``armeta-eval`` takes them (absolute paths)."""
+        return [f"learner={results / self.learner.subdir}",
+                f"adversary={results / self.adversary.subdir}", f"out={results / self.out}"]
+
+
+@dataclass(frozen=True)
+class Plan:
+    """An experiment at a profile: its spec (the YAML), training runs and evaluation jobs."""
+
+    experiment: str
+    profile: str
+    spec: dict[str, Any]
+    runs: tuple[TrainRun, ...]
+    evals: tuple[EvalJob, ...]
+
+
+def experiment_names() -> list[str]:
+    """The experiments in ``configs/reproduce/`` (every YAML but the shared profiles)."""
+    folder = config_dir() / "reproduce"
+    return sorted(p.stem for p in folder.glob("*.yaml") if p.name != PROFILES_FILE)
+
+
+def load_spec(experiment: str) -> dict[str, Any]:
+    """The experiment's YAML as a dict; ``ConfigError`` for an unknown name."""
+    names = experiment_names()
+    if experiment not in names:
+        raise ConfigError("experiment", experiment, f"allowed: {', '.join(names)}")
+    path = config_dir() / "reproduce" / f"{experiment}.yaml"
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+
+
+def load_profiles() -> dict[str, Any]:
+    """``configs/reproduce/profiles.yaml``: seeds and per-benchmark overrides per profile."""
+    return OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce" / PROFILES_FILE))
+
+
+def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
+              benchmarks: tuple[str, ...] | None = None,
+              seeds: tuple[int, ...] | None = None) -> Plan:
+    """The runs and evaluation jobs of ``experiment`` at ``profile``; ``extra`` overrides are
+    appended to every training run (last, so they win). ``benchmarks`` and ``seeds`` restrict
+    the experiment to some of its benchmarks and seeds: their runs are the same as in the whole
+    experiment, and the evaluations kept are those with the learner or the adversary among them
+    (an evaluation runs once both exist)."""
+    spec = load_spec(experiment)
+    profiles = load_profiles()
+    if profile not in profiles:
+        raise ConfigError("profile", profile, f"allowed: {', '.join(profiles)}")
+    declared = list(dict.fromkeys(b for group in spec["groups"] for b in group["benchmarks"]))
+    for name in benchmarks or ():
+        if name not in declared:
+            raise ConfigError("benchmarks", name, f"{experiment} has: {', '.join(declared)}")
+    shared = profiles[profile]
+    own = spec.get("profiles", {}).get(profile, {})
+    all_seeds = [int(s) for s in own.get("seeds", shared["seeds"])]
+    for seed in seeds or ():
+        if seed not in all_seeds:
+            raise ConfigError("seeds", seed, f"{experiment} at profile {profile} has: "
+                              f"{', '.join(map(str, all_seeds))}")
+    runs: list[TrainRun] = []
+    for group in spec["groups"]:
+        variants = group.get("variants") or {"": []}
+        for benchmark in group["benchmarks"]:
+            if benchmarks and benchmark not in benchmarks:
+                continue
+            if benchmark not in shared["benchmarks"]:
+                raise ConfigError(f"{profile}.benchmarks", benchmark,
+                                  f"has no settings in {PROFILES_FILE}")
+            settings = [*shared.get("overrides", []), *shared["benchmarks"][benchmark],
+                        *spec.get("overrides", []), *own.get("overrides", []),
+                        *own.get("benchmarks", {}).get(benchmark, [])]
+            for method in group["methods"]:
+                for variant, variant_overrides in variants.items():
+                    runs.extend(
+                        TrainRun(benchmark, method, variant, seed,
+                                 (*settings, *variant_overrides, *extra))
+                        for seed in all_seeds
+                    )
+    jobs = eval_jobs(spec, runs, all_seeds)
+    if seeds:
+        runs = [run for run in runs if run.seed in seeds]
+        jobs = [job for job in jobs if job.learner.seed in seeds or job.adversary.seed in seeds]
+    return Plan(experiment, profile, spec, tuple(runs), tuple(jobs))
+
+
+def eval_jobs(spec: dict[str, Any], runs: list[TrainRun], seeds: list[int]) -> list[EvalJob]:
+    """For every run and every adversary of ``spec["adversaries"]`` (``{name: {method,
+    seed_shift}}``), the job scoring the run on that method's run of the same benchmark and
+    variant at the seed ``seed_shift`` places further in ``seeds`` (cyclically)."""
+    by_key = {(r.benchmark, r.method, r.variant, r.seed): r for r in runs}
+    jobs = []
+    for name, adversary in spec.get("adversaries", {}).items():
+        for run in runs:
+            shifted = seeds[(seeds.index(run.seed) + adversary.get("seed_shift", 0)) % len(seeds)]
+            key = (run.benchmark, adversary["method"], run.variant, shifted)
+            if key in by_key:
+                jobs.append(EvalJob(name, run, by_key[key]))
+    return jobs
+
+
+def finished(results: Path, run: TrainRun | EvalJob) -> bool:
+    """Whether a run has its ``eval.json`` (an evaluation job: its report)."""
+    path = run.out if isinstance(run, EvalJob) else f"{run.subdir}/{EVAL_FILE}"
+    return (results / path).is_file()
+
+
+def has_checkpoint(results: Path, run: TrainRun) -> bool:
+    """Whether an unfinished run left a checkpoint to resume from."""
+    return any((results / run.subdir / "checkpoints").glob("checkpoint-*"))

@@ -1,0 +1,58 @@
+"""Progress of a sweep: a Hydra callback that prints, as each job starts and ends, which run it is,
+how many of the experiment's jobs are finished and left, and the time since the sweep started.
+
+It runs where the job runs (a joblib worker, a Ray worker, a Slurm node) and counts finished jobs
+from the files they write (each job's ``done`` file in the sweeper's jobs file; a job's name is
+its entry at ``hydra.job.num``), so it holds no state of its own and counts correctly whichever
+worker prints.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from hydra.core.utils import JobReturn, JobStatus
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+
+def format_elapsed(seconds: float) -> str:
+    """``h:mm:ss``."""
+    seconds = int(seconds)
+    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+
+
+class Progress(Callback):
+    """Print ``[<label>] <event> <job>: <done>/<total> finished, <left> left, <elapsed>``.
+
+    Args:
+        jobs_file: the sweeper's jobs file (each job's ``done`` path).
+        label: what the sweep is, e.g. ``table1 train``.
+        started: the sweep's start (seconds since the epoch).
+        finished_before: jobs of the experiment finished before this sweep (skipped).
+    """
+
+    def __init__(self, jobs_file: str, label: str, started: float, finished_before: int) -> None:
+        self.jobs_file = jobs_file
+        self.label = label
+        self.started = started
+        self.finished_before = finished_before
+
+    def line(self, event: str, config: DictConfig) -> str:
+        """The progress line for ``event`` of the job whose config is ``config``."""
+        jobs = OmegaConf.load(self.jobs_file).jobs
+        done = self.finished_before + sum(Path(job.done).is_file() for job in jobs)
+        total = self.finished_before + len(jobs)
+        elapsed = format_elapsed(time.time() - self.started)
+        name = jobs[config.hydra.job.num].name
+        return (f"[{self.label}] {event} {name}: {done}/{total} finished, "
+                f"{total - done} left, elapsed {elapsed}")
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        print(self.line("start", config), flush=True)
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        event = "done" if job_return.status == JobStatus.COMPLETED else "FAILED"
+        print(self.line(event, config), flush=True)

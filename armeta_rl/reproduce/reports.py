@@ -1,0 +1,253 @@
+"""``<experiment>.md`` and its figures, one layout per kind of artefact in the paper.
+
+The experiment's YAML names its ``layout``; each layout writes the Markdown (our numbers, and the
+paper's where its YAML holds them under ``paper``) and its PNGs into the results directory.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from armeta_rl.reproduce import figures
+from armeta_rl.reproduce.aggregate import (
+    INITIAL,
+    SeedSummary,
+    curve_over_seeds,
+    display,
+    markdown_table,
+    select,
+    summary,
+)
+from armeta_rl.reproduce.plan import Plan
+
+
+def _methods(plan: Plan) -> list[str]:
+    return list(dict.fromkeys(run.method for run in plan.runs))
+
+
+def _benchmarks(plan: Plan) -> list[str]:
+    return list(dict.fromkeys(run.benchmark for run in plan.runs))
+
+
+def _distributions(plan: Plan) -> dict[str, str]:
+    """``initial`` and the experiment's adversaries, with their labels."""
+    labels = plan.spec.get("labels", {})
+    names = [INITIAL, *plan.spec.get("adversaries", {})]
+    return {name: labels.get(name, name) for name in names}
+
+
+def _cvar_key(plan: Plan) -> str:
+    return f"cvar_{float(plan.spec.get('alpha', 0.5))}"
+
+
+def _cvar_label(plan: Plan) -> str:
+    return f"CVaR{float(plan.spec.get('alpha', 0.5))}"
+
+
+def _cell(value: SeedSummary | None, bold: bool = False, se: bool = False) -> str:
+    if value is None:
+        return "–"
+    text = value.format("se" if se else "std")
+    return f"**{text}**" if bold else text
+
+
+def _best(values: Sequence[SeedSummary | None], higher_better: bool) -> int | None:
+    present = [(v.mean, i) for i, v in enumerate(values) if v is not None]
+    if len(present) < 2:
+        return None
+    return (max if higher_better else min)(present)[1]
+
+
+def _higher_better(records: Sequence[dict[str, Any]]) -> bool:
+    return bool(records) and records[0]["metric"] == "return"
+
+
+def table(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """Table 1 / the CNP table: per benchmark and distribution, the average and CVaR_α of every
+    method (mean ± std over seeds), the best of a row in bold, the paper's row beneath."""
+    methods, cvar = _methods(plan), _cvar_key(plan)
+    alpha = plan.spec.get("alpha", 0.5)
+    header = ["Benchmark", "Distribution", *(f"{display(m)} avg" for m in methods),
+              *(f"{display(m)} CVaR{alpha}" for m in methods)]
+    rows = []
+    higher = _higher_better(records)
+    paper = plan.spec.get("paper", {})
+    for benchmark in _benchmarks(plan):
+        for distribution, label in _distributions(plan).items():
+            cells = []
+            for column in ("mean", cvar):
+                values = [summary(records, column, benchmark=benchmark, method=m,
+                                  distribution=distribution, noisy=False) for m in methods]
+                best = _best(values, higher)
+                cells += [_cell(v, i == best) for i, v in enumerate(values)]
+            rows.append([display(benchmark), label, *cells])
+            quoted = [paper.get(benchmark, {}).get(m, {}).get(distribution) for m in methods]
+            if any(quoted):
+                rows.append(["", "paper", *(q[0] if q else "–" for q in quoted),
+                             *(q[1] if q else "–" for q in quoted)])
+    groups = [(f"{distribution}\n{name}", {"distribution": distribution, "noisy": False}, column)
+              for distribution in _distributions(plan)
+              for name, column in (("avg", "mean"), (f"CVaR{alpha}", cvar))]
+    figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
+                 records[0]["metric"])
+    return (markdown_table(header, rows) + f"\n\n![{plan.experiment}]({plan.experiment}.png)"
+            "\n\nBars: mean over seeds, standard-error bars.")
+
+
+def cvar_curves(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """CVaR_α for α = 0 … 0.9 per method (figure with standard-error bands), and the curve's
+    values at a few α in a table (mean ± s.e. over seeds)."""
+    methods, benchmarks, distributions = _methods(plan), _benchmarks(plan), _distributions(plan)
+    figures.cvar_curves(records, benchmarks, methods, distributions,
+                        results / f"{plan.experiment}.png")
+    shown = [float(a) for a in plan.spec.get("table_alphas", [0.0, 0.5, 0.9])]
+    rows = []
+    for benchmark in benchmarks:
+        for distribution, label in distributions.items():
+            for method in methods:
+                chosen = select(records, benchmark=benchmark, method=method,
+                                distribution=distribution, noisy=False)
+                if not chosen:
+                    continue
+                alphas, points = curve_over_seeds(chosen)
+                by_alpha = dict(zip(alphas, points))
+                rows.append([display(benchmark), label, display(method),
+                             *(_cell(by_alpha.get(a), se=True) for a in shown)])
+    header = ["Benchmark", "Distribution", "Method", *(f"CVaR_{a}" for a in shown)]
+    return (f"![CVaR curves]({plan.experiment}.png)\n\nMean ± standard error over seeds "
+            "(CVaR_0 is the average).\n\n" + markdown_table(header, rows))
+
+
+def scatter(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """Initial against adversarial average per method and seed, with y = x (figure), and the
+    gap adversarial − initial over seeds (table)."""
+    methods, benchmarks = _methods(plan), _benchmarks(plan)
+    adversaries = {k: v for k, v in _distributions(plan).items() if k != INITIAL}
+    figures.scatter(records, benchmarks, methods, adversaries, results / f"{plan.experiment}.png")
+    rows = []
+    for benchmark in benchmarks:
+        for adversary, label in adversaries.items():
+            for method in methods:
+                pairs = {r["seed"]: r["mean"] for r in select(
+                    records, benchmark=benchmark, method=method, distribution=INITIAL,
+                    noisy=False)}
+                gaps = [r["mean"] - pairs[r["seed"]] for r in select(
+                    records, benchmark=benchmark, method=method, distribution=adversary,
+                    noisy=False) if r["seed"] in pairs]
+                initial = summary(records, "mean", benchmark=benchmark, method=method,
+                                  distribution=INITIAL, noisy=False)
+                shifted = summary(records, "mean", benchmark=benchmark, method=method,
+                                  distribution=adversary, noisy=False)
+                gap = summary([{"seed": i, "gap": g} for i, g in enumerate(gaps)], "gap")
+                rows.append([display(benchmark), label, display(method), _cell(initial),
+                             _cell(shifted), _cell(gap)])
+    header = ["Benchmark", "Adversary", "Method", "initial avg", "adversarial avg",
+              "gap (adversarial − initial)"]
+    return f"![scatter]({plan.experiment}.png)\n\n" + markdown_table(header, rows)
+
+
+def noise(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """CVaR_α with clean and with noisy support labels per method, on p0 and on the adversary
+    (table: mean ± s.e. over seeds; bar chart with standard-error bars)."""
+    methods, cvar = _methods(plan), _cvar_key(plan)
+    groups = [(f"{label}, {'noisy' if noisy else 'clean'}",
+               {"distribution": distribution, "noisy": noisy}, cvar)
+              for distribution, label in _distributions(plan).items()
+              for noisy in (False, True)]
+    figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
+                 _cvar_label(plan))
+    rows = []
+    for benchmark in _benchmarks(plan):
+        for method in methods:
+            rows.append([display(benchmark), display(method), *(
+                _cell(summary(records, column, benchmark=benchmark, method=method, **where),
+                      se=True) for _, where, column in groups)])
+    header = ["Benchmark", "Method", *(label for label, _, _ in groups)]
+    return (f"![{plan.experiment}]({plan.experiment}.png)\n\n{_cvar_label(plan)}, mean ± s.e. "
+            "over seeds.\n\n" + markdown_table(header, rows))
+
+
+def bar_chart(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """Meta-RL figures: average and CVaR_α returns on p0 and on the adversaries per method (bars
+    with standard-error bars; table: mean ± s.e. over seeds)."""
+    methods, cvar = _methods(plan), _cvar_key(plan)
+    groups = [(f"{label}, {name}", {"distribution": distribution, "noisy": False}, column)
+              for distribution, label in _distributions(plan).items()
+              for name, column in (("average", "mean"), (_cvar_label(plan), cvar))]
+    figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
+                 "return")
+    rows = []
+    for benchmark in _benchmarks(plan):
+        for method in methods:
+            rows.append([display(benchmark), display(method), *(
+                _cell(summary(records, column, benchmark=benchmark, method=method, **where),
+                      se=True) for _, where, column in groups)])
+    header = ["Benchmark", "Method", *(label for label, _, _ in groups)]
+    return (f"![{plan.experiment}]({plan.experiment}.png)\n\nReturns, mean ± s.e. over seeds."
+            "\n\n" + markdown_table(header, rows))
+
+
+def _lambda(plan: Plan, variant: str) -> float:
+    """λ of a variant: the value of its ``risk.ar.lam=`` override."""
+    for group in plan.spec["groups"]:
+        for override in group.get("variants", {}).get(variant, []):
+            if override.startswith("risk.ar.lam="):
+                return float(override.split("=", 1)[1])
+    raise ValueError(f"variant {variant!r} sets no risk.ar.lam")
+
+
+def entropy(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """The entropy table (H of p0 and of p_φ per λ; KL(p0 ‖ p_φ) too), MSE against λ (figure and
+    table) and the adversaries' density maps at every λ (seed of the first run)."""
+    variants = list(dict.fromkeys(run.variant for run in plan.runs))
+    lambdas = {v: _lambda(plan, v) for v in variants}
+    method = _methods(plan)[0]
+    paper = plan.spec.get("paper", {})
+    header = ["Benchmark", "Distribution", *(f"λ = {lambdas[v]}" for v in variants)]
+    rows = []
+    for benchmark in _benchmarks(plan):
+        for distribution, key, name in ((INITIAL, "entropy", "H[p0]"),
+                                        ("same_seed", "entropy", "H[p_φ]"),
+                                        ("same_seed", "kl_p0", "KL(p0 ‖ p_φ)")):
+            rows.append([display(benchmark), name, *(
+                _cell(summary(records, key, benchmark=benchmark, method=method, variant=v,
+                              distribution=distribution, noisy=False)) for v in variants)])
+            quoted = paper.get(benchmark, {}).get(name)
+            if quoted:
+                rows.append(["", "paper", *quoted])
+    cvar = _cvar_key(plan)
+    columns = {"mean": "average", cvar: _cvar_label(plan)}
+    figures.lambda_curves(records, _benchmarks(plan), method, lambdas, columns,
+                          results / f"{plan.experiment}_lambda.png")
+    mse_rows = []
+    for benchmark in _benchmarks(plan):
+        for v in variants:
+            mse_rows.append([display(benchmark), str(lambdas[v]), *(
+                _cell(summary(records, column, benchmark=benchmark, method=method, variant=v,
+                              distribution=distribution, noisy=False), se=True)
+                for distribution in (INITIAL, "same_seed") for column in columns)])
+    mse_header = ["Benchmark", "λ", *(f"{d} {c}" for d in ("initial", "adversarial")
+                                      for c in columns.values())]
+    seed = min(run.seed for run in plan.runs)
+    images = {(run.benchmark, f"λ = {lambdas[run.variant]}"):
+              results / run.subdir / "density.png" for run in plan.runs
+              if run.seed == seed and (results / run.subdir / "density.png").is_file()}
+    figures.image_grid(images, _benchmarks(plan), [f"λ = {lambdas[v]}" for v in variants],
+                       results / f"{plan.experiment}_densities.png")
+    return (markdown_table(header, rows) + f"\n\n![MSE against λ]({plan.experiment}_lambda.png)"
+            f"\n\nMean ± s.e. over seeds.\n\n" + markdown_table(mse_header, mse_rows)
+            + f"\n\n![densities]({plan.experiment}_densities.png)\n\nDensity maps: seed {seed}, "
+            "p_φ (left) beside p0 (right) in each panel.")
+
+
+LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {
+    "table": table,
+    "cvar_curves": cvar_curves,
+    "scatter": scatter,
+    "noise": noise,
+    "bars": bar_chart,
+    "entropy": entropy,
+}
+"""The experiment YAML's ``layout`` → the function writing its Markdown body and figures."""

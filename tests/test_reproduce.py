@@ -1,0 +1,285 @@
+"""armeta-reproduce: every experiment end to end at the tiny profile, the aggregation against
+hand-computed cases, skipping and resuming of finished runs, a Ray-launched sweep on a local head,
+and bad input (one line, exit code 2)."""
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from armeta_rl.reproduce.aggregate import (
+    collect,
+    curve_over_seeds,
+    cvar_curve,
+    over_seeds,
+    write_csv,
+)
+from armeta_rl.reproduce.cli import reproduce
+from armeta_rl.reproduce.plan import experiment_names, make_plan
+from armeta_rl.reproduce.reports import table
+
+ROOT = Path(__file__).resolve().parents[1]
+REPRODUCE = [sys.executable, "-c", "from armeta_rl.reproduce.cli import main; main()"]
+FIRST_BENCHMARK = {
+    "table1": "sinusoid_uniform",
+    "cnp_table": "sinusoid_uniform",
+    "entropy": "sinusoid_uniform",
+    "noise": "sinusoid_uniform",
+    "point_robot": "point_nav",
+    "ant_pos": "ant_goal",
+}
+
+
+@pytest.fixture(scope="module")
+def table1_dir(tmp_path_factory) -> Path:
+    """table1's tiny profile on Sinusoid-U, run once for the tests that read it."""
+    results = tmp_path_factory.mktemp("table1")
+    code = reproduce("table1", "tiny", results, launcher="basic",
+                     benchmarks=("sinusoid_uniform",))
+    assert code == 0
+    return results
+
+
+def _eval_files(results: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in sorted(results.glob("runs/**/eval*.json"))}
+
+
+def test_table1_runs_end_to_end_and_aggregates(table1_dir):
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    assert len(plan.runs) == 10 and len(plan.evals) == 20
+    for run in plan.runs:
+        report = json.loads((table1_dir / run.subdir / "eval.json").read_text())
+        assert report["method"] == run.method and report["benchmark"] == run.benchmark
+    same = json.loads((table1_dir / "runs/sinusoid_uniform/maml/seed1/eval_vs_same_seed.json")
+                      .read_text())
+    assert same["adversary"].endswith("runs/sinusoid_uniform/ar_maml/seed1")
+    shifted = json.loads((table1_dir / "runs/sinusoid_uniform/maml/seed1/eval_vs_next_seed.json")
+                         .read_text())
+    assert shifted["adversary"].endswith("runs/sinusoid_uniform/ar_maml/seed0")
+    # Scored on its own adversary with armeta-eval, AR-MAML gets its eval.json's numbers.
+    own = json.loads((table1_dir / "runs/sinusoid_uniform/ar_maml/seed0/eval.json").read_text())
+    again = json.loads((table1_dir / "runs/sinusoid_uniform/ar_maml/seed0/eval_vs_same_seed.json")
+                       .read_text())
+    assert again["adversarial"]["mean"] == own["adversarial"]["mean"]
+    text = (table1_dir / "table1.md").read_text()
+    assert "complete: 10/10 training runs and 20/20 evaluations" in text
+    assert "0.499 ± 0.01" in text  # the paper's MAML average beside ours
+    rows = (table1_dir / "table1.csv").read_text().splitlines()
+    assert len(rows) == 1 + 10 + 20  # p0 of every run, two adversaries of every run
+
+
+def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
+    from conftest import compose_train
+
+    from armeta_rl.trainers.run import run_training
+
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    run = next(r for r in plan.runs if r.method == "ar_maml" and r.seed == 1)
+    report = run_training(compose_train(*run.command()), tmp_path / "by_hand", progress=False)
+    swept = json.loads((table1_dir / run.subdir / "eval.json").read_text())
+    assert json.loads(json.dumps(report)) == swept
+
+
+@pytest.mark.parametrize("experiment", ["cvar_curves", "scatter"])
+def test_experiments_sharing_table1s_runs_only_aggregate(table1_dir, experiment):
+    before = _eval_files(table1_dir)
+    assert reproduce(experiment, "tiny", table1_dir, launcher="basic",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    assert _eval_files(table1_dir) == before
+    assert (table1_dir / f"{experiment}.png").stat().st_size > 0
+    assert "complete" in (table1_dir / f"{experiment}.md").read_text()
+
+
+@pytest.mark.parametrize("experiment", sorted(set(FIRST_BENCHMARK) - {"table1"}))
+def test_every_experiment_runs_at_tiny_size(tmp_path, experiment):
+    """(table1 runs in the ``table1_dir`` fixture.)"""
+    benchmark = FIRST_BENCHMARK[experiment]
+    assert reproduce(experiment, "tiny", tmp_path, launcher="basic", benchmarks=(benchmark,)) == 0
+    plan = make_plan(experiment, "tiny", benchmarks=(benchmark,))
+    assert all((tmp_path / run.subdir / "eval.json").is_file() for run in plan.runs)
+    assert all((tmp_path / job.out).is_file() for job in plan.evals)
+    assert "complete" in (tmp_path / f"{experiment}.md").read_text()
+    assert list(tmp_path.glob("*.png"))
+
+
+def test_every_experiment_is_covered():
+    assert set(experiment_names()) == {*FIRST_BENCHMARK, "cvar_curves", "scatter"}
+
+
+def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, capsys):
+    before = _eval_files(table1_dir)
+    assert reproduce("table1", "tiny", table1_dir, launcher="basic",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    assert "(0 to run)" in capsys.readouterr().out
+    assert _eval_files(table1_dir) == before
+    # An interrupted run: its checkpoint is on disk but not its eval.json (nor the evaluations
+    # that need it). The sweep resumes it and gets the same numbers; nothing else runs again.
+    run = table1_dir / "runs/sinusoid_uniform/ar_maml/seed1"
+    removed = [run / "eval.json", *table1_dir.glob("runs/**/seed*/eval_vs_same_seed.json")]
+    removed = [p for p in removed if "seed1" in str(p)]
+    for path in removed:
+        path.unlink()
+    assert reproduce("table1", "tiny", table1_dir, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1  # aggregates only: incomplete
+    assert "**partial**: 9/10 training runs and 15/20 evaluations" in (
+        table1_dir / "table1.md").read_text()
+    assert reproduce("table1", "tiny", table1_dir, launcher="basic",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    assert "(1 to run)" in capsys.readouterr().out
+    jobs = (table1_dir / ".sweeps" / "table1-train.yaml").read_text()
+    assert f"resume={run}" in jobs and jobs.count("overrides") == 1
+    assert _eval_files(table1_dir) == before
+
+
+def test_over_seeds_by_hand():
+    summary = over_seeds([1.0, 2.0, 3.0, 6.0])
+    assert summary.mean == 3.0
+    assert math.isclose(summary.std, math.sqrt((4 + 1 + 0 + 9) / 3))
+    assert math.isclose(summary.se, summary.std / 2)
+    assert summary.format() == "3.000 ± 2.160"
+    assert summary.format("se") == "3.000 ± 1.080"
+    one = over_seeds([0.25])
+    assert one.mean == 0.25 and math.isnan(one.std) and one.format() == "0.250"
+    # Small MSEs keep three significant digits, returns one decimal.
+    assert over_seeds([0.00123, 0.00127]).format() == "0.00125 ± 0.00003"
+    assert over_seeds([-15.3, -14.1]).format() == "-14.7 ± 0.8"
+
+
+def test_cvar_curves_by_hand():
+    # Per-task losses 1..10: CVaR_α is the mean of the worst ceil((1 − α)·10) of them.
+    first = {"mean": 5.5, "cvar_0.5": (6 + 7 + 8 + 9 + 10) / 5, "cvar_0.9": 10.0}
+    second = {"mean": 6.5, "cvar_0.5": 9.0, "cvar_0.9": 11.0, "cvar_0.7": 10.0}
+    assert cvar_curve(first) == ([0.0, 0.5, 0.9], [5.5, 8.0, 10.0])
+    alphas, points = curve_over_seeds([{"seed": 0, **first}, {"seed": 1, **second}])
+    assert alphas == [0.0, 0.5, 0.9]  # α = 0.7 is not in both runs
+    assert [p.mean for p in points] == [6.0, 8.5, 10.5]
+    assert all(math.isclose(p.std, math.sqrt(2) / 2) for p in points)
+    assert all(math.isclose(p.se, 0.5) for p in points)
+
+
+def _report(mean: float, cvar: float, section: str = "initial") -> dict:
+    return {"metric": "mse", section: {"mean": mean, "sem": 0.1, "cvar": {"0.5": cvar},
+                                       "n_tasks": 4, "entropy": 1.0, "kl_p0": 0.0}}
+
+
+def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
+    plan = make_plan("cnp_table", "quick")
+    numbers = {("cnp", 0): (0.5, 1.0), ("cnp", 1): (0.7, 1.4), ("ar_cnp", 0): (0.4, 0.8),
+               ("ar_cnp", 1): (0.6, 1.0)}
+    for (method, seed), (mean, cvar) in numbers.items():
+        run = tmp_path / f"runs/sinusoid_uniform/{method}/seed{seed}"
+        run.mkdir(parents=True)
+        (run / "eval.json").write_text(json.dumps(_report(mean, cvar)))
+        (run / "eval_vs_same_seed.json").write_text(
+            json.dumps(_report(2 * mean, 2 * cvar, "adversarial")))
+    records = collect(plan, tmp_path)
+    assert len(records) == 8
+    write_csv(records, tmp_path / "t.csv")
+    assert (tmp_path / "t.csv").read_text().splitlines()[0].startswith(
+        "benchmark,method,variant,seed,distribution,noisy,metric,mean")
+    text = table(plan, records, tmp_path)
+    initial = next(line for line in text.splitlines() if "| Initial |" in line)
+    cells = [c.strip() for c in initial.split("|")[3:-1]]
+    # Averages: CNP (0.5, 0.7) → 0.600 ± 0.141, AR-CNP (0.4, 0.6) → 0.500 ± 0.141 (the best,
+    # bold); methods without runs show "–". CVaR0.5: CNP (1.0, 1.4), AR-CNP (0.8, 1.0).
+    assert cells[0] == "0.600 ± 0.141" and cells[4] == "**0.500 ± 0.141**"
+    assert cells[1] == "–"
+    assert cells[5] == "1.200 ± 0.283" and cells[9] == "**0.900 ± 0.141**"
+    adversarial = next(line for line in text.splitlines() if "same seed) |" in line)
+    assert "**1.000 ± 0.283**" in adversarial
+
+
+def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([*REPRODUCE, *args], capture_output=True, text=True, timeout=120,
+                          cwd=cwd, env={**os.environ, "PYTHONPATH": str(ROOT)})
+
+
+@pytest.mark.parametrize(
+    "args,expected",
+    [
+        (["table2"], "'experiment' = 'table2': allowed: ant_pos, cnp_table"),
+        (["table1", "profile=huge"], "'profile' = 'huge': allowed: quick, paper, tiny"),
+        (["table1", "launcher=mpi"], "'launcher' = 'mpi': allowed: local"),
+        (["table1", "benchmarks=point_nav"], "'benchmarks' = 'point_nav': table1 has:"),
+        (["table1", "seeds=7"], "'seeds' = 7: table1 at profile quick has: 0, 1"),
+        (["table1", "iterations=3"], "'iterations' = '3': no such option"),
+        (["profile=quick"], "name an experiment first"),
+    ],
+)
+def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, args, expected):
+    result = _run(*args, f"results={tmp_path / 'r'}", cwd=tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert expected in result.stderr
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_path):
+    result = _run("cnp_table", "profile=tiny", f"results={table1_dir}", cwd=tmp_path)
+    assert result.returncode == 2
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert "holds the runs of experiment table1, not cnp_table" in result.stderr
+    other = _run("table1", "profile=quick", f"results={table1_dir}", cwd=tmp_path)
+    assert other.returncode == 2 and "holds profile tiny" in other.stderr
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "a.txt").write_text("mine")
+    stranger = _run("table1", "profile=tiny", f"results={tmp_path / 'notes'}", cwd=tmp_path)
+    assert stranger.returncode == 2 and "not an armeta-reproduce results" in stranger.stderr
+
+
+RAY_SWEEP = textwrap.dedent("""
+    import sys
+    from pathlib import Path
+    import ray
+    from armeta_rl.reproduce.cli import reproduce
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False)
+    try:
+        nodes = [node["NodeManagerAddress"] for node in ray.nodes()]
+        assert nodes == ["127.0.0.1"], nodes
+        code = reproduce("noise", "tiny", Path(sys.argv[1]), launcher="ray",
+                         benchmarks=("sinusoid_uniform",))
+    finally:
+        ray.shutdown()
+    sys.exit(code)
+""")
+
+
+def test_a_ray_launched_sweep_equals_the_local_one(tmp_path):
+    pytest.importorskip("ray", reason="Ray is not installed: the Ray launcher cannot be tested")
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher",
+                        reason="hydra-ray-launcher is not installed")
+    # Ray serves this machine on 127.0.0.1 only (no other address) when clusters are off.
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1",
+           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0"}
+    result = subprocess.run([sys.executable, "-c", RAY_SWEEP, str(tmp_path / "ray")],
+                            capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "Ray Launcher is launching 5 jobs" in result.stderr + result.stdout
+    assert reproduce("noise", "tiny", tmp_path / "local", launcher="basic",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    ray_files = {p.relative_to(tmp_path / "ray"): p for p in (tmp_path / "ray").glob(
+        "runs/**/eval*.json")}
+    assert len(ray_files) == 10
+    for relative, path in ray_files.items():
+        ours, theirs = json.loads(path.read_text()), json.loads(
+            (tmp_path / "local" / relative).read_text())
+        for key in ("initial", "initial_noisy", "adversarial", "adversarial_noisy"):
+            if key in ours:
+                assert ours[key] == theirs[key], (relative, key)
+
+
+def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
+    whole = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",))
+    part = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",), seeds=(1,))
+    assert {run.seed for run in part.runs} == {1} and len(part.runs) == 5
+    assert set(part.runs) < set(whole.runs) and set(part.evals) < set(whole.evals)
+    # Same seed: learner seed 1 on adversary seed 1; next seed: seed 0 on 1 and seed 1 on 2.
+    pairs = {(job.name, job.learner.seed, job.adversary.seed) for job in part.evals}
+    assert pairs == {("same_seed", 1, 1), ("next_seed", 0, 1), ("next_seed", 1, 2)}
+    assert len(part.evals) == 15
