@@ -17,6 +17,7 @@ from armeta_rl.reproduce.aggregate import (
     curve_over_seeds,
     cvar_curve,
     over_seeds,
+    train_seconds,
     write_csv,
 )
 from armeta_rl.reproduce.cli import reproduce
@@ -177,7 +178,7 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
         (run / "eval.json").write_text(json.dumps(_report(mean, cvar)))
         (run / "eval_vs_same_seed.json").write_text(
             json.dumps(_report(2 * mean, 2 * cvar, "adversarial")))
-    records = collect(plan, tmp_path)
+    records = collect(plan, tmp_path, {})
     assert len(records) == 8
     write_csv(records, tmp_path / "t.csv")
     assert (tmp_path / "t.csv").read_text().splitlines()[0].startswith(
@@ -283,3 +284,19 @@ def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
     pairs = {(job.name, job.learner.seed, job.adversary.seed) for job in part.evals}
     assert pairs == {("same_seed", 1, 1), ("next_seed", 0, 1), ("next_seed", 1, 2)}
     assert len(part.evals) == 15
+
+
+def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
+    """A run's wall time is measured once from its files (config.yaml written as it starts,
+    eval.json as it ends) and then kept in the manifest: a checkout resets file times."""
+    plan = make_plan("cnp_table", "quick")
+    first, second = plan.runs[0].subdir, plan.runs[1].subdir
+    for subdir, (start, end) in ((first, (1000.0, 1030.0)), (second, (2000.0, 2012.5))):
+        run = tmp_path / subdir
+        run.mkdir(parents=True)
+        (run / "config.yaml").write_text("seed: 0\n")
+        (run / "eval.json").write_text("{}")
+        os.utime(run / "config.yaml", (start, start))
+        os.utime(run / "eval.json", (end, end))
+    assert train_seconds(plan, tmp_path, {}) == {first: 30.0, second: 12.5}
+    assert train_seconds(plan, tmp_path, {first: 7.0}) == {first: 7.0, second: 12.5}

@@ -101,10 +101,23 @@ def run_seconds(run_dir: Path) -> float | None:
     return (run_dir / EVAL_FILE).stat().st_mtime - config.stat().st_mtime
 
 
-def collect(plan: Plan, results: Path) -> list[dict[str, Any]]:
+def train_seconds(plan: Plan, results: Path, known: dict[str, float]) -> dict[str, float]:
+    """Each finished run's wall time, by its subdirectory: the value in ``known`` (the results
+    directory's manifest, which keeps it across checkouts that reset file times), else measured
+    from the run's files by :func:`run_seconds`."""
+    seconds = dict(known)
+    for run in plan.runs:
+        if run.subdir not in seconds and (results / run.subdir / EVAL_FILE).is_file():
+            measured = run_seconds(results / run.subdir)
+            if measured is not None:
+                seconds[run.subdir] = measured
+    return seconds
+
+
+def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[str, Any]]:
     """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
-    run's wall time), each named adversary from its ``eval_vs_<name>.json``; with noisy support
-    labels as extra records."""
+    run's wall time from ``seconds``, :func:`train_seconds`), each named adversary from its
+    ``eval_vs_<name>.json``; with noisy support labels as extra records."""
     records = []
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
     sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals]
@@ -113,13 +126,13 @@ def collect(plan: Plan, results: Path) -> list[dict[str, Any]]:
         if not path.is_file():
             continue
         report = json.loads(path.read_text())
-        seconds = run_seconds(path.parent) if file == EVAL_FILE else None
+        run_time = seconds.get(run.subdir) if file == EVAL_FILE else None
         for noisy in (False, True):
             name = f"{section}_noisy" if noisy else section
             for record in section_records(report, name, distribution, noisy):
                 records.append({"benchmark": run.benchmark, "method": run.method,
                                 "variant": run.variant, "seed": run.seed, **record,
-                                "train_seconds": seconds})
+                                "train_seconds": run_time})
     return records
 
 

@@ -23,7 +23,14 @@ from typing import NoReturn
 from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.reproduce.aggregate import INITIAL, collect, display, progress_note, write_csv
+from armeta_rl.reproduce.aggregate import (
+    INITIAL,
+    collect,
+    display,
+    progress_note,
+    train_seconds,
+    write_csv,
+)
 from armeta_rl.reproduce.launch import LAUNCHERS, eval_job, launch, launcher_overrides, train_job
 from armeta_rl.reproduce.plan import Plan, experiment_names, finished, make_plan
 from armeta_rl.reproduce.reports import LAYOUTS
@@ -96,9 +103,11 @@ def run_times(records: list[dict]) -> str:
         f"{display(b)} {sum(t) / len(t) / 60:.1f} min" for b, t in times.items())
 
 
-def write_report(plan: Plan, results: Path, wall_seconds: float) -> Path:
-    """``<experiment>.csv`` and ``<experiment>.md`` (with its figures) from the finished runs."""
-    records = collect(plan, results)
+def write_report(plan: Plan, results: Path, wall_seconds: float,
+                 seconds: dict[str, float]) -> Path:
+    """``<experiment>.csv`` and ``<experiment>.md`` (with its figures) from the finished runs,
+    with each run's wall time from ``seconds``."""
+    records = collect(plan, results, seconds)
     write_csv(records, results / f"{plan.experiment}.csv")
     body = LAYOUTS[plan.spec["layout"]](plan, records, results) if records else "No run finished."
     minutes = wall_seconds / 60
@@ -152,10 +161,13 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
                       f"{experiment} eval", len(plan.evals) - len(evals),
                       (*selected, *hydra_args)) or code
     wall = manifest["wall_seconds"]
-    wall[experiment] = wall.get(experiment, 0.0) + (time.time() - started)
-    OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
+    if runs or (ready and launcher != "none"):  # aggregating alone adds no sweep time
+        wall[experiment] = wall.get(experiment, 0.0) + (time.time() - started)
     whole = make_plan(experiment, profile, extra, benchmarks)  # the report covers every seed
-    report = write_report(whole, results, wall[experiment])
+    seconds = train_seconds(whole, results, dict(manifest.get("train_seconds", {})))
+    manifest["train_seconds"] = seconds
+    OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
+    report = write_report(whole, results, wall.get(experiment, 0.0), seconds)
     print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
     incomplete = any(not finished(results, r) for r in (*plan.runs, *plan.evals))
     return code or int(incomplete)

@@ -158,15 +158,20 @@ def noise(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
               for noisy in (False, True)]
     figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
                  _cvar_label(plan))
-    rows = []
-    for benchmark in _benchmarks(plan):
-        for method in methods:
-            rows.append([display(benchmark), display(method), *(
-                _cell(summary(records, column, benchmark=benchmark, method=method, **where),
-                      se=True) for _, where, column in groups)])
-    header = ["Benchmark", "Method", *(label for label, _, _ in groups)]
+    table = _grouped_table(plan, records, methods, groups)
     return (f"![{plan.experiment}]({plan.experiment}.png)\n\n{_cvar_label(plan)}, mean ± s.e. "
-            "over seeds.\n\n" + markdown_table(header, rows))
+            "over seeds.\n\n" + table)
+
+
+def _grouped_table(plan: Plan, records: list[dict[str, Any]], methods: list[str],
+                   groups: list[tuple[str, dict[str, Any], str]]) -> str:
+    """A Markdown table, a row per benchmark and method and a column per group (its label, the
+    records it selects, the column it summarizes), cells mean ± s.e. over seeds."""
+    rows = [[display(benchmark), display(method), *(
+        _cell(summary(records, column, benchmark=benchmark, method=method, **where), se=True)
+        for _, where, column in groups)]
+        for benchmark in _benchmarks(plan) for method in methods]
+    return markdown_table(["Benchmark", "Method", *(label for label, _, _ in groups)], rows)
 
 
 def bar_chart(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
@@ -178,15 +183,9 @@ def bar_chart(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
               for name, column in (("average", "mean"), (_cvar_label(plan), cvar))]
     figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
                  "return")
-    rows = []
-    for benchmark in _benchmarks(plan):
-        for method in methods:
-            rows.append([display(benchmark), display(method), *(
-                _cell(summary(records, column, benchmark=benchmark, method=method, **where),
-                      se=True) for _, where, column in groups)])
-    header = ["Benchmark", "Method", *(label for label, _, _ in groups)]
+    table = _grouped_table(plan, records, methods, groups)
     return (f"![{plan.experiment}]({plan.experiment}.png)\n\nReturns, mean ± s.e. over seeds."
-            "\n\n" + markdown_table(header, rows))
+            "\n\n" + table)
 
 
 def _lambda(plan: Plan, variant: str) -> float:
