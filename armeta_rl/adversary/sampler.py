@@ -20,6 +20,7 @@ from tensordict import TensorDict, TensorDictBase
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
 from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.tasks import TASK_KEY
 
 
 class TaskSampler:
@@ -90,7 +91,7 @@ class TaskSampler:
             ValueError: losses that are not one per task.
             TrainingDiverged: non-finite losses or gradient; φ and Adam are left as they were.
         """
-        params = tasks["params"] if isinstance(tasks, TensorDictBase) else tasks
+        params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
         losses = torch.as_tensor(losses).detach().to(torch.float64)
         if losses.shape != (len(params),):
             raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
