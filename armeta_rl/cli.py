@@ -325,19 +325,30 @@ def train() -> None:
     if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
         args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
     sys.argv = [sys.argv[0], *args]
-    created = not run_dir.exists()
+    created = _first_missing(run_dir)
     with ExitStack() as stack:
         _checked(prog, stack.enter_context, run_lock(run_dir, key))
         try:
             main(_guarded(prog, _train_task))()
         except SystemExit as exit_:
             if exit_.code == 2 and created and not (run_dir / "checkpoints").exists():
-                _remove_run_dir(run_dir)
+                _remove_run_dir(created)
             raise
 
 
+def _first_missing(path: Path) -> Path | None:
+    """The outermost of ``path`` and its parents that does not exist yet (``None``: it exists),
+    so a refused run removes every directory its command created, not only the run's own."""
+    missing = None
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            break
+        missing = candidate
+    return missing
+
+
 def _remove_run_dir(run_dir: Path) -> None:
-    """Delete a run directory this command created for a run it then refused."""
+    """Delete a run directory (with the parents) this command created for a run it then refused."""
     import shutil
 
     shutil.rmtree(run_dir, ignore_errors=True)

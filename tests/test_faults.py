@@ -334,15 +334,15 @@ def test_commands_refused_before_hydra_create_nothing(tmp_path, monkeypatch, cap
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file"]  # no job, no runs/
 
 
-def test_a_command_refused_inside_its_job_removes_the_directory_it_made(tmp_path):
-    refused = tmp_path / "refused"  # Hydra wrote .hydra/ and a log there before the job began
-    result = subprocess.run(
+def test_a_command_refused_inside_its_job_removes_the_directories_it_made(tmp_path):
+    refused = tmp_path / "made" / "refused"  # Hydra wrote .hydra/ and a log there, and made its
+    result = subprocess.run(  # parent, before the job began
         [sys.executable, "-c", "from armeta_rl.cli import train; train()",
          "benchmark=point_nav_plain", "eval.support_noise=0.1", f"hydra.run.dir={refused}"],
         capture_output=True, text=True, timeout=300,
     )
     assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
-    assert not refused.exists()
+    assert list(tmp_path.iterdir()) == []
 
 
 def evaluate_in_process(capsys, *overrides):
