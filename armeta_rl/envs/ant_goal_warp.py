@@ -22,12 +22,12 @@ and fails with a :class:`~armeta_rl.errors.ConfigError` where there is none.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from functools import partial
+from typing import Any
 
 import mujoco
 import numpy as np
-import torch
 
 from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.errors import ConfigError
@@ -151,37 +151,24 @@ class AntGoalWarpEnv(AntGoalEnv):
     """:class:`~armeta_rl.envs.ant_goal.AntGoalEnv` with its simulations on MuJoCo Warp.
 
     Args:
-        batch_size, max_steps, frame_skip, ctrl_cost_weight, contact_cost_weight, survive_reward,
-            healthy_z_range, reset_noise_scale, goal_range, seed, device: as
-            :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`.
+        args, kwargs: :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`'s arguments, passed on
+            unchanged (``threads`` is unused by MuJoCo Warp, accepted so that a config can swap
+            the env class alone).
         warp_device: where the physics runs: ``"cuda"``, ``"cuda:N"`` or ``"cpu"`` (warp's CPU
             backend, for checks).
         nconmax, njmax: contacts and constraints per world (``None``: MuJoCo Warp's defaults).
-        threads: unused by MuJoCo Warp; accepted so a config can swap the env class alone.
     """
 
     def __init__(
         self,
-        batch_size: Sequence[int] = (1, 1),
-        max_steps: int = 200,
-        frame_skip: int = 5,
-        ctrl_cost_weight: float = 5e-3,
-        contact_cost_weight: float = 5e-4,
-        survive_reward: float = 0.05,
-        healthy_z_range: Sequence[float] = (0.2, 1.0),
-        reset_noise_scale: float = 0.1,
-        goal_range: float = 3.0,
-        threads: int | None = 1,
-        seed: int | None = None,
-        device: torch.device | str = "cpu",
+        *args: Any,
         warp_device: str = "cuda",
         nconmax: int | None = None,
         njmax: int | None = None,
+        **kwargs: Any,
     ) -> None:
         self._warp = {"device": str(warp_device), "nconmax": nconmax, "njmax": njmax}
-        super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight,
-                         contact_cost_weight, survive_reward, healthy_z_range, reset_noise_scale,
-                         goal_range, threads, seed, device)
+        super().__init__(*args, **kwargs)
 
     def _make_batch(self, threads: int) -> WarpBatch:
         return WarpBatch(self.model, self.n_sims, **self._warp)
