@@ -27,13 +27,19 @@ EVAL_FILE = "eval.json"
 @dataclass(frozen=True)
 class TrainRun:
     """One ``armeta-train`` run: its directory (relative to the results directory) and overrides
-    (benchmark, method, seed and the profile's settings)."""
+    (benchmark, method, seed and the profile's settings).
+
+    ``benchmark`` is the experiment's row (``sinusoid_normal``: the directory, the report and the
+    paper's numbers are keyed by it); ``config`` is the benchmark config that the profile trains
+    for that row (``sinusoid_normal_paper`` at the ``paper`` profile).
+    """
 
     benchmark: str
     method: str
     variant: str
     seed: int
     overrides: tuple[str, ...]
+    config: str
 
     @property
     def subdir(self) -> str:
@@ -43,7 +49,7 @@ class TrainRun:
 
     def command(self) -> list[str]:
         """The run's overrides as ``armeta-train`` takes them."""
-        return [f"benchmark={self.benchmark}", f"method={self.method}", f"seed={self.seed}",
+        return [f"benchmark={self.config}", f"method={self.method}", f"seed={self.seed}",
                 *self.overrides]
 
 
@@ -98,6 +104,17 @@ def load_profiles() -> dict[str, Any]:
     return OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce" / PROFILES_FILE))
 
 
+def benchmark_setting(profile: str, benchmark: str, entry: Any) -> tuple[str, list[str]]:
+    """A profile's entry for ``benchmark`` as (benchmark config, overrides): a list of overrides
+    trains the benchmark's own config; ``{config: name, overrides: [...]}`` trains ``name``."""
+    if isinstance(entry, list):
+        return benchmark, [str(o) for o in entry]
+    if isinstance(entry, dict) and set(entry) <= {"config", "overrides"} and "config" in entry:
+        return str(entry["config"]), [str(o) for o in entry.get("overrides", [])]
+    raise ConfigError(f"{profile}.benchmarks.{benchmark}", entry,
+                      "allowed: a list of overrides, or {config: <benchmark>, overrides: [...]}")
+
+
 def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
               benchmarks: tuple[str, ...] | None = None,
               seeds: tuple[int, ...] | None = None) -> Plan:
@@ -130,14 +147,16 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
             if benchmark not in shared["benchmarks"]:
                 raise ConfigError(f"{profile}.benchmarks", benchmark,
                                   f"has no settings in {PROFILES_FILE}")
-            settings = [*shared.get("overrides", []), *shared["benchmarks"][benchmark],
+            config, own_settings = benchmark_setting(profile, benchmark,
+                                                     shared["benchmarks"][benchmark])
+            settings = [*shared.get("overrides", []), *own_settings,
                         *spec.get("overrides", []), *own.get("overrides", []),
                         *own.get("benchmarks", {}).get(benchmark, [])]
             for method in group["methods"]:
                 for variant, variant_overrides in variants.items():
                     runs.extend(
                         TrainRun(benchmark, method, variant, seed,
-                                 (*settings, *variant_overrides, *extra))
+                                 (*settings, *variant_overrides, *extra), config)
                         for seed in all_seeds
                     )
     jobs = eval_jobs(spec, runs, all_seeds)
