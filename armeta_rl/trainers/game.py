@@ -39,6 +39,8 @@ class GameTrainer:
             non-finite one (``None``: only non-finite losses stop it).
         after_iteration: called with the iteration number after every iteration (after its
             logging and checkpoint), e.g. to draw the adversary's density.
+        train_leader: step the leader (``False``: θ stays fixed and the follower is trained
+            against it on the losses of its proposed tasks at that θ, ``trainer.frozen_leader``).
     """
 
     def __init__(
@@ -55,6 +57,7 @@ class GameTrainer:
         progress: bool = True,
         max_loss: float | None = None,
         after_iteration: Callable[[int], None] | None = None,
+        train_leader: bool = True,
     ) -> None:
         self.leader, self.principle = leader, principle
         self.iterations, self.meta_batch = iterations, meta_batch
@@ -62,6 +65,7 @@ class GameTrainer:
         self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
         self.progress, self.max_loss = progress, max_loss
         self.after_iteration = after_iteration
+        self.train_leader = train_leader
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
@@ -72,7 +76,10 @@ class GameTrainer:
             raise TrainingDiverged(
                 f"non-finite task identifiers proposed at iteration {self.iteration + 1}"
             )
-        out = self.leader.step(tasks, self.principle.weights)
+        if self.train_leader:
+            out = self.leader.step(tasks, self.principle.weights)
+        else:
+            out = {"loss": self.leader.evaluate(tasks).detach()}
         losses = out["loss"]
         worst = float(losses.detach().abs().max())
         if not math.isfinite(worst):
@@ -94,7 +101,8 @@ class GameTrainer:
         self.iteration += 1
         every = self.principle.update_every
         if every and self.iteration % every == 0:
-            logs.update(self.principle.update(tasks, self.leader.evaluate(tasks)))
+            scored = self.leader.evaluate(tasks) if self.train_leader else losses
+            logs.update(self.principle.update(tasks, scored))
         logs["time/iteration_ms"] = 1000.0 * (time.perf_counter() - start)
         return logs
 

@@ -27,6 +27,7 @@ from armeta_rl.trainers.runs import (
     Players,
     build_players,
     check_run_dir,
+    load_frozen_leader,
     load_players,
     run_lock,
 )
@@ -184,6 +185,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
               *(run_dir / CSV_LOG_DIR).rglob(".*.csv.*")]
     for path in staged:  # what write_text_atomically left when a crash interrupted it
         path.unlink()
+    if cfg.trainer.frozen_leader is not None and not (cfg.resume and checkpoint.checkpoints()):
+        load_frozen_leader(cfg, players)
     start = 0
     if cfg.resume:
         if checkpoint.checkpoints():
@@ -224,6 +227,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
         progress=progress and cfg.trainer.progress,
         max_loss=cfg.trainer.max_loss,
         after_iteration=frames,
+        train_leader=cfg.trainer.frozen_leader is None,
     )
     trainer.iteration = start
     if trainer.run(stop_at=cfg.trainer.stop_at) < cfg.trainer.iterations:

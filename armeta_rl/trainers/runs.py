@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.collectors.base import Collector
 from armeta_rl.config import load_run_config
@@ -121,6 +121,64 @@ def build_players(cfg: DictConfig) -> Players:
     leader = build_leader(cfg, collector)
     principle = build_principle(cfg, space, initial)
     return Players(space, initial, leader, principle, eval_collector)
+
+
+FROZEN_KEY = "trainer.frozen_leader"
+SAME_MATHS = ("compile", "adaptation")
+"""Learner keys that choose how the same maths is computed: they may differ between a frozen
+learner's run and the run attacking it."""
+
+
+def _leaves(cfg: DictConfig, name: str) -> dict[str, object]:
+    """The resolved values below ``name`` in ``cfg``, by dotted key (``name`` itself if a leaf)."""
+    node = OmegaConf.select(cfg, name)
+    value = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+    if not isinstance(value, dict):
+        return {name: value}
+    found: dict[str, object] = {}
+    stack = [(name, value)]
+    while stack:
+        prefix, items = stack.pop()
+        for key, item in items.items():
+            if isinstance(item, dict):
+                stack.append((f"{prefix}.{key}", item))
+            else:
+                found[f"{prefix}.{key}"] = item
+    return found
+
+
+def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
+    """Load the final leader of the finished run ``cfg.trainer.frozen_leader`` into
+    ``players.leader`` (an attack run: the adversary trains against that learner, whose θ stays).
+
+    Raises:
+        ConfigError: naming ``trainer.frozen_leader``, if the method has no flow adversary, the
+            directory is not a finished run (no ``eval.json``), its benchmark or learner differs
+            from this run's, or its checkpoint is broken or does not fit.
+    """
+    source = cfg.trainer.frozen_leader
+    if players.adversary is None:
+        raise ConfigError(
+            FROZEN_KEY, source,
+            f"needs a method with a flow adversary (ar_*), not {cfg.method.name}",
+        )
+    saved = load_run_config(source, FROZEN_KEY)
+    if not (Path(source) / "eval.json").is_file():
+        raise ConfigError(FROZEN_KEY, source, "has not finished (no eval.json)")
+    names = ("benchmark", "method.learner", "learner")
+    theirs = {k: v for name in names for k, v in _leaves(saved, name).items()}
+    ours = {k: v for name in names for k, v in _leaves(cfg, name).items()}
+    differing = sorted(k for k in theirs.keys() | ours.keys()
+                       if theirs.get(k) != ours.get(k) and k.rsplit(".", 1)[-1] not in SAME_MATHS)
+    if differing:
+        first = differing[0]
+        raise ConfigError(
+            FROZEN_KEY, source,
+            f"its {first} = {theirs.get(first)!r} differs from this run's {ours.get(first)!r}: "
+            "the learner attacked must have this run's benchmark and learner settings",
+        )
+    checkpoint = RunCheckpoint(Path(source) / "checkpoints", players.leader, players.principle)
+    checkpoint.restore(FROZEN_KEY, ("leader",), fallback=False)
 
 
 def load_players(run_dir: str | Path, key: str) -> tuple[DictConfig, Players]:
