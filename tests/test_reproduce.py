@@ -5,6 +5,7 @@ and bad input (one line, exit code 2)."""
 import json
 import math
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -12,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+import armeta_rl.reproduce.plan as plan_module
+from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.aggregate import (
     collect,
     curve_over_seeds,
@@ -20,8 +23,8 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
-from armeta_rl.reproduce.cli import reproduce
-from armeta_rl.reproduce.plan import experiment_names, make_plan
+from armeta_rl.reproduce.cli import check_runs, reproduce
+from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
 from armeta_rl.reproduce.reports import table
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,10 +55,19 @@ def _eval_files(results: Path) -> dict[Path, bytes]:
 
 def test_table1_runs_end_to_end_and_aggregates(table1_dir):
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
-    assert len(plan.runs) == 10 and len(plan.evals) == 20
+    assert len(plan.runs) == 10 and len(plan.attacks) == 2 and len(plan.evals) == 30
     for run in plan.runs:
         report = json.loads((table1_dir / run.subdir / "eval.json").read_text())
         assert report["method"] == run.method and report["benchmark"] == run.benchmark
+    # The attack on MAML: an AR-MAML run whose learner is MAML's of the same seed, never trained.
+    attack = table1_dir / "runs/sinusoid_uniform/ar_maml-vs-maml/seed1"
+    target = table1_dir / "runs/sinusoid_uniform/maml/seed1"
+    assert f"frozen_leader: {target}\n" in (attack / "config.yaml").read_text()
+    assert (json.loads((attack / "eval.json").read_text())["initial"]
+            == json.loads((target / "eval.json").read_text())["initial"])
+    attacked = json.loads((table1_dir / "runs/sinusoid_uniform/dr_maml/seed1/eval_vs_maml.json")
+                          .read_text())
+    assert attacked["adversary"] == str(attack)
     same = json.loads((table1_dir / "runs/sinusoid_uniform/maml/seed1/eval_vs_same_seed.json")
                       .read_text())
     assert same["adversary"].endswith("runs/sinusoid_uniform/ar_maml/seed1")
@@ -68,10 +80,12 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
                        .read_text())
     assert again["adversarial"]["mean"] == own["adversarial"]["mean"]
     text = (table1_dir / "table1.md").read_text()
-    assert "complete: 10/10 training runs and 20/20 evaluations" in text
+    assert ("complete: 12/12 training runs (2 of them attack runs) and 30/30 evaluations"
+            in text)
     assert "0.499 ± 0.01" in text  # the paper's MAML average beside ours
+    assert "| Adversarial (p_φ trained against MAML) |" in text
     rows = (table1_dir / "table1.csv").read_text().splitlines()
-    assert len(rows) == 1 + 10 + 20  # p0 of every run, two adversaries of every run
+    assert len(rows) == 1 + 10 + 30  # p0 of every run, three adversaries of every run
 
 
 def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
@@ -102,7 +116,8 @@ def test_every_experiment_runs_at_tiny_size(tmp_path, experiment):
     benchmark = FIRST_BENCHMARK[experiment]
     assert reproduce(experiment, "tiny", tmp_path, launcher="basic", benchmarks=(benchmark,)) == 0
     plan = make_plan(experiment, "tiny", benchmarks=(benchmark,))
-    assert all((tmp_path / run.subdir / "eval.json").is_file() for run in plan.runs)
+    assert all((tmp_path / run.subdir / "eval.json").is_file()
+               for run in (*plan.runs, *plan.attacks))
     assert all((tmp_path / job.out).is_file() for job in plan.evals)
     assert "complete" in (tmp_path / f"{experiment}.md").read_text()
     assert list(tmp_path.glob("*.png"))
@@ -127,8 +142,8 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
         path.unlink()
     assert reproduce("table1", "tiny", table1_dir, launcher="none",
                      benchmarks=("sinusoid_uniform",)) == 1  # aggregates only: incomplete
-    assert "**partial**: 9/10 training runs and 15/20 evaluations" in (
-        table1_dir / "table1.md").read_text()
+    assert ("**partial**: 11/12 training runs (2 of them attack runs) and 25/30 evaluations"
+            in (table1_dir / "table1.md").read_text())
     assert reproduce("table1", "tiny", table1_dir, launcher="basic",
                      benchmarks=("sinusoid_uniform",)) == 0
     assert "(1 to run)" in capsys.readouterr().out
@@ -280,10 +295,13 @@ def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
     part = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",), seeds=(1,))
     assert {run.seed for run in part.runs} == {1} and len(part.runs) == 5
     assert set(part.runs) < set(whole.runs) and set(part.evals) < set(whole.evals)
-    # Same seed: learner seed 1 on adversary seed 1; next seed: seed 0 on 1 and seed 1 on 2.
+    assert [run.subdir for run in part.attacks] == ["runs/sinusoid_uniform/ar_maml-vs-maml/seed1"]
+    # Same seed: learner seed 1 on adversary seed 1; next seed: seed 0 on 1 and seed 1 on 2;
+    # the attack on MAML: seed 1 on seed 1.
     pairs = {(job.name, job.learner.seed, job.adversary.seed) for job in part.evals}
-    assert pairs == {("same_seed", 1, 1), ("next_seed", 0, 1), ("next_seed", 1, 2)}
-    assert len(part.evals) == 15
+    assert pairs == {("same_seed", 1, 1), ("next_seed", 0, 1), ("next_seed", 1, 2),
+                     ("maml", 1, 1)}
+    assert len(part.evals) == 20
 
 
 def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
@@ -300,3 +318,97 @@ def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
         os.utime(run / "eval.json", (end, end))
     assert train_seconds(plan, tmp_path, {}) == {first: 30.0, second: 12.5}
     assert train_seconds(plan, tmp_path, {first: 7.0}) == {first: 7.0, second: 12.5}
+
+
+def test_a_profile_entry_may_train_another_config_for_a_row(tmp_path):
+    """``{config: sinusoid_normal_paper, overrides: [...]}`` under ``sinusoid_normal``: the runs
+    train that config, while the row's name keys their directories and the paper's numbers."""
+    plan = make_plan("table1", "paper", benchmarks=("sinusoid_normal",))
+    run = next(r for r in plan.runs if r.method == "maml" and r.seed == 0)
+    assert run.benchmark == "sinusoid_normal" and run.config == "sinusoid_normal_paper"
+    assert run.subdir == "runs/sinusoid_normal/maml/seed0"
+    assert run.command()[:3] == ["benchmark=sinusoid_normal_paper", "method=maml", "seed=0"]
+    assert "risk.ar.lr=0.000125" in run.overrides
+    # A list entry trains the row's own config.
+    plain = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",)).runs[0]
+    assert plain.config == plain.benchmark == "sinusoid_uniform"
+    (tmp_path / run.subdir).mkdir(parents=True)
+    (tmp_path / run.subdir / "eval.json").write_text(json.dumps(_report(0.5, 0.9)))
+    text = table(plan, collect(plan, tmp_path, {}), tmp_path)
+    ours = next(line for line in text.splitlines() if line.startswith("| Sinusoid-N | Initial"))
+    assert "**0.500**" not in ours and "0.500" in ours  # one method: nothing to bold
+    assert "0.578 ± 0.03" in text  # the paper's Sinusoid-N MAML average beneath
+
+
+def test_every_experiment_plans_at_every_profile():
+    for experiment in experiment_names():
+        for profile in ("paper", "quick", "tiny"):
+            plan = make_plan(experiment, profile)
+            assert plan.runs and len(set(plan.runs)) == len(plan.runs)
+    cnp = make_plan("cnp_table", "paper").runs[0].overrides
+    # The experiment's own paper settings come after the shared ones, so they win.
+    assert cnp[-2:] == ("trainer.iterations=15000", f"risk.ar.lr={0.5 / 15000}")
+
+
+def _packaged_copy(tmp_path: Path, profiles_text: str) -> Path:
+    """The package as a wheel installs it (its configs inside it), with ``profiles_text`` as
+    its ``configs/reproduce/profiles.yaml``; the directory to put on ``PYTHONPATH``."""
+    root = tmp_path / "site"
+    shutil.copytree(ROOT / "armeta_rl", root / "armeta_rl",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    shutil.copytree(ROOT / "configs", root / "armeta_rl" / "configs")
+    (root / "armeta_rl" / "configs" / "reproduce" / PROFILES_FILE).write_text(profiles_text)
+    return root
+
+
+@pytest.mark.parametrize(
+    "entry,expected",
+    [
+        ("{config: sinusoid_normal_paper, iterations: 5}",
+         "'paper.benchmarks.sinusoid_normal' = {'config': 'sinusoid_normal_paper', "
+         "'iterations': 5}: allowed: a list of overrides, or {config: <benchmark>"),
+        ("{overrides: [trainer.iterations=5]}",
+         "'paper.benchmarks.sinusoid_normal' = {'overrides': ['trainer.iterations=5']}: allowed"),
+        ("{config: sinusoid_circle}", "'overrides' = 'benchmark=sinusoid_circle method=maml"),
+    ],
+)
+def test_a_malformed_profile_entry_gets_one_line_and_exit_code_2(tmp_path, entry, expected):
+    profiles = (ROOT / "configs" / "reproduce" / PROFILES_FILE).read_text()
+    shown = "sinusoid_normal: {config: sinusoid_normal_paper, overrides: [risk.ar.lr=0.000125]}"
+    assert shown in profiles
+    site = _packaged_copy(tmp_path, profiles.replace(shown, f"sinusoid_normal: {entry}"))
+    result = subprocess.run(
+        [*REPRODUCE, "table1", "profile=paper", f"results={tmp_path / 'r'}"],
+        capture_output=True, text=True, timeout=120, cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(site)})
+    assert result.returncode == 2, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
+    assert expected in result.stderr
+    assert not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize(
+    "attacks,key,allowed",
+    [
+        ({"maml": {"method": "ar_maml"}}, "attacks.maml", "allowed: {method: <AR method>"),
+        ({"maml": {"method": "ar_maml", "target": "cnp"}}, "attacks.maml.target",
+         "allowed: maml, ar_maml"),
+        ({"same_seed": {"method": "ar_maml", "target": "maml"}}, "attacks.same_seed",
+         "an adversary of the experiment has that name already"),
+    ],
+)
+def test_a_malformed_attack_is_refused(monkeypatch, attacks, key, allowed):
+    spec = {"groups": [{"benchmarks": ["sinusoid_uniform"], "methods": ["maml", "ar_maml"]}],
+            "adversaries": {"same_seed": {"method": "ar_maml"}}, "attacks": attacks}
+    monkeypatch.setattr(plan_module, "load_spec", lambda experiment: spec)
+    with pytest.raises(ConfigError, match=f"'{key}'") as error:
+        make_plan("table1", "tiny")
+    assert allowed in str(error.value)
+
+
+def test_an_attack_by_a_method_without_an_adversary_is_refused(monkeypatch):
+    spec = {"groups": [{"benchmarks": ["sinusoid_uniform"], "methods": ["maml"]}],
+            "attacks": {"maml": {"method": "dr_maml", "target": "maml"}}}
+    monkeypatch.setattr(plan_module, "load_spec", lambda experiment: spec)
+    with pytest.raises(ConfigError, match="'attacks' = 'dr_maml': an attack trains a flow"):
+        check_runs(make_plan("table1", "tiny"))

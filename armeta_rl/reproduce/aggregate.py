@@ -173,15 +173,18 @@ def display(name: str) -> str:
 
 
 def progress_note(plan: Plan, results: Path) -> str:
-    """How many of the plan's runs and evaluations have finished (a partial sweep says so)."""
-    runs = sum(finished(results, r) for r in plan.runs)
+    """How many of the plan's runs (attack runs included) and evaluations have finished (a
+    partial sweep says so)."""
+    trained = (*plan.runs, *plan.attacks)
+    runs = sum(finished(results, r) for r in trained)
     evals = sum(finished(results, e) for e in plan.evals)
-    total = len(plan.runs) + len(plan.evals)
+    total = len(trained) + len(plan.evals)
+    counts = (f"{runs}/{len(trained)} training runs"
+              + (f" ({len(plan.attacks)} of them attack runs)" if plan.attacks else "")
+              + f" and {evals}/{len(plan.evals)} evaluations finished")
     if runs + evals == total:
-        return (f"Profile `{plan.profile}`, complete: {runs}/{len(plan.runs)} training runs and "
-                f"{evals}/{len(plan.evals)} evaluations finished.")
-    return (f"Profile `{plan.profile}`, **partial**: {runs}/{len(plan.runs)} training runs and "
-            f"{evals}/{len(plan.evals)} evaluations finished (each cell summarizes the seeds "
+        return f"Profile `{plan.profile}`, complete: {counts}."
+    return (f"Profile `{plan.profile}`, **partial**: {counts} (each cell summarizes the seeds "
             "finished so far, so cells may rest on different numbers of seeds).")
 
 

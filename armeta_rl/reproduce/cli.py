@@ -2,7 +2,8 @@
 [results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N] [hydra.launcher.…=…]
 [+train.<key>=<value>]``: one artefact of the paper.
 
-It trains the experiment's runs (one ``armeta-train`` multirun), scores them on the adversaries
+It trains the experiment's runs (one ``armeta-train`` multirun), then its attack runs against the
+finished ones (a second), scores them on the adversaries
 (one ``armeta-eval`` multirun) and aggregates everything into ``<experiment>.csv``,
 ``<experiment>.md`` and PNG figures in the results directory (default ``results/<experiment>``).
 Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
@@ -79,15 +80,19 @@ def check_runs(plan: Plan) -> None:
     from armeta_rl.cli import config_dir
     from armeta_rl.config import check_config
 
-    distinct = {(*run.command()[:2], *run.overrides): None for run in plan.runs}
+    distinct = {(*run.command()[:2], *run.overrides): run.target is not None
+                for run in (*plan.runs, *plan.attacks)}
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        for overrides in distinct:
+        for overrides, attack in distinct.items():
             try:
                 cfg = compose("train", overrides=list(overrides))
             except HydraException as error:
                 raise ConfigError("overrides", " ".join(overrides),
                                   str(error).splitlines()[0]) from None
             check_config(cfg)
+            if attack and cfg.method.risk != "ar":
+                raise ConfigError("attacks", cfg.method.name,
+                                  "an attack trains a flow adversary: allowed: the ar_* methods")
 
 
 def run_times(records: list[dict]) -> str:
@@ -145,8 +150,10 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
     started = time.time()
     runs = [r for r in plan.runs if not finished(results, r)]
+    attack_note = (f", {len(plan.attacks)} attack runs" if plan.attacks else "")
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
-          f"({len(runs)} to run), {len(plan.evals)} evaluations; launcher {launcher}", flush=True)
+          f"({len(runs)} to run){attack_note}, {len(plan.evals)} evaluations; launcher "
+          f"{launcher}", flush=True)
     code = 0
     if launcher == "none":
         runs = []
@@ -154,6 +161,12 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
         code = launch(train, "armeta-train", [train_job(results, r) for r in runs], results,
                       f"{experiment} train", len(plan.runs) - len(runs),
                       (*selected, *hydra_args))
+    attacks = [] if launcher == "none" else [  # the second batch: targets finished
+        a for a in plan.attacks if not finished(results, a) and finished(results, a.target)]
+    if attacks:
+        code = launch(train, "armeta-train", [train_job(results, a) for a in attacks], results,
+                      f"{experiment} attack", sum(finished(results, a) for a in plan.attacks),
+                      (*selected, *hydra_args)) or code
     evals = [e for e in plan.evals if not finished(results, e)]
     ready = [e for e in evals if finished(results, e.learner) and finished(results, e.adversary)]
     if ready and launcher != "none":
@@ -161,7 +174,7 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
                       f"{experiment} eval", len(plan.evals) - len(evals),
                       (*selected, *hydra_args)) or code
     wall = manifest["wall_seconds"]
-    if runs or (ready and launcher != "none"):  # aggregating alone adds no sweep time
+    if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
         wall[experiment] = wall.get(experiment, 0.0) + (time.time() - started)
     whole = make_plan(experiment, profile, extra, benchmarks)  # the report covers every seed
     seconds = train_seconds(whole, results, dict(manifest.get("train_seconds", {})))
@@ -169,7 +182,8 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
     report = write_report(whole, results, wall.get(experiment, 0.0), seconds)
     print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
-    incomplete = any(not finished(results, r) for r in (*plan.runs, *plan.evals))
+    incomplete = any(not finished(results, r)
+                     for r in (*plan.runs, *plan.attacks, *plan.evals))
     return code or int(incomplete)
 
 

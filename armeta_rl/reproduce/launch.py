@@ -1,8 +1,9 @@
 """Launching a plan's jobs as Hydra multiruns of the ordinary entry points.
 
-The training runs are one ``armeta-train -m`` sweep and the cross-evaluations one ``armeta-eval
--m`` sweep, both with ``hydra/sweeper=run_list`` (the jobs file lists each job's overrides) and
-the chosen Hydra launcher: joblib processes on this machine, tasks on a Ray cluster, or Slurm jobs
+The training runs are one ``armeta-train -m`` sweep, the attack runs (which need their targets
+finished) a second one and the cross-evaluations one ``armeta-eval -m`` sweep, each with
+``hydra/sweeper=run_list`` (the jobs file lists each job's overrides) and the chosen Hydra
+launcher: joblib processes on this machine, tasks on a Ray cluster, or Slurm jobs
 through submitit. Each job is composed and run exactly as the same command typed by hand.
 """
 
@@ -43,7 +44,7 @@ def train_job(results: Path, run: TrainRun) -> dict:
     """The sweeper's entry for ``run``: its overrides, or ``resume=`` when an interrupted run left
     a checkpoint (it continues where it stopped, bit-identical to an uninterrupted run)."""
     overrides = ([f"resume={results / run.subdir}"] if has_checkpoint(results, run)
-                 else run.command())
+                 else run.command(results))
     return {"name": run.subdir, "overrides": [*overrides, f"hydra.sweep.subdir={run.subdir}"],
             "done": str(results / run.subdir / "eval.json")}
 

@@ -5,8 +5,11 @@ it needs, read from ``configs/reproduce/<experiment>.yaml`` and the shared profi
 An experiment lists *groups* of training runs, each the product benchmarks × methods × variants ×
 seeds, and *adversaries*: for every learner run, ``armeta-eval`` scores it on the adversary of
 another run of the same benchmark and variant (an AR method at the same seed, or at the next
-seed). A *profile* (``quick``, ``paper``, ``tiny``) sets the seeds and the overrides per
-benchmark (iterations, evaluation tasks); the experiment may add its own per profile.
+seed). Its *attacks* add, per run of a target method, an AR run that trains only its adversary
+against that run's finished learner (``trainer.frozen_leader``, a second training batch), and
+score every learner on that adversary too. A *profile* (``quick``, ``paper``, ``tiny``) sets the
+seeds and the overrides per benchmark (iterations, evaluation tasks); the experiment may add its
+own per profile.
 """
 
 from __future__ import annotations
@@ -31,7 +34,9 @@ class TrainRun:
 
     ``benchmark`` is the experiment's row (``sinusoid_normal``: the directory, the report and the
     paper's numbers are keyed by it); ``config`` is the benchmark config that the profile trains
-    for that row (``sinusoid_normal_paper`` at the ``paper`` profile).
+    for that row (``sinusoid_normal_paper`` at the ``paper`` profile). An attack run has a
+    ``target``: the run whose finished learner it loads and never trains, training only its
+    adversary against it (``trainer.frozen_leader``).
     """
 
     benchmark: str
@@ -40,17 +45,27 @@ class TrainRun:
     seed: int
     overrides: tuple[str, ...]
     config: str
+    target: TrainRun | None = None
+
+    @property
+    def name(self) -> str:
+        """``<method>[-<variant>]``, ``<method>-vs-<target's name>`` for an attack run."""
+        if self.target is not None:
+            return f"{self.method}-vs-{self.target.name}"
+        return self.method if not self.variant else f"{self.method}-{self.variant}"
 
     @property
     def subdir(self) -> str:
-        """``runs/<benchmark>/<method>[-<variant>]/seed<seed>``."""
-        name = self.method if not self.variant else f"{self.method}-{self.variant}"
-        return f"runs/{self.benchmark}/{name}/seed{self.seed}"
+        """``runs/<benchmark>/<name>/seed<seed>``."""
+        return f"runs/{self.benchmark}/{self.name}/seed{self.seed}"
 
-    def command(self) -> list[str]:
-        """The run's overrides as ``armeta-train`` takes them."""
+    def command(self, results: Path | None = None) -> list[str]:
+        """The run's overrides as ``armeta-train`` takes them; an attack run's with ``results``
+        also points ``trainer.frozen_leader`` at its target (an absolute path, known at launch)."""
+        frozen = ([f"trainer.frozen_leader={results / self.target.subdir}"]
+                  if self.target is not None and results is not None else [])
         return [f"benchmark={self.config}", f"method={self.method}", f"seed={self.seed}",
-                *self.overrides]
+                *self.overrides, *frozen]
 
 
 @dataclass(frozen=True)
@@ -75,13 +90,15 @@ class EvalJob:
 
 @dataclass(frozen=True)
 class Plan:
-    """An experiment at a profile: its spec (the YAML), training runs and evaluation jobs."""
+    """An experiment at a profile: its spec (the YAML), training runs, attack runs (trained once
+    their targets finished) and evaluation jobs."""
 
     experiment: str
     profile: str
     spec: dict[str, Any]
     runs: tuple[TrainRun, ...]
     evals: tuple[EvalJob, ...]
+    attacks: tuple[TrainRun, ...] = ()
 
 
 def experiment_names() -> list[str]:
@@ -159,11 +176,50 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
                                  (*settings, *variant_overrides, *extra), config)
                         for seed in all_seeds
                     )
-    jobs = eval_jobs(spec, runs, all_seeds)
+    attacks = attack_runs(spec, runs)
+    jobs = eval_jobs(spec, runs, all_seeds) + attack_jobs(spec, runs, attacks)
     if seeds:
         runs = [run for run in runs if run.seed in seeds]
+        attacks = [run for run in attacks if run.seed in seeds]
         jobs = [job for job in jobs if job.learner.seed in seeds or job.adversary.seed in seeds]
-    return Plan(experiment, profile, spec, tuple(runs), tuple(jobs))
+    return Plan(experiment, profile, spec, tuple(runs), tuple(jobs), tuple(attacks))
+
+
+def attack_runs(spec: dict[str, Any], runs: list[TrainRun]) -> list[TrainRun]:
+    """For every attack of ``spec["attacks"]`` (``{name: {method, target}}``) and every run of its
+    target method, the run of ``method`` (an AR method) with the target's benchmark, variant, seed
+    and overrides that trains its adversary against the target's finished learner."""
+    attacks = spec.get("attacks", {})
+    methods = list(dict.fromkeys(run.method for run in runs))
+    found = []
+    for name, attack in attacks.items():
+        if not isinstance(attack, dict) or set(attack) != {"method", "target"}:
+            raise ConfigError(f"attacks.{name}", attack, "allowed: {method: <AR method>, "
+                              "target: <a method of the experiment>}")
+        if name in spec.get("adversaries", {}):
+            raise ConfigError(f"attacks.{name}", attack,
+                              "an adversary of the experiment has that name already")
+        if attack["target"] not in methods:
+            raise ConfigError(f"attacks.{name}.target", attack["target"],
+                              f"allowed: {', '.join(methods)}")
+        found += [TrainRun(run.benchmark, attack["method"], run.variant, run.seed,
+                           run.overrides, run.config, target=run)
+                  for run in runs if run.method == attack["target"]]
+    return found
+
+
+def attack_jobs(spec: dict[str, Any], runs: list[TrainRun],
+                attacks: list[TrainRun]) -> list[EvalJob]:
+    """Every run scored on the adversary of each attack (named as in ``spec["attacks"]``) at the
+    run's benchmark, variant and seed."""
+    by_key = {(a.method, a.target.method, a.benchmark, a.variant, a.seed): a for a in attacks}
+    jobs = []
+    for name, attack in spec.get("attacks", {}).items():
+        for run in runs:
+            key = (attack["method"], attack["target"], run.benchmark, run.variant, run.seed)
+            if key in by_key:
+                jobs.append(EvalJob(name, run, by_key[key]))
+    return jobs
 
 
 def eval_jobs(spec: dict[str, Any], runs: list[TrainRun], seeds: list[int]) -> list[EvalJob]:

@@ -32,9 +32,10 @@ def _benchmarks(plan: Plan) -> list[str]:
 
 
 def _distributions(plan: Plan) -> dict[str, str]:
-    """``initial`` and the experiment's adversaries, with their labels."""
+    """``initial``, the experiment's adversaries and its attacks' adversaries, with their
+    labels."""
     labels = plan.spec.get("labels", {})
-    names = [INITIAL, *plan.spec.get("adversaries", {})]
+    names = [INITIAL, *plan.spec.get("adversaries", {}), *plan.spec.get("attacks", {})]
     return {name: labels.get(name, name) for name in names}
 
 
