@@ -3,9 +3,9 @@
 [+train.<key>=<value>]``: one artefact of the paper.
 
 It trains the experiment's runs (one ``armeta-train`` multirun), then its attack runs against the
-finished ones (a second), scores them on the adversaries
-(one ``armeta-eval`` multirun) and aggregates everything into ``<experiment>.csv``,
-``<experiment>.md`` and PNG figures in the results directory (default ``results/<experiment>``).
+finished ones (a second), scores them on the adversaries (one ``armeta-eval`` multirun) and
+aggregates everything into ``<experiment>.csv``, ``<experiment>.md`` and PNG figures in the
+results directory (default ``results/<experiment>``).
 Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
 interrupted resumes from its checkpoint, so running the same command again continues a sweep.
 ``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds,
