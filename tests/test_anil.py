@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -18,6 +20,7 @@ from armeta_rl.learners.anil import ANILLeader, BodyHead
 from armeta_rl.tasks import TASK_KEY
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def closed_form_losses(leader: ANILLeader, data: TensorDict, first_order: bool) -> torch.Tensor:
@@ -94,3 +97,15 @@ def test_anil_trains_with_a_risk_principle_from_the_command_line(tmp_path) -> No
     state = torch.load(checkpoint / leader["path"] / leader["files"][0], weights_only=True)
     # the sizes came from the sinusoid collector: x and y are scalars
     assert state["model"]["head.weight"].shape == (1, 128)
+
+
+def test_the_guide_shows_the_shipped_code():
+    """Every code block of docs/adding-a-learner.md but the commands is in the file it quotes."""
+    page = (ROOT / "docs" / "adding-a-learner.md").read_text()
+    sources = ("learners/anil.py", "factory.py", "config.py")
+    shipped = {"python": "".join((ROOT / "armeta_rl" / name).read_text() for name in sources),
+               "yaml": (ROOT / "configs" / "train.yaml").read_text()}
+    blocks = re.findall(r"```(python|yaml)\n(.*?)```", page, re.S)
+    assert len(blocks) == 5
+    for language, block in blocks:
+        assert block in shipped[language], block

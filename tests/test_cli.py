@@ -26,6 +26,7 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
         ("eval.n_tasks=0", "eval.n_tasks", ">= 1"),
         ("risk.ar.compile=fast", "risk.ar.compile", "a backend (inductor"),
         ("trainer.iteratons=5", "trainer.iteratons", "did you mean 'trainer.iterations'?"),
+        ("method.learner=reptile", "method.learner", "allowed: maml, cnp, anil"),
         ("risk.ar.flow_kwargs.activation=leaky_relu", "risk.ar.flow_kwargs.activation",
          "+risk.ar.flow_kwargs.activation=leaky_relu"),
         ("benchmark=pendulum_uniform benchmark.collector.target=state",
