@@ -5,4 +5,6 @@ Implements "Robust Fast Adaptation from Adversarially Explicit Task Distribution
 game against a meta-learner (MAML, CNP, MAML-TRPO).
 """
 
+import armeta_rl.config  # noqa: F401  (registers ${method_name:...}, which configs/ use)
+
 __version__ = "0.1.0"

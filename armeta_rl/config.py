@@ -7,8 +7,8 @@ The schema is a tree of dataclasses, :class:`TrainSchema` at its root, mirroring
 a benchmark or method fills freely, such as collector arguments); its :func:`key` metadata is the
 range and its wording. The YAML files keep the values. :func:`check_config` checks a composed
 config against the schema, strictly: ``first_order: off`` is a string, not a boolean, and is
-refused. Keys present only with some benchmarks or methods (``learner.maml_trpo``,
-``benchmark.collector.workers``) are checked when present. See docs/configuration.md.
+refused. Keys present only with some benchmarks or methods (``benchmark.collector.workers``)
+are checked when present. See docs/configuration.md.
 """
 
 from __future__ import annotations
@@ -31,6 +31,17 @@ _MISSING = object()
 CONFIG_FILE = "config.yaml"
 SEED_RANGE = (-(2**63), 2**64 - 1)
 """The seeds ``torch.manual_seed`` accepts."""
+
+
+def method_name(risk: str, learner: str) -> str:
+    """A method's name, which names its run directories: the learner's for expected risk
+    minimization (``maml``), else the risk principle's and the learner's (``ar_maml``). Composed
+    configs give ``method.name`` as ``${method_name:${method.risk},${method.learner}}``, so
+    ``method.learner=anil`` names an ``ar_anil`` run without a method file."""
+    return learner if risk == "erm" else f"{risk}_{learner}"
+
+
+OmegaConf.register_new_resolver("method_name", method_name, replace=True)
 
 
 def key(
@@ -133,15 +144,25 @@ class MamlTrpoSchema:
     baseline_reg: float = at_least(0)
     first_order: bool = key()
     hvp_episodes: int | None = at_least(1)
-    obs_dim: int = at_least(1)
-    action_dim: int = at_least(1)
+
+
+@dataclass
+class AnilSchema:
+    hidden: list[int] = each(at_least(1), nonempty=True)
+    inner_lr: float = above(0)
+    inner_steps: int = at_least(1)
+    first_order: bool = key()
+    outer_lr: float = above(0)
 
 
 @dataclass
 class LearnerSchema:
+    """One section per learner of :data:`armeta_rl.factory.LEARNERS` (and MAML's meta-RL form)."""
+
     maml: MamlSchema = key()
     cnp: CnpSchema = key()
-    maml_trpo: MamlTrpoSchema | None = key()
+    maml_trpo: MamlTrpoSchema = key()
+    anil: AnilSchema = key()
 
 
 @dataclass
@@ -180,7 +201,7 @@ class RiskSchema:
 @dataclass
 class MethodSchema:
     name: str = key()
-    learner: str = one_of("maml", "cnp")
+    learner: str = key()  # a name of armeta_rl.factory.LEARNERS: checked by check_config
     risk: str = one_of("erm", "ar", "dr", "tr", "dro")
 
 
@@ -205,20 +226,13 @@ class InitialSchema:
 
 
 @dataclass
-class ModelSchema:
-    in_features: int = at_least(1)
-    out_features: int = at_least(1)
-
-
-@dataclass
 class BenchmarkSchema:
     name: str = key()
     space: SpaceSchema = key()
     initial: InitialSchema = key()
     collector: dict[str, Any] = key()  # the collector's arguments: checked by the collector
     eval_collector: dict[str, Any] = key()
-    model: ModelSchema = key()
-    leaders: dict[str, str] = key()
+    model: dict[str, Any] = key()  # the model's choices (head): checked by make_mlp
 
 
 @dataclass
@@ -359,6 +373,16 @@ def check_config(cfg: DictConfig) -> None:
                     f"({name}: {low} >= {high})",
                 )
     check_task_split(cfg)
+    check_learner(cfg)
+
+
+def check_learner(cfg: DictConfig) -> None:
+    """``method.learner`` names a registered learner (:data:`armeta_rl.factory.LEARNERS`)."""
+    from armeta_rl.factory import LEARNERS
+
+    name = OmegaConf.select(cfg, "method.learner")
+    if name is not None and name not in LEARNERS:
+        raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
 
 
 def check_task_split(cfg: DictConfig) -> None:

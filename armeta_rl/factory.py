@@ -1,13 +1,15 @@
 """Builds a run's players from a composed Hydra config.
 
 Leaders and risk principles are looked up by the names a method config gives
-(``method.learner``, ``method.risk``); each builder reads its own section
-(``learner.<name>``, ``risk.<name>``), so adding a player is one function and one entry here.
+(``method.learner``, ``method.risk``) in :data:`LEARNERS` and :data:`PRINCIPLES`; each builder reads
+its own section (``learner.<name>``, ``risk.<name>``) and the model's sizes from the collector, so
+adding a player is one function and one entry here.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from hydra.errors import InstantiationException
@@ -64,6 +66,23 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
     return collector
 
 
+OLD_SIZE_KEYS = ("benchmark.model.in_features", "benchmark.model.out_features")
+"""Where configs saved before sizes came from the collector state them."""
+
+
+def sizes(cfg: DictConfig, collector: Collector, stated: tuple[str, str]) -> tuple[int, int]:
+    """The leader's input and output sizes, as the collector defines them (``in_features`` and
+    ``out_features``: x and y, or the env's observation and action). A config saved before sizes
+    came from the collector states them at the keys ``stated``: such a value is accepted when it
+    is the collector's, so old runs load, and refused otherwise."""
+    defined = int(collector.in_features), int(collector.out_features)
+    for key, size in zip(stated, defined):
+        value = OmegaConf.select(cfg, key, default=None)
+        if value is not None and value != size:
+            raise ConfigError(key, value, f"is defined by the collector: {size}")
+    return defined
+
+
 def _maml(cfg: DictConfig, collector: Collector) -> Leader:
     from armeta_rl.learners.maml import MAMLLeader
     from armeta_rl.learners.mlp import make_mlp
@@ -75,12 +94,8 @@ def _maml(cfg: DictConfig, collector: Collector) -> Leader:
         raise ConfigError("benchmark.model.head", head,
                           f"predicts the next observation: needs benchmark.collector.target=next, "
                           f"not {target}")
-    model = make_mlp(
-        cfg.benchmark.model.in_features,
-        cfg.benchmark.model.out_features,
-        opts.pop("hidden", (128, 128, 128)),
-        head,
-    )
+    model = make_mlp(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden", (128, 128, 128)),
+                     head)
     return MAMLLeader(model, collector, **opts)
 
 
@@ -90,18 +105,47 @@ def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
     if head != "none":
         raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
-    return CNPLeader(
-        cfg.benchmark.model.in_features,
-        cfg.benchmark.model.out_features,
-        collector,
-        **_section(cfg, "learner.cnp"),
-    )
+    return CNPLeader(*sizes(cfg, collector, OLD_SIZE_KEYS), collector,
+                     **_section(cfg, "learner.cnp"))
 
 
 def _maml_trpo(cfg: DictConfig, collector: Collector) -> Leader:
     from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
 
-    return MAMLTRPOLeader(collector, **_section(cfg, "learner.maml_trpo"))
+    old_keys = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
+    obs_dim, action_dim = sizes(cfg, collector, old_keys)
+    opts = {k: v for k, v in _section(cfg, "learner.maml_trpo").items()
+            if f"learner.maml_trpo.{k}" not in old_keys}
+    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim, **opts)
+
+
+def _anil(cfg: DictConfig, collector: Collector) -> Leader:
+    from armeta_rl.learners.anil import ANILLeader, BodyHead
+
+    opts = _section(cfg, "learner.anil")
+    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden"))
+    return ANILLeader(model, collector, **opts)
+
+
+@dataclass(frozen=True)
+class Learner:
+    """A registered meta-learner: its builder on regression and system-identification data
+    (``build``), and the builder of its meta-RL form on episode data (``rl``; ``None``: it has
+    none). A builder reads its own ``learner.<name>`` section (defaults in
+    ``configs/train.yaml``, types and ranges in :mod:`armeta_rl.config`) and takes the model's
+    sizes from the collector (:func:`sizes`)."""
+
+    build: Callable[[DictConfig, Collector], Leader]
+    rl: Callable[[DictConfig, Collector], Leader] | None = None
+
+
+LEARNERS: dict[str, Learner] = {
+    "maml": Learner(_maml, rl=_maml_trpo),
+    "cnp": Learner(_cnp),
+    "anil": Learner(_anil),
+}
+"""Every meta-learner ``method.learner`` may name; adding one is a module and an entry here
+(docs/adding-a-learner.md)."""
 
 
 def _erm(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
@@ -140,11 +184,6 @@ def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPr
     return GroupDROPrinciple(initial, **_section(cfg, "risk.dro"))
 
 
-LEADERS: dict[str, Callable[[DictConfig, Collector], Leader]] = {
-    "maml": _maml,
-    "cnp": _cnp,
-    "maml_trpo": _maml_trpo,
-}
 PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPrinciple]] = {
     "erm": _erm,
     "ar": _ar,
@@ -155,19 +194,22 @@ PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPr
 
 
 def build_leader(cfg: DictConfig, collector: Collector) -> Leader:
-    """The leader named by ``method.learner``, through the benchmark's ``leaders`` map if it has
-    one (on RL benchmarks ``maml`` means MAML-TRPO; CNP has no RL form)."""
+    """The learner named by ``method.learner``, in its meta-RL form when the collector gathers
+    episodes (MAML is MAML-TRPO there; CNP has no meta-RL form)."""
+    from armeta_rl.collectors.episodes import EpisodeCollector
+
     name = cfg.method.learner
-    leaders = OmegaConf.select(cfg, "benchmark.leaders")
-    if leaders is not None:
-        if name not in leaders:
-            raise ConfigError("method", cfg.method.name,
-                              f"benchmark {cfg.benchmark.name} supports methods whose learner is "
-                              f"one of: {', '.join(leaders)}")
-        name = leaders[name]
-    if name not in LEADERS:
-        raise ConfigError("method.learner", name, f"allowed: {', '.join(LEADERS)}")
-    return LEADERS[name](cfg, collector)
+    if name not in LEARNERS:
+        raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
+    if not isinstance(collector, EpisodeCollector):
+        return LEARNERS[name].build(cfg, collector)
+    build = LEARNERS[name].rl
+    if build is None:
+        with_rl = [learner for learner, entry in LEARNERS.items() if entry.rl is not None]
+        raise ConfigError("method", cfg.method.name,
+                          f"benchmark {cfg.benchmark.name} gathers episodes: it supports methods "
+                          f"whose learner is one of: {', '.join(with_rl)}")
+    return build(cfg, collector)
 
 
 def build_principle(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:

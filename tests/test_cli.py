@@ -26,6 +26,7 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
         ("eval.n_tasks=0", "eval.n_tasks", ">= 1"),
         ("risk.ar.compile=fast", "risk.ar.compile", "a backend (inductor"),
         ("trainer.iteratons=5", "trainer.iteratons", "did you mean 'trainer.iterations'?"),
+        ("method.learner=reptile", "method.learner", "allowed: maml, cnp, anil"),
         ("risk.ar.flow_kwargs.activation=leaky_relu", "risk.ar.flow_kwargs.activation",
          "+risk.ar.flow_kwargs.activation=leaky_relu"),
         ("benchmark=pendulum_uniform benchmark.collector.target=state",
@@ -83,9 +84,9 @@ def test_override_keys_are_checked_for_the_chosen_benchmark_and_sweep(tmp_path):
 
     sysid = run("benchmark=pendulum_uniform", "benchmark.collector.episodes=10", "--cfg", "job")
     assert sysid.returncode == 0 and "episodes: 10" in sysid.stdout
-    swept = run("-m", "benchmark=point_nav,sinusoid_uniform", "learner.maml_trpo.max_kl=0.02")
+    swept = run("-m", "benchmark=point_nav,sinusoid_uniform", "benchmark.collector.max_steps=50")
     assert swept.returncode == 2
-    assert "'learner.maml_trpo.max_kl'" in swept.stderr
+    assert "'benchmark.collector.max_steps'" in swept.stderr
     assert "benchmark=sinusoid_uniform" in swept.stderr
     added = run("risk.ar.flow=planar", "+risk.ar.flow_kwargs.activation=leaky_relu", "--cfg", "job")
     assert added.returncode == 0 and "activation: leaky_relu" in added.stdout

@@ -304,7 +304,7 @@ def run_cli(monkeypatch, capsys, tool, *args):
     ("learner.maml.first_order=off", "must be a boolean (true or false)"),
     ("learner.maml.first_order=maybe", "must be a boolean (true or false)"),
     ("learner.maml.hidden=abc", "must be a list of integers"),
-    ("benchmark.model.in_features=0", "must be >= 1"),
+    ("learner.maml_trpo.max_kl=0", "must be > 0"),
     ("seed=18446744073709551616", "must be in [-2^63, 2^64 - 1]"),
     ("eval.seed=18446744073709551615", "must be in [-2^63, 2^64 - 2]"),
     ("trainer.max_loss=-1", "must be > 0"),

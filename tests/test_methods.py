@@ -6,9 +6,11 @@ import sys
 
 import pytest
 from conftest import SMALL_RUN, compose_train
+from omegaconf import OmegaConf
 
 from armeta_rl.cli import group_choices
 from armeta_rl.errors import ConfigError
+from armeta_rl.factory import build_collector, build_initial, build_leader, build_space
 from armeta_rl.trainers.run import run_training
 
 METHODS = [
@@ -78,3 +80,34 @@ def test_cnp_has_no_rl_form():
     cfg = compose_train(*SMALL_RUN, "benchmark=point_nav", "method=cnp")
     with pytest.raises(ConfigError, match="supports methods whose learner is one of: maml"):
         run_training(cfg, "/nonexistent")
+
+
+@pytest.mark.parametrize(
+    "benchmark,method,stated",
+    [
+        ("acrobot_uniform", "maml", "benchmark.model.in_features"),
+        ("sinusoid_uniform", "cnp", "benchmark.model.out_features"),
+        ("point_nav_plain", "maml", "learner.maml_trpo.obs_dim"),
+    ],
+)
+def test_model_sizes_come_from_the_collector(benchmark, method, stated):
+    """The model's input and output sizes are the data's; a config saved when the YAML stated
+    them (old run directories) loads when they agree and is refused with the key when not."""
+    cfg = compose_train(*SMALL_RUN, f"benchmark={benchmark}", f"method={method}")
+    collector = build_collector(cfg)
+    sizes = collector.in_features, collector.out_features
+    tasks = build_initial(cfg, build_space(cfg)).sample(2)
+    leader = build_leader(cfg, collector)
+    if benchmark == "point_nav_plain":
+        episodes = collector.collect(tasks, policy=leader.net)
+        assert sizes == (episodes["observation"].shape[-1], episodes["action"].shape[-1])
+    else:
+        data = collector.collect(tasks)
+        assert sizes == (data["support", "x"].shape[-1], data["support", "y"].shape[-1])
+        assert leader.evaluate(tasks, collector).shape == (2,)
+    size = sizes[0] if stated.endswith(("in_features", "obs_dim")) else sizes[1]
+    OmegaConf.update(cfg, stated, size, force_add=True)
+    build_leader(cfg, collector)
+    OmegaConf.update(cfg, stated, size + 1)
+    with pytest.raises(ConfigError, match=f"'{stated}' = {size + 1}: is defined by the collector"):
+        build_leader(cfg, collector)

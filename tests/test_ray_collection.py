@@ -24,6 +24,7 @@ from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray  
 from armeta_rl.envs.ant_goal import AntGoalEnv  # noqa: E402
 from armeta_rl.errors import CollectionFailed, ConfigError  # noqa: E402
 from armeta_rl.rl.policy import GaussianMLP  # noqa: E402
+from armeta_rl.tasks import TaskSpace  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS, EPISODES, STEPS = 4, 2, 15
@@ -145,4 +146,17 @@ def test_bad_values_are_config_errors_also_from_inside_the_actors(local_cluster)
     collector = RayEpisodeCollector(bad_env, EPISODES, STEPS, workers=1, cpus_per_worker=0)
     with pytest.raises(ConfigError, match="benchmark.collector.goal_range"):
         _collect(collector, 0)
+    collector.close()
+
+
+def test_the_box_and_sizes_are_read_on_one_workers_env_without_actors(local_cluster):
+    """``check_space`` and the sizes probe one worker's env in this process: with 2 workers a
+    1-task probe cannot be split over actors, and no actor starts before the first collection."""
+    collector = RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=2, timeout_s=120)
+    cpus = ray.available_resources()["CPU"]
+    collector.check_space(TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0]))
+    assert (collector.in_features, collector.out_features) == (119, 8)
+    assert ray.available_resources()["CPU"] == cpus  # no actor holds a CPU
+    with pytest.raises(ConfigError, match="benchmark.space"):
+        collector.check_space(TaskSpace(["x", "y", "z"], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]))
     collector.close()

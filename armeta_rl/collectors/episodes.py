@@ -66,6 +66,26 @@ class EpisodeCollector:
         """A one-episode env of batch size ``[1, 1]`` to check task boxes on."""
         return self.make_env(batch_size=(1, 1), max_steps=1)
 
+    def _probe_sizes(self) -> tuple[int, int]:
+        """The env's observation and action sizes, read from a probe env's specs (built under a
+        forked RNG: reading them draws nothing from the run's stream)."""
+        with torch.random.fork_rng(devices=[]):
+            env = self.probe_env()
+            try:
+                return env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+            finally:
+                env.close()
+
+    @property
+    def in_features(self) -> int:
+        """Size of the policy's input: the env's ``"observation"``."""
+        return self._probe_sizes()[0]
+
+    @property
+    def out_features(self) -> int:
+        """Size of the policy's output: the env's action."""
+        return self._probe_sizes()[1]
+
     def check_space(self, space: TaskSpace) -> None:
         """Refuse, before training, a task box the env cannot take: a probe env is reset at the
         box's two corners and its own identifier check decides (the identifiers an env allows

@@ -331,9 +331,15 @@ class RayEpisodeCollector(EpisodeCollector):
                 raise ConfigError(key, value, allowed)
         connect_ray(address, float(connect_timeout_s))
         self.workers = int(workers)
+        self.worker_env = make_env
         split = partial(make_ray_task_split_env, make_env, self.workers, seed=seed,
                         timeout_s=float(timeout_s), cpus_per_worker=float(cpus_per_worker))
         super().__init__(split, episodes, max_steps)
+
+    def probe_env(self) -> EnvBase:
+        """One worker's env of batch size ``[1, 1]``, built here (no actors), to check task boxes
+        and read sizes on."""
+        return self.worker_env(batch_size=(1, 1), max_steps=1)
 
     def close(self) -> None:
         """Stop the actors (new ones start at the next ``collect``)."""

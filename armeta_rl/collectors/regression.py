@@ -28,6 +28,11 @@ class SinusoidCollector:
         self.n_support, self.n_query = int(n_support), int(n_query)
         self.x_low, self.x_high = float(x_low), float(x_high)
 
+    in_features = 1
+    """Size of ``x``."""
+    out_features = 1
+    """Size of ``y``."""
+
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query points for every task (``policy_params`` is unused here)."""
         params = tasks[TASK_KEY]

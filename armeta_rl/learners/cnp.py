@@ -79,7 +79,6 @@ class CNPLeader(OneNetworkLeader):
 
     def __init__(self, in_features: int, out_features: int, collector: Collector,
                  lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian") -> None:
-        check_keys("benchmark.model", in_features=in_features, out_features=out_features)
         check_keys("learner.cnp", hidden=hidden, lr=lr, likelihood=likelihood)
         self.collector = collector
         self.likelihood = likelihood

@@ -117,7 +117,7 @@ class MAMLTRPOLeader:
         hvp_episodes: int | None = None,
     ) -> None:
         check_keys(
-            "learner.maml_trpo", obs_dim=obs_dim, action_dim=action_dim,
+            "learner.maml_trpo",
             hidden_sizes=hidden_sizes, inner_lr=inner_lr, gamma=gamma, gae_lambda=gae_lambda,
             max_kl=max_kl, cg_iterations=cg_iterations, cg_damping=cg_damping,
             ls_max_steps=ls_max_steps, ls_backtrack_ratio=ls_backtrack_ratio,

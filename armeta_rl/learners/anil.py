@@ -1,0 +1,91 @@
+"""ANIL, "Almost No Inner Loop" (Raghu et al. 2020, "Rapid Learning or Feature Reuse?"): MAML
+whose inner loop adapts the network's last layer (the head) only; the body's features are
+meta-learned by the outer loop and reused unchanged by every task.
+
+For a task τ with support set D^S and query set D^Q, and θ = (θ_body, θ_head):
+
+    θ'_head = θ_head − γ ∇_{θ_head} L(D^S; θ_body, θ_head)        (inner step, head only)
+    L_τ(θ)  = L(D^Q; θ_body, θ'_head)                              (adapted query loss)
+
+The outer loop is MAML's: θ ← Adam(∇_θ Σ_k w_k L_k(θ)), batched over tasks. The inner step
+costs one layer's gradient instead of the whole network's, and the meta-gradient still reaches the
+body through θ'_head (unless ``first_order``).
+
+This module is the worked example of docs/adding-a-learner.md: the learner is this class and
+one entry in :data:`armeta_rl.factory.LEARNERS`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from torch import Tensor, nn
+from torch.func import functional_call, grad
+from torchrl.modules import MLP
+
+from armeta_rl.collectors.base import Collector
+from armeta_rl.config import check_keys
+from armeta_rl.learners.maml import MAMLLeader
+
+Params = dict[str, Tensor]
+
+class BodyHead(nn.Module):
+    """The paper's ReLU MLP ``in → hidden… → out`` split in two: a body (every layer but the
+    last, with a ReLU after each) and a linear head (the last layer), whose parameters are
+    ``head.weight`` and ``head.bias``."""
+
+    def __init__(self, in_features: int, out_features: int, hidden: Sequence[int]) -> None:
+        super().__init__()
+        hidden = [int(h) for h in hidden]
+        self.body = MLP(in_features=int(in_features), out_features=hidden[-1],
+                        num_cells=hidden[:-1], activation_class=nn.ReLU, activate_last_layer=True)
+        self.head = nn.Linear(hidden[-1], int(out_features))
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.head(self.body(x))
+
+
+class ANILLeader(MAMLLeader):
+    """ANIL on regression data ``{"support": {"x", "y"}, "query": {"x", "y"}}``, metric MSE.
+
+    Everything but the inner step is :class:`~armeta_rl.learners.maml.MAMLLeader`'s (its batched
+    ``vmap`` over tasks, the weighted Adam meta-update, evaluation and checkpoints).
+
+    Args:
+        model: the network; its parameters are θ.
+        collector: produces support/query data for a batch of tasks.
+        inner_lr: γ, the step size of the head's inner SGD steps.
+        inner_steps: number of inner steps.
+        first_order: drop the second-order terms (treat ∇_{θ_head} L^S as a constant).
+        outer_lr: Adam learning rate of the meta-update.
+    """
+
+    def __init__(
+        self,
+        model: BodyHead,
+        collector: Collector,
+        inner_lr: float = 0.01,
+        inner_steps: int = 1,
+        first_order: bool = False,
+        outer_lr: float = 1e-3,
+    ) -> None:
+        check_keys("learner.anil", inner_lr=inner_lr, inner_steps=inner_steps,
+                   first_order=first_order, outer_lr=outer_lr)
+        super().__init__(model, collector, inner_lr, inner_steps, first_order,
+                         outer_lr, adaptation="vmap")
+
+    def support_loss(self, head: Params, params: Params, x: Tensor, y: Tensor) -> Tensor:
+        """L(D^S; θ_body, head): the mean squared error with the head's parameters ``head``."""
+        prediction = functional_call(self.model, {**params, **head}, (x,))
+        return (prediction - y).pow(2).mean()
+
+    def adapt(self, params: Params, x: Tensor, y: Tensor) -> Params:
+        """θ'_τ = (θ_body, θ'_head): ``inner_steps`` SGD steps of the head on one task's support
+        set ``(x, y)``; the body is θ's."""
+        head = {name: p for name, p in params.items() if name.startswith("head.")}
+        for _ in range(self.inner_steps):
+            steps = grad(self.support_loss)(head, params, x, y)
+            if self.first_order:
+                steps = {name: s.detach() for name, s in steps.items()}
+            head = {name: p - self.inner_lr * steps[name] for name, p in head.items()}
+        return {**params, **head}
