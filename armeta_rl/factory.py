@@ -3,6 +3,8 @@
 Leaders and risk principles are looked up by the names a method config gives
 (``method.learner``, ``method.risk``); each builder reads its own section
 (``learner.<name>``, ``risk.<name>``), so adding a player is one function and one entry here.
+Every builder takes the run's ``device`` (:func:`armeta_rl.devices.resolve_device`) as an
+argument and builds its player there.
 """
 
 from __future__ import annotations
@@ -10,11 +12,13 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.collectors.base import Collector
+from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
@@ -32,17 +36,22 @@ def build_space(cfg: DictConfig) -> TaskSpace:
     return TaskSpace(list(space.names), list(space.low), list(space.high))
 
 
-def build_initial(cfg: DictConfig, space: TaskSpace) -> TaskDistribution:
-    """The benchmark's initial task distribution p0."""
+def build_initial(
+    cfg: DictConfig, space: TaskSpace, device: torch.device = CPU
+) -> TaskDistribution:
+    """The benchmark's initial task distribution p0, on ``device``."""
     initial = _section(cfg, "benchmark.initial")
     return make_initial(
         space, initial.get("kind", "uniform"), initial.get("loc"), initial.get("scale")
-    )
+    ).to(device)
 
 
-def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collector:
-    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node); a collector
-    with a ``check_space`` method is handed the benchmark's box, so a box its env cannot take
+def build_collector(
+    cfg: DictConfig, key: str = "benchmark.collector", device: torch.device = CPU
+) -> Collector:
+    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node) with its data on
+    ``device`` (every collector takes a ``device`` argument); a collector with a ``check_space``
+    method is handed the benchmark's box, so a box its env cannot take
     (other identifier names or width, values outside the env's range) fails before training."""
     node = OmegaConf.select(cfg, key)
     if node is None or "_target_" not in node:
@@ -52,7 +61,7 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
             "needs a collector with a '_target_'",
         )
     try:
-        collector = instantiate(node)
+        collector = instantiate(node, device=str(device))
     except InstantiationException as error:
         # A collector's own ConfigError, not Hydra's wrapper around it, is what the CLI reports.
         if isinstance(error.__cause__, ConfigError):
@@ -64,7 +73,7 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
     return collector
 
 
-def _maml(cfg: DictConfig, collector: Collector) -> Leader:
+def _maml(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.learners.maml import MAMLLeader
     from armeta_rl.learners.mlp import make_mlp
 
@@ -80,11 +89,11 @@ def _maml(cfg: DictConfig, collector: Collector) -> Leader:
         cfg.benchmark.model.out_features,
         opts.pop("hidden", (128, 128, 128)),
         head,
-    )
+    ).to(device)
     return MAMLLeader(model, collector, **opts)
 
 
-def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
+def _cnp(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.learners.cnp import CNPLeader
 
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
@@ -95,13 +104,14 @@ def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
         cfg.benchmark.model.out_features,
         collector,
         **_section(cfg, "learner.cnp"),
+        device=device,
     )
 
 
-def _maml_trpo(cfg: DictConfig, collector: Collector) -> Leader:
+def _maml_trpo(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
 
-    return MAMLTRPOLeader(collector, **_section(cfg, "learner.maml_trpo"))
+    return MAMLTRPOLeader(collector, **_section(cfg, "learner.maml_trpo"), device=device)
 
 
 def _erm(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
@@ -140,7 +150,7 @@ def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPr
     return GroupDROPrinciple(initial, **_section(cfg, "risk.dro"))
 
 
-LEADERS: dict[str, Callable[[DictConfig, Collector], Leader]] = {
+LEADERS: dict[str, Callable[[DictConfig, Collector, torch.device], Leader]] = {
     "maml": _maml,
     "cnp": _cnp,
     "maml_trpo": _maml_trpo,
@@ -154,9 +164,9 @@ PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPr
 }
 
 
-def build_leader(cfg: DictConfig, collector: Collector) -> Leader:
-    """The leader named by ``method.learner``, through the benchmark's ``leaders`` map if it has
-    one (on RL benchmarks ``maml`` means MAML-TRPO; CNP has no RL form)."""
+def build_leader(cfg: DictConfig, collector: Collector, device: torch.device = CPU) -> Leader:
+    """The leader named by ``method.learner`` on ``device``, through the benchmark's ``leaders``
+    map if it has one (on RL benchmarks ``maml`` means MAML-TRPO; CNP has no RL form)."""
     name = cfg.method.learner
     leaders = OmegaConf.select(cfg, "benchmark.leaders")
     if leaders is not None:
@@ -167,12 +177,15 @@ def build_leader(cfg: DictConfig, collector: Collector) -> Leader:
         name = leaders[name]
     if name not in LEADERS:
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEADERS)}")
-    return LEADERS[name](cfg, collector)
+    return LEADERS[name](cfg, collector, device)
 
 
-def build_principle(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    """The risk principle named by ``method.risk``."""
+def build_principle(
+    cfg: DictConfig, space: TaskSpace, initial: TaskDistribution, device: torch.device = CPU
+) -> RiskPrinciple:
+    """The risk principle named by ``method.risk``, on ``device`` (its task distributions, e.g.
+    the flow adversary, and its state such as group weights)."""
     name = cfg.method.risk
     if name not in PRINCIPLES:
         raise ConfigError("method.risk", name, f"allowed: {', '.join(PRINCIPLES)}")
-    return PRINCIPLES[name](cfg, space, initial)
+    return PRINCIPLES[name](cfg, space, initial).to(device)
