@@ -195,14 +195,16 @@ def check_values(args: list[str], prog: str) -> None:
                 _fail(prog, f"{error}{where}")
 
 
-RESUMABLE = ("trainer.iterations", "trainer.stop_at")
-"""The keys a resumed run may change (``hydra.*`` aside): train longer, stop earlier."""
+RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
+"""The keys a resumed run may change (``hydra.*`` aside): train longer, stop earlier, continue on
+another device (its checkpoint loads there)."""
 
 
 def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
-    config, ``trainer.stop_at`` as given (default none) and ``trainer.iterations`` raised if
-    given. Any other override, or fewer iterations, is refused (one line, exit code 2)."""
+    config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised and
+    ``device`` changed if given. Any other override, or fewer iterations, is refused (one line,
+    exit code 2)."""
     from armeta_rl.config import check_config, load_run_config
 
     saved = _checked(prog, load_run_config, run_dir, "resume")
@@ -215,8 +217,12 @@ def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
         value = arg.split("=", 1)[1] if "=" in arg else ""
         if override.is_add() or override.is_delete() or name not in RESUMABLE:
             _fail(prog, f"config key '{name.lstrip('+~')}' = {value}: cannot change on resume "
-                        f"(only {' and '.join(RESUMABLE)} can); train a new run to change it")
-        changes["trainer"][name.split(".")[1]] = override.value()
+                        f"(only {', '.join(RESUMABLE)} can); train a new run to change it")
+        *groups, leaf = name.split(".")
+        node = changes
+        for group in groups:
+            node = node[group]
+        node[leaf] = override.value()
     new = changes["trainer"].get("iterations", saved.trainer.iterations)
     if isinstance(new, int) and not isinstance(new, bool) and new < saved.trainer.iterations:
         _fail(prog, f"config key 'trainer.iterations' = {new}: must be >= "
@@ -362,7 +368,7 @@ def _eval_task(cfg: DictConfig) -> None:
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     check_writable(out, "out")
     overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    report = cross_evaluate(cfg.learner, cfg.adversary, overrides)
+    report = cross_evaluate(cfg.learner, cfg.adversary, overrides, cfg.device)
     write_text_atomically(out, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     print(f"written: {out}")

@@ -25,6 +25,7 @@ from typing import Any, Union
 import yaml
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from armeta_rl.devices import DEVICE_FORMS, is_device_name, resolve_device
 from armeta_rl.errors import ConfigError
 
 _MISSING = object()
@@ -240,6 +241,7 @@ class TrainSchema:
     """The root of the ``armeta-train`` config (``configs/train.yaml``)."""
 
     seed: int = seeds()
+    device: str = key(f"allowed: {DEVICE_FORMS}", is_device_name, old_runs="cpu")
     threads: int = at_least(1)
     resume: str | None = key()
     trainer: TrainerSchema = key()
@@ -360,8 +362,12 @@ def with_old_run_defaults(cfg: DictConfig) -> DictConfig:
 
 def check_config(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for the first value in ``cfg`` that the schema rejects (its
-    type, then its range), then for the rules between keys (identifier box, task split)."""
+    type, then its range), then for the device (present on this machine) and the rules between
+    keys (identifier box, task split)."""
     _check_node(TrainSchema, OmegaConf.to_container(cfg, resolve=True), "")
+    device = OmegaConf.select(cfg, "device")
+    if device is not None:
+        resolve_device(device)
     space = OmegaConf.select(cfg, "benchmark.space")
     if space is not None:
         for name, low, high in zip(space.names, space.low, space.high):

@@ -3,7 +3,8 @@
 Leaders and risk principles are looked up by the names a method config gives
 (``method.learner``, ``method.risk``) in :data:`LEARNERS` and :data:`PRINCIPLES`; each builder reads
 its own section (``learner.<name>``, ``risk.<name>``) and the model's sizes from the collector, so
-adding a player is one function and one entry here.
+adding a player is one function and one entry here. Every builder takes the run's ``device``
+(:func:`armeta_rl.devices.resolve_device`) as an argument and builds its player there.
 """
 
 from __future__ import annotations
@@ -12,11 +13,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.collectors.base import Collector
+from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
@@ -34,17 +37,22 @@ def build_space(cfg: DictConfig) -> TaskSpace:
     return TaskSpace(list(space.names), list(space.low), list(space.high))
 
 
-def build_initial(cfg: DictConfig, space: TaskSpace) -> TaskDistribution:
-    """The benchmark's initial task distribution p0."""
+def build_initial(
+    cfg: DictConfig, space: TaskSpace, device: torch.device = CPU
+) -> TaskDistribution:
+    """The benchmark's initial task distribution p0, on ``device``."""
     initial = _section(cfg, "benchmark.initial")
     return make_initial(
         space, initial.get("kind", "uniform"), initial.get("loc"), initial.get("scale")
-    )
+    ).to(device)
 
 
-def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collector:
-    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node); a collector
-    with a ``check_space`` method is handed the benchmark's box, so a box its env cannot take
+def build_collector(
+    cfg: DictConfig, key: str = "benchmark.collector", device: torch.device = CPU
+) -> Collector:
+    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node) with its data on
+    ``device`` (every collector takes a ``device`` argument); a collector with a ``check_space``
+    method is handed the benchmark's box, so a box its env cannot take
     (other identifier names or width, values outside the env's range) fails before training."""
     node = OmegaConf.select(cfg, key)
     if node is None or "_target_" not in node:
@@ -54,7 +62,7 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
             "needs a collector with a '_target_'",
         )
     try:
-        collector = instantiate(node)
+        collector = instantiate(node, device=str(device))
     except InstantiationException as error:
         # A collector's own ConfigError, not Hydra's wrapper around it, is what the CLI reports.
         if isinstance(error.__cause__, ConfigError):
@@ -83,7 +91,7 @@ def sizes(cfg: DictConfig, collector: Collector, stated: tuple[str, str]) -> tup
     return defined
 
 
-def _maml(cfg: DictConfig, collector: Collector) -> Leader:
+def _maml(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.learners.maml import MAMLLeader
     from armeta_rl.learners.mlp import make_mlp
 
@@ -95,35 +103,36 @@ def _maml(cfg: DictConfig, collector: Collector) -> Leader:
                           f"predicts the next observation: needs benchmark.collector.target=next, "
                           f"not {target}")
     model = make_mlp(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden", (128, 128, 128)),
-                     head)
+                     head).to(device)
     return MAMLLeader(model, collector, **opts)
 
 
-def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
+def _cnp(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.learners.cnp import CNPLeader
 
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
     if head != "none":
         raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
     return CNPLeader(*sizes(cfg, collector, OLD_SIZE_KEYS), collector,
-                     **_section(cfg, "learner.cnp"))
+                     **_section(cfg, "learner.cnp"), device=device)
 
 
-def _maml_trpo(cfg: DictConfig, collector: Collector) -> Leader:
+def _maml_trpo(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
 
     old_keys = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
     obs_dim, action_dim = sizes(cfg, collector, old_keys)
     opts = {k: v for k, v in _section(cfg, "learner.maml_trpo").items()
             if f"learner.maml_trpo.{k}" not in old_keys}
-    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim, **opts)
+    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim, **opts,
+                          device=device)
 
 
-def _anil(cfg: DictConfig, collector: Collector) -> Leader:
+def _anil(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
     from armeta_rl.learners.anil import ANILLeader, BodyHead
 
     opts = _section(cfg, "learner.anil")
-    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden"))
+    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden")).to(device)
     return ANILLeader(model, collector, **opts)
 
 
@@ -133,10 +142,10 @@ class Learner:
     (``build``), and the builder of its meta-RL form on episode data (``rl``; ``None``: it has
     none). A builder reads its own ``learner.<name>`` section (defaults in
     ``configs/train.yaml``, types and ranges in :mod:`armeta_rl.config`) and takes the model's
-    sizes from the collector (:func:`sizes`)."""
+    sizes from the collector (:func:`sizes`) and builds it on the run's device."""
 
-    build: Callable[[DictConfig, Collector], Leader]
-    rl: Callable[[DictConfig, Collector], Leader] | None = None
+    build: Callable[[DictConfig, Collector, torch.device], Leader]
+    rl: Callable[[DictConfig, Collector, torch.device], Leader] | None = None
 
 
 LEARNERS: dict[str, Learner] = {
@@ -193,28 +202,31 @@ PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPr
 }
 
 
-def build_leader(cfg: DictConfig, collector: Collector) -> Leader:
+def build_leader(cfg: DictConfig, collector: Collector, device: torch.device = CPU) -> Leader:
     """The learner named by ``method.learner``, in its meta-RL form when the collector gathers
-    episodes (MAML is MAML-TRPO there; CNP has no meta-RL form)."""
+    episodes (MAML is MAML-TRPO there; CNP has no meta-RL form), on ``device``."""
     from armeta_rl.collectors.episodes import EpisodeCollector
 
     name = cfg.method.learner
     if name not in LEARNERS:
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
     if not isinstance(collector, EpisodeCollector):
-        return LEARNERS[name].build(cfg, collector)
+        return LEARNERS[name].build(cfg, collector, device)
     build = LEARNERS[name].rl
     if build is None:
         with_rl = [learner for learner, entry in LEARNERS.items() if entry.rl is not None]
         raise ConfigError("method", cfg.method.name,
                           f"benchmark {cfg.benchmark.name} gathers episodes: it supports methods "
                           f"whose learner is one of: {', '.join(with_rl)}")
-    return build(cfg, collector)
+    return build(cfg, collector, device)
 
 
-def build_principle(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    """The risk principle named by ``method.risk``."""
+def build_principle(
+    cfg: DictConfig, space: TaskSpace, initial: TaskDistribution, device: torch.device = CPU
+) -> RiskPrinciple:
+    """The risk principle named by ``method.risk``, on ``device`` (its task distributions, e.g.
+    the flow adversary, and its state such as group weights)."""
     name = cfg.method.risk
     if name not in PRINCIPLES:
         raise ConfigError("method.risk", name, f"allowed: {', '.join(PRINCIPLES)}")
-    return PRINCIPLES[name](cfg, space, initial)
+    return PRINCIPLES[name](cfg, space, initial).to(device)

@@ -30,11 +30,13 @@ CHUNK = 2**16
 
 def density_on_grid(distribution: TaskDistribution, points_per_axis: int) -> Tensor:
     """exp(log_prob) at the midpoints of a regular grid over the box, shape ``[n] * d`` (axis k
-    indexes identifier k), in float64; evaluated in chunks of :data:`CHUNK` points."""
+    indexes identifier k), in float64 on the CPU; evaluated in chunks of :data:`CHUNK` points on the
+    distribution's device."""
     grid, _ = distribution.space.grid(points_per_axis)
+    grid = grid.to(distribution.low.device)
     with torch.no_grad():
         density = torch.cat([distribution.log_prob(part).exp() for part in grid.split(CHUNK)])
-    return density.reshape([points_per_axis] * distribution.space.dim)
+    return density.cpu().reshape([points_per_axis] * distribution.space.dim)
 
 
 def pairwise_marginals(distribution: TaskDistribution,

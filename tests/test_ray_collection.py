@@ -160,3 +160,33 @@ def test_the_box_and_sizes_are_read_on_one_workers_env_without_actors(local_clus
     with pytest.raises(ConfigError, match="benchmark.space"):
         collector.check_space(TaskSpace(["x", "y", "z"], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]))
     collector.close()
+
+
+def test_a_run_whose_workers_stop_answering_stops_with_one_line_keeping_its_checkpoint(tmp_path):
+    """End to end through the CLI: a run that wrote its first checkpoint resumes against actors
+    that cannot answer in time (``timeout_s`` set to 1 ms in its config.yaml); it stops soon with
+    exit code 1 and one line naming the late worker and the checkpoint kept."""
+    run = tmp_path / "run"
+    train = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
+    small = ["benchmark=ant_goal_ray", "method=maml", "trainer.iterations=3", "trainer.stop_at=1",
+             "trainer.checkpoint_every=1", "trainer.meta_batch=2", "eval.n_tasks=2",
+             "benchmark.collector.workers=1", "benchmark.collector.cpus_per_worker=0",
+             "benchmark.collector.episodes=2", "benchmark.collector.max_steps=5",
+             "benchmark.collector.make_env.threads=1", "logger=none", "trainer.progress=false",
+             "trainer.density_every=0"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    first = subprocess.run([*train, *small, f"hydra.run.dir={run}"], cwd=ROOT, env=env,
+                           capture_output=True, text=True, timeout=600)
+    assert first.returncode == 0, first.stderr
+    config = (run / "config.yaml").read_text()
+    (run / "config.yaml").write_text(config.replace("timeout_s: 300", "timeout_s: 0.001"))
+    start = time.monotonic()
+    stopped = subprocess.run([*train, f"resume={run}"], cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=600)
+    assert stopped.returncode == 1, stopped.stderr
+    lines = stopped.stderr.strip().splitlines()
+    assert len(lines) == 1, stopped.stderr
+    assert "did not answer within 0.001 s" in lines[0]
+    assert "checkpoint-000000000001 is kept" in lines[0]
+    assert time.monotonic() - start < 300
+    assert (run / "checkpoints" / "checkpoint-000000000001").is_dir()

@@ -92,7 +92,7 @@ class TaskSampler:
             TrainingDiverged: non-finite losses or gradient; φ and Adam are left as they were.
         """
         params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
-        losses = torch.as_tensor(losses).detach().to(torch.float64)
+        losses = torch.as_tensor(losses).detach().to(params.device, torch.float64)
         if losses.shape != (len(params),):
             raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
                              f"shape ({len(params)},)")

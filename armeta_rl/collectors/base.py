@@ -16,6 +16,9 @@ class Collector(Protocol):
     tensors ``[K, points, features]``; episode collectors return trajectories ``[K, episodes, T]``
     gathered with ``policy_params`` (per-task parameters with a leading ``K``, or shared ones) and
     also take the policy network as a ``policy=`` keyword.
+
+    A collector is built with a ``device`` keyword (the run's ``device``, passed by
+    :func:`armeta_rl.factory.build_collector`) and returns its data there.
     """
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:

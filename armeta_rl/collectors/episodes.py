@@ -6,10 +6,16 @@ env (point navigation, Ant goal, any env taking its identifiers under
 ``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
 ``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
 steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
+
+Devices: the policy acts on the env's device (a torch-native env runs wherever it was built; a
+MuJoCo env on the CPU), and the trajectories are returned on the collector's ``device``, where the
+leader computes. When the two differ, the rollout acts with a copy of the policy on the env's
+device.
 """
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Callable, Sequence
 from functools import partial
 
@@ -42,6 +48,8 @@ class EpisodeCollector:
             In a Hydra config this is a ``_partial_: true`` node.
         episodes: episodes per task (the paper: 20).
         max_steps: episode length limit.
+        device: where the trajectories are returned (the leader's device); the env steps on its
+            own device.
 
     The returned TensorDict has batch ``[K, episodes, max_steps]`` and keys ``"observation"``,
     ``"action"``, ``"log_prob"`` (of the action under the collecting policy), ``"reward"``,
@@ -52,7 +60,7 @@ class EpisodeCollector:
     """
 
     def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,
-                 max_steps: int = 100) -> None:
+                 max_steps: int = 100, device: torch.device | str = "cpu") -> None:
         if int(episodes) < 1:
             raise ConfigError("benchmark.collector.episodes", episodes, "must be >= 1")
         if int(max_steps) < 1:
@@ -60,6 +68,7 @@ class EpisodeCollector:
         self.make_env = make_env
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
+        self.device = torch.device(device)
         self._envs: dict[int, EnvBase] = {}
 
     def probe_env(self) -> EnvBase:
@@ -96,8 +105,8 @@ class EpisodeCollector:
             env = self.probe_env()
             try:
                 for corner in (space.low, space.high):
-                    env.reset(TensorDict({TASK_KEY: torch.tensor([[corner]], dtype=dtype)},
-                                         [1, 1]))
+                    params = torch.tensor([[corner]], dtype=dtype, device=env.device)
+                    env.reset(TensorDict({TASK_KEY: params}, [1, 1]))
             except IdentifierError as error:
                 box = {"names": list(space.names), "low": list(space.low),
                        "high": list(space.high)}
@@ -127,19 +136,23 @@ class EpisodeCollector:
         for every task in ``tasks["params"]`` (identifiers ``[K, d]``)."""
         if policy is None:
             raise ValueError("EpisodeCollector.collect needs the policy network")
-        identifiers = tasks[TASK_KEY]
-        n_tasks = identifiers.shape[0]
+        n_tasks = tasks[TASK_KEY].shape[0]
         env = self.env(n_tasks)
+        env_device = torch.device(env.device or "cpu")  # an env without one returns CPU tensors
+        identifiers = tasks[TASK_KEY].to(env_device)
         env.set_seed(int(torch.randint(0, 2**62, ())))
         start = env.reset(TensorDict(
             {TASK_KEY: identifiers[:, None].expand(n_tasks, self.episodes, -1)}, env.batch_size))
+        if next(policy.parameters()).device != env_device:
+            policy = copy.deepcopy(policy).to(env_device)
+            policy_params = None if policy_params is None else policy_params.to(env_device)
         actor = make_actor(policy, policy_params)
         with set_exploration_type(ExplorationType.RANDOM):
             rollout = env.rollout(
                 self.max_steps, actor, tensordict=start, auto_reset=False, break_when_any_done=False
             )
         done = rollout["next", "done"].squeeze(-1)
-        return TensorDict(
+        trajectories = TensorDict(
             {
                 "observation": rollout["observation"],
                 "action": rollout["action"],
@@ -153,6 +166,7 @@ class EpisodeCollector:
             },
             batch_size=rollout.batch_size,
         )
+        return trajectories if env_device == self.device else trajectories.to(self.device)
 
 
 class PointNavigationCollector(EpisodeCollector):
@@ -164,14 +178,15 @@ class PointNavigationCollector(EpisodeCollector):
         sparse_regions: reward-scaling regions of the env (empty: plain navigation).
         squared_distance: reward minus the squared distance.
         seed: seed of the env (used only for goals that are never set).
+        device: where the env steps and the trajectories are returned.
     """
 
     def __init__(self, episodes: int = 20, max_steps: int = 100,
                  sparse_regions: Sequence[Region] = (), squared_distance: bool = False,
-                 seed: int | None = None) -> None:
+                 seed: int | None = None, device: torch.device | str = "cpu") -> None:
         make_env = partial(PointNavigationEnv, sparse_regions=check_regions(sparse_regions),
-                           squared_distance=bool(squared_distance), seed=seed)
-        super().__init__(make_env, episodes, max_steps)
+                           squared_distance=bool(squared_distance), seed=seed, device=device)
+        super().__init__(make_env, episodes, max_steps, device)
 
 
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:

@@ -84,6 +84,7 @@ class TaskSplitEpisodeCollector(EpisodeCollector):
         in_process: step the workers' envs one after the other in this process (TorchRL
             ``SerialEnv``): the same results as the processes, for debugging and tests.
         mp_start_method: ``"fork"`` or ``"spawn"`` (``make_env`` must then be picklable).
+        device: where the trajectories are returned (the workers' envs step on the CPU).
 
     Output and seeding as :class:`EpisodeCollector`: ``[K, episodes, max_steps]`` with
     ``"observation"``, ``"action"``, ``"log_prob"``, ``"reward"``, ``"done"``, ``"terminated"``,
@@ -99,6 +100,7 @@ class TaskSplitEpisodeCollector(EpisodeCollector):
         seed: int = 0,
         in_process: bool = False,
         mp_start_method: str = "fork",
+        device: torch.device | str = "cpu",
     ) -> None:
         if int(workers) < 1:
             raise ConfigError(WORKERS_KEY, workers, "must be >= 1")
@@ -110,7 +112,7 @@ class TaskSplitEpisodeCollector(EpisodeCollector):
         if self.workers > 1:
             make_env = partial(make_task_split_env, make_env, self.workers, seed=seed,
                                in_process=in_process, mp_start_method=mp_start_method)
-        super().__init__(make_env, episodes, max_steps)
+        super().__init__(make_env, episodes, max_steps, device)
 
     def probe_env(self) -> EnvBase:
         """One worker's env of batch size ``[1, 1]`` (no processes), to check task boxes on."""

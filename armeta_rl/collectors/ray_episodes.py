@@ -300,6 +300,7 @@ class RayEpisodeCollector(EpisodeCollector):
         timeout_s: longest wait for the actors' answers (their start included).
         connect_timeout_s: longest wait for the cluster's address to answer.
         cpus_per_worker: CPUs Ray reserves for each actor (0: none, the actors share cores).
+        device: where the trajectories are returned (the actors' envs step on the CPU).
 
     The cluster is joined when the collector is built (a bad address fails before any training);
     actors start at the first ``collect`` of each task count and stay until :meth:`close`. Output
@@ -317,6 +318,7 @@ class RayEpisodeCollector(EpisodeCollector):
         timeout_s: float = 300.0,
         connect_timeout_s: float = 10.0,
         cpus_per_worker: float = 1.0,
+        device: torch.device | str = "cpu",
     ) -> None:
         checks = {
             WORKERS_KEY: (workers, int(workers) >= 1, "must be >= 1"),
@@ -334,7 +336,7 @@ class RayEpisodeCollector(EpisodeCollector):
         self.worker_env = make_env
         split = partial(make_ray_task_split_env, make_env, self.workers, seed=seed,
                         timeout_s=float(timeout_s), cpus_per_worker=float(cpus_per_worker))
-        super().__init__(split, episodes, max_steps)
+        super().__init__(split, episodes, max_steps, device)
 
     def probe_env(self) -> EnvBase:
         """One worker's env of batch size ``[1, 1]``, built here (no actors), to check task boxes

@@ -13,12 +13,14 @@ class SinusoidCollector:
     """Draws ``n_support + n_query`` points per task from y = a·sin(x − b), x ~ U[x_low, x_high].
 
     ``tasks[TASK_KEY]`` is ``[K, 2]`` with columns (amplitude a, phase b). Returns a TensorDict
-    ``[K]`` ``{"support": {"x", "y"}, "query": {"x", "y"}}`` of shapes ``[K, points, 1]``. All K
-    tasks are drawn in one batched call from torch's global generator.
+    ``[K]`` ``{"support": {"x", "y"}, "query": {"x", "y"}}`` of shapes ``[K, points, 1]`` on
+    ``device``. All K tasks are drawn in one batched call from torch's global generator of that
+    device.
     """
 
     def __init__(
-        self, n_support: int = 5, n_query: int = 5, x_low: float = -5.0, x_high: float = 5.0
+        self, n_support: int = 5, n_query: int = 5, x_low: float = -5.0, x_high: float = 5.0,
+        device: torch.device | str = "cpu",
     ) -> None:
         for key, value in (("n_support", n_support), ("n_query", n_query)):
             if int(value) != value or value < 1:
@@ -27,6 +29,7 @@ class SinusoidCollector:
             raise ConfigError("benchmark.collector.x_low", x_low, f"must be < x_high ({x_high})")
         self.n_support, self.n_query = int(n_support), int(n_query)
         self.x_low, self.x_high = float(x_low), float(x_high)
+        self.device = torch.device(device)
 
     in_features = 1
     """Size of ``x``."""
@@ -35,7 +38,7 @@ class SinusoidCollector:
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query points for every task (``policy_params`` is unused here)."""
-        params = tasks[TASK_KEY]
+        params = tasks[TASK_KEY].to(self.device)
         k, n = params.shape[0], self.n_support + self.n_query
         amplitude, phase = params[:, 0, None, None], params[:, 1, None, None]
         x = self.x_low + (self.x_high - self.x_low) * torch.rand(

@@ -70,6 +70,8 @@ class CNPLeader(OneNetworkLeader):
         likelihood: training loss per task, averaged over query points and output dimensions:
             ``"gaussian"`` (negative log-likelihood of the predicted Gaussian, as in Garnelo et al.)
             or ``"mse"`` (squared error of the predicted mean; the std head is then unused).
+        device: where the network and Adam's state live (its initial weights are drawn on the
+            CPU, so a seed gives the same network on every device).
 
     :meth:`evaluate` always reports the mean squared error of the predicted mean (``metric="mse"``),
     like MAML, whichever likelihood trains the network.
@@ -78,11 +80,12 @@ class CNPLeader(OneNetworkLeader):
     metric = "mse"
 
     def __init__(self, in_features: int, out_features: int, collector: Collector,
-                 lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian") -> None:
+                 lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian",
+                 device: torch.device | str = "cpu") -> None:
         check_keys("learner.cnp", hidden=hidden, lr=lr, likelihood=likelihood)
         self.collector = collector
         self.likelihood = likelihood
-        self.model = ConditionalNeuralProcess(in_features, out_features, hidden)
+        self.model = ConditionalNeuralProcess(in_features, out_features, hidden).to(device)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
 
     def predict(self, data: TensorDict) -> tuple[Tensor, Tensor]:

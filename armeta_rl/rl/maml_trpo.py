@@ -94,6 +94,9 @@ class MAMLTRPOLeader:
             products retake the inner step on the first ``n`` training episodes, so the inner
             step's Jacobian is estimated from the subsample too (it is most of their cost). The
             surrogate, its gradient and the line search always use every episode.
+        device: where the policy and every meta-update computation live (its initial weights are
+            drawn on the CPU, so a seed gives the same policy on every device); the collector
+            rolls it out on its env's device.
     """
 
     metric = "return"
@@ -115,6 +118,7 @@ class MAMLTRPOLeader:
         baseline_reg: float = 1e-5,
         first_order: bool = False,
         hvp_episodes: int | None = None,
+        device: torch.device | str = "cpu",
     ) -> None:
         check_keys(
             "learner.maml_trpo",
@@ -124,7 +128,7 @@ class MAMLTRPOLeader:
             baseline_reg=baseline_reg, first_order=first_order, hvp_episodes=hvp_episodes,
         )
         self.collector = collector
-        self.net = GaussianMLP(obs_dim, action_dim, tuple(hidden_sizes))
+        self.net = GaussianMLP(obs_dim, action_dim, tuple(hidden_sizes)).to(device)
         self.inner_lr = float(inner_lr)
         self.gamma, self.gae_lambda = float(gamma), float(gae_lambda)
         self.max_kl = float(max_kl)

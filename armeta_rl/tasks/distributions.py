@@ -3,7 +3,8 @@
 Every distribution here, and the flow adversary built on top of one, shares one interface:
 ``sample(n)`` returns a TensorDict ``{"params": [n, d], "log_prob": [n]}`` and ``log_prob(params)``
 is the exact, normalized log-density on the box (``-inf`` outside it). Sampling uses torch's global
-generator, so ``torch.manual_seed`` fixes it.
+generator of the device the distribution lives on (``.to(device)``, as any module), so
+``torch.manual_seed`` fixes it.
 """
 
 from __future__ import annotations
@@ -86,9 +87,8 @@ class BoxUniform(TaskDistribution):
         self.register_buffer("log_density", log_density, persistent=False)
 
     def sample_params(self, n: int) -> Tensor:
-        return self.low + torch.rand(n, self.space.dim, dtype=torch.float64) * (
-            self.high - self.low
-        )
+        unit = torch.rand(n, self.space.dim, dtype=torch.float64, device=self.low.device)
+        return self.low + unit * (self.high - self.low)
 
     def log_prob(self, params: Tensor) -> Tensor:
         return torch.where(self._inside(params.to(torch.float64)), self.log_density, -math.inf)
@@ -122,7 +122,7 @@ class TruncatedNormal(TaskDistribution):
         )
 
     def sample_params(self, n: int) -> Tensor:
-        u = torch.rand(n, self.space.dim, dtype=torch.float64)
+        u = torch.rand(n, self.space.dim, dtype=torch.float64, device=self.low.device)
         z = torch.special.ndtri(self.cdf_low + u * (self.cdf_high - self.cdf_low))
         return (self.loc + self.scale * z).clamp(self.low, self.high)
 

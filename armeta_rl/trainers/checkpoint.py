@@ -5,6 +5,9 @@ whose ``manifest.json`` also records, under ``metadata.integrity``, the size and
 payload file and the SHA-256 of the manifest itself. A load verifies them first, so a truncated,
 garbled or half-deleted checkpoint is recognised as broken before any payload is read.
 
+Checkpoints load across devices: payloads are read onto the device the players were built on
+(``map_location``), so a run saved on a GPU resumes or is evaluated on the CPU and back.
+
 Writes are atomic and durable: a checkpoint is written into a hidden staging directory, sealed
 (checksums added, every file and directory fsynced) and only then renamed to its final name.
 Payloads are written by :func:`write_file` with plain writes (``torch.save`` into memory first):
@@ -34,6 +37,7 @@ from torchrl.checkpoint import (
     StateDictCheckpointAdapter,
 )
 
+from armeta_rl.devices import CPU
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
@@ -151,25 +155,40 @@ def verify(path: Path) -> str | None:
     return None
 
 
+class PortableRNGState(GlobalRNGState):
+    """TorchRL's process-global RNG state, restorable where the saving machine's accelerator is
+    absent: a run saved on CUDA and resumed on the CPU gets its Python, NumPy and CPU streams back;
+    its CUDA streams have nowhere to go and are left out."""
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        """Restore the saved streams this process has a device for."""
+        if not torch.cuda.is_available():
+            state_dict = {k: v for k, v in state_dict.items() if k != "torch_cuda"}
+        super().load_state_dict(state_dict)
+
+
 class RunCheckpoint:
     """Saves and restores everything a run needs to continue bit-for-bit.
 
     Components: the leader (parameters and optimizer), the risk principle (adversary, its
     optimizer and scheduler, group weights), the process-global RNG states and the number of
-    completed iterations. Payloads are ``torch.save`` files loaded with ``weights_only=True``
-    (no arbitrary pickle); the ``keep_last`` newest checkpoints are kept.
+    completed iterations; they are loaded onto ``device``. Payloads are ``torch.save`` files
+    loaded with ``weights_only=True`` (no arbitrary pickle); the ``keep_last`` newest checkpoints
+    are kept.
     """
 
     def __init__(
-        self, directory: str | Path, leader: Leader, principle: RiskPrinciple, keep_last: int = 2
+        self, directory: str | Path, leader: Leader, principle: RiskPrinciple, keep_last: int = 2,
+        device: torch.device = CPU,
     ) -> None:
         self.directory = Path(directory)
+        self.device = device
         self.progress = {"iteration": 0}
         payload = TorchPayload()
         self.checkpoint = Checkpoint()
         self.checkpoint.register("leader", leader, adapter=payload)
         self.checkpoint.register("principle", principle, adapter=payload)
-        self.checkpoint.register("rng", GlobalRNGState(), adapter=payload)
+        self.checkpoint.register("rng", PortableRNGState(), adapter=payload)
         self.checkpoint.register("progress", self.progress)
         self.rotation = CheckpointRotation(self.directory, keep_last=keep_last, prefix=PREFIX)
 
@@ -259,7 +278,7 @@ class RunCheckpoint:
 
     def _load(self, path: Path, key: str, components: Collection[str] | None) -> None:
         try:
-            self.checkpoint.load(path, components=components)
+            self.checkpoint.load(path, components=components, map_location=self.device)
         except CheckpointError as error:
             raise ConfigError(
                 key, str(self.directory.parent),

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from armeta_rl.collectors.base import Collector
+from armeta_rl.devices import CPU, forked_rng
 from armeta_rl.learners.base import Leader
 from armeta_rl.tasks import TaskDistribution
 
@@ -67,13 +68,16 @@ def evaluate_on(
     n_tasks: int,
     alphas: Sequence[float],
     seed: int,
+    device: torch.device = CPU,
 ) -> dict[str, Any]:
-    """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``.
+    """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``, all on
+    ``device``.
 
-    Runs under its own seed inside a forked RNG, so every method (and a resumed run) is scored on
-    the same tasks and data, and training's random stream is left untouched.
+    Runs under its own seed inside a forked RNG (the CPU's and ``device``'s), so every method (and
+    a resumed run) is scored on the same tasks and data, and training's random stream is left
+    untouched.
     """
-    with torch.random.fork_rng(devices=[]):
+    with forked_rng(device):
         torch.manual_seed(seed)
         tasks = distribution.sample(n_tasks)
         losses = leader.evaluate(tasks, collector)

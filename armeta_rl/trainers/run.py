@@ -17,6 +17,7 @@ from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, check_config, load_run_config
+from armeta_rl.devices import CPU, forked_rng, resolve_device
 from armeta_rl.errors import CollectionFailed, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, write_file
@@ -87,13 +88,16 @@ def evaluate_players(
             ev.n_tasks,
             list(ev.alphas),
             ev.seed + offset,
+            players.device,
         )
-        report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset))
+        report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset,
+                                               device=players.device))
     if noisy is not None:
         report["support_noise"] = ev.support_noise
         for offset, (name, distribution) in enumerate(distributions.items()):
             report[f"{name}_noisy"] = evaluate_on(
-                players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset
+                players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset,
+                players.device,
             )
     return report
 
@@ -118,10 +122,10 @@ def noisy_support_collector(cfg: DictConfig, players: Players) -> Collector | No
 
 
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
-                       samples: int = 4096) -> dict[str, float]:
-    """Entropy H[p] and KL(p0 ‖ p) of a task distribution (Monte Carlo with exact log-densities;
-    the paper's entropy table reports H of p0 and of the learned p_φ)."""
-    with torch.random.fork_rng(devices=[]), torch.no_grad():
+                       samples: int = 4096, device: torch.device = CPU) -> dict[str, float]:
+    """Entropy H[p] and KL(p0 ‖ p) of a task distribution on ``device`` (Monte Carlo with exact
+    log-densities; the paper's entropy table reports H of p0 and of the learned p_φ)."""
+    with forked_rng(device), torch.no_grad():
         torch.manual_seed(seed)
         entropy = float(distribution.entropy(samples))
         initial_params = initial.sample_params(samples)
@@ -179,7 +183,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
     torch.set_num_threads(cfg.threads)
     players = build_players(cfg)
     noisy_support_collector(cfg, players)
-    checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle)
+    checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
+                               device=players.device)
     checkpoint.clean_staging()
     staged = [*run_dir.glob(f".{CONFIG_FILE}.*"), *run_dir.glob(f".{EVAL_FILE}.*"),
               *(run_dir / CSV_LOG_DIR).rglob(".*.csv.*")]
@@ -306,13 +311,16 @@ def cross_evaluate(
     learner_dir: str | Path,
     adversary_dir: str | Path | None,
     eval_overrides: dict[str, Any] | None = None,
+    device: str = "cpu",
 ) -> dict[str, Any]:
     """Score the learner saved in ``learner_dir`` on p0 and on the adversary saved in
-    ``adversary_dir`` (same benchmark); ``eval_overrides`` replace the learner run's ``eval.*``."""
-    cfg, players = load_players(learner_dir, "learner")
+    ``adversary_dir`` (same benchmark), both loaded onto ``device`` wherever they were trained;
+    ``eval_overrides`` replace the learner run's ``eval.*``."""
+    resolve_device(device)
+    cfg, players = load_players(learner_dir, "learner", device)
     adversary = None
     if adversary_dir is not None:
-        adv_cfg, adv_players = load_players(adversary_dir, "adversary")
+        adv_cfg, adv_players = load_players(adversary_dir, "adversary", device)
         if adv_players.adversary is None:
             raise ConfigError(
                 "adversary",

@@ -22,6 +22,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.collectors.base import Collector
 from armeta_rl.config import load_run_config
+from armeta_rl.devices import CPU, resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
     build_collector,
@@ -90,13 +91,14 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
 
 @dataclass
 class Players:
-    """Everything a run trains and evaluates."""
+    """Everything a run trains and evaluates, and the device they compute on."""
 
     space: TaskSpace
     initial: TaskDistribution
     leader: Leader
     principle: RiskPrinciple
     eval_collector: Collector
+    device: torch.device = CPU
 
     @property
     def adversary(self) -> TaskDistribution | None:
@@ -112,15 +114,17 @@ def seed_everything(seed: int) -> None:
 
 
 def build_players(cfg: DictConfig) -> Players:
-    """Seed, then build the players of ``cfg`` (the seed fixes their initial parameters)."""
+    """Seed, then build the players of ``cfg`` on its ``device`` (the seed fixes their initial
+    parameters, which are drawn on the CPU whatever the device)."""
+    device = resolve_device(cfg.device)
     seed_everything(cfg.seed)
     space = build_space(cfg)
-    initial = build_initial(cfg, space)
-    collector = build_collector(cfg, "benchmark.collector")
-    eval_collector = build_collector(cfg, "benchmark.eval_collector")
-    leader = build_leader(cfg, collector)
-    principle = build_principle(cfg, space, initial)
-    return Players(space, initial, leader, principle, eval_collector)
+    initial = build_initial(cfg, space, device)
+    collector = build_collector(cfg, "benchmark.collector", device)
+    eval_collector = build_collector(cfg, "benchmark.eval_collector", device)
+    leader = build_leader(cfg, collector, device)
+    principle = build_principle(cfg, space, initial, device)
+    return Players(space, initial, leader, principle, eval_collector, device)
 
 
 FROZEN_KEY = "trainer.frozen_leader"
@@ -177,15 +181,22 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
             f"its {first} = {theirs.get(first)!r} differs from this run's {ours.get(first)!r}: "
             "the learner attacked must have this run's benchmark and learner settings",
         )
-    checkpoint = RunCheckpoint(Path(source) / "checkpoints", players.leader, players.principle)
+    checkpoint = RunCheckpoint(Path(source) / "checkpoints", players.leader, players.principle,
+                               device=players.device)
     checkpoint.restore(FROZEN_KEY, ("leader",), fallback=False)
 
 
-def load_players(run_dir: str | Path, key: str) -> tuple[DictConfig, Players]:
-    """Rebuild a saved run's players and load its latest checkpoint."""
+def load_players(
+    run_dir: str | Path, key: str, device: str | None = None
+) -> tuple[DictConfig, Players]:
+    """Rebuild a saved run's players on ``device`` (default: the run's own ``device``) and load
+    its latest checkpoint there, wherever it was saved."""
     cfg = load_run_config(run_dir, key)
+    if device is not None:
+        cfg = OmegaConf.merge(cfg, {"device": device})
     players = build_players(cfg)
-    checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle)
+    checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle,
+                               device=players.device)
     if not checkpoint.checkpoints():
         raise ConfigError(key, str(run_dir), "has no checkpoint")
     checkpoint.restore(key, ("leader", "principle"), fallback=False)

@@ -1,0 +1,175 @@
+"""The ``device`` key: bad values get one line and exit code 2 from the CLIs; every player is built
+on the configured device; checkpoints load onto the configured device wherever they were saved;
+GPU runs (train on CUDA, evaluate on the CPU, resume on CUDA) when CUDA is present."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+from conftest import SMALL_RUN, compose_train
+from omegaconf import OmegaConf
+from torchrl.checkpoint import GlobalRNGState
+
+from armeta_rl.devices import resolve_device
+from armeta_rl.errors import ConfigError
+from armeta_rl.trainers.checkpoint import PortableRNGState
+from armeta_rl.trainers.run import cross_evaluate, run_training
+from armeta_rl.trainers.runs import Players, load_players
+
+TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
+EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
+CUDA = torch.cuda.is_available()
+GPUS = torch.cuda.device_count() if CUDA else 0
+needs_cuda = pytest.mark.skipif(not CUDA, reason="CUDA not available")
+
+
+def _one_line(result: subprocess.CompletedProcess) -> str:
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    return lines[0]
+
+
+BAD_DEVICES = [("tpu", "allowed: cpu, cuda, cuda:N"), ("cuda:x", "allowed: cpu, cuda, cuda:N"),
+               (f"cuda:{GPUS}", "allowed here: cpu")]
+if not CUDA:
+    BAD_DEVICES.append(("cuda", "CUDA is not available here"))
+
+
+@pytest.mark.parametrize("device,allowed", BAD_DEVICES)
+def test_a_bad_device_is_one_line_and_exit_2_before_anything_is_written(tmp_path, device,
+                                                                        allowed):
+    result = subprocess.run([*TRAIN, f"device={device}", f"hydra.run.dir={tmp_path / 'run'}"],
+                            capture_output=True, text=True, timeout=120)
+    line = _one_line(result)
+    assert line.startswith(f"armeta-train: error: config key 'device' = '{device}': ")
+    assert allowed in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_resolve_device_names_the_key_and_what_this_machine_allows():
+    assert resolve_device("cpu") == torch.device("cpu")
+    with pytest.raises(ConfigError) as error:
+        resolve_device(f"cuda:{GPUS}", "eval.device")
+    assert error.value.key == "eval.device" and "cpu" in error.value.allowed
+    with pytest.raises(ConfigError, match="allowed: cpu, cuda, cuda:N"):
+        resolve_device("gpu")
+
+
+def _tensors(players: Players) -> list[torch.Tensor]:
+    """Every tensor of the leader's and the principle's checkpoint state."""
+    state = {"leader": players.leader.state_dict(), "principle": players.principle.state_dict()}
+    found = []
+
+    def walk(value: object) -> None:
+        if isinstance(value, torch.Tensor):
+            found.append(value)
+        elif isinstance(value, dict):
+            for item in value.values():
+                walk(item)
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                walk(item)
+
+    walk(state)
+    return found
+
+
+def _devices(players: Players) -> set[torch.device]:
+    distributions = [players.initial]
+    if players.adversary is not None:
+        distributions.append(players.adversary)
+    buffers = [b for d in distributions for b in d.buffers()]
+    return {t.device for t in [*_tensors(players), *buffers]}
+
+
+@pytest.mark.parametrize("benchmark,method", [("sinusoid_uniform", "ar_maml"),
+                                              ("point_nav_plain", "maml")])
+def test_explicit_cpu_equals_the_default_bit_for_bit(tmp_path, benchmark, method):
+    """``device=cpu`` given explicitly trains exactly the run the default trains, with every
+    player's state on the CPU."""
+    small = (*SMALL_RUN, f"benchmark={benchmark}", f"method={method}", "trainer.iterations=2",
+             "trainer.meta_batch=2", "eval.n_tasks=4")
+    if benchmark == "point_nav_plain":
+        small += ("benchmark.collector.episodes=2", "benchmark.collector.max_steps=5")
+    default = run_training(compose_train(*small), tmp_path / "default")
+    explicit_cfg = compose_train(*small, "device=cpu")
+    explicit = run_training(explicit_cfg, tmp_path / "explicit")
+    assert explicit == default
+    _, players = load_players(tmp_path / "explicit", "learner")
+    assert _devices(players) == {torch.device("cpu")}
+
+
+def test_a_checkpoint_loads_onto_the_configured_device_also_for_runs_saved_before_the_key(
+        tmp_path):
+    """A run directory whose config.yaml predates ``device`` loads on the CPU, its checkpoint's
+    tensors there, and scores exactly as the run reported at its end."""
+    run = tmp_path / "run"
+    report = run_training(compose_train(*SMALL_RUN, "method=ar_maml"), run)
+    saved = OmegaConf.load(run / "config.yaml")
+    del saved["device"]
+    OmegaConf.save(saved, run / "config.yaml")
+    cfg, players = load_players(run, "learner", "cpu")
+    assert cfg.device == "cpu" and players.device == torch.device("cpu")
+    assert _devices(players) == {torch.device("cpu")}
+    assert players.principle._drawn["tasks"]["params"].device == torch.device("cpu")
+    rescored = cross_evaluate(run, run, device="cpu")
+    assert rescored["initial"] == report["initial"]
+    assert rescored["adversarial"] == report["adversarial"]
+
+
+@pytest.mark.skipif(CUDA, reason="checks what a machine without CUDA does")
+def test_cuda_random_state_in_a_checkpoint_does_not_block_a_cpu_resume():
+    """A checkpoint written on CUDA carries the CUDA generators' states; without CUDA they are left
+    out and the CPU streams are restored (TorchRL's GlobalRNGState refuses the whole state)."""
+    state = GlobalRNGState().state_dict()
+    expected = torch.rand(3)
+    state["torch_cuda"] = [torch.zeros(16, dtype=torch.uint8)]
+    with pytest.raises(RuntimeError, match="CUDA is unavailable"):
+        GlobalRNGState().load_state_dict(state)
+    PortableRNGState().load_state_dict(state)
+    assert torch.equal(torch.rand(3), expected)
+
+
+def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path):
+    run = tmp_path / "run"
+    run_training(compose_train(*SMALL_RUN, "method=maml", "trainer.stop_at=3"), run)
+    resumed = subprocess.run([*TRAIN, f"resume={run}", "device=tpu"], capture_output=True,
+                             text=True, timeout=120)
+    assert "config key 'device' = 'tpu'" in _one_line(resumed)
+    evaluated = subprocess.run([*EVAL, f"learner={run}", "device=tpu"], capture_output=True,
+                               text=True, timeout=120)
+    assert "config key 'device' = 'tpu'" in _one_line(evaluated)
+    resumed = subprocess.run([*TRAIN, f"resume={run}", "device=cpu"], capture_output=True,
+                             text=True, timeout=300)
+    assert resumed.returncode == 0, resumed.stderr
+    whole = run_training(compose_train(*SMALL_RUN, "method=maml"), tmp_path / "whole")
+    assert json.loads((run / "eval.json").read_text()) == whole
+
+
+@needs_cuda
+@pytest.mark.parametrize("benchmark,method", [("sinusoid_uniform", "ar_maml"),
+                                              ("sinusoid_uniform", "ar_cnp"),
+                                              ("pendulum_uniform", "dro_maml"),
+                                              ("point_nav_plain", "ar_maml"),
+                                              ("ant_goal_smoke", "maml")])
+def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, method):
+    """Two iterations on CUDA put every player there; the run is scored on the CPU from its CUDA
+    checkpoint; it resumes on CUDA to the end; a second seeded CUDA run reproduces it."""
+    small = (*SMALL_RUN, f"benchmark={benchmark}", f"method={method}", "trainer.meta_batch=2",
+             "eval.n_tasks=4", "trainer.iterations=4", "trainer.checkpoint_every=2")
+    if benchmark in ("point_nav_plain", "ant_goal_smoke"):
+        small += ("benchmark.collector.episodes=2", "benchmark.collector.max_steps=5")
+    run = tmp_path / "run"
+    assert run_training(compose_train(*small, "device=cuda", "trainer.stop_at=2"), run) is None
+    cfg, players = load_players(run, "learner")
+    assert cfg.device == "cuda" and {d.type for d in _devices(players)} == {"cuda"}
+    on_cpu = cross_evaluate(run, None, device="cpu")
+    assert on_cpu["initial"]["n_tasks"] == 4
+    resumed = subprocess.run([*TRAIN, f"resume={run}"], capture_output=True, text=True,
+                             timeout=600)
+    assert resumed.returncode == 0, resumed.stderr
+    again = run_training(compose_train(*small, "device=cuda"), tmp_path / "again")
+    assert json.loads((run / "eval.json").read_text()) == again
