@@ -157,8 +157,8 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
 
     Raises:
         ConfigError: naming ``trainer.frozen_leader``, if the method has no flow adversary, the
-            directory is not a finished run (no ``eval.json``), its benchmark or learner differs
-            from this run's, or its checkpoint is broken or does not fit.
+            directory is not a finished run (no ``eval.json``), a benchmark or learner setting
+            that both runs have differs, or its checkpoint is broken or does not fit.
     """
     source = cfg.trainer.frozen_leader
     if players.adversary is None:
@@ -172,7 +172,9 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
     names = ("benchmark", "method.learner", "learner")
     theirs = {k: v for name in names for k, v in _leaves(saved, name).items()}
     ours = {k: v for name in names for k, v in _leaves(cfg, name).items()}
-    differing = sorted(k for k in theirs.keys() | ours.keys()
+    # keys only one side has come from another version of the package (a size that moved to
+    # the collector, a learner it did not have); a real mismatch of shapes fails the load below
+    differing = sorted(k for k in theirs.keys() & ours.keys()
                        if theirs.get(k) != ours.get(k) and k.rsplit(".", 1)[-1] not in SAME_MATHS)
     if differing:
         first = differing[0]
