@@ -51,8 +51,8 @@ class SysIdCollector:
     delta/none 0.00110, next/none 0.00114, delta/scale 0.00147, next/scale 0.0142.
 
     ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
-    any batch, so collection time grows with the steps per episode (one 200-step episode is
-    ~20x slower; see ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
+    any batch, so collection time grows with the steps per episode (see
+    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
     initial states: the median |θ̇| of the pendulum data is 2.5 with one 200-step episode, 2.4
     with 10 x 20 steps and 1.8 with 20 x 10 (90% quantile 6.0 / 6.2 / 5.5; the ±8 clip is reached
     in all three); the acrobot's median |θ̇2| is 0.95 / 0.35 / 0.28.
