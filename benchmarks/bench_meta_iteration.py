@@ -22,7 +22,8 @@ run's fastest spells, steadier than the median of every turn (in a run that is s
 its fast spells are slow too).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile] [--turns 10]
-[--benchmarks sinusoid_uniform ...]``.
+[--benchmarks sinusoid_uniform ...]``; it prints the table and writes it to its section of
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -33,9 +34,8 @@ from collections.abc import Callable
 
 import torch
 from hydra import compose, initialize_config_dir
-from timing import reference_product_ms, wall_times
+from timing import markdown_table, reference_product_ms, wall_times, write_section
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.runs import build_players
@@ -96,7 +96,12 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
     def step() -> None:
         tasks = trainer.principle.propose(trainer.meta_batch)
         data = leader.collector.collect(tasks)
-        losses = torch.stack([leader._adapted_loss(params, data[k]) for k in range(len(data))])
+        support, query = data["support"], data["query"]
+        losses = torch.stack([
+            leader.query_loss(params, support["x"][k], support["y"][k], query["x"][k],
+                              query["y"][k])
+            for k in range(len(data))
+        ])
         leader.optimizer.zero_grad()
         losses.mean().backward()
         leader.optimizer.step()
@@ -136,7 +141,6 @@ def main() -> None:
     args, extra = parser.parse_known_args()
     if args.turns < 1:
         parser.error(f"--turns must be at least 1, got {args.turns}")
-    keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     rows, yardsticks, fast_yardsticks = [], [], {}
@@ -158,21 +162,20 @@ def main() -> None:
         for label, turns in turns_of.items():
             summaries = summary(turns, fast_yardsticks[benchmark])
             rows.append((benchmark, label, *summaries, warmups[label]))
-    print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
     low, middle, high = min(yardsticks), statistics.median(yardsticks), max(yardsticks)
-    print(f"machine yardstick (timing.reference_product_ms) in the timed turns: median "
-          f"{middle:.2f} ms, range {low:.2f}–{high:.2f} ms")
-    warmup_column = f"first {WARMUP} iterations s"
-    print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | fast-spell median ms "
-          f"| {warmup_column} |")
-    print("|---|---|---|---|---|---|---|")
-    for benchmark, label, median, iqr, least, fast, warmup in rows:
-        fast_column = "–" if fast is None else f"{fast:.1f}"
-        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} | {least:.1f} | {fast_column} "
-              f"| {warmup:.1f} |")
-    for benchmark, yardstick in fast_yardsticks.items():
-        print(f"fast spells of {benchmark}: turns with a yardstick of at most {yardstick:.2f} ms")
-
+    table = markdown_table(
+        ("benchmark", "meta-iteration", "median ms", "IQR ms", "min ms", "fast-spell median ms",
+         f"first {WARMUP} iterations s"),
+        [(benchmark, label, f"{median:.1f}", f"{iqr:.1f}", f"{least:.1f}",
+          "–" if fast is None else f"{fast:.1f}", f"{warmup:.1f}")
+         for benchmark, label, median, iqr, least, fast, warmup in rows])
+    spells = "; ".join(f"{benchmark}: turns with a yardstick of at most {yardstick:.2f} ms"
+                       for benchmark, yardstick in fast_yardsticks.items())
+    body = (f"Second-order MAML, {args.turns} turns of {TURN} iterations per row. Machine "
+            f"yardstick (`timing.reference_product_ms`) in the timed turns: median {middle:.2f} "
+            f"ms, range {low:.2f}–{high:.2f} ms. Fast spells: {spells}.\n\n{table}")
+    print(body)
+    write_section("bench_meta_iteration", "Meta-iterations (bench_meta_iteration.py)", body)
 
 if __name__ == "__main__":
     main()
