@@ -98,7 +98,7 @@ def native_batch(n_sims: int, steps: int, frame_skip: int) -> Callable[[], None]
 def env_rollout(env, steps: int) -> Callable[[], None]:
     shape = env.batch_size
     goals = 6 * torch.rand(*shape, 2) - 3
-    start = env.reset(TensorDict({"goal": goals}, shape))
+    start = env.reset(TensorDict({"params": goals}, shape))
     return lambda: env.rollout(
         steps, tensordict=start.clone(), auto_reset=False, break_when_any_done=False
     )

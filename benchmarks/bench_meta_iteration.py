@@ -7,8 +7,8 @@ sinusoid, vmap on system identification), on sinusoid_uniform (25 tasks), pendul
 acrobot_uniform (16 tasks × 200 transitions, collection included); and the sinusoid's
 second-order meta-gradient computed with a Python loop over tasks instead of ``vmap``.
 ``--compile`` adds rows with the adversary's flow and/or the leader's loss compiled
-(``risk.ar.compile=true``, ``learner.maml.compile=true``) and, on system identification, the env
-steps too (``benchmark.collector.compile=true``). Config overrides may follow on the command line.
+(``risk.ar.compile=true``, ``learner.maml.compile=true``). Config overrides may follow on the
+command line.
 
 The rows of a benchmark take turns: every row runs ``TURN`` timed iterations, then the next row,
 ``--turns`` times over. A shared machine runs slower for spells of tens of seconds (up to 1.5x
@@ -111,7 +111,6 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
 
 LOOPED = "maml, per-task Python loop"
 LEADER, ADVERSARY = "learner.maml.compile=true", "risk.ar.compile=true"
-ENV_STEPS = "benchmark.collector.compile=true"
 ROWS = (
     ("ar_maml, spline adversary", "ar_maml", ("risk.ar.flow=spline",)),
     ("ar_maml, planar adversary", "ar_maml", ("risk.ar.flow=planar",)),
@@ -122,10 +121,6 @@ COMPILED_ROWS = (
     ("ar_maml, spline adversary compiled", "ar_maml", (ADVERSARY,)),
     ("ar_maml, spline adversary and leader compiled", "ar_maml", (ADVERSARY, LEADER)),
     ("maml (ERM), leader compiled", "maml", (LEADER,)),
-)
-SYSID_COMPILED_ROWS = (
-    ("ar_maml, adversary, leader and env steps compiled", "ar_maml",
-     (ADVERSARY, LEADER, ENV_STEPS)),
 )
 
 
@@ -145,9 +140,8 @@ def main() -> None:
     torch.manual_seed(0)
     rows, yardsticks, fast_yardsticks = [], [], {}
     for benchmark in args.benchmarks:
-        compiled = COMPILED_ROWS + (() if benchmark == "sinusoid_uniform" else SYSID_COMPILED_ROWS)
         iterations, warmups = {}, {}
-        for label, method, overrides in ROWS + (compiled if args.compile else ()):
+        for label, method, overrides in ROWS + (COMPILED_ROWS if args.compile else ()):
             trainer = trainer_for(method, f"benchmark={benchmark}", *overrides, *extra)
             warmups[label] = sum(wall_times(trainer.train_iteration, WARMUP, warmup=0))
             iterations[label] = trainer.train_iteration

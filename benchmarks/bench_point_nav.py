@@ -52,7 +52,7 @@ def main() -> None:
     rows = []
 
     env = PointNavigationEnv((k, e), seed=0)
-    reset = env.reset(TensorDict({"goal": tasks["params"][:, None].expand(k, e, 2)}, [k, e]))
+    reset = env.reset(TensorDict({"params": tasks["params"][:, None].expand(k, e, 2)}, [k, e]))
     t = seconds(lambda: env.rollout(steps, tensordict=reset.clone(), auto_reset=False,
                                     break_when_any_done=False), args.repeats)
     rows.append(("env.rollout, random actions", t, k * e * steps / t))

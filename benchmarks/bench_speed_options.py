@@ -27,8 +27,7 @@ SWITCHES = (
      False),
     ("risk.ar.compile=true", "sinusoid_uniform", "risk.ar.compile=false", True),
     ("learner.maml.compile=true", "sinusoid_uniform", "learner.maml.compile=false", True),
-    ("benchmark.collector.compile=true", "acrobot_uniform", "benchmark.collector.compile=false",
-     True),
+    ("learner.maml.compile=true", "pendulum_uniform", "learner.maml.compile=false", True),
 )
 """(switch, benchmark, the default it replaces, whether it compiles)."""
 WARMUP = 5

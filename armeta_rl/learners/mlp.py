@@ -48,15 +48,15 @@ class MLP(nn.Module):
 
 
 def relu(x: Tensor) -> Tensor:
-    """max(x, 0): ``torch.relu`` eagerly and, while ``torch.compile`` traces, the same function
-    written (x + |x|) / 2.
+    """max(x, 0): ``torch.relu`` eagerly and, while ``torch.compile`` traces (the
+    ``learner.maml.compile`` switch), the same function written (x + |x|) / 2.
 
     relu's backward keeps a boolean mask of the active units, and inductor's CPU code stores
-    boolean masks about 30 times slower than the ReLU itself on this project's AVX2 machines (a
-    ``[16, 190, 128]`` mask: 6.8 ms against 0.23 ms), which made the compiled system-identification
-    MAML step slower than the eager one. The (x + |x|) / 2 form keeps a float tensor instead. Its
-    values equal relu's exactly (x + x = 2x and x + (−x) = 0 are exact in floating point); only
-    the gradient at exactly x = 0 differs (1/2 instead of 0).
+    boolean masks far more slowly than the ReLU itself: with ``torch.relu`` the compiled
+    system-identification MAML step is slower than the eager one (docs/speed-options.md). The
+    (x + |x|) / 2 form keeps a float tensor instead. Its values equal relu's exactly (x + x = 2x
+    and x + (−x) = 0 are exact in floating point); only the gradient at exactly x = 0 differs (1/2
+    instead of 0).
     """
     if torch.compiler.is_compiling():
         return (x + x.abs()) * 0.5
