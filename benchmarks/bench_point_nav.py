@@ -63,7 +63,7 @@ def main() -> None:
     t = seconds(lambda: collector.collect(tasks, None, policy=net), args.repeats)
     rows.append(("collect, shared θ", t, k * e * steps / t))
     t = seconds(lambda: collector.collect(tasks, per_task, policy=net), args.repeats)
-    rows.append(("collect, per-task θ'_k (batched)", t, k * e * steps / t))
+    rows.append(("collect, per-task θ'_k", t, k * e * steps / t))
 
     def erm(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1.0 / losses.numel())

@@ -65,7 +65,10 @@ def main() -> None:
         print(rows[-1], flush=True)
     body = (f"AR-MAML meta-iterations with each switch against the default, taking turns "
             f"({args.turns} rounds of {args.calls} iterations each, after {WARMUP} warm-up "
-            f"iterations; the ms columns are medians over the rounds of each turn's median):\n\n"
+            f"iterations, whose time includes the compile, short when torch's on-disk compile "
+            f"cache already holds the graphs; the ms columns are medians over the rounds of each "
+            f"turn's median; the ratio is the switch's turn over the default's turn of the same "
+            f"round):\n\n"
             + markdown_table(("switch", "benchmark", "default ms", "with switch ms",
                               "time ratio (median)", "ratio range", "saved",
                               f"first {WARMUP} iterations s"), rows))
