@@ -23,8 +23,6 @@ from typing import Any, NoReturn
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from armeta_rl.allocator import keep_freed_memory
-
 GROUPS = ("benchmark", "method", "logger")
 _ABSENT = object()
 
@@ -305,7 +303,6 @@ def train() -> None:
     """
     from armeta_rl.trainers.runs import check_run_dir, run_lock
 
-    keep_freed_memory()
     prog = "armeta-train"
     args = sys.argv[1:]
     check_overrides(args, prog, "train", GROUPS)
@@ -391,7 +388,6 @@ def check_writable(path: Path, key: str) -> None:
 
 def evaluate() -> None:
     """``armeta-eval``: score a saved learner on p0 and on a saved adversary."""
-    keep_freed_memory()
     args = sys.argv[1:]
     multirun = "-m" in args or "--multirun" in args  # a sweep's jobs carry their own learner=
     if not multirun and not any(a.startswith("learner=") for a in args):

@@ -1,11 +1,12 @@
-"""Opt-in ``torch.compile`` of the game's hot paths (config keys ``learner.maml.compile``,
-``risk.ar.compile`` and, for system identification, ``benchmark.collector.compile``).
+"""Opt-in ``torch.compile`` of the game's hot paths (config keys ``learner.maml.compile`` and
+``risk.ar.compile``).
 
 A meta-iteration on small tasks is bound by per-op overhead: thousands of small torch ops in the
 flow adversary's spline couplings and in the vmapped second-order MAML step. Compiling fuses them.
-It pays on long runs only: the first iterations wait for the compiler (about two minutes on the
-development machine with an empty cache, 5–30 s once torch's on-disk compile cache holds the
-graphs), and shapes are static, so each distinct batch shape compiles once.
+It pays on long runs only: the first iterations wait for the compiler (minutes with an empty
+cache, much less once torch's on-disk compile cache holds the graphs), and shapes are static, so
+each distinct batch shape compiles once. ``benchmarks/bench_speed_options.py`` measures each
+switch against the eager default (docs/speed-options.md).
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from armeta_rl.errors import ConfigError
 
 F = TypeVar("F", bound=Callable)
 
-COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile", "benchmark.collector.compile")
+COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile")
 """The config keys that switch compiling on."""
 
 BACKENDS = ("inductor", "aot_eager", "eager")

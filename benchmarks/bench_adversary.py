@@ -1,24 +1,26 @@
 """Speed of the follower: ``propose(25)`` + ``update`` on those 25 tasks, per flow, one thread.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_adversary.py``. Prints the median milliseconds of
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_adversary.py [--no-compile]``. Prints the
+median milliseconds of
 ``propose``, of the update (surrogate with 256 fresh p0 samples, backward, clipped Adam step, and
 the draw of the next tasks from the new p_φ, which checks its density and which the next
 ``propose`` returns), and of both, on the sinusoid box with a toy loss, for the spline flow at its
 default size (one coupling on this 2-D box), smaller and with two layers, and for the planar
 flows; then the default spline and planar flows with ``risk.ar.compile=true`` (timed after their
-warm-up iterations, which compile).
+warm-up iterations, which compile), and writes the table to its section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 import statistics
 import time
 
 import torch
+from timing import markdown_table, write_section
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.risk.adversarial import AdversarialPrinciple
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -54,14 +56,17 @@ def time_iterations(
 
 
 def main() -> None:
-    keep_freed_memory()
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--no-compile", action="store_true",
+                        help="skip the compiled rows (inductor takes minutes to compile them)")
+    args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     space = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
     corner = torch.tensor([0.1, 0.0])
-    print(f"{'flow':<22}{'params':>8}{'propose ms':>12}{'update ms':>12}{'total ms':>12}")
     rows = [(name, options, False) for name, options in FLOWS.items()]
-    rows += [(name, FLOWS[name], True) for name in COMPILED]
+    rows += [] if args.no_compile else [(name, FLOWS[name], True) for name in COMPILED]
+    table = []
     for name, options, compiled in rows:
         kind = name.split()[0]
         adversary = FlowAdversary(space, BoxUniform(space), kind, **options)
@@ -69,8 +74,12 @@ def main() -> None:
         propose, update, total = time_iterations(principle, corner)
         size = sum(p.numel() for p in principle.parameters())
         label = f"{name}, compiled" if compiled else name
-        print(f"{label:<22}{size:>8}{propose:>12.2f}{update:>12.2f}{total:>12.2f}")
-
+        table.append((label, size, f"{propose:.2f}", f"{update:.2f}", f"{total:.2f}"))
+    body = (f"The follower on the sinusoid box: ``propose({TASKS})`` and ``update`` with a toy "
+            f"loss, medians of {REPEATS} steps after {WARMUP} warm-up steps:\n\n"
+            + markdown_table(("flow", "parameters", "propose ms", "update ms", "total ms"), table))
+    print(body)
+    write_section("bench_adversary", "The follower (bench_adversary.py)", body)
 
 if __name__ == "__main__":
     main()

@@ -18,7 +18,8 @@ the TRPO step) for a reduced meta-batch, in one process (MuJoCo threads) and wit
 over 2 processes, scaled linearly to the paper's 40 tasks and to a 500-iteration run.
 Single-threaded torch; the machine's load average is printed with the table.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_goal.py``.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_goal.py`` (``--skip-meta`` for the env rows
+only); it prints its tables and writes them to its section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
-from timing import wall_times
+from timing import markdown_table, wall_times, write_section
 
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector, make_task_split_env
 from armeta_rl.envs.ant_goal import (
@@ -97,7 +98,7 @@ def native_batch(n_sims: int, steps: int, frame_skip: int) -> Callable[[], None]
 def env_rollout(env, steps: int) -> Callable[[], None]:
     shape = env.batch_size
     goals = 6 * torch.rand(*shape, 2) - 3
-    start = env.reset(TensorDict({"goal": goals}, shape))
+    start = env.reset(TensorDict({"params": goals}, shape))
     return lambda: env.rollout(
         steps, tensordict=start.clone(), auto_reset=False, break_when_any_done=False
     )
@@ -185,24 +186,27 @@ def main() -> None:
         rows.append((f"collect with policy, {how}", f"[{k}, {e}]", n * steps / t))
 
     bare = rows[0][2]
-    print(f"load average (1, 5, 15 min): {', '.join(f'{x:.2f}' for x in os.getloadavg())}; "
-          f"{os.cpu_count()} CPUs")
-    print(f"{'what':52s} {'batch':>12s} {'env steps/s':>12s} {'% bare':>7s}")
-    for name, batch, rate in rows:
-        print(f"{name:52s} {batch:>12s} {rate:12.0f} {100 * rate / bare:6.0f}%")
-
-    if args.skip_meta:
-        return
-    print(f"\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} episodes × "
-          f"{args.horizon} steps (2 rollouts + TRPO), one torch thread per process:")
-    for workers in (1, 2):
-        t = meta_iteration_seconds(args.meta_tasks, e, args.horizon, 1, workers)
-        scaled = t * 40 / args.meta_tasks
-        how = (f"1 process, {cores} MuJoCo threads" if workers == 1
-               else f"tasks split over {workers} processes")
-        print(f"  {how:40s} {t:6.1f} s measured; scaled linearly to the paper's 40 tasks: "
-              f"{scaled:.0f} s; 500 iterations ≈ {500 * scaled / 3600:.1f} h")
-
+    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
+    body = (f"Env steps per second (one env step = {frame_skip} physics steps; medians of "
+            f"{args.repeats} calls of {steps} steps; load average at the end {load}):\n\n"
+            + markdown_table(("what", "batch", "env steps/s", "% of bare loop"),
+                             [(name, batch, f"{rate:,.0f}", f"{100 * rate / bare:.0f} %")
+                              for name, batch, rate in rows]))
+    if not args.skip_meta:
+        meta_rows = []
+        for workers in (1, 2):
+            t = meta_iteration_seconds(args.meta_tasks, e, args.horizon, 1, workers)
+            scaled = t * 40 / args.meta_tasks
+            how = (f"1 process, {cores} MuJoCo threads" if workers == 1
+                   else f"tasks split over {workers} processes")
+            meta_rows.append((how, f"{t:.1f}", f"{scaled:.0f}", f"{500 * scaled / 3600:.1f}"))
+        body += (f"\n\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} "
+                 f"episodes × {args.horizon} steps (2 rollouts + TRPO), one torch thread per "
+                 f"process, scaled linearly to the paper's 40 tasks:\n\n"
+                 + markdown_table(("how", "s measured", "s at 40 tasks", "h for 500 iterations"),
+                                  meta_rows))
+    print(body)
+    write_section("bench_ant_goal", "Ant goal-position env (bench_ant_goal.py)", body)
 
 if __name__ == "__main__":
     main()

@@ -13,7 +13,7 @@ in turns (local, Ray 1, Ray 2, ..., local, ...) so that every Ray row is a ratio
 collector measured in the same turn: the machine's other load affects both sides of each ratio
 alike. Times are scaled linearly to the paper's 40 tasks (as ``bench_ant_goal.py``) and to a
 500-iteration run. The table, with the command and the date, replaces the section between this
-script's markers in ``docs/scale.md``.
+script's markers in ``docs/scale.md`` and in ``docs/benchmarks.md``.
 
 Ray: ``--address`` as ``benchmark.collector.address`` (none: a Ray instance of this machine in
 this process). The actors reserve ``--cpus-per-worker`` CPUs each (default 0, so that the actors of
@@ -36,6 +36,7 @@ import time
 from functools import partial
 from pathlib import Path
 
+import timing
 import torch
 from tensordict import TensorDict
 
@@ -149,6 +150,8 @@ def main() -> None:
     print("\n".join(lines))
     if not args.no_doc:
         write_section(lines, args.doc)
+        title = "Ant goal-position with Ray workers (bench_ant_ray.py)"
+        timing.write_section("bench_ant_ray", title, "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -7,8 +7,8 @@ sinusoid, vmap on system identification), on sinusoid_uniform (25 tasks), pendul
 acrobot_uniform (16 tasks × 200 transitions, collection included); and the sinusoid's
 second-order meta-gradient computed with a Python loop over tasks instead of ``vmap``.
 ``--compile`` adds rows with the adversary's flow and/or the leader's loss compiled
-(``risk.ar.compile=true``, ``learner.maml.compile=true``) and, on system identification, the env
-steps too (``benchmark.collector.compile=true``). Config overrides may follow on the command line.
+(``risk.ar.compile=true``, ``learner.maml.compile=true``). Config overrides may follow on the
+command line.
 
 The rows of a benchmark take turns: every row runs ``TURN`` timed iterations, then the next row,
 ``--turns`` times over. A shared machine runs slower for spells of tens of seconds (up to 1.5x
@@ -22,7 +22,8 @@ run's fastest spells, steadier than the median of every turn (in a run that is s
 its fast spells are slow too).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_iteration.py [--compile] [--turns 10]
-[--benchmarks sinusoid_uniform ...]``.
+[--benchmarks sinusoid_uniform ...]``; it prints the table and writes it to its section of
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -33,9 +34,8 @@ from collections.abc import Callable
 
 import torch
 from hydra import compose, initialize_config_dir
-from timing import reference_product_ms, wall_times
+from timing import markdown_table, reference_product_ms, wall_times, write_section
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.runs import build_players
@@ -96,7 +96,12 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
     def step() -> None:
         tasks = trainer.principle.propose(trainer.meta_batch)
         data = leader.collector.collect(tasks)
-        losses = torch.stack([leader._adapted_loss(params, data[k]) for k in range(len(data))])
+        support, query = data["support"], data["query"]
+        losses = torch.stack([
+            leader.query_loss(params, support["x"][k], support["y"][k], query["x"][k],
+                              query["y"][k])
+            for k in range(len(data))
+        ])
         leader.optimizer.zero_grad()
         losses.mean().backward()
         leader.optimizer.step()
@@ -106,7 +111,6 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
 
 LOOPED = "maml, per-task Python loop"
 LEADER, ADVERSARY = "learner.maml.compile=true", "risk.ar.compile=true"
-ENV_STEPS = "benchmark.collector.compile=true"
 ROWS = (
     ("ar_maml, spline adversary", "ar_maml", ("risk.ar.flow=spline",)),
     ("ar_maml, planar adversary", "ar_maml", ("risk.ar.flow=planar",)),
@@ -117,10 +121,6 @@ COMPILED_ROWS = (
     ("ar_maml, spline adversary compiled", "ar_maml", (ADVERSARY,)),
     ("ar_maml, spline adversary and leader compiled", "ar_maml", (ADVERSARY, LEADER)),
     ("maml (ERM), leader compiled", "maml", (LEADER,)),
-)
-SYSID_COMPILED_ROWS = (
-    ("ar_maml, adversary, leader and env steps compiled", "ar_maml",
-     (ADVERSARY, LEADER, ENV_STEPS)),
 )
 
 
@@ -136,14 +136,12 @@ def main() -> None:
     args, extra = parser.parse_known_args()
     if args.turns < 1:
         parser.error(f"--turns must be at least 1, got {args.turns}")
-    keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     rows, yardsticks, fast_yardsticks = [], [], {}
     for benchmark in args.benchmarks:
-        compiled = COMPILED_ROWS + (() if benchmark == "sinusoid_uniform" else SYSID_COMPILED_ROWS)
         iterations, warmups = {}, {}
-        for label, method, overrides in ROWS + (compiled if args.compile else ()):
+        for label, method, overrides in ROWS + (COMPILED_ROWS if args.compile else ()):
             trainer = trainer_for(method, f"benchmark={benchmark}", *overrides, *extra)
             warmups[label] = sum(wall_times(trainer.train_iteration, WARMUP, warmup=0))
             iterations[label] = trainer.train_iteration
@@ -158,21 +156,20 @@ def main() -> None:
         for label, turns in turns_of.items():
             summaries = summary(turns, fast_yardsticks[benchmark])
             rows.append((benchmark, label, *summaries, warmups[label]))
-    print(f"meta-iteration time, {torch.get_num_threads()} thread, second-order MAML")
     low, middle, high = min(yardsticks), statistics.median(yardsticks), max(yardsticks)
-    print(f"machine yardstick (timing.reference_product_ms) in the timed turns: median "
-          f"{middle:.2f} ms, range {low:.2f}–{high:.2f} ms")
-    warmup_column = f"first {WARMUP} iterations s"
-    print(f"| benchmark | meta-iteration | median ms | IQR ms | min ms | fast-spell median ms "
-          f"| {warmup_column} |")
-    print("|---|---|---|---|---|---|---|")
-    for benchmark, label, median, iqr, least, fast, warmup in rows:
-        fast_column = "–" if fast is None else f"{fast:.1f}"
-        print(f"| {benchmark} | {label} | {median:.1f} | {iqr:.1f} | {least:.1f} | {fast_column} "
-              f"| {warmup:.1f} |")
-    for benchmark, yardstick in fast_yardsticks.items():
-        print(f"fast spells of {benchmark}: turns with a yardstick of at most {yardstick:.2f} ms")
-
+    table = markdown_table(
+        ("benchmark", "meta-iteration", "median ms", "IQR ms", "min ms", "fast-spell median ms",
+         f"first {WARMUP} iterations s"),
+        [(benchmark, label, f"{median:.1f}", f"{iqr:.1f}", f"{least:.1f}",
+          "–" if fast is None else f"{fast:.1f}", f"{warmup:.1f}")
+         for benchmark, label, median, iqr, least, fast, warmup in rows])
+    spells = "; ".join(f"{benchmark}: turns with a yardstick of at most {yardstick:.2f} ms"
+                       for benchmark, yardstick in fast_yardsticks.items())
+    body = (f"Second-order MAML, {args.turns} turns of {TURN} iterations per row. Machine "
+            f"yardstick (`timing.reference_product_ms`) in the timed turns: median {middle:.2f} "
+            f"ms, range {low:.2f}–{high:.2f} ms. Fast spells: {spells}.\n\n{table}")
+    print(body)
+    write_section("bench_meta_iteration", "Meta-iterations (bench_meta_iteration.py)", body)
 
 if __name__ == "__main__":
     main()

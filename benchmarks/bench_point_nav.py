@@ -9,8 +9,9 @@ For v ↦ Σ_k J_k F_k J_k v
 (J_k = I − α∇²L^in_k, F_k the KL's Gauss-Newton matrix) the 64 × 64 hidden layer alone takes 16
 products of ``[K, E·T, 64] × [K, 64, 64]``: 6 for each Hessian-vector product of the inner loss
 (forward-over-reverse: two per bilinear op of its forward and backward pass) and 4 for F_k (2 in
-the Jacobian-vector product, 2 in the transposed one). Prints a table; run
-``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``.
+the Jacobian-vector product, 2 in the transposed one). Prints the table and writes it to its
+section of docs/benchmarks.md; run ``OMP_NUM_THREADS=1 python benchmarks/bench_point_nav.py``
+(``--tasks``, ``--episodes`` smaller for a quick run).
 """
 
 from __future__ import annotations
@@ -22,10 +23,9 @@ from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict
-from timing import wall_times
+from timing import markdown_table, wall_times, write_section
 from torch import nn
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
@@ -44,7 +44,6 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    keep_freed_memory()
     torch.set_num_threads(1)
     torch.manual_seed(0)
     k, e, steps = args.tasks, args.episodes, 100
@@ -53,7 +52,7 @@ def main() -> None:
     rows = []
 
     env = PointNavigationEnv((k, e), seed=0)
-    reset = env.reset(TensorDict({"goal": tasks["params"][:, None].expand(k, e, 2)}, [k, e]))
+    reset = env.reset(TensorDict({"params": tasks["params"][:, None].expand(k, e, 2)}, [k, e]))
     t = seconds(lambda: env.rollout(steps, tensordict=reset.clone(), auto_reset=False,
                                     break_when_any_done=False), args.repeats)
     rows.append(("env.rollout, random actions", t, k * e * steps / t))
@@ -64,7 +63,7 @@ def main() -> None:
     t = seconds(lambda: collector.collect(tasks, None, policy=net), args.repeats)
     rows.append(("collect, shared θ", t, k * e * steps / t))
     t = seconds(lambda: collector.collect(tasks, per_task, policy=net), args.repeats)
-    rows.append(("collect, per-task θ'_k (batched)", t, k * e * steps / t))
+    rows.append(("collect, per-task θ'_k", t, k * e * steps / t))
 
     def erm(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1.0 / losses.numel())
@@ -92,14 +91,16 @@ def main() -> None:
     floor = seconds(lambda: [torch.bmm(activations, weight) for _ in range(16)], 5 * args.repeats)
     rows.append((f"its 16 [K, E*T, {n_in}] x [K, {n_in}, {n_out}] products", floor, math.nan))
 
-    print(f"point_nav, {k} tasks x {e} episodes x {steps} steps, torch threads = "
-          f"{torch.get_num_threads()}")
-    print(f"{'what':<42} {'seconds':>9} {'env steps/s':>12}")
-    for what, t, rate in rows:
-        print(f"{what:<42} {t:>9.3f} {'-' if math.isnan(rate) else f'{rate:.0f}':>12}")
-    print(f"conjugate gradient's 10 exact products: {10 * product:.2f} s measured, at least "
-          f"{10 * floor:.2f} s in matrix products alone")
-
+    table = markdown_table(
+        ("what", "seconds", "env steps/s"),
+        [(what, f"{t:.3f}", "–" if math.isnan(rate) else f"{rate:,.0f}") for what, t, rate in rows],
+    )
+    body = (f"Point navigation, {k} tasks × {e} episodes × {steps} steps (MAML-TRPO, second order "
+            f"through the adaptation; medians of {args.repeats} calls):\n\n{table}\n\n"
+            f"Conjugate gradient's 10 exact products: {10 * product:.2f} s measured, at least "
+            f"{10 * floor:.2f} s in the matrix products of the largest layer alone.")
+    print(body)
+    write_section("bench_point_nav", "Meta-RL: point navigation (bench_point_nav.py)", body)
 
 if __name__ == "__main__":
     main()

@@ -3,7 +3,8 @@
 
 The collect rows vary how the 200 transitions of a task are split into episodes: the TorchRL step
 costs about the same for any batch, so the time grows with the steps per episode.
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sysid_envs.py``
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sysid_envs.py``; it prints its tables and
+writes them to its section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import time
 
 import torch
 from tensordict import TensorDict
-from timing import wall_times
+from timing import markdown_table, wall_times, write_section
 
 from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.envs.acrobot import AcrobotEnv
@@ -57,25 +58,27 @@ def bench_collect(env_name: str, episodes: int) -> tuple[float, float, float]:
 def main() -> None:
     torch.set_num_threads(1)
     torch.manual_seed(0)
-    print(f"batched envs, random policy, {TASKS} tasks, one thread (median of 7)")
-    print(f"{'env':10s} {'batch':>8s} {'steps':>6s} {'env steps/s':>12s}")
+    env_rows = []
     for env_cls in (PendulumEnv, AcrobotEnv):
         for episodes, steps in ((1, 200), (10, 20), (20, 10), (16, 200)):
             rate = bench_env(env_cls, episodes, steps)
-            print(f"{env_cls.__name__:10s} {f'{TASKS}x{episodes}':>8s} {steps:6d} {rate:12,.0f}")
-    print()
+            env_rows.append((env_cls.__name__, f"{TASKS} × {episodes}", steps, f"{rate:,.0f}"))
     default = inspect.signature(SysIdCollector).parameters["episodes"].default
-    print(f"SysIdCollector.collect: {TASKS} tasks x {TRANSITIONS} transitions "
-          f"(wall median and best, CPU median, of {REPEATS}; * = default)")
-    print(f"{'env':10s} {'episodes':>9s} {'steps':>6s} {'median ms':>10s} {'best ms':>8s} "
-          f"{'CPU ms':>7s}")
+    collect_rows = []
     for env_name in ("pendulum", "acrobot"):
         for episodes in (1, 10, 20, 40):
             median, best, cpu = bench_collect(env_name, episodes)
-            mark = "*" if episodes == default else " "
-            print(f"{env_name:10s} {episodes:8d}{mark} {TRANSITIONS // episodes:6d} "
-                  f"{median:10.1f} {best:8.1f} {cpu:7.1f}")
-
+            mark = " (default)" if episodes == default else ""
+            collect_rows.append((env_name, f"{episodes}{mark}", TRANSITIONS // episodes,
+                                 f"{median:.1f}", f"{best:.1f}", f"{cpu:.1f}"))
+    body = (f"Batched envs, random policy, {TASKS} tasks (median of 7 rollouts):\n\n"
+            + markdown_table(("env", "batch", "steps", "env steps/s"), env_rows)
+            + f"\n\nOne ``SysIdCollector.collect`` of {TASKS} tasks × {TRANSITIONS} transitions "
+            f"(wall median and best, CPU median, of {REPEATS}):\n\n"
+            + markdown_table(("env", "episodes", "steps", "median ms", "best ms", "CPU ms"),
+                             collect_rows))
+    print(body)
+    write_section("bench_sysid_envs", "System-identification envs (bench_sysid_envs.py)", body)
 
 if __name__ == "__main__":
     main()

@@ -1,5 +1,5 @@
-"""The adversary's contract (ARCHITECTURE.md) for both flows, the follower's surrogate and step,
-the ERM principle and the density plot."""
+"""The adversary's contract (docs/architecture.md) for both flows, the follower's surrogate and
+step, the ERM principle and the density plot."""
 
 from __future__ import annotations
 

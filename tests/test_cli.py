@@ -31,8 +31,6 @@ EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
          "+risk.ar.flow_kwargs.activation=leaky_relu"),
         ("benchmark=pendulum_uniform benchmark.collector.target=state",
          "benchmark.collector.target", "allowed: delta, next"),
-        ("benchmark=acrobot_uniform benchmark.collector.compile=fast",
-         "benchmark.collector.compile", "a backend (inductor"),
         ("benchmark=pendulum_uniform benchmark.space.low=[0.0,0.4]", "benchmark.space.low",
          "must be > 0"),
         ("benchmark=ant_goal_smoke trainer.progress=false benchmark.space.names=[x,y,z] "

@@ -23,12 +23,11 @@ from armeta_rl.rl.baseline import (
     fit_linear_baseline,
     gae_advantages,
 )
-from armeta_rl.rl.maml_trpo import MAMLTRPOLeader, as_task_params
+from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
 from armeta_rl.rl.policy import (
     GaussianMLP,
     kl_divergence,
     loc_scale,
-    loc_scale_batched,
     log_prob,
 )
 from armeta_rl.rl.trpo import (
@@ -211,7 +210,7 @@ def test_batched_inner_step_equals_per_task_loop() -> None:
     data, advantages = fake_batch()
     adapted = leader.adapt(leader.theta(), data, advantages, create_graph=True)
     queries = torch.randn(3, 7, 2)
-    meta_loss = loc_scale(leader.net, as_task_params(adapted), queries)[0].square().sum()
+    meta_loss = loc_scale(leader.net, adapted, queries)[0].square().sum()
     meta_grad = torch.autograd.grad(meta_loss, list(leader.net.parameters()))
 
     looped_loss = torch.zeros(())
@@ -231,22 +230,18 @@ def test_batched_inner_step_equals_per_task_loop() -> None:
 
 
 @pytest.mark.parametrize("batch", [(), (4, 5)])
-def test_rollout_policy_equals_each_tasks_network_and_the_vmapped_one(
-    batch: tuple[int, ...],
-) -> None:
+def test_per_task_policy_equals_each_tasks_network(batch: tuple[int, ...]) -> None:
     torch.manual_seed(3)
     net = GaussianMLP()
     params = TensorDict.from_module(net).detach().expand(3).clone()
     params = params.apply(lambda p: p + 0.3 * torch.randn_like(p)).flatten_keys(".").to_dict()
     observation = torch.randn(3, *batch, 2)
-    loc, scale = loc_scale_batched(net, params, observation)
+    loc, scale = loc_scale(net, params, observation)
     for k in range(3):
         task = {name: value[k] for name, value in params.items()}
         expected = functional_call(net, task, (observation[k],))
         torch.testing.assert_close(loc[k], expected[0])
         torch.testing.assert_close(scale[k], expected[1])
-    vmapped = loc_scale(net, as_task_params(params), observation)
-    torch.testing.assert_close((loc, scale), vmapped, rtol=0, atol=1e-6)
 
 
 def meta_hvp_pair(dtype: torch.dtype, hidden: tuple[int, ...] = (8, 8)):
@@ -264,7 +259,7 @@ def meta_hvp_pair(dtype: torch.dtype, hidden: tuple[int, ...] = (8, 8)):
     names = [name for name, _ in leader.net.named_parameters()]
     broadcast, adapted = leader.inner_step(leader.theta(), train, train_advantages, True)
     leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
-    outputs = loc_scale(leader.net, as_task_params(dict(zip(names, leaves))), valid["observation"])
+    outputs = loc_scale(leader.net, dict(zip(names, leaves)), valid["observation"])
     current = tuple(o.detach() for o in outputs)
 
     def weighted_kl_of_outputs(outs: list[torch.Tensor]) -> torch.Tensor:
@@ -339,7 +334,7 @@ def test_leader_kl_hessian_product_is_the_second_order_hessian_on_its_episodes(
     adapted = leader.adapt(leader.theta(), batch.train[:, episodes],
                            batch.train_advantages[:, episodes], create_graph=True)
     valid = batch.valid[:, episodes]
-    loc, scale = loc_scale(leader.net, as_task_params(adapted), valid["observation"])
+    loc, scale = loc_scale(leader.net, adapted, valid["observation"])
     kl = episode_mean(kl_divergence(loc, scale, loc.detach(), scale.detach()), valid["mask"])
     reference = kl_hessian_vector_product((weights * kl).sum(), params, leader.cg_damping)
     v = torch.randn(sum(p.numel() for p in params))
@@ -372,7 +367,7 @@ def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> No
     batch = leader.collect_meta_batch(tasks)
     weights = torch.tensor([0.7, 0.2, 0.1])
     with torch.no_grad():
-        old = loc_scale(leader.net, as_task_params(batch.adapted), batch.valid["observation"])
+        old = loc_scale(leader.net, batch.adapted, batch.valid["observation"])
     info = leader.trpo_update(batch, weights)
     assert info["trpo/line_search_steps"] >= 0
 

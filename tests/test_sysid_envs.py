@@ -248,46 +248,9 @@ def test_seeded_collection_is_reproducible(env_name):
     assert not torch.equal(first["query", "y"], third["query", "y"])
 
 
-def test_compiled_collection_equals_eager_collection():
-    """``compile`` hands the acrobot envs to TorchRL's ``env.compile`` (``aot_eager``: no code
-    generation, but fused ops such as ``addcmul`` decomposed, so float32 rounding) and collects
-    the same transitions; another batch size gets its own compiled env."""
-    collected = {}
-    for compile in (False, "aot_eager"):
-        collector = SysIdCollector("acrobot", episodes=5, compile=compile)
-        torch.manual_seed(5)
-        collected[compile] = [collector.collect(_tasks(n)) for n in (4, 4, 6)]
-        assert ("_compiled_step_and_maybe_reset" in collector._env(4).__dict__) == bool(compile)
-    for eager, compiled in zip(collected[False], collected["aot_eager"], strict=True):
-        torch.testing.assert_close(compiled.to_dict(), eager.to_dict())
-
-
-def test_compiled_env_steps_run_compiled_from_the_first_rollout():
-    """A fresh compiled env (as in a resumed run) steps through the compiled graphs from its first
-    step on, as it does later, so a resume computes what the uninterrupted run computed: a
-    ``torch.compile`` backend that counts the graph calls sees as many in the first rollout as
-    in the second."""
-    calls = []
-
-    def counting_backend(graph, example_inputs):
-        def run(*args):
-            calls.append(graph)
-            return graph(*args)
-        return run
-
-    collector = SysIdCollector("acrobot", episodes=5)
-    collector.backend = counting_backend
-    collector.collect(_tasks(4))
-    first = len(calls)
-    calls.clear()
-    collector.collect(_tasks(4))
-    assert first == len(calls) > 0
-
-
 @pytest.mark.parametrize(
     ("key", "kwargs"),
     [
-        ("compile", {"compile": "fast"}),
         ("env", {"env": "cartpole"}),
         ("n_support", {"n_support": 200}),
         ("episodes", {"episodes": 7}),

@@ -1,8 +1,8 @@
 """The distribution adversary p_φ: a box-preserving normalizing flow on top of p0 (paper Sec. 3.1).
 
-τ0 ~ p0, τ = g_φ(τ0) (paper Eq. normalizing_flows_eq) and
+τ0 ~ p0, τ = g_φ(τ0) (paper Eq. (9)) and
 
-    ln p_φ(τ) = ln p0(τ0) − Σ_i ln|det ∂g_i/∂τ^{i−1}|          (paper Eq. nf_logdeterm)
+    ln p_φ(τ) = ln p0(τ0) − Σ_i ln|det ∂g_i/∂τ^{i−1}|          (paper Eq. (10))
 
 at sampling time, or equivalently ln p_φ(τ) = ln p0(g⁻¹(τ)) + ln|det ∂g⁻¹/∂τ| at any point of the
 box through the inverse flow. Samples and log-densities are computed in float64.
@@ -24,7 +24,7 @@ from armeta_rl.tasks.space import TaskSpace
 class FlowAdversary(TaskDistribution):
     """p_φ(τ): the push-forward of ``base`` (p0) through a learnable bijection of the task box.
 
-    It satisfies the adversary's contract (ARCHITECTURE.md): samples always lie in the box;
+    It satisfies the adversary's contract (docs/architecture.md): samples always lie in the box;
     :meth:`log_prob` is an exact normalized density at any point of the box (``-inf`` outside),
     differentiable in φ at fixed τ, and equal to the log-probability returned by :meth:`sample`;
     p_φ = p0 at initialization; the entropy is available by Monte Carlo.
@@ -57,13 +57,13 @@ class FlowAdversary(TaskDistribution):
 
     @torch.no_grad()
     def sample_with_log_prob(self, n: int) -> tuple[Tensor, Tensor]:
-        """``n`` samples τ = g(τ0), τ0 ~ p0, and ln p_φ(τ) from the forward pass (Eq. nf_logdeterm);
+        """``n`` samples τ = g(τ0), τ0 ~ p0, and ln p_φ(τ) from the forward pass (Eq. (10));
         both float64 and detached."""
         return self.push_forward(self.base.sample_params(n))
 
     def push_forward(self, initial: Tensor) -> tuple[Tensor, Tensor]:
         """τ = g(τ0) for points ``initial = τ0 [n, d]`` of p0, and ln p_φ(τ) = ln p0(τ0) −
-        ln|det ∂g/∂τ0| (Eq. nf_logdeterm); the random draw stays with the caller."""
+        ln|det ∂g/∂τ0| (Eq. (10)); the random draw stays with the caller."""
         params, log_det = self.flow(initial)
         return params, self.base.log_prob(initial) - log_det
 
@@ -89,7 +89,7 @@ class FlowAdversary(TaskDistribution):
     @torch.no_grad()
     def kl_from_base(self, n: int = 4096, initial: Tensor | None = None) -> Tensor:
         """Monte-Carlo KL(p0 ‖ p_φ) = E_{p0}[ln p0(τ) − ln p_φ(τ)], the shift the constraint of
-        paper Eq. game_meta_obj bounds, from ``n`` fresh p0 samples or the given ``initial``
+        paper Eq. (4) bounds, from ``n`` fresh p0 samples or the given ``initial``
         samples ``[m, d]``; a detached float64 scalar."""
         if initial is None:
             initial = self.base.sample_params(n)

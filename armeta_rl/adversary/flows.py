@@ -3,7 +3,7 @@
 The paper's adversary (appendix "Distribution Adversary Implementations") maps the flow output into
 the box by a min-max over the current batch, which makes the "density" depend on the batch. Here
 every flow is a bijection of the closed box onto itself, so
-ln p_φ(τ) = ln p0(g⁻¹(τ)) + ln|det ∂g⁻¹/∂τ| (paper Eq. nf_logdeterm) is an exact, normalized
+ln p_φ(τ) = ln p0(g⁻¹(τ)) + ln|det ∂g⁻¹/∂τ| (paper Eq. (10)) is an exact, normalized
 density at any point of the box:
 
 * ``spline`` (default): affine map of the box onto [0, 1]^d, a stack of normflows
@@ -210,7 +210,7 @@ class PlanarBoxFlow(BoxFlow):
     ``activation="tanh"`` (default) gives a smooth density. The paper's ``"leaky_relu"`` has an
     exact algebraic inverse, but its log-determinant jumps across each hinge wᵀz + b = 0 and the
     hinges move with φ, so p_φ(τ) is discontinuous in τ along φ-dependent surfaces: the
-    score-function estimator (paper Eq. meta_adversary_obj_1) then misses the boundary term of
+    score-function estimator (paper Eq. (17)) then misses the boundary term of
     ∇_φ E_{p_φ}[L] and is biased once the flow has left the identity. It is kept for reproducing
     the paper only. The unit-box coordinate is clamped to [eps, 1 − eps] before the logit so that
     points on the box faces keep a finite log-density (the clamp changes the map within eps of a

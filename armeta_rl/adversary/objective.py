@@ -1,12 +1,12 @@
-"""The follower's score-function surrogate (paper Eq. main_obj and Eq. meta_adversary_obj_1).
+"""The follower's score-function surrogate (paper Eqs. (6) and (17)).
 
-The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. main_obj). Its gradient is
+The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. (6)). Its gradient is
 
     ∇_φ J ≈ (1/K) Σ_k (L_k − V_k) ∇_φ ln p_φ(τ_k) + (λ/M) Σ_m ∇_φ ln p_φ(τ_m^0)
 
 with τ_k ~ p_φ the tasks the leader was scored on (held fixed) and V a baseline (Eq.
-meta_adversary_obj_1). The second term is the gradient of λ·E_{p0}[ln p_φ], estimated at draws
-τ_m^0 ~ p0. The paper's Eq. meta_adversary_obj evaluates it at the base draws τ_k^{-M} whose
+(17)). The second term is the gradient of λ·E_{p0}[ln p_φ], estimated at draws
+τ_m^0 ~ p0. The paper's Eq. (16) evaluates it at the base draws τ_k^{-M} whose
 images NN_φ(τ_k^{-M}) are the tasks τ_k: those are draws of p0 for every φ (the flow moves their
 images, not them), so that estimate is unbiased as well. What differs is its variance and its
 coupling to the loss term: here the M = ``risk.ar.initial_samples`` (default 256) draws are fresh
@@ -53,7 +53,7 @@ def adversary_surrogate(
     baseline: str = "mean",
     log_prob: Callable[[Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """A scalar whose gradient in φ is the estimate of ∇_φ J of paper Eq. meta_adversary_obj_1.
+    """A scalar whose gradient in φ is the estimate of ∇_φ J of paper Eq. (17).
 
     Args:
         adversary: p_φ.

@@ -2,8 +2,8 @@
 
 :class:`TaskSampler` is the follower of the paper's game without the rest of our trainer: a loop
 (TorchRL PPO, say) asks it for ``n`` tasks, runs them, and hands back one loss per task; the
-sampler takes one ascent step of J(φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. main_obj) with
-the score-function surrogate of Eq. meta_adversary_obj_1
+sampler takes one ascent step of J(φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. (6)) with
+the score-function surrogate of Eq. (17)
 (:func:`~armeta_rl.adversary.objective.adversary_surrogate`), Adam and, optionally, the cosine
 learning-rate schedule of :class:`~armeta_rl.risk.adversarial.AdversarialPrinciple`. It keeps no
 state between calls beyond φ, Adam's moments and the schedule: the tasks a loss belongs to are

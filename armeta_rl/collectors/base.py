@@ -1,4 +1,5 @@
-"""The collector protocol: how a batch of tasks becomes data (ARCHITECTURE.md, "plug-in seams")."""
+"""The collector protocol: how a batch of tasks becomes data (docs/architecture.md, "The plug-in
+seams")."""
 
 from __future__ import annotations
 

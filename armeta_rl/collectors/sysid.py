@@ -9,7 +9,6 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor
 
-from armeta_rl.compiling import compile_backend
 from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
@@ -51,22 +50,14 @@ class SysIdCollector:
     delta/none 0.00110, next/none 0.00114, delta/scale 0.00147, next/scale 0.0142.
 
     ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
-    any batch, so collection time grows with the steps per episode (one 200-step episode is
-    ~20x slower; see ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
+    any batch, so collection time grows with the steps per episode (see
+    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
     initial states: the median |θ̇| of the pendulum data is 2.5 with one 200-step episode, 2.4
     with 10 x 20 steps and 1.8 with 20 x 10 (90% quantile 6.0 / 6.2 / 5.5; the ±8 clip is reached
     in all three); the acrobot's median |θ̇2| is 0.95 / 0.35 / 0.28.
 
     The environment's initial-state seed is drawn from torch's global RNG at every call, so
     ``torch.manual_seed`` fixes the whole collection.
-
-    ``compile`` hands the envs to TorchRL's own ``EnvBase.compile``: ``torch.compile`` of
-    ``step_and_maybe_reset`` from the first call on (no eager warm-up), so that a resumed run
-    steps through the same compiled code as an uninterrupted one. It pays for the acrobot, whose
-    Runge–Kutta step is about 90 small torch ops: 3.2 ms less per compiled AR iteration (36.2
-    against 39.4 ms, medians of 150 run alternately), and not for the pendulum (36.3 against
-    37.2 ms, its fastest iteration slower). Each batch shape (training and evaluation) compiles
-    once, 10–25 s with an empty compile cache, so it is for long runs.
 
     Args:
         env: ``"pendulum"`` or ``"acrobot"``.
@@ -76,8 +67,6 @@ class SysIdCollector:
         target: ``"delta"`` or ``"next"``.
         normalize: ``"none"`` or ``"scale"``.
         device: torch device of the environments and the returned data.
-        compile: compile the env steps: ``False``, ``True`` (inductor) or a backend name; see
-            :mod:`armeta_rl.compiling`.
         identifiers: the env's task identifiers, in the order of ``"params"`` (default: the
             env's :attr:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.param_names`, e.g.
             ``[m, l]``; the pendulum also takes ``g``). A benchmark sets it to
@@ -86,8 +75,7 @@ class SysIdCollector:
 
     def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
                  episodes: int = 20, target: str = "delta", normalize: str = "none",
-                 device: str = "cpu", compile: bool | str | None = False,
-                 identifiers: Sequence[str] | None = None) -> None:
+                 device: str = "cpu", identifiers: Sequence[str] | None = None) -> None:
         if env not in ENVIRONMENTS:
             raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
         if not isinstance(n_transitions, int) or n_transitions < 2:
@@ -115,7 +103,6 @@ class SysIdCollector:
         self.identifiers = tuple(self.env_cls.param_names if identifiers is None else identifiers)
         self.n_transitions, self.n_support, self.episodes = n_transitions, n_support, episodes
         self.target, self.normalize, self.device = target, normalize, torch.device(device)
-        self.backend = compile_backend("benchmark.collector.compile", compile)
         self._envs: dict[int, IdentifiedSystemEnv] = {}
         x_scale, y_scale = self._scales()
         self.x_scale, self.y_scale = x_scale.to(self.device), y_scale.to(self.device)
@@ -139,11 +126,8 @@ class SysIdCollector:
 
     def _env(self, n_tasks: int) -> IdentifiedSystemEnv:
         if n_tasks not in self._envs:
-            compile = None if self.backend is None else {
-                "backend": self.backend, "dynamic": False}
             self._envs[n_tasks] = self.env_cls(batch_size=(n_tasks, self.episodes), seed=0,
-                                               device=self.device, compile=compile,
-                                               identifiers=self.identifiers)
+                                               device=self.device, identifiers=self.identifiers)
         return self._envs[n_tasks]
 
     def check_space(self, space: TaskSpace) -> None:

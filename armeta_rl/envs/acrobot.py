@@ -30,9 +30,6 @@ class AcrobotEnv(IdentifiedSystemEnv):
     ``"params"`` (m1, m2) = gymnasium's ``LINK_MASS_1``, ``LINK_MASS_2``, and ``"action"``
     ``[*batch]``: a categorical index in {0, 1, 2} applying torque ``action - 1`` ∈ {-1, 0, +1}
     (gymnasium's ``AVAIL_TORQUE[action]``).
-
-    Cosines are computed as ``cos x = sin(x + π/2)`` so that every trigonometric value of a
-    Runge–Kutta stage comes from one ``sin`` of one ``[n_envs, 4]`` tensor of angles.
     """
 
     param_names = ("m1", "m2")
@@ -62,38 +59,9 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return torch.randint(0, 3, self.batch_size, device=self.device)
 
     def _precompute(self) -> None:
-        kwargs = {"dtype": self.dtype, "device": self.device}
-        half_pi = math.pi / 2
         # The physics works on feature-major states [4, n_envs] (contiguous rows).
-        self.one, self.minus_one = torch.tensor(1.0, **kwargs), torch.tensor(-1.0, **kwargs)
-        # State (θ1, θ2, θ̇1, θ̇2) -> angles whose sines are (sin θ1, sin θ2, sin(θ1+θ2), cos θ2).
-        self.stage_map = torch.tensor(
-            [
-                [1.0, 0.0, 0.0, 0.0],
-                [0.0, 1.0, 0.0, 0.0],
-                [1.0, 1.0, 0.0, 0.0],
-                [0.0, 1.0, 0.0, 0.0],
-            ],
-            **kwargs,
-        )
-        self.stage_shift = torch.tensor([[0.0], [0.0], [0.0], [half_pi]], **kwargs)
-        # State -> (θ1 + π/2, θ1, θ2 + π/2, θ2, θ̇1, θ̇2, θ1 + θ2 + π/2): the sines of all rows
-        # but the velocities are the observation's trigonometric part and, last, cos(θ1 + θ2).
-        self.observation_map = torch.tensor(
-            [
-                [1.0, 0.0, 0.0, 0.0],
-                [1.0, 0.0, 0.0, 0.0],
-                [0.0, 1.0, 0.0, 0.0],
-                [0.0, 1.0, 0.0, 0.0],
-                [0.0, 0.0, 1.0, 0.0],
-                [0.0, 0.0, 0.0, 1.0],
-                [1.0, 1.0, 0.0, 0.0],
-            ],
-            **kwargs,
-        )
-        self.observation_shift = torch.tensor(
-            [[half_pi], [0.0], [half_pi], [0.0], [0.0], [0.0], [half_pi]], **kwargs)
-        self.max_velocity = torch.tensor([[self.max_vel_1], [self.max_vel_2]], **kwargs)
+        self.max_velocity = torch.tensor([[self.max_vel_1], [self.max_vel_2]], dtype=self.dtype,
+                                         device=self.device)
         self.min_velocity = -self.max_velocity
 
     def _physical_constants(self, params: Tensor) -> Tensor:
@@ -117,32 +85,26 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return self._uniform(-0.1, 0.1)
 
     def _observe_rows(self, state: Tensor) -> Tensor:
-        """From feature-major states ``[4, n_envs]``: (cos θ1, sin θ1, cos θ2, sin θ2, θ̇1, θ̇2,
-        cos(θ1 + θ2)) ``[7, n_envs]``; the last row, the tip height term, decides termination."""
-        observation = torch.mm(self.observation_map, state).add_(self.observation_shift)
-        observation[:4].sin_()
-        observation[6].sin_()
-        return observation
+        """From feature-major states ``[4, n_envs]``: (cos θ1, sin θ1, cos θ2, sin θ2, θ̇1, θ̇2)
+        ``[6, n_envs]``."""
+        theta1, theta2, dtheta1, dtheta2 = state
+        return torch.stack([theta1.cos(), theta1.sin(), theta2.cos(), theta2.sin(), dtheta1,
+                            dtheta2])
 
     def _derivatives(self, state: Tensor, torque: Tensor) -> Tensor:
         """ds/dt ``[4, n_envs]`` of the book equations (gymnasium's ``AcrobotEnv._dsdt``) at
-        feature-major states ``[4, n_envs]``, with cos(θ1 + θ2 − π/2) = sin(θ1 + θ2) and
-        cos(θ1 − π/2) = sin θ1."""
+        feature-major states ``[4, n_envs]``; gymnasium's cos(θ1 + θ2 − π/2) and cos(θ1 − π/2)
+        are written sin(θ1 + θ2) and sin θ1."""
+        theta1, theta2, dtheta1, dtheta2 = state
         d1_rest, two_coupling, coupling, d2_rest, gravity2, gravity1 = self.constants
-        angles = torch.mm(self.stage_map, state).add_(self.stage_shift).sin_()
-        sin1, sin2, sin12, cos2 = angles.unbind(0)
-        dtheta1, dtheta2 = state[2], state[3]
-        d1 = torch.addcmul(d1_rest, two_coupling, cos2)
-        d2 = torch.addcmul(d2_rest, coupling, cos2)
-        phi2 = gravity2 * sin12
-        coupled_sin = coupling * sin2
-        phi1 = torch.addcmul(phi2, gravity1, sin1)
-        phi1.addcmul_(coupled_sin * dtheta2, torch.add(dtheta2, dtheta1, alpha=2.0), value=-1.0)
-        ratio = d2 / d1
-        numerator = torch.addcmul(torque, ratio, phi1)
-        numerator.addcmul_(coupled_sin, dtheta1 * dtheta1, value=-1.0).sub_(phi2)
-        ddtheta2 = numerator.div_(torch.addcmul(d2_rest, d2, ratio, value=-1.0))
-        ddtheta1 = torch.addcmul(phi1, d2, ddtheta2).div_(d1).neg_()
+        sin2, cos2 = theta2.sin(), theta2.cos()
+        d1 = d1_rest + two_coupling * cos2
+        d2 = d2_rest + coupling * cos2
+        phi2 = gravity2 * (theta1 + theta2).sin()
+        phi1 = -coupling * sin2 * dtheta2 * (dtheta2 + 2 * dtheta1) + gravity1 * theta1.sin() + phi2
+        ddtheta2 = ((torque + d2 / d1 * phi1 - coupling * sin2 * dtheta1.square() - phi2)
+                    / (d2_rest - d2.square() / d1))
+        ddtheta1 = -(d2 * ddtheta2 + phi1) / d1
         return torch.stack([dtheta1, dtheta2, ddtheta1, ddtheta2])
 
     def _rk4(self, state: Tensor, torque: Tensor) -> Tensor:
@@ -156,12 +118,12 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return torch.add(state, slope, alpha=self.dt / 6.0)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        torque = torch.sub(tensordict["action"].reshape(self.n_envs).to(self.dtype), self.one)
+        torque = tensordict["action"].reshape(self.n_envs).to(self.dtype) - 1.0
         state = self._rk4(self._state, torque)
         self._wrap_angles_(state[:2])
         state[2:].clamp_(self.min_velocity, self.max_velocity)
-        observation = self._observe_rows(state)
-        terminated = (observation[0] + observation[6]) < self.minus_one
-        reward = terminated.to(self.dtype).sub_(self.one)
+        theta1, theta2 = state[0], state[1]
+        terminated = -theta1.cos() - (theta1 + theta2).cos() > 1.0
+        reward = terminated.to(self.dtype) - 1.0
         self._state = state
-        return self._output(state.T, observation[: self.observation_dim].T, reward, terminated)
+        return self._output(state.T, self._observe_rows(state).T, reward, terminated)

@@ -159,8 +159,8 @@ class IdentifiedSystemEnv(EnvBase):
         return state.reshape(self.n_envs, self.state_dim).T.contiguous()
 
     def _observe_rows(self, state: Tensor) -> Tensor:
-        """Feature-major observations of feature-major states ``[state_dim, n_envs]``: the first
-        ``observation_dim`` rows are the observation; a subclass may append rows its step uses."""
+        """Feature-major observations ``[observation_dim, n_envs]`` of feature-major states
+        ``[state_dim, n_envs]``."""
         raise NotImplementedError
 
     def _set_seed(self, seed: int | None) -> None:
@@ -212,7 +212,7 @@ class IdentifiedSystemEnv(EnvBase):
         if reset is not None:
             rows = torch.where(reset.reshape(1, self.n_envs), rows, self._state)
         self._state = rows
-        observation = self._observe_rows(rows)[: self.observation_dim].T
+        observation = self._observe_rows(rows).T
         done = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
         return self._output(rows.T, observation, None, done)
 

@@ -56,13 +56,7 @@ class PendulumEnv(IdentifiedSystemEnv):
         return action.uniform_(-self.max_torque, self.max_torque)
 
     def _precompute(self) -> None:
-        kwargs = {"dtype": self.dtype, "device": self.device}
-        self.initial_scale = torch.tensor([math.pi, 1.0], **kwargs)
-        # The physics works on feature-major states [2, n_envs] (contiguous rows).
-        # (θ, θ̇) -> (θ + π/2, θ, θ̇): the sine of the first two rows is (cos θ, sin θ).
-        self.observation_map = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.0, 1.0]], **kwargs)
-        self.observation_shift = torch.tensor([[math.pi / 2], [0.0], [0.0]], **kwargs)
-        self.cost_weights = torch.tensor([[-1.0, -0.1, -0.001]], **kwargs)
+        self.initial_scale = torch.tensor([math.pi, 1.0], dtype=self.dtype, device=self.device)
 
     def _physical_constants(self, params: Tensor) -> Tensor:
         """Per env ``(3g / (2l) dt, 3 / (m l²) dt)``: the velocity change per unit of sin θ
@@ -82,22 +76,19 @@ class PendulumEnv(IdentifiedSystemEnv):
 
     def _observe_rows(self, state: Tensor) -> Tensor:
         """From feature-major states ``[2, n_envs]``: (cos θ, sin θ, θ̇) ``[3, n_envs]``."""
-        observation = torch.mm(self.observation_map, state).add_(self.observation_shift)
-        observation[:2].sin_()
-        return observation
+        theta, theta_dot = state
+        return torch.stack([theta.cos(), theta.sin(), theta_dot])
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         theta, theta_dot = self._state
         torque = self.torque(tensordict["action"].reshape(self.n_envs)).to(self.dtype)
-        gravity, inertia = self.constants
-        costs = torch.stack([theta, theta_dot, torque])
-        self._wrap_angles_(costs[0])
-        reward = torch.mm(self.cost_weights, costs.square_())
-        new_state = torch.empty_like(self._state)
-        new_theta, new_theta_dot = new_state
-        torch.addcmul(theta_dot, gravity, theta.sin(), out=new_theta_dot).addcmul_(inertia, torque)
-        new_theta_dot.clamp_(-self.max_speed, self.max_speed)
-        self._wrap_angles_(torch.add(theta, new_theta_dot, alpha=self.dt, out=new_theta))
+        gravity, inertia = self.constants  # 3g / (2l) dt and 3 / (m l²) dt
+        normalized = self._wrap_angles_(theta.clone())
+        reward = -(normalized.square() + 0.1 * theta_dot.square() + 0.001 * torque.square())
+        new_theta_dot = theta_dot + gravity * theta.sin() + inertia * torque
+        new_theta_dot = new_theta_dot.clamp(-self.max_speed, self.max_speed)
+        new_theta = self._wrap_angles_(theta + new_theta_dot * self.dt)
+        new_state = torch.stack([new_theta, new_theta_dot])
         terminated = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
         self._state = new_state
         return self._output(new_state.T, self._observe_rows(new_state).T, reward, terminated)

@@ -1,4 +1,4 @@
-"""The leader protocol (ARCHITECTURE.md): MAML, CNP and MAML-TRPO all implement it."""
+"""The leader protocol (docs/architecture.md): MAML, CNP and MAML-TRPO all implement it."""
 
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ class Leader(Protocol):
 
 class OneNetworkLeader:
     """What leaders made of one network and one optimizer share (MAML, CNP): the weighted
-    meta-update θ ← opt(∇_θ Σ_k w_k L_k) (paper Eq. meta_player_obj with task weights) and their
+    meta-update θ ← opt(∇_θ Σ_k w_k L_k) (paper Eq. (15) with task weights) and their
     checkpoint state."""
 
     model: nn.Module

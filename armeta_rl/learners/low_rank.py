@@ -3,21 +3,21 @@
 For a layer z = h W + b and a support set of n points, the gradient of the support loss is
 ∇_W L = H_sᵀ δ and ∇_b L = 1ᵀ δ, where H_s ``[n, fan_in]`` holds the layer's inputs and
 δ = ∂L/∂Z_s ``[n, fan_out]`` the loss's gradient at its pre-activations. So the inner step of
-paper Algorithm 1, θ' = θ − γ∇_θ L(D^S_τ; θ), moves W by a matrix of rank at most n, and any
-input h passes through the adapted layer as
+paper Eq. (7) and Algorithm 1, θ' = θ − γ∇_θ L(D^S_τ; θ), moves W by a matrix of rank at most n,
+and any input h passes through the adapted layer as
 
     h W' + b' = h W + b + (h H_sᵀ + 1) Δ,        Δ = −γ δ,
 
 with no per-task ``[fan_in, fan_out]`` weights. After k steps the updates stack: H_s and Δ gain
 n rows per step. The product h W with the shared W is one matrix product for all tasks at once;
 the per-task part costs O(rows · n · width). This is the same function of θ as
-:meth:`MAMLLeader.adapt` followed by the query loss, so its meta-gradient (second order through
-δ and H_s, or first order with both held constant) is the same too, up to rounding.
+:meth:`MAMLLeader.query_loss`, so its meta-gradient (second order through δ and H_s, or first
+order with both held constant) is the same too, up to rounding.
 
-It pays when the support set is small against the layer widths (few-shot regression, 5 points
-and 128 units: about 40 % less time than the vmapped MAML step, half for the loss alone); with
-larger support and query sets (system identification: 10 and 190 points) the thin per-task
-products cost more than they save.
+It pays when the support set is small against the layer widths (few-shot regression: 5 points
+and 128 units); with larger support and query sets (system identification: 10 and 190 points) the
+thin per-task products cost more than they save. ``benchmarks/bench_speed_options.py`` measures it
+against the vmapped form (docs/speed-options.md).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 from torch.func import grad
 
-from armeta_rl.learners.mlp import MLP, matmul, relu
+from armeta_rl.learners.mlp import MLP, relu
 
 Params = dict[str, Tensor]
 Layers = list[tuple[Tensor, Tensor]]
@@ -44,7 +44,7 @@ def _forward(
     inputs, h, last = [], x, len(layers) - 1
     for index, (weight, bias) in enumerate(layers):
         inputs.append(h)
-        z = matmul(h, weight) + bias
+        z = h @ weight + bias
         if updates is not None:
             rows, steps = updates[index]
             z = torch.baddbmm(z, h @ rows.transpose(1, 2) + 1.0, steps)

@@ -1,17 +1,11 @@
-"""MAML batched over tasks (Finn et al. 2017; paper Example "AR-MAML", Algorithm 1).
+"""MAML batched over tasks (Finn et al. 2017; the paper's AR-MAML, Eq. (7), and Algorithm 1).
 
-Two exact implementations of the per-task adapted loss L(D^Q_τ; θ − γ∇_θ L(D^S_τ; θ)), both
-batched over the task dimension (a meta-batch costs one batched forward/backward, no Python loop
-over tasks):
-
-* ``adaptation="vmap"`` (any network): written for one task with ``torch.func.grad`` and
-  ``functional_call``, then ``vmap``-ed over tasks. The per-task adapted weights θ'_τ are
-  ``[K, fan_in, fan_out]`` tensors, so the step is dominated by batched matrix products and
-  elementwise ops on them. :class:`armeta_rl.learners.mlp.MLP` keeps every such tensor in one
-  contiguous layout, and the inner step is taken as the gradient of −γ·L so no full-size scaling
-  op is needed.
-* ``adaptation="low_rank"`` (:class:`~armeta_rl.learners.mlp.MLP` only): the inner steps kept as
-  low-rank weight updates (:mod:`armeta_rl.learners.low_rank`); no per-task weights at all.
+The adapted loss of one task, L(D^Q_τ; θ − γ∇_θ L(D^S_τ; θ)) (the bracket of Eq. (7)), is written
+for one task with ``torch.func`` (:meth:`MAMLLeader.adapt`, :meth:`MAMLLeader.query_loss`) and
+``vmap``-ed over the task dimension, so a meta-batch costs one batched forward/backward and no
+Python loop over tasks. Two documented switches (docs/speed-options.md) compute the same function
+faster where a benchmark showed it: ``learner.maml.adaptation=low_rank`` (the inner steps as
+low-rank weight updates, :mod:`armeta_rl.learners.low_rank`) and ``learner.maml.compile``.
 """
 
 from __future__ import annotations
@@ -46,9 +40,9 @@ class MAMLLeader(OneNetworkLeader):
         inner_steps: number of inner steps.
         first_order: drop the second-order term (treat ∇_θ L^S as a constant).
         outer_lr: Adam learning rate of the meta-update.
-        adaptation: how the batched adapted losses are computed, ``"vmap"`` or ``"low_rank"``
-            (an :class:`~armeta_rl.learners.mlp.MLP` only); the same function of θ, different
-            speed and rounding (see the module docstring).
+        adaptation: how the batched adapted losses are computed: ``"vmap"``, the per-task form
+            vmapped, or ``"low_rank"`` (an :class:`~armeta_rl.learners.mlp.MLP` only); the same
+            function of θ, different speed and rounding (docs/speed-options.md).
         compile: ``torch.compile`` the batched loss on the training collector's data (the
             meta-update and the follower's losses at θ_{t+1}): ``False``, ``True`` (inductor) or
             a backend name; see :mod:`armeta_rl.compiling`. Other data run eagerly.
@@ -74,40 +68,35 @@ class MAMLLeader(OneNetworkLeader):
                               f"needs the package's MLP, not a {type(model).__name__}; use vmap")
         self.model, self.collector = model, collector
         self.inner_lr, self.inner_steps, self.first_order = inner_lr, int(inner_steps), first_order
-        # The fused Adam kernel: one op for all parameters (foreach: ~3x slower on this MLP).
+        # The fused Adam kernel: one op for all parameters.
         self.optimizer = torch.optim.Adam(model.parameters(), lr=outer_lr, fused=True)
-        self._inner_step = grad(self._descent_objective)
+        self._support_gradient = grad(self._mse)
         self._batched_loss = (
             self._low_rank_losses if adaptation == "low_rank"
-            else vmap(self._query_loss, in_dims=(None, 0, 0, 0, 0))
+            else vmap(self.query_loss, in_dims=(None, 0, 0, 0, 0))
         )
         self._training_loss = maybe_compile(
             self._batched_loss, compile_backend("learner.maml.compile", compile)
         )
 
     def _mse(self, params: Params, x: Tensor, y: Tensor) -> Tensor:
+        """L(D; θ): the mean squared error of the network with parameters ``params``."""
         return (functional_call(self.model, params, (x,), tie_weights=False) - y).pow(2).mean()
 
-    def _descent_objective(self, params: Params, x: Tensor, y: Tensor) -> Tensor:
-        """−γ·L(D; θ): its gradient is the inner step −γ∇_θ L itself. Scaling the scalar loss
-        instead of the per-task gradients saves a full-size multiply per weight, forward and
-        backward, and ``θ + step`` back-propagates to the step without any arithmetic."""
-        return -self.inner_lr * self._mse(params, x, y)
-
     def adapt(self, params: Params, x: Tensor, y: Tensor) -> Params:
-        """θ'_τ = θ − γ∇_θ L(D^S_τ; θ) on one task's support set ``(x, y)``, ``inner_steps`` times
-        (Algorithm 1, inner loop)."""
+        """θ'_τ = θ − γ∇_θ L(D^S_τ; θ) on one task's support set ``(x, y)`` (Eq. (7); Algorithm 1,
+        inner loop), ``inner_steps`` times."""
         for _ in range(self.inner_steps):
-            steps = self._inner_step(params, x, y)
+            gradients = self._support_gradient(params, x, y)
             if self.first_order:
-                steps = {name: s.detach() for name, s in steps.items()}
-            params = {name: p + steps[name] for name, p in params.items()}
+                gradients = {name: g.detach() for name, g in gradients.items()}
+            params = {name: p - self.inner_lr * gradients[name] for name, p in params.items()}
         return params
 
-    def _query_loss(
+    def query_loss(
         self, params: Params, support_x: Tensor, support_y: Tensor, query_x: Tensor, query_y: Tensor
     ) -> Tensor:
-        """L(D^Q_τ; θ'_τ) for one task, from plain tensors (vmapped over tasks)."""
+        """L(D^Q_τ; θ'_τ) of one task (the loss inside Eq. (7)), from plain tensors."""
         return self._mse(self.adapt(params, support_x, support_y), query_x, query_y)
 
     def _low_rank_losses(
@@ -119,11 +108,6 @@ class MAMLLeader(OneNetworkLeader):
             self.model, params, support_x, support_y, query_x, query_y,
             self.inner_lr, self.inner_steps, self.first_order,
         )
-
-    def _adapted_loss(self, params: Params, task: TensorDict) -> Tensor:
-        """:meth:`_query_loss` of one task given as a TensorDict (the per-task reference)."""
-        support, query = task["support"], task["query"]
-        return self._query_loss(params, support["x"], support["y"], query["x"], query["y"])
 
     def task_losses(self, data: TensorDict, params: Params | None = None) -> Tensor:
         """Post-adaptation query loss of every task ``[K]``, differentiable w.r.t. θ.
@@ -138,7 +122,7 @@ class MAMLLeader(OneNetworkLeader):
         return batched_loss(params, support["x"], support["y"], query["x"], query["y"])
 
     def step(self, tasks: TensorDict, weights: TaskWeights) -> TensorDict:
-        """Meta-update θ ← Adam(∇_θ Σ_k w_k L_k) (paper Eq. meta_player_obj, weighted)."""
+        """Meta-update θ ← Adam(∇_θ Σ_k w_k L_k) (paper Eq. (15), weighted)."""
         data = self.step_data(tasks)
         losses = self._losses(self._training_loss, data)
         self.descend(losses, weights)

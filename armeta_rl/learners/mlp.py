@@ -5,7 +5,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from armeta_rl.errors import ConfigError
@@ -19,7 +18,7 @@ class MLP(nn.Module):
     ``Wᵀ``) matters for batched MAML: the per-task weight gradients of ``vmap(grad(...))`` and of
     the outer backward then come out in ``W``'s own memory layout, so θ − γ∇L and the sum of
     per-task meta-gradients over tasks run on matching, contiguous strides instead of mixing a
-    transposed layout with a plain one (about 10× slower per elementwise op on the CPU).
+    transposed layout with a plain one (much slower per elementwise op on the CPU).
 
     Parameters are drawn exactly as ``nn.Linear`` draws them, so a seed gives the same function.
     """
@@ -36,7 +35,7 @@ class MLP(nn.Module):
         """Network output ``[..., out]`` for inputs ``[..., in]``."""
         last = len(self.weights) - 1
         for index, (weight, bias) in enumerate(zip(self.weights, self.biases)):
-            x = matmul(x, weight) + bias
+            x = x @ weight + bias
             if index < last:
                 x = relu(x)
         return x
@@ -48,40 +47,16 @@ class MLP(nn.Module):
         return [(params[f"weights.{i}"], params[f"biases.{i}"]) for i in range(len(self.weights))]
 
 
-GEMM_COLUMNS = 16
-"""Width a thin weight is zero-padded to in :func:`matmul`."""
-
-
-def matmul(x: Tensor, weight: Tensor) -> Tensor:
-    """``x @ weight`` for a weight ``[fan_in, fan_out]``; a thin one (2 ≤ fan_out < 16) is
-    zero-padded to 16 columns for the product and the extra outputs are dropped.
-
-    Single-precision GEMM in the MKL that torch ships takes longer for every width we measured
-    from 2 to 14 output columns than for 16 on this project's AVX2 machines (one thread,
-    ``[16, 190, 128] × [16, 128, n]``, ms: n = 3 0.82, n = 6 1.12, n = 10 1.23, n = 14 0.72,
-    n = 16 0.38), and so does the weight gradient of the product. The system-identification
-    networks end in 3 (pendulum) or 6 (acrobot) outputs, so their output layer runs padded. Same
-    values up to rounding (the summation order inside the GEMM may change); gradients flow to the
-    real columns only. A single output column (the sinusoid's) is left alone: a shared ``mm`` runs
-    it as a matrix-vector product (0.06 ms for 3,040 rows against 0.25 ms padded), and the
-    sinusoid's per-task products are too small to matter.
-    """
-    columns = weight.shape[-1]
-    if not 1 < columns < GEMM_COLUMNS:
-        return x @ weight
-    return (x @ F.pad(weight, (0, GEMM_COLUMNS - columns)))[..., :columns]
-
-
 def relu(x: Tensor) -> Tensor:
-    """max(x, 0): ``torch.relu`` eagerly and, while ``torch.compile`` traces, the same function
-    written (x + |x|) / 2.
+    """max(x, 0): ``torch.relu`` eagerly and, while ``torch.compile`` traces (the
+    ``learner.maml.compile`` switch), the same function written (x + |x|) / 2.
 
     relu's backward keeps a boolean mask of the active units, and inductor's CPU code stores
-    boolean masks about 30 times slower than the ReLU itself on this project's AVX2 machines (a
-    ``[16, 190, 128]`` mask: 6.8 ms against 0.23 ms), which made the compiled system-identification
-    MAML step slower than the eager one. The (x + |x|) / 2 form keeps a float tensor instead. Its
-    values equal relu's exactly (x + x = 2x and x + (−x) = 0 are exact in floating point); only
-    the gradient at exactly x = 0 differs (1/2 instead of 0).
+    boolean masks far more slowly than the ReLU itself: with ``torch.relu`` the compiled
+    system-identification MAML step is slower than the eager one (docs/speed-options.md). The
+    (x + |x|) / 2 form keeps a float tensor instead. Its values equal relu's exactly (x + x = 2x
+    and x + (−x) = 0 are exact in floating point); only the gradient at exactly x = 0 differs (1/2
+    instead of 0).
     """
     if torch.compiler.is_compiling():
         return (x + x.abs()) * 0.5

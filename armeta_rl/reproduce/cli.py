@@ -228,9 +228,6 @@ def parse(args: list[str]) -> dict:
 def main() -> None:
     """``armeta-reproduce``: exit code 0 when the experiment is complete, 1 when runs failed or
     are missing, 2 for bad input (one line)."""
-    from armeta_rl.allocator import keep_freed_memory
-
-    keep_freed_memory()
     options = parse(sys.argv[1:])
     try:
         code = reproduce(**options)

@@ -1,9 +1,9 @@
 """The AR risk principle: the flow adversary p_φ as the follower of the Stackelberg game.
 
-Tasks come from p_φ and weigh equally in the leader's objective (paper Eq. meta_player_obj). After
+Tasks come from p_φ and weigh equally in the leader's objective (paper Eq. (15)). After
 the leader's step the follower takes one stochastic gradient *ascent* step on
-J(θ_{t+1}, φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. main_obj and the alternating GDA of Eq.
-stochastic_grad_opt) with the score-function estimate of Eq. meta_adversary_obj_1, Adam and a
+J(θ_{t+1}, φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. (6) and the alternating GDA of Eq.
+(14)) with the score-function estimate of Eq. (17), Adam and a
 cosine learning-rate schedule (paper appendix "Distribution Adversary Implementations").
 """
 
@@ -107,7 +107,7 @@ class AdversarialPrinciple(nn.Module):
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
         """One follower ascent step on the losses of ``tasks`` at θ_{t+1} (paper Eq.
-        stochastic_grad_opt, second line; gradient of Eq. meta_adversary_obj_1).
+        (14), second line; gradient of Eq. (17)).
 
         Logs ``adversary/objective`` (the estimate of J), ``adversary/entropy`` (from the K task
         samples) and ``adversary/kl_p0`` (from the ``initial_samples`` p0 samples), all of p_φ
@@ -213,8 +213,8 @@ class AdversarialPrinciple(nn.Module):
     def _snapshot(self) -> tuple[list[Tensor], bool, dict[str, Any]]:
         """A copy of the parameters and Adam's moments and step counts, whether Adam has state
         yet, and the schedule: what :meth:`_restore` needs to undo a step. The copy goes into
-        buffers kept between updates, in one foreach copy: the snapshot takes about 0.45 ms a step
-        here, against 0.85 ms when it concatenated the ~100 small tensors afresh."""
+        buffers kept between updates, in one foreach copy, rather than concatenating the ~100
+        small tensors afresh."""
         tensors = self._state_tensors()
         if [b.shape for b in self._backup] != [t.shape for t in tensors]:
             self._backup = [torch.empty_like(t) for t in tensors]

@@ -1,4 +1,4 @@
-"""Empirical risk minimization: tasks from p0, equal weights (paper Eq. meta_obj; the MAML row of
+"""Empirical risk minimization: tasks from p0, equal weights (paper Eq. (1); the MAML row of
 the paper's table of meta-learning principles)."""
 
 from __future__ import annotations

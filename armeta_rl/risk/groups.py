@@ -1,7 +1,7 @@
 """Task-group principles: worst-case ``tr`` (TR-MAML) and group DRO ``dro`` (DRO-MAML).
 
 Paper, table "A Summary of Used Methods" and appendix "Robust Fast Adaptation Strategies in the
-Task Space", eq. ``append:gdro``: min_θ max_{g∈G} E_{p_g(τ)}[L(D^Q_τ, D^S_τ; θ)]. The groups G are
+Task Space", Eq. (19): min_θ max_{g∈G} E_{p_g(τ)}[L(D^Q_τ, D^S_τ; θ)]. The groups G are
 the cells of a regular grid over the identifier box (``groups_per_axis`` cells per identifier, so
 ``groups_per_axis ** d`` groups). The inner max over groups is relaxed to a max over group weights q
 on the probability simplex, min_θ max_{q∈Δ} Σ_g q_g L_g(θ), and q follows the group losses:

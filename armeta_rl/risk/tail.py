@@ -3,7 +3,7 @@
 Paper, table "A Summary of Used Methods" and appendix "Robust Fast Adaptation Strategies in the
 Task Space": the leader minimizes E_{p_α(τ;θ)}[L(D^Q_τ, D^S_τ; θ)], the expected loss over the
 normalized tail of the task-loss distribution, i.e. CVaR_α of the task loss under the fixed p0.
-In a batch this is the importance-weighted form (eq. ``append:cvar_iw``): the α-quantile (VaR) of
+In a batch this is the importance-weighted form (Eq. (21)): the α-quantile (VaR) of
 the batch losses is estimated and the tasks at or above it get equal weight, the others zero.
 """
 

@@ -31,7 +31,7 @@ from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.config import check_keys
 from armeta_rl.learners.base import TaskWeights
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
-from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale_flat, log_prob
+from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
     flatten,
@@ -152,7 +152,7 @@ class MAMLTRPOLeader:
         self, params: Params, trajectories: TensorDictBase, advantages: Tensor
     ) -> Tensor:
         """Per-task REINFORCE loss ``[K]``: −mean(log π(a|s)·Â) under per-task ``params``."""
-        loc, scale = loc_scale_flat(self.net, params, trajectories["observation"])
+        loc, scale = loc_scale(self.net, params, trajectories["observation"])
         logp = log_prob(loc, scale, trajectories["action"])
         return -episode_mean(logp * advantages, trajectories["mask"])
 
@@ -188,7 +188,7 @@ class MAMLTRPOLeader:
         """Per-task surrogate loss and KL ``[K]`` of the adapted policies on the post-adaptation
         episodes, against ``old`` (loc, scale) (default: the adapted policies themselves,
         detached). Returns (loss, kl, old)."""
-        outputs = loc_scale_flat(self.net, adapted, valid["observation"])
+        outputs = loc_scale(self.net, adapted, valid["observation"])
         if old is None:
             old = (outputs[0].detach(), outputs[1].detach())
         loss, kl = self.outer_terms_of_outputs(outputs, valid, advantages, old)
@@ -248,7 +248,7 @@ class MAMLTRPOLeader:
         """
         keep = self._hvp_subset(batch) is None
         leaves = [a.detach().requires_grad_(True) for a in batch.adapted.values()]
-        outputs = loc_scale_flat(self.net, dict(zip(batch.adapted, leaves)),
+        outputs = loc_scale(self.net, dict(zip(batch.adapted, leaves)),
                                  batch.valid["observation"])
         old = (outputs[0].detach(), outputs[1].detach())
         loss_k, _ = self.outer_terms_of_outputs(outputs, batch.valid, batch.valid_advantages, old)
@@ -282,7 +282,7 @@ class MAMLTRPOLeader:
                 self.theta(), batch.train[:, subset], batch.train_advantages[:, subset], True
             )
             leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
-            outputs = loc_scale_flat(self.net, dict(zip(adapted, leaves)), valid["observation"])
+            outputs = loc_scale(self.net, dict(zip(adapted, leaves)), valid["observation"])
         current = tuple(o.detach() for o in outputs)
 
         def weighted_kl(outs: list[Tensor]) -> Tensor:

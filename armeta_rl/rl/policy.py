@@ -6,14 +6,14 @@ state-independent log σ initialized at 0 (σ = 1). The same network serves two 
 * as a TorchRL ``ProbabilisticActor`` (``make_actor``), for ``env.rollout`` and collectors;
 * functionally, under per-task parameters with a leading task dimension ``K`` (``loc_scale``):
   the pure :meth:`GaussianMLP.forward_with` vmapped over tasks, so the ``K`` adapted policies of
-  MAML run together. Sampling stays outside ``vmap``. Rollouts, which need no gradient, run the
-  same function as one batched matrix product per layer (``loc_scale_batched``).
+  MAML run together, in rollouts and in the differentiable losses alike. Sampling stays outside
+  ``vmap``.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import torch
 from tensordict import TensorDictBase
@@ -24,9 +24,6 @@ from torch.nn import functional as F
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
 MIN_LOG_STD = math.log(1e-6)
-
-Linear = Callable[[Tensor, Tensor, Tensor], Tensor]
-"""A linear layer as a function of (input, weight, bias), laid out as ``F.linear``'s arguments."""
 
 
 class GaussianMLP(nn.Module):
@@ -57,21 +54,19 @@ class GaussianMLP(nn.Module):
         return loc, scale
 
     def forward_with(
-        self, params: dict[str, Tensor], observation: Tensor, linear: Linear = F.linear
+        self, params: dict[str, Tensor], observation: Tensor
     ) -> tuple[Tensor, Tensor]:
-        """:meth:`forward` with the parameters ``params`` (named as in ``named_parameters``),
-        each linear layer applied as ``linear(hidden, weight, bias)``.
+        """:meth:`forward` with the parameters ``params`` (named as in ``named_parameters``).
 
         The pure function that ``vmap`` batches over tasks: it walks the MLP's layers with
         ``F.linear`` instead of ``functional_call``, whose per-call swapping of the module's
-        tensors costs as much as this small network's arithmetic. :func:`loc_scale_batched`
-        runs it on per-task parameters with a per-task ``linear`` instead.
+        tensors costs as much as this small network's arithmetic.
         """
         hidden = observation
         for name, layer in self.mean.named_children():
             if isinstance(layer, nn.Linear):
                 weight, bias = params[f"mean.{name}.weight"], params[f"mean.{name}.bias"]
-                hidden = linear(hidden, weight, bias)
+                hidden = F.linear(hidden, weight, bias)
             else:
                 hidden = layer(hidden)
         scale = params["log_std"].clamp_min(MIN_LOG_STD).exp().expand_as(hidden)
@@ -79,47 +74,17 @@ class GaussianMLP(nn.Module):
 
 
 def loc_scale(
-    net: GaussianMLP, params: TensorDictBase, observation: Tensor
+    net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
 ) -> tuple[Tensor, Tensor]:
     """(loc, scale) of π under per-task parameters.
 
     Args:
         net: the policy network (its own parameters are ignored).
-        params: parameters with batch size ``[K]``, one set per task.
+        params: per-task parameters as a flat ``{"mean.0.weight": [K, ...], ...}`` dict, named as
+            in ``net.named_parameters()``.
         observation: ``[K, ...batch, obs_dim]``; task ``k`` is evaluated with ``params[k]``.
     """
-    return loc_scale_flat(net, params.flatten_keys(".").to_dict(), observation)
-
-
-def loc_scale_flat(
-    net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
-) -> tuple[Tensor, Tensor]:
-    """:func:`loc_scale` with per-task parameters as a flat ``{"a.b": [K, ...]}`` dict."""
     return vmap(net.forward_with)(params, observation)
-
-
-def loc_scale_batched(
-    net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
-) -> tuple[Tensor, Tensor]:
-    """:func:`loc_scale_flat` computed with one ``baddbmm`` over the ``K`` tasks per layer
-    instead of ``vmap``, for rollouts: the same values (bit for bit in the point_nav runs checked
-    on the development machine, so switching changed no trajectory).
-
-    A rollout runs the policy at every env step on a small batch, where ``vmap``'s per-call
-    overhead outweighs the arithmetic: for 20 tasks × 20 episodes it cost about 0.9 ms per step,
-    a third of the post-adaptation rollout's time. The differentiable paths keep ``vmap``.
-    """
-    n_tasks, batch = observation.shape[0], observation.shape[1:-1]
-    flat = observation.reshape(n_tasks, -1, observation.shape[-1])
-    per_task = {**params, "log_std": params["log_std"].unsqueeze(1)}
-    loc, scale = net.forward_with(per_task, flat, linear=_per_task_linear)
-    shape = (n_tasks, *batch, loc.shape[-1])
-    return loc.reshape(shape), scale.reshape(shape)
-
-
-def _per_task_linear(hidden: Tensor, weight: Tensor, bias: Tensor) -> Tensor:
-    """``F.linear`` with a leading task dimension on all three arguments: one ``baddbmm``."""
-    return torch.baddbmm(bias.unsqueeze(1), hidden, weight.transpose(1, 2))
 
 
 class PerTaskLocScale(TensorDictModuleBase):
@@ -127,8 +92,8 @@ class PerTaskLocScale(TensorDictModuleBase):
     ``[K]`` when given, else the network's own (shared) parameters.
 
     A ``TensorDictModuleBase`` that sets its two outputs directly: ``TensorDictModule`` passes every
-    output through ``TensorDict.from_any``, whose search for an optional pandas import costs about
-    0.3 ms per tensor, and this module runs at every env step of a rollout.
+    output through ``TensorDict.from_any``, whose search for an optional pandas import costs more
+    than this small network, and this module runs at every env step of a rollout.
     """
 
     in_keys = ["observation"]
@@ -145,7 +110,7 @@ class PerTaskLocScale(TensorDictModuleBase):
         if self.params is None:
             loc, scale = self.net(observation)
         else:
-            loc, scale = loc_scale_batched(self.net, self.params, observation)
+            loc, scale = loc_scale(self.net, self.params, observation)
         return tensordict.set("loc", loc).set("scale", scale)
 
 

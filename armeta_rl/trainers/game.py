@@ -1,5 +1,5 @@
-"""The one game loop (ARCHITECTURE.md; paper Algorithm 1 and the GDA updates of Eq.
-stochastic_grad_opt): the leader steps on tasks proposed by the risk principle, then the follower
+"""The one game loop (docs/architecture.md; paper Algorithm 1 and the GDA updates of Eq.
+(14)): the leader steps on tasks proposed by the risk principle, then the follower
 steps on the same tasks' losses at θ_{t+1}.
 
 The loop knows nothing about regression or RL: the leader owns collection, adaptation and its

@@ -1,0 +1,76 @@
+"""Every benchmark script writes its own section of docs/benchmarks.md and leaves the others."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture(scope="module")
+def timing():
+    spec = importlib.util.spec_from_file_location("timing", BENCHMARKS / "timing.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+PAGE = """# Benchmarks
+
+Header text.
+
+<!-- bench_a:start -->
+## A
+old table of a
+<!-- bench_a:end -->
+
+<!-- bench_b:start -->
+## B
+table of b
+<!-- bench_b:end -->
+"""
+
+
+def test_a_section_replaces_only_its_own_text(timing):
+    page = timing.replace_section(PAGE, "bench_a", "## A\nnew table of a")
+    assert "new table of a" in page and "old table of a" not in page
+    start, end = timing.markers("bench_b")
+    assert page.split(start)[1].split(end)[0] == PAGE.split(start)[1].split(end)[0]
+    assert page.split("<!-- bench_a:start -->")[0] == PAGE.split("<!-- bench_a:start -->")[0]
+    assert timing.replace_section(page, "bench_a", "## A\nold table of a") == PAGE
+
+
+def test_a_new_section_is_appended_after_the_others(timing):
+    page = timing.replace_section(PAGE, "bench_c", "## C\ntable of c")
+    assert page.startswith(PAGE.rstrip("\n"))
+    assert page.rstrip().endswith("<!-- bench_c:end -->")
+    assert timing.replace_section(page, "bench_c", "## C\ntable of c") == page
+
+
+def test_an_unclosed_section_is_refused(timing):
+    with pytest.raises(ValueError, match="bench_a"):
+        timing.replace_section("<!-- bench_a:start -->\nno end", "bench_a", "x")
+
+
+def test_write_section_writes_the_command_and_the_table(timing, tmp_path, monkeypatch):
+    page = tmp_path / "benchmarks.md"
+    page.write_text(PAGE)
+    monkeypatch.setattr(sys, "argv", ["benchmarks/bench_b.py", "--turns", "2"])
+    table = timing.markdown_table(("what", "ms"), [("step", "1.5")])
+    timing.write_section("bench_b", "B", table, page)
+    text = page.read_text()
+    assert "`OMP_NUM_THREADS=1 python benchmarks/bench_b.py --turns 2`" in text
+    assert "| what | ms |\n|---|---|\n| step | 1.5 |" in text
+    assert "old table of a" in text and "table of b" not in text
+
+
+def test_every_script_writes_a_section_of_the_page(timing):
+    page = (BENCHMARKS.parent / "docs" / "benchmarks.md").read_text()
+    for script in sorted(BENCHMARKS.glob("bench_*.py")):
+        start, end = timing.markers(script.stem)
+        assert f'write_section("{script.stem}"' in script.read_text(), script.name
+        assert start in page and end in page, script.name
