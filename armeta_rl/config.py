@@ -342,6 +342,36 @@ def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, datac
     return keys
 
 
+REMOVED_KEYS: dict[str, Any] = {
+    "benchmark.collector.compile": False,
+    "benchmark.eval_collector.compile": False,
+}
+"""Keys that configs saved by earlier versions may hold, with the value under which a saved run
+behaves as today's code runs it (the compiled system-identification env step was removed:
+docs/speed-options.md)."""
+
+
+def without_removed_keys(cfg: DictConfig) -> DictConfig:
+    """``cfg`` (a run directory's saved config) without the keys of :data:`REMOVED_KEYS`; a key
+    saved at another value than today's behaviour is refused (:class:`ConfigError`)."""
+    present = {}
+    for name, today in REMOVED_KEYS.items():
+        value = OmegaConf.select(cfg, name, default=_MISSING)
+        if value is _MISSING:
+            continue
+        if value != today:
+            raise ConfigError(name, value, f"was removed; a saved run needs it at {today!r}")
+        present[name] = value
+    if not present:
+        return cfg
+    cfg = cfg.copy()
+    with open_dict(cfg):
+        for name in present:
+            parent, _, leaf = name.rpartition(".")
+            OmegaConf.select(cfg, parent).pop(leaf)
+    return cfg
+
+
 def with_old_run_defaults(cfg: DictConfig) -> DictConfig:
     """``cfg`` (a run directory's saved config) with the keys added since it was saved, at the
     values that keep such a run behaving as it did (their ``old_runs``)."""
@@ -423,4 +453,4 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
         ) from None
     if not isinstance(cfg, DictConfig):
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
-    return with_old_run_defaults(cfg)
+    return with_old_run_defaults(without_removed_keys(cfg))

@@ -7,6 +7,7 @@ table of bad values, generated from the schema, is refused for every key with a 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import json
@@ -122,3 +123,27 @@ if __name__ == "__main__":
     PINNED.write_text(json.dumps({n: digest(c) for n, c in compositions().items()}, indent=1,
                                  sort_keys=True) + "\n")
     sys.exit(0)
+
+
+@pytest.mark.parametrize("key", ["benchmark.collector.compile", "benchmark.eval_collector.compile"])
+def test_a_saved_run_loads_without_a_removed_key_at_todays_behaviour_and_refuses_another(
+    tmp_path, key
+):
+    """A config saved before the compiled sys-id step was removed holds ``compile: false``: it
+    loads, without the key; ``compile: true`` asked for what no longer exists: one line."""
+    from armeta_rl.config import load_run_config
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        composed = compose("train", overrides=["benchmark=pendulum_uniform"])
+    cfg = OmegaConf.create(OmegaConf.to_container(composed, resolve=True))  # as a run saves it
+    for value in (False, True):
+        saved = copy.deepcopy(cfg)
+        OmegaConf.update(saved, key, value, force_add=True)
+        OmegaConf.save(saved, tmp_path / "config.yaml")
+        if value:
+            with pytest.raises(ConfigError, match=f"'{key}' = True: was removed"):
+                load_run_config(tmp_path, "learner")
+        else:
+            loaded = load_run_config(tmp_path, "learner")
+            assert OmegaConf.select(loaded, key, default="absent") == "absent"
+            assert OmegaConf.to_container(loaded) == OmegaConf.to_container(cfg)
