@@ -14,7 +14,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
@@ -40,7 +40,7 @@ def build_initial(cfg: DictConfig, space: TaskSpace) -> TaskDistribution:
     )
 
 
-def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collector:
+def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> TaskCollector:
     """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node); a collector
     with a ``check_space`` method is handed the benchmark's box, so a box its env cannot take
     (other identifier names or width, values outside the env's range) fails before training."""
@@ -64,7 +64,7 @@ def build_collector(cfg: DictConfig, key: str = "benchmark.collector") -> Collec
     return collector
 
 
-def _maml(cfg: DictConfig, collector: Collector) -> Leader:
+def _maml(cfg: DictConfig, collector: TaskCollector) -> Leader:
     from armeta_rl.learners.maml import MAMLLeader
     from armeta_rl.learners.mlp import make_mlp
 
@@ -84,7 +84,7 @@ def _maml(cfg: DictConfig, collector: Collector) -> Leader:
     return MAMLLeader(model, collector, **opts)
 
 
-def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
+def _cnp(cfg: DictConfig, collector: TaskCollector) -> Leader:
     from armeta_rl.learners.cnp import CNPLeader
 
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
@@ -98,8 +98,8 @@ def _cnp(cfg: DictConfig, collector: Collector) -> Leader:
     )
 
 
-def _maml_trpo(cfg: DictConfig, collector: Collector) -> Leader:
-    from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+def _maml_trpo(cfg: DictConfig, collector: TaskCollector) -> Leader:
+    from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 
     return MAMLTRPOLeader(collector, **_section(cfg, "learner.maml_trpo"))
 
@@ -140,7 +140,7 @@ def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPr
     return GroupDROPrinciple(initial, **_section(cfg, "risk.dro"))
 
 
-LEADERS: dict[str, Callable[[DictConfig, Collector], Leader]] = {
+LEADERS: dict[str, Callable[[DictConfig, TaskCollector], Leader]] = {
     "maml": _maml,
     "cnp": _cnp,
     "maml_trpo": _maml_trpo,
@@ -154,7 +154,7 @@ PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPr
 }
 
 
-def build_leader(cfg: DictConfig, collector: Collector) -> Leader:
+def build_leader(cfg: DictConfig, collector: TaskCollector) -> Leader:
     """The leader named by ``method.learner``, through the benchmark's ``leaders`` map if it has
     one (on RL benchmarks ``maml`` means MAML-TRPO; CNP has no RL form)."""
     name = cfg.method.learner

@@ -95,7 +95,7 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
 
     def step() -> None:
         tasks = trainer.principle.propose(trainer.meta_batch)
-        data = leader.collector.collect(tasks)
+        data = leader.collect(tasks)
         losses = torch.stack([leader._adapted_loss(params, data[k]) for k in range(len(data))])
         leader.optimizer.zero_grad()
         losses.mean().backward()

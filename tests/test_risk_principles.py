@@ -86,7 +86,9 @@ def test_tail_risk_proposes_from_p0_and_oversamples():
     assert candidates.batch_size == torch.Size([16])
     assert bool(SPACE.contains(candidates["params"]).all())
     assert int((over.weights(torch.rand(16)) > 0).sum()) == 8
-    assert plain.update_every == 0 and isinstance(plain, RiskPrinciple)
+    assert isinstance(plain, RiskPrinciple)
+    # no follower: its update reports the tail of each step's own losses, at no extra evaluation
+    assert plain.update_every == 1 and not plain.needs_next_losses
 
 
 @pytest.mark.parametrize("alpha", [0.0, 1.0, -0.1, 1.5, "half", None])
@@ -186,17 +188,21 @@ def test_group_weights_divide_q_among_each_groups_tasks(kind):
 
 
 @pytest.mark.parametrize("kind", GROUP_PRINCIPLES)
-def test_group_weights_follow_the_proposed_batch(kind):
+def test_group_weights_are_a_function_of_the_losses_and_their_tasks(kind):
+    """Weights depend on the tasks passed in, not on what propose saw: a copy of the batch, or
+    a second propose in between, gives the same weights."""
     principle = kind(BoxUniform(SPACE), groups_per_axis=3)
     principle.load_state_dict({"q": torch.softmax(torch.randn(9, dtype=torch.float64), 0)})
     torch.manual_seed(7)
     tasks = principle.propose(32)
     losses = torch.rand(32)
-    weights = principle.weights(losses)
-    assert torch.equal(weights, principle.weights(losses, tasks))
+    weights = principle.weights(losses, tasks)
+    other = principle.propose(32)
+    assert torch.equal(weights, principle.weights(losses, tasks.clone()))
+    assert not torch.equal(weights, principle.weights(losses, other))
     assert on_simplex(weights)
     with pytest.raises(ValueError):
-        principle.weights(torch.rand(31))
+        principle.weights(torch.rand(31), tasks)
 
 
 @pytest.mark.parametrize("kind", GROUP_PRINCIPLES)

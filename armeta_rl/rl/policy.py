@@ -4,7 +4,8 @@
 state-independent log σ initialized at 0 (σ = 1). The same network serves two uses:
 
 * as a TorchRL ``ProbabilisticActor`` (``make_actor``), for ``env.rollout`` and collectors;
-* functionally, under per-task parameters with a leading task dimension ``K`` (``loc_scale``):
+* functionally, under per-task parameters with a leading task dimension ``K``
+  (``loc_scale_flat``):
   the pure :meth:`GaussianMLP.forward_with` vmapped over tasks, so the ``K`` adapted policies of
   MAML run together. Sampling stays outside ``vmap``. Rollouts, which need no gradient, run the
   same function as one batched matrix product per layer (``loc_scale_batched``).
@@ -78,23 +79,16 @@ class GaussianMLP(nn.Module):
         return hidden, scale
 
 
-def loc_scale(
-    net: GaussianMLP, params: TensorDictBase, observation: Tensor
+def loc_scale_flat(
+    net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
 ) -> tuple[Tensor, Tensor]:
     """(loc, scale) of π under per-task parameters.
 
     Args:
         net: the policy network (its own parameters are ignored).
-        params: parameters with batch size ``[K]``, one set per task.
+        params: one set of parameters per task, as a flat ``{"a.b": [K, ...]}`` dict.
         observation: ``[K, ...batch, obs_dim]``; task ``k`` is evaluated with ``params[k]``.
     """
-    return loc_scale_flat(net, params.flatten_keys(".").to_dict(), observation)
-
-
-def loc_scale_flat(
-    net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
-) -> tuple[Tensor, Tensor]:
-    """:func:`loc_scale` with per-task parameters as a flat ``{"a.b": [K, ...]}`` dict."""
     return vmap(net.forward_with)(params, observation)
 
 

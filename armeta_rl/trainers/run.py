@@ -12,7 +12,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.compiling import COMPILE_KEYS
@@ -97,7 +97,7 @@ def evaluate_players(
     return report
 
 
-def noisy_support_collector(cfg: DictConfig, players: Players) -> Collector | None:
+def noisy_support_collector(cfg: DictConfig, players: Players) -> TaskCollector | None:
     """The evaluation collector with N(0, σ²) noise on the support labels for σ =
     ``eval.support_noise`` (the paper's random perturbation test), or ``None`` when σ = 0.
 
@@ -123,9 +123,8 @@ def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution
     with torch.random.fork_rng(devices=[]), torch.no_grad():
         torch.manual_seed(seed)
         entropy = float(distribution.entropy(samples))
-        initial_params = initial.sample_params(samples)
-        kl = initial.log_prob(initial_params) - distribution.log_prob(initial_params)
-    return {"entropy": entropy, "kl_p0": float(kl.mean())}
+        kl = float(distribution.kl_from(initial, samples))
+    return {"entropy": entropy, "kl_p0": kl}
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:

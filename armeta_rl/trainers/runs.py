@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import load_run_config
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
@@ -96,7 +96,7 @@ class Players:
     initial: TaskDistribution
     leader: Leader
     principle: RiskPrinciple
-    eval_collector: Collector
+    eval_collector: TaskCollector
 
     @property
     def adversary(self) -> TaskDistribution | None:
