@@ -38,7 +38,7 @@ from timing import reference_product_ms, wall_times
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.runs import build_players
+from armeta_rl.trainers.players import build_players
 
 BENCHMARKS = ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform")
 WARMUP = 10

@@ -9,7 +9,7 @@ from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.cli import group_choices
 from armeta_rl.errors import ConfigError
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 METHODS = [
     "maml",

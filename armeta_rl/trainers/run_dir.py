@@ -1,5 +1,4 @@
-"""Run directories: their lock, building a run's players from its config and restoring them from
-disk.
+"""The run directory: its layout, its lock, and writing files in it atomically.
 
 A run directory holds ``run.lock``, ``config.yaml`` (the resolved config), ``checkpoints/``,
 ``logs/``, ``eval.json`` and ``density.png``.
@@ -10,32 +9,17 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
-import random
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
-from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import load_run_config
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import (
-    build_collector,
-    build_initial,
-    build_leader,
-    build_principle,
-    build_space,
-)
-from armeta_rl.learners.base import Leader
-from armeta_rl.risk.base import RiskPrinciple
-from armeta_rl.tasks import TaskDistribution, TaskSpace
-from armeta_rl.trainers.checkpoint import RunCheckpoint
+from armeta_rl.trainers.checkpoint import write_file
 
 LOCK_FILE = "run.lock"
+CSV_LOG_DIR = "logs"
 
 
 def check_run_dir(run_dir: Path, key: str) -> None:
@@ -88,47 +72,45 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
         os.close(fd)
 
 
-@dataclass
-class Players:
-    """Everything a run trains and evaluates."""
-
-    space: TaskSpace
-    initial: TaskDistribution
-    leader: Leader
-    principle: RiskPrinciple
-    eval_collector: TaskCollector
-
-    @property
-    def adversary(self) -> TaskDistribution | None:
-        """The learned task distribution p_φ, for principles that have one."""
-        return getattr(self.principle, "adversary", None)
+def write_config(cfg: DictConfig, path: Path) -> None:
+    """Save the resolved ``cfg`` as ``path`` atomically (a crash leaves the old file or none)."""
+    write_text_atomically(path, OmegaConf.to_yaml(cfg, resolve=True))
 
 
-def seed_everything(seed: int) -> None:
-    """Seed Python, NumPy and torch (CPU and any accelerator)."""
-    random.seed(seed)
-    np.random.seed(seed % 2**32)
-    torch.manual_seed(seed)
+def write_text_atomically(path: Path, text: str) -> None:
+    """Write ``text`` to a hidden sibling of ``path``, fsync it and rename it over ``path``."""
+    staged = path.with_name(f".{path.name}.{os.getpid()}")
+    try:
+        write_file(staged, text.encode())
+        os.replace(staged, path)
+    finally:
+        staged.unlink(missing_ok=True)
 
 
-def build_players(cfg: DictConfig) -> Players:
-    """Seed, then build the players of ``cfg`` (the seed fixes their initial parameters)."""
-    seed_everything(cfg.seed)
-    space = build_space(cfg)
-    initial = build_initial(cfg, space)
-    collector = build_collector(cfg, "benchmark.collector")
-    eval_collector = build_collector(cfg, "benchmark.eval_collector")
-    leader = build_leader(cfg, collector)
-    principle = build_principle(cfg, space, initial)
-    return Players(space, initial, leader, principle, eval_collector)
+def drop_csv_rows_after(run_dir: Path, iteration: int) -> None:
+    """Delete the CSV log rows of iterations after ``iteration`` (the checkpoint a run resumes
+    from): a run that crashed logged past its last checkpoint, and the resumed run logs those
+    iterations again, so without this every scalar would hold them twice. A last row without
+    its line end (a write the crash cut short) is dropped too.
+
+    Raises:
+        ConfigError: a complete row does not start with an iteration number.
+    """
+    for path in (run_dir / CSV_LOG_DIR / "scalars").rglob("*.csv"):
+        rows = path.read_text(errors="replace").splitlines(keepends=True)
+        if rows and not rows[-1].endswith("\n"):
+            rows[-1] = ""
+        kept = [row for row in rows if row and _csv_step(row, path, run_dir) <= iteration]
+        if kept != rows:
+            write_text_atomically(path, "".join(kept))
 
 
-def load_players(run_dir: str | Path, key: str) -> tuple[DictConfig, Players]:
-    """Rebuild a saved run's players and load its latest checkpoint."""
-    cfg = load_run_config(run_dir, key)
-    players = build_players(cfg)
-    checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle)
-    if not checkpoint.checkpoints():
-        raise ConfigError(key, str(run_dir), "has no checkpoint")
-    checkpoint.restore(key, ("leader", "principle"), fallback=False)
-    return cfg, players
+def _csv_step(row: str, path: Path, run_dir: Path) -> int:
+    try:
+        return int(row.split(",", 1)[0])
+    except ValueError:
+        raise ConfigError(
+            "resume", str(run_dir),
+            f"its log {path.relative_to(run_dir)} has a row that does not parse "
+            f"({row.strip()[:40]!r}): delete that row or file to resume",
+        ) from None
