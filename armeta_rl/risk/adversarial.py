@@ -31,8 +31,8 @@ class AdversarialPrinciple(nn.Module):
 
     ``state_dict()`` holds the adversary's parameters plus, as torch's ``_extra_state``, the Adam
     and scheduler states (plain tensors, numbers and lists: ``torch.load(weights_only=True)``
-    reads it). Like any ``nn.Module`` state dict its
-    tensors alias the live ones; copy before mutating.
+    reads it). Like any ``nn.Module`` state dict its tensors alias the live ones; copy before
+    mutating.
 
     Args:
         adversary: p_φ (its ``base`` is p0).
