@@ -269,7 +269,7 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
 def _train_task(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
-    from armeta_rl.trainers.run import run_training
+    from armeta_rl.trainers.training import run_training
 
     if cfg.resume:
         cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task), "armeta-train")
@@ -301,7 +301,7 @@ def train() -> None:
     and its log there); a run refused before it wrote a checkpoint removes the directory it
     created. ``-m`` jobs lock their own directories.
     """
-    from armeta_rl.trainers.runs import check_run_dir, run_lock
+    from armeta_rl.trainers.run_dir import check_run_dir, run_lock
 
     prog = "armeta-train"
     args = sys.argv[1:]
@@ -359,7 +359,8 @@ def _remove_run_dir(run_dir: Path) -> None:
 
 def _eval_task(cfg: DictConfig) -> None:
     from armeta_rl.trainers.evaluation import format_table
-    from armeta_rl.trainers.run import cross_evaluate, write_text_atomically
+    from armeta_rl.trainers.report import cross_evaluate
+    from armeta_rl.trainers.run_dir import write_text_atomically
 
     suffix = "" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}"
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"

@@ -102,7 +102,7 @@ class TrainerSchema:
     progress: bool = key()
     max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
     density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
-    frozen_leader: str | None = key(old_runs=None)  # checked by armeta_rl.trainers.runs
+    frozen_leader: str | None = key(old_runs=None)  # checked by armeta_rl.trainers.players
 
 
 @dataclass

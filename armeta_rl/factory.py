@@ -18,7 +18,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
@@ -49,7 +49,7 @@ def build_initial(
 
 def build_collector(
     cfg: DictConfig, key: str = "benchmark.collector", device: torch.device = CPU
-) -> Collector:
+) -> TaskCollector:
     """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node) with its data on
     ``device`` (every collector takes a ``device`` argument); a collector with a ``check_space``
     method is handed the benchmark's box, so a box its env cannot take
@@ -78,7 +78,7 @@ OLD_SIZE_KEYS = ("benchmark.model.in_features", "benchmark.model.out_features")
 """Where configs saved before sizes came from the collector state them."""
 
 
-def sizes(cfg: DictConfig, collector: Collector, stated: tuple[str, str]) -> tuple[int, int]:
+def sizes(cfg: DictConfig, collector: TaskCollector, stated: tuple[str, str]) -> tuple[int, int]:
     """The leader's input and output sizes, as the collector defines them (``in_features`` and
     ``out_features``: x and y, or the env's observation and action). A config saved before sizes
     came from the collector states them at the keys ``stated``: such a value is accepted when it
@@ -91,7 +91,7 @@ def sizes(cfg: DictConfig, collector: Collector, stated: tuple[str, str]) -> tup
     return defined
 
 
-def _maml(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
+def _maml(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
     from armeta_rl.learners.maml import MAMLLeader
     from armeta_rl.learners.mlp import make_mlp
 
@@ -107,7 +107,7 @@ def _maml(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader
     return MAMLLeader(model, collector, **opts)
 
 
-def _cnp(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
+def _cnp(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
     from armeta_rl.learners.cnp import CNPLeader
 
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
@@ -117,8 +117,8 @@ def _cnp(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
                      **_section(cfg, "learner.cnp"), device=device)
 
 
-def _maml_trpo(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
-    from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+def _maml_trpo(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
+    from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 
     old_keys = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
     obs_dim, action_dim = sizes(cfg, collector, old_keys)
@@ -128,7 +128,7 @@ def _maml_trpo(cfg: DictConfig, collector: Collector, device: torch.device) -> L
                           device=device)
 
 
-def _anil(cfg: DictConfig, collector: Collector, device: torch.device) -> Leader:
+def _anil(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
     from armeta_rl.learners.anil import ANILLeader, BodyHead
 
     opts = _section(cfg, "learner.anil")
@@ -144,8 +144,8 @@ class Learner:
     ``configs/train.yaml``, types and ranges in :mod:`armeta_rl.config`) and takes the model's
     sizes from the collector (:func:`sizes`) and builds it on the run's device."""
 
-    build: Callable[[DictConfig, Collector, torch.device], Leader]
-    rl: Callable[[DictConfig, Collector, torch.device], Leader] | None = None
+    build: Callable[[DictConfig, TaskCollector, torch.device], Leader]
+    rl: Callable[[DictConfig, TaskCollector, torch.device], Leader] | None = None
 
 
 LEARNERS: dict[str, Learner] = {
@@ -202,7 +202,7 @@ PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPr
 }
 
 
-def build_leader(cfg: DictConfig, collector: Collector, device: torch.device = CPU) -> Leader:
+def build_leader(cfg: DictConfig, collector: TaskCollector, device: torch.device = CPU) -> Leader:
     """The learner named by ``method.learner``, in its meta-RL form when the collector gathers
     episodes (MAML is MAML-TRPO there; CNP has no meta-RL form), on ``device``."""
     from armeta_rl.collectors.episodes import EpisodeCollector

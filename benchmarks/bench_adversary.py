@@ -1,10 +1,9 @@
 """Speed of the follower: ``propose(25)`` + ``update`` on those 25 tasks, per flow, one thread.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_adversary.py [--no-compile]``. Prints the
-median milliseconds of
-``propose``, of the update (surrogate with 256 fresh p0 samples, backward, clipped Adam step, and
-the draw of the next tasks from the new p_φ, which checks its density and which the next
-``propose`` returns), and of both, on the sinusoid box with a toy loss, for the spline flow at its
+median milliseconds of ``propose`` (a draw from p_φ), of the update (surrogate with 256 fresh p0
+samples, backward, clipped Adam step, and the new p_φ's log-density at the batch's tasks, which
+checks it), and of both, on the sinusoid box with a toy loss, for the spline flow at its
 default size (one coupling on this 2-D box), smaller and with two layers, and for the planar
 flows; then the default spline and planar flows with ``risk.ar.compile=true`` (timed after their
 warm-up iterations, which compile), and writes the table to its section of docs/benchmarks.md.

@@ -126,7 +126,7 @@ def meta_iteration_seconds(
     tasks: int, episodes: int, horizon: int, repeats: int, workers: int = 1
 ) -> float:
     """Seconds per MAML-TRPO meta-iteration on ant_goal with ``tasks`` tasks."""
-    from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+    from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
     from armeta_rl.tasks import BoxUniform, TaskSpace
 
     space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
@@ -138,7 +138,7 @@ def meta_iteration_seconds(
     def erm_weights(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1 / tasks)
 
-    elapsed = seconds(lambda: leader.step(task_batch, erm_weights), repeats)
+    elapsed = seconds(lambda: leader.step(leader.collect(task_batch), erm_weights), repeats)
     collector.close()
     return elapsed
 

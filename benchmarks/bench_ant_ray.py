@@ -43,7 +43,7 @@ from tensordict import TensorDict
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
 from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, observation_size
-from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "scale.md"
@@ -63,7 +63,7 @@ def timed_step(leader: MAMLTRPOLeader, tasks: TensorDict, seed: int) -> float:
     count = tasks.batch_size[0]
     torch.manual_seed(seed)
     start = time.perf_counter()
-    leader.step(tasks, lambda losses: torch.full_like(losses, 1 / count))
+    leader.step(leader.collect(tasks), lambda losses: torch.full_like(losses, 1 / count))
     return time.perf_counter() - start
 
 

@@ -38,7 +38,7 @@ from timing import markdown_table, reference_product_ms, wall_times, write_secti
 
 from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.runs import build_players
+from armeta_rl.trainers.players import build_players
 
 BENCHMARKS = ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform")
 WARMUP = 10
@@ -95,7 +95,7 @@ def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
 
     def step() -> None:
         tasks = trainer.principle.propose(trainer.meta_batch)
-        data = leader.collector.collect(tasks)
+        data = leader.collect(tasks)
         support, query = data["support"], data["query"]
         losses = torch.stack([
             leader.query_loss(params, support["x"][k], support["y"][k], query["x"][k],

@@ -28,7 +28,7 @@ from torch import nn
 
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
-from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -69,16 +69,16 @@ def main() -> None:
         return torch.full_like(losses, 1.0 / losses.numel())
 
     leader = MAMLTRPOLeader(collector)
-    t = seconds(lambda: leader.collect_meta_batch(tasks), args.repeats)
+    t = seconds(lambda: leader.collect(tasks), args.repeats)
     rows.append(("both rollouts + inner step (sampling)", t, 2 * k * e * steps / t))
     for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5),
                                 ("HVP on 2 episodes/task", 2)):
         leader = MAMLTRPOLeader(collector, hvp_episodes=hvp_episodes)
-        t = seconds(lambda leader=leader: leader.step(tasks, erm), args.repeats)
+        t = seconds(lambda leader=leader: leader.step(leader.collect(tasks), erm), args.repeats)
         rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
 
     leader = MAMLTRPOLeader(collector)
-    batch = leader.collect_meta_batch(tasks)
+    batch = leader.collect(tasks)
     weights = erm(torch.zeros(k))
     hvp = leader.kl_hessian_product(batch, weights, leader.surrogate_gradient(batch, weights)[2])
     vector = torch.randn(sum(p.numel() for p in leader.net.parameters()))

@@ -20,7 +20,7 @@ from armeta_rl.config import check_config
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 CTRL, CONTACT, SURVIVE = 5e-3, 5e-4, 0.05
 

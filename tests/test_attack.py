@@ -11,8 +11,9 @@ import torch
 from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.trainers.run import cross_evaluate, run_training
-from armeta_rl.trainers.runs import build_players, load_players
+from armeta_rl.trainers.players import build_players, load_players
+from armeta_rl.trainers.report import cross_evaluate
+from armeta_rl.trainers.training import run_training
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 RUN = (*SMALL_RUN, "trainer.meta_batch=5", "trainer.checkpoint_every=2", "logger=csv",

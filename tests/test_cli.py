@@ -6,7 +6,7 @@ import sys
 import pytest
 from conftest import SMALL_RUN, compose_train
 
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]

@@ -18,16 +18,6 @@ from armeta_rl.tasks import BoxUniform, TaskSpace
 SINUSOID = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
 
 
-class FixedData:
-    """A collector that hands back the same data whatever the tasks (to compare updates)."""
-
-    def __init__(self, data: TensorDict) -> None:
-        self.data = data
-
-    def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
-        return self.data
-
-
 def random_data(tasks: int, support: int, query: int, x_dim: int, y_dim: int) -> TensorDict:
     def points(n: int) -> dict[str, torch.Tensor]:
         return {"x": torch.randn(tasks, n, x_dim), "y": torch.randn(tasks, n, y_dim)}
@@ -44,23 +34,27 @@ def test_shapes_on_sinusoid_tasks():
     leader = CNPLeader(1, 1, SinusoidCollector(n_support=5, n_query=7))
     assert isinstance(leader, Leader) and leader.metric == "mse"
     tasks = BoxUniform(SINUSOID).sample(6)
-    mean, std = leader.predict(leader.collector.collect(tasks))
+    data = leader.collect(tasks)
+    mean, std = leader.predict(data)
     assert mean.shape == std.shape == (6, 7, 1)
     assert bool((std >= 0.1).all())
-    logs = leader.step(tasks, uniform)
-    assert logs.batch_size == torch.Size([6])
+    logs, scalars = leader.step(data, uniform)
+    assert logs.batch_size == torch.Size([6]) and scalars == {}
     assert logs["loss"].shape == logs["mse"].shape == (6,)
     assert not logs["loss"].requires_grad and bool(logs["loss"].isfinite().all())
-    assert leader.evaluate(tasks).shape == (6,)
-    assert leader.evaluate(tasks, SinusoidCollector(n_support=10, n_query=50)).shape == (6,)
+    assert leader.evaluate(data).shape == (6,)
+    larger = leader.collect(tasks, SinusoidCollector(n_support=10, n_query=50))
+    assert larger["query", "x"].shape == (6, 50, 1)
+    assert leader.evaluate(larger).shape == (6,)
 
 
 def test_shapes_with_vector_inputs_and_outputs():
     torch.manual_seed(1)
-    leader = CNPLeader(3, 2, FixedData(random_data(4, 6, 9, 3, 2)), hidden=32)
-    mean, std = leader.predict(leader.collector.collect(None))
+    data = random_data(4, 6, 9, 3, 2)
+    leader = CNPLeader(3, 2, SinusoidCollector(), hidden=32)
+    mean, std = leader.predict(data)
     assert mean.shape == std.shape == (4, 9, 2)
-    assert leader.evaluate(None).shape == (4,)
+    assert leader.evaluate(data).shape == (4,)
 
 
 def test_gaussian_nll_matches_torch_normal_log_prob():
@@ -70,8 +64,8 @@ def test_gaussian_nll_matches_torch_normal_log_prob():
     expected = -torch.distributions.Normal(mean, std).log_prob(target)
     assert torch.allclose(gaussian_nll(mean, std, target), expected, atol=1e-5)
 
-    leader = CNPLeader(1, 1, FixedData(random_data(5, 4, 8, 1, 1)))
-    data = leader.collector.collect(None)
+    data = random_data(5, 4, 8, 1, 1)
+    leader = CNPLeader(1, 1, SinusoidCollector())
     mean, std = leader.predict(data)
     reference = -torch.distributions.Normal(mean, std).log_prob(data["query", "y"]).mean((-2, -1))
     losses, squared_error = leader.task_losses(data)
@@ -82,7 +76,7 @@ def test_gaussian_nll_matches_torch_normal_log_prob():
 def test_batched_prediction_equals_a_per_task_loop():
     torch.manual_seed(3)
     data = random_data(7, 5, 6, 1, 1)
-    leader = CNPLeader(1, 1, FixedData(data))
+    leader = CNPLeader(1, 1, SinusoidCollector())
     mean, std = leader.predict(data)
     losses, _ = leader.task_losses(data)
     for k in range(7):
@@ -96,7 +90,7 @@ def test_batched_prediction_equals_a_per_task_loop():
 def test_prediction_depends_on_the_support_set_not_its_order():
     torch.manual_seed(4)
     data = random_data(3, 6, 5, 1, 1)
-    leader = CNPLeader(1, 1, FixedData(data))
+    leader = CNPLeader(1, 1, SinusoidCollector())
     mean, _ = leader.predict(data)
     shuffled = data.clone()
     order = torch.randperm(6)
@@ -122,8 +116,8 @@ def test_step_minimizes_the_weighted_task_losses():
 
     def after_step(batch: TensorDict, weights) -> list[torch.Tensor]:
         torch.manual_seed(6)
-        leader = CNPLeader(1, 1, FixedData(batch))
-        leader.step(TensorDict({}, batch_size=[4]), weights)
+        leader = CNPLeader(1, 1, SinusoidCollector())
+        leader.step(batch, weights)
         return [p.detach().clone() for p in leader.model.parameters()]
 
     same = zip(after_step(data, first_task), after_step(other, first_task), strict=True)
@@ -136,16 +130,16 @@ def test_state_dict_restores_network_and_adam():
     """A checkpoint written with torch.save resumes exactly: same parameters, same Adam moments."""
     torch.manual_seed(7)
     data = random_data(4, 5, 5, 1, 1)
-    trained = CNPLeader(1, 1, FixedData(data))
+    trained = CNPLeader(1, 1, SinusoidCollector())
     for _ in range(5):
-        trained.step(TensorDict({}, batch_size=[4]), uniform)
+        trained.step(data, uniform)
     checkpoint = io.BytesIO()
     torch.save(trained.state_dict(), checkpoint)
     checkpoint.seek(0)
-    restored = CNPLeader(1, 1, FixedData(data))
+    restored = CNPLeader(1, 1, SinusoidCollector())
     restored.load_state_dict(torch.load(checkpoint))
     for leader in (trained, restored):
-        leader.step(TensorDict({}, batch_size=[4]), uniform)
+        leader.step(data, uniform)
     pairs = zip(trained.model.parameters(), restored.model.parameters(), strict=True)
     assert all(torch.equal(a, b) for a, b in pairs)
 
@@ -170,15 +164,15 @@ def train_on_sinusoids(likelihood: str, steps: int) -> tuple[TensorDict, TensorD
 
     def score() -> TensorDict:
         torch.manual_seed(123)
-        mse = leader.evaluate(held_out, evaluation)
-        torch.manual_seed(123)  # the same held-out data again, for the training loss
+        data = leader.collect(held_out, evaluation)
+        mse = leader.evaluate(data)
         with torch.no_grad():
-            loss, _ = leader.task_losses(evaluation.collect(held_out))
+            loss, _ = leader.task_losses(data)
         return TensorDict({"loss": loss.mean(), "mse": mse.mean()})
 
     before = score()
     for _ in range(steps):
-        leader.step(p0.sample(16), uniform)
+        leader.step(leader.collect(p0.sample(16)), uniform)
     return before, score()
 
 

@@ -61,9 +61,10 @@ def train_leader(
     initial = [p.detach().clone() for p in leader.model.parameters()]
     tasks = BoxUniform(SPACE).sample(6)
     losses = []
+    data = leader.collect(tasks)
     for _ in range(3):
-        losses.append(leader.step(tasks, lambda x: torch.full_like(x, 1 / len(x)))["loss"])
-        losses.append(leader.evaluate(tasks))
+        losses.append(leader.step(data, lambda x: torch.full_like(x, 1 / len(x)))[0]["loss"])
+        losses.append(leader.evaluate(data))
     return initial, losses + [p.detach() for p in leader.model.parameters()]
 
 

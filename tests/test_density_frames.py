@@ -13,7 +13,7 @@ from PIL import Image
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.plots import pairwise_marginals, plot_density
 from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 CUBE = TaskSpace(["m", "l", "g"], [0.4, 0.4, 5.0], [1.6, 1.6, 15.0])
 

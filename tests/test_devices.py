@@ -15,8 +15,9 @@ from torchrl.checkpoint import GlobalRNGState
 from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.checkpoint import PortableRNGState
-from armeta_rl.trainers.run import cross_evaluate, run_training
-from armeta_rl.trainers.runs import Players, load_players
+from armeta_rl.trainers.players import Players, load_players
+from armeta_rl.trainers.report import cross_evaluate
+from armeta_rl.trainers.training import run_training
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]

@@ -10,8 +10,8 @@ from conftest import SMALL_RUN, compose_train
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
 from armeta_rl.tasks import BoxUniform, TaskSpace
 from armeta_rl.trainers.evaluation import cvar, summarize
-from armeta_rl.trainers.run import evaluate_players
-from armeta_rl.trainers.runs import build_players
+from armeta_rl.trainers.players import build_players
+from armeta_rl.trainers.report import evaluate_players
 
 
 def test_cvar_is_mean_of_the_worst_tail_of_losses():

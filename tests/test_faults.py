@@ -25,8 +25,9 @@ from armeta_rl.cli import _eval_task, _guarded, config_dir, resume_config, train
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
-from armeta_rl.trainers.run import CSV_LOG_DIR, EVAL_FILE, cross_evaluate, run_training
-from armeta_rl.trainers.runs import LOCK_FILE
+from armeta_rl.trainers.report import EVAL_FILE, cross_evaluate
+from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOCK_FILE
+from armeta_rl.trainers.training import run_training
 
 RUN = (*SMALL_RUN, "method=ar_maml", "trainer.meta_batch=5", "logger=csv",
        "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.density_every=0")

@@ -15,6 +15,7 @@ from torch.func import functional_call
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 from armeta_rl.rl.baseline import (
     baseline_features,
     baseline_values,
@@ -23,7 +24,6 @@ from armeta_rl.rl.baseline import (
     fit_linear_baseline,
     gae_advantages,
 )
-from armeta_rl.rl.maml_trpo import MAMLTRPOLeader
 from armeta_rl.rl.policy import (
     GaussianMLP,
     kl_divergence,
@@ -322,7 +322,7 @@ def test_leader_kl_hessian_product_is_the_second_order_hessian_on_its_episodes(
     torch.manual_seed(6)
     collector = PointNavigationCollector(episodes=4, max_steps=10, seed=0)
     leader = MAMLTRPOLeader(collector, hidden_sizes=(8, 8), hvp_episodes=hvp_episodes)
-    batch = leader.collect_meta_batch(BoxUniform(SPACE).sample(3))
+    batch = leader.collect(BoxUniform(SPACE).sample(3))
     weights = torch.tensor([0.5, 0.3, 0.2])
     graph = leader.surrogate_gradient(batch, weights)[2]
     product = leader.kl_hessian_product(batch, weights, graph)
@@ -364,7 +364,7 @@ def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> No
     collector = PointNavigationCollector(episodes=4, max_steps=20, seed=0)
     leader = MAMLTRPOLeader(collector, max_kl=1e-3)
     tasks = BoxUniform(SPACE).sample(3)
-    batch = leader.collect_meta_batch(tasks)
+    batch = leader.collect(tasks)
     weights = torch.tensor([0.7, 0.2, 0.1])
     with torch.no_grad():
         old = loc_scale(leader.net, batch.adapted, batch.valid["observation"])
@@ -382,6 +382,7 @@ def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> No
 def test_step_reports_per_task_returns_and_evaluate_keeps_theta() -> None:
     torch.manual_seed(5)
     leader = MAMLTRPOLeader(PointNavigationCollector(episodes=3, max_steps=10, seed=0))
+    assert leader.on_policy
     tasks = BoxUniform(SPACE).sample(4)
     seen = []
 
@@ -389,13 +390,21 @@ def test_step_reports_per_task_returns_and_evaluate_keeps_theta() -> None:
         seen.append(losses)
         return torch.full_like(losses, 0.25)
 
-    out = leader.step(tasks, erm)
+    batch = leader.collect(tasks)
+    out, scalars = leader.step(batch, erm)
     assert out.batch_size == (4,)
     torch.testing.assert_close(out["loss"], -out["return_post"])
     torch.testing.assert_close(seen[0], out["loss"])
+    assert set(scalars) == {"trpo_kl", "trpo_improvement", "trpo_line_search_steps"}
+    assert all(isinstance(value, float) for value in scalars.values())
+    assert 0 <= scalars["trpo_kl"] <= leader.max_kl
     before = {k: v.clone() for k, v in leader.net.state_dict().items()}
-    losses = leader.evaluate(tasks, PointNavigationCollector(episodes=2, max_steps=10))
+    with torch.no_grad():
+        fresh = leader.collect(tasks, PointNavigationCollector(episodes=2, max_steps=10))
+        losses = leader.evaluate(fresh)
+    assert fresh.valid.batch_size[:2] == (4, 2)
     assert losses.shape == (4,) and (losses > 0).all()
+    torch.testing.assert_close(leader.evaluate(batch), out["loss"])  # the data, not θ, decide
     for key, value in leader.net.state_dict().items():
         assert torch.equal(value, before[key])
 
@@ -410,10 +419,14 @@ def test_short_seeded_run_improves_post_adaptation_return() -> None:
     def erm(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1.0 / losses.numel())
 
-    before = -leader.evaluate(test_tasks).mean()
+    def mean_return() -> torch.Tensor:
+        with torch.no_grad():
+            return -leader.evaluate(leader.collect(test_tasks)).mean()
+
+    before = mean_return()
     for _ in range(6):
-        leader.step(sampler.sample(5), erm)
-    after = -leader.evaluate(test_tasks).mean()
+        leader.step(leader.collect(sampler.sample(5)), erm)
+    after = mean_return()
     assert after > before + 0.25 * before.abs()
 
 

@@ -11,7 +11,7 @@ from omegaconf import OmegaConf
 from armeta_rl.cli import group_choices
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import build_collector, build_initial, build_leader, build_space
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 METHODS = [
     "maml",
@@ -104,7 +104,7 @@ def test_model_sizes_come_from_the_collector(benchmark, method, stated):
     else:
         data = collector.collect(tasks)
         assert sizes == (data["support", "x"].shape[-1], data["support", "y"].shape[-1])
-        assert leader.evaluate(tasks, collector).shape == (2,)
+        assert leader.evaluate(data).shape == (2,)
     size = sizes[0] if stated.endswith(("in_features", "obs_dim")) else sizes[1]
     OmegaConf.update(cfg, stated, size, force_add=True)
     build_leader(cfg, collector)

@@ -23,7 +23,7 @@ from armeta_rl.envs.mujoco_tasks import (
 )
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.factory import build_collector
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHEETAH_XML = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets",

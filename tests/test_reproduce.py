@@ -91,7 +91,7 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
 def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
     from conftest import compose_train
 
-    from armeta_rl.trainers.run import run_training
+    from armeta_rl.trainers.training import run_training
 
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
     run = next(r for r in plan.runs if r.method == "ar_maml" and r.seed == 1)

@@ -1,4 +1,5 @@
-"""Risk principles dr (tail risk), tr (worst case) and dro (group DRO) on hand-made losses."""
+"""Risk principles dr (tail risk), tr (worst case) and dro (group DRO) on hand-made losses, and
+dr in the game loop."""
 
 from __future__ import annotations
 
@@ -8,11 +9,16 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.errors import ConfigError
+from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.learners.mlp import make_mlp
 from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.risk.erm import ERMPrinciple
 from armeta_rl.risk.groups import GroupDROPrinciple, WorstCasePrinciple, project_to_simplex
 from armeta_rl.risk.tail import TailRiskPrinciple
 from armeta_rl.tasks import BoxUniform, TaskSpace
+from armeta_rl.trainers.game import GameTrainer
 
 SPACE = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
 
@@ -86,7 +92,28 @@ def test_tail_risk_proposes_from_p0_and_oversamples():
     assert candidates.batch_size == torch.Size([16])
     assert bool(SPACE.contains(candidates["params"]).all())
     assert int((over.weights(torch.rand(16)) > 0).sum()) == 8
-    assert plain.update_every == 0 and isinstance(plain, RiskPrinciple)
+    assert isinstance(plain, RiskPrinciple)
+    # no follower: its update reports the tail of each step's own losses, at no extra evaluation
+    assert plain.update_every == 1 and not plain.needs_next_losses
+
+
+def test_dr_training_logs_the_tail_of_each_steps_losses():
+    """In the game loop DR's update reads the step's own losses: its CVaR is the objective the
+    leader just minimized (losses at θ_{t+1} would differ), and its VaR is at most that; it
+    draws no random numbers (the stream ends where an ERM loop's, with the same proposals, ends)."""
+    def train(principle) -> tuple[list[dict[str, float]], torch.Tensor]:
+        torch.manual_seed(0)
+        leader = MAMLLeader(make_mlp(1, 1, (8, 8)), SinusoidCollector(5, 5))
+        trainer = GameTrainer(leader, principle, iterations=3, meta_batch=8, progress=False)
+        return [trainer.train_iteration() for _ in range(3)], torch.get_rng_state()
+
+    logs, rng = train(TailRiskPrinciple(BoxUniform(SPACE), alpha=0.5))
+    for scalars in logs:
+        assert scalars["risk/cvar"] == pytest.approx(scalars["train/leader_loss"], rel=1e-6)
+        assert scalars["risk/var"] <= scalars["risk/cvar"]
+        assert scalars["train/task_loss_mean"] <= scalars["risk/cvar"]
+    _, erm_rng = train(ERMPrinciple(BoxUniform(SPACE)))
+    assert torch.equal(rng, erm_rng)
 
 
 @pytest.mark.parametrize("alpha", [0.0, 1.0, -0.1, 1.5, "half", None])
@@ -186,17 +213,21 @@ def test_group_weights_divide_q_among_each_groups_tasks(kind):
 
 
 @pytest.mark.parametrize("kind", GROUP_PRINCIPLES)
-def test_group_weights_follow_the_proposed_batch(kind):
+def test_group_weights_are_a_function_of_the_losses_and_their_tasks(kind):
+    """Weights depend on the tasks passed in, not on what propose saw: a copy of the batch, or
+    a second propose in between, gives the same weights."""
     principle = kind(BoxUniform(SPACE), groups_per_axis=3)
     principle.load_state_dict({"q": torch.softmax(torch.randn(9, dtype=torch.float64), 0)})
     torch.manual_seed(7)
     tasks = principle.propose(32)
     losses = torch.rand(32)
-    weights = principle.weights(losses)
-    assert torch.equal(weights, principle.weights(losses, tasks))
+    weights = principle.weights(losses, tasks)
+    other = principle.propose(32)
+    assert torch.equal(weights, principle.weights(losses, tasks.clone()))
+    assert not torch.equal(weights, principle.weights(losses, other))
     assert on_simplex(weights)
     with pytest.raises(ValueError):
-        principle.weights(torch.rand(31))
+        principle.weights(torch.rand(31), tasks)
 
 
 @pytest.mark.parametrize("kind", GROUP_PRINCIPLES)

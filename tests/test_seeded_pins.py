@@ -28,7 +28,7 @@ import pytest
 import torch
 from conftest import compose_train
 
-from armeta_rl.trainers.run import run_training
+from armeta_rl.trainers.training import run_training
 
 COMMON = ("trainer.iterations=3", "trainer.checkpoint_every=3", "trainer.progress=false",
           "logger=none", "seed=7", "trainer.density_every=0")

@@ -14,7 +14,7 @@ from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
 
-from armeta_rl.collectors.base import Collector as CollectorProtocol
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.pendulum import PendulumEnv
@@ -183,7 +183,7 @@ def _sort_rows(rows: torch.Tensor) -> torch.Tensor:
 @pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
 def test_collector_shapes_and_split(env_name):
     collector = SysIdCollector(env_name, n_transitions=200, n_support=10)
-    assert isinstance(collector, CollectorProtocol)
+    assert isinstance(collector, TaskCollector)
     torch.manual_seed(0)
     tasks = _tasks(5)
     data = collector.collect(tasks)

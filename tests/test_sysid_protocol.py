@@ -16,8 +16,8 @@ from armeta_rl.factory import build_collector
 from armeta_rl.learners.maml import MAMLLeader
 from armeta_rl.learners.mlp import TiedAngleHead, make_mlp
 from armeta_rl.trainers.evaluation import evaluate_on
-from armeta_rl.trainers.run import run_training
-from armeta_rl.trainers.runs import build_players
+from armeta_rl.trainers.players import build_players
+from armeta_rl.trainers.training import run_training
 
 PARAMS = [[0.45, 1.5], [1.0, 1.0], [1.55, 0.6]]
 

@@ -7,8 +7,8 @@ import pytest
 from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.trainers.evaluation import evaluate_on
-from armeta_rl.trainers.run import run_training
-from armeta_rl.trainers.runs import build_players
+from armeta_rl.trainers.players import build_players
+from armeta_rl.trainers.training import run_training
 
 
 @pytest.mark.parametrize(

@@ -11,8 +11,8 @@ from conftest import SMALL_RUN, compose_train
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.run import run_training
-from armeta_rl.trainers.runs import build_players
+from armeta_rl.trainers.players import build_players
+from armeta_rl.trainers.training import run_training
 
 
 @pytest.mark.parametrize("method", ["maml", "ar_maml"])

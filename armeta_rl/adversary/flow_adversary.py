@@ -85,12 +85,3 @@ class FlowAdversary(TaskDistribution):
         """Monte-Carlo entropy H[p_φ] = −E_{p_φ}[ln p_φ(τ)] from ``n`` samples (paper Remark
         "Entropy of the Generated Task Distribution"); a detached float64 scalar."""
         return -self.sample_with_log_prob(n)[1].mean()
-
-    @torch.no_grad()
-    def kl_from_base(self, n: int = 4096, initial: Tensor | None = None) -> Tensor:
-        """Monte-Carlo KL(p0 ‖ p_φ) = E_{p0}[ln p0(τ) − ln p_φ(τ)], the shift the constraint of
-        paper Eq. (4) bounds, from ``n`` fresh p0 samples or the given ``initial``
-        samples ``[m, d]``; a detached float64 scalar."""
-        if initial is None:
-            initial = self.base.sample_params(n)
-        return (self.base.log_prob(initial) - self.log_prob(initial)).mean()

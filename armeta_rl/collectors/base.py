@@ -1,5 +1,5 @@
-"""The collector protocol: how a batch of tasks becomes data (docs/architecture.md, "The plug-in
-seams")."""
+"""The task-collector protocol: how a batch of tasks becomes data (docs/architecture.md, "plug-in
+seams"). Named ``TaskCollector`` so it does not shadow :class:`torchrl.collectors.Collector`."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from tensordict import TensorDict
 
 
 @runtime_checkable
-class Collector(Protocol):
+class TaskCollector(Protocol):
     """Turns ``K`` task identifiers into data with a leading task dimension.
 
     ``tasks`` is a TensorDict ``[K]`` with ``"params"`` ``[K, d]``. Regression and system

@@ -116,9 +116,13 @@ class EpisodeCollector:
                 env.close()
 
     def env(self, tasks: int) -> EnvBase:
-        """The (cached) env of batch size ``[tasks, episodes]``. It is built under a forked RNG:
-        every :meth:`collect` reseeds it, so building it must draw nothing from the run's stream,
-        or a resumed run (which builds it again) would draw once more than an uninterrupted one."""
+        """The env of batch size ``[tasks, episodes]``, kept per batch shape (a value, not an
+        object's identity). It carries nothing from one :meth:`collect` to the next: every call
+        reseeds it and resets every entry with its task's identifiers, so keeping it changes no
+        result and only spares rebuilding it (and, in the parallel and Ray collectors, its
+        worker processes). It is built under a forked RNG, so building it draws nothing from the
+        run's stream, or a resumed run (which builds it again) would draw once more than an
+        uninterrupted one."""
         if tasks not in self._envs:
             with torch.random.fork_rng(devices=[]):
                 self._envs[tasks] = self.make_env(batch_size=(tasks, self.episodes),

@@ -25,7 +25,7 @@ NORMALIZATIONS = ("none", "scale")
 
 
 class SysIdCollector:
-    """Few-shot transition data for system identification (the ``Collector`` protocol).
+    """Few-shot transition data for system identification (the ``TaskCollector`` protocol).
 
     For tasks ``[K]`` with identifiers ``"params"`` (``TASK_KEY``) ``[K, d]`` ((m, l) for the
     pendulum by default, any of (m, l, g) with ``identifiers``; (m1, m2) for the acrobot), one

@@ -1,8 +1,10 @@
-"""Meta-learners (leaders) for regression data: functional MAML and the CNP."""
+"""Meta-learners (leaders): functional MAML and the CNP for regression data, MAML-TRPO for
+meta-RL."""
 
 from armeta_rl.learners.base import Leader, TaskWeights
 from armeta_rl.learners.cnp import CNPLeader
 from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 from armeta_rl.learners.mlp import make_mlp
 
-__all__ = ["CNPLeader", "Leader", "MAMLLeader", "TaskWeights", "make_mlp"]
+__all__ = ["CNPLeader", "Leader", "MAMLLeader", "MAMLTRPOLeader", "TaskWeights", "make_mlp"]

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from torch.func import functional_call, grad
 from torchrl.modules import MLP
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import check_keys
 from armeta_rl.learners.maml import MAMLLeader
 
@@ -63,7 +63,7 @@ class ANILLeader(MAMLLeader):
     def __init__(
         self,
         model: BodyHead,
-        collector: Collector,
+        collector: TaskCollector,
         inner_lr: float = 0.01,
         inner_steps: int = 1,
         first_order: bool = False,

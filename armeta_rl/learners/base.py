@@ -9,7 +9,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 
 TaskWeights = Callable[[Tensor], Tensor]
 """Maps detached per-task losses ``[K]`` to non-negative weights ``[K]`` that sum to one."""
@@ -19,30 +19,40 @@ TaskWeights = Callable[[Tensor], Tensor]
 class Leader(Protocol):
     """The meta-learner θ: collects data for the tasks, adapts, scores and updates itself.
 
+    The game loop hands the data on in the open: ``data = collect(tasks)``, then
+    ``step(data, weights)``, then ``evaluate(data)`` for the follower; no call reads what another
+    left behind.
+
     ``metric`` names what :meth:`evaluate` reports: ``"mse"`` (lower is better; the loss itself) or
-    ``"return"`` (higher is better; the loss is the negative return).
+    ``"return"`` (higher is better; the loss is the negative return). ``on_policy`` says whether the
+    data are θ's own rollouts (RL): a step outdates them, so the follower's losses at θ_{t+1} need
+    a fresh :meth:`collect`; otherwise (regression, system identification) they are scored on the
+    step's own data, as the follower update of paper Algorithms 1 and 2 does
+    (L(D^Q_τ; θ_{t+1}) on the same D^S, D^Q).
     """
 
     metric: str
-    collector: Collector
+    on_policy: bool
+    collector: TaskCollector
 
-    def step(self, tasks: TensorDict, weights: TaskWeights) -> TensorDict:
-        """One leader update on ``tasks`` ``[K]``: collect, adapt, score, and step θ on
+    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None) -> Any:
+        """The data of ``tasks`` ``[K]`` at the current θ, from ``collector`` (e.g. the larger
+        evaluation collector) or the leader's own; the loop passes them on unchanged."""
+        ...
+
+    def step(self, data: Any, weights: TaskWeights) -> tuple[TensorDict, dict[str, float]]:
+        """One leader update on the data of :meth:`collect`: adapt, score, and step θ on
         Σ_k w_k L_k with ``w = weights(L.detach())``.
 
         Returns a TensorDict ``[K]`` with the detached per-task ``"loss"`` (before the update) and
-        any other per-task metrics worth logging (e.g. ``"return_pre"``, ``"return_post"``).
+        any other per-task metrics worth logging (e.g. ``"return_pre"``, ``"return_post"``), and a
+        dict of the step's scalar diagnostics (e.g. TRPO's accepted KL; empty if none).
         """
         ...
 
-    def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
-        """Per-task loss after adaptation ``[K]`` at the current θ, without updating θ.
-
-        Data come from ``collector`` (e.g. the larger evaluation collector) or the leader's own.
-        A leader whose data do not depend on θ (regression, system identification) scores the
-        tasks of its last :meth:`step` on that step's data, as the follower update of paper
-        Algorithms 1 and 2 does (L(D^Q_τ; θ_{t+1}) on the same D^S, D^Q).
-        """
+    def evaluate(self, data: Any) -> Tensor:
+        """Per-task loss after adaptation ``[K]`` of ``data`` at the current θ, without updating
+        θ."""
         ...
 
     def state_dict(self) -> dict[str, Any]:
@@ -61,23 +71,13 @@ class OneNetworkLeader:
 
     model: nn.Module
     optimizer: torch.optim.Optimizer
-    collector: Collector
-    _stepped: tuple[TensorDict, TensorDict] | None = None
+    collector: TaskCollector
+    on_policy = False
 
-    def step_data(self, tasks: TensorDict) -> TensorDict:
-        """Collect the data of a leader step on ``tasks`` and keep them for :meth:`task_data`."""
-        data = self.collector.collect(tasks)
-        self._stepped = (tasks, data)
-        return data
-
-    def task_data(self, tasks: TensorDict, collector: Collector | None = None) -> TensorDict:
-        """Data to score ``tasks`` on: from ``collector`` if given; else the data of the last
-        :meth:`step_data` if ``tasks`` is the very TensorDict it was called with (the follower
-        scores the leader's D^S, D^Q at θ_{t+1}, paper Algorithms 1 and 2, and no second
-        collection is paid); else a fresh collection by the leader's collector."""
-        if collector is None and self._stepped is not None and self._stepped[0] is tasks:
-            return self._stepped[1]
-        return (collector or self.collector).collect(tasks)
+    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None) -> TensorDict:
+        """Support and query data ``[K]`` of ``tasks`` from ``collector`` or the leader's own; they
+        do not depend on θ."""
+        return (self.collector if collector is None else collector).collect(tasks)
 
     def descend(self, losses: Tensor, weights: TaskWeights) -> None:
         """One optimizer step on Σ_k w_k L_k with ``w = weights(L.detach())``."""

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 from torchrl.modules import MLP
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import check_keys
 from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
 
@@ -79,7 +79,7 @@ class CNPLeader(OneNetworkLeader):
 
     metric = "mse"
 
-    def __init__(self, in_features: int, out_features: int, collector: Collector,
+    def __init__(self, in_features: int, out_features: int, collector: TaskCollector,
                  lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian",
                  device: torch.device | str = "cpu") -> None:
         check_keys("learner.cnp", hidden=hidden, lr=lr, likelihood=likelihood)
@@ -101,22 +101,20 @@ class CNPLeader(OneNetworkLeader):
             return squared_error, squared_error
         return gaussian_nll(mean, std, target).mean((-2, -1)), squared_error
 
-    def step(self, tasks: TensorDict, weights: TaskWeights) -> TensorDict:
-        """One Adam step on Σ_k w_k L_k with ``w = weights(L.detach())`` (Algorithm 2).
+    def step(self, data: TensorDict, weights: TaskWeights) -> tuple[TensorDict, dict[str, float]]:
+        """One Adam step on Σ_k w_k L_k with ``w = weights(L.detach())`` (Algorithm 2) on the
+        support/query ``data`` ``[K]``.
 
         Returns a TensorDict ``[K]`` with the detached per-task ``"loss"`` and query ``"mse"``,
-        both before the update.
+        both before the update, and no scalars.
         """
-        data = self.step_data(tasks)
         losses, squared_error = self.task_losses(data)
         self.descend(losses, weights)
         return TensorDict({"loss": losses.detach(), "mse": squared_error.detach()},
-                          batch_size=tasks.batch_size)
+                          batch_size=data.batch_size), {}
 
     @torch.no_grad()
-    def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
-        """Per-task query MSE ``[K]`` of the predicted mean at the current θ, on the data
-        :meth:`task_data` picks (the last step's, for the tasks of that step)."""
-        data = self.task_data(tasks, collector)
+    def evaluate(self, data: TensorDict) -> Tensor:
+        """Per-task query MSE ``[K]`` of the predicted mean on ``data`` at the current θ."""
         mean, _ = self.predict(data)
         return (mean - data["query", "y"]).square().mean((-2, -1))

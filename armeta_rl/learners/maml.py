@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 from torch.func import functional_call, grad, vmap
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError
@@ -43,9 +43,9 @@ class MAMLLeader(OneNetworkLeader):
         adaptation: how the batched adapted losses are computed: ``"vmap"``, the per-task form
             vmapped, or ``"low_rank"`` (an :class:`~armeta_rl.learners.mlp.MLP` only); the same
             function of θ, different speed and rounding (docs/speed-options.md).
-        compile: ``torch.compile`` the batched loss on the training collector's data (the
-            meta-update and the follower's losses at θ_{t+1}): ``False``, ``True`` (inductor) or
-            a backend name; see :mod:`armeta_rl.compiling`. Other data run eagerly.
+        compile: ``torch.compile`` the batched loss (the meta-update, the follower's losses at
+            θ_{t+1} and the evaluation): ``False``, ``True`` (inductor) or a backend name; see
+            :mod:`armeta_rl.compiling`.
     """
 
     metric = "mse"
@@ -53,7 +53,7 @@ class MAMLLeader(OneNetworkLeader):
     def __init__(
         self,
         model: nn.Module,
-        collector: Collector,
+        collector: TaskCollector,
         inner_lr: float = 0.01,
         inner_steps: int = 1,
         first_order: bool = False,
@@ -121,17 +121,15 @@ class MAMLLeader(OneNetworkLeader):
         support, query = data["support"], data["query"]
         return batched_loss(params, support["x"], support["y"], query["x"], query["y"])
 
-    def step(self, tasks: TensorDict, weights: TaskWeights) -> TensorDict:
-        """Meta-update θ ← Adam(∇_θ Σ_k w_k L_k) (paper Eq. (15), weighted)."""
-        data = self.step_data(tasks)
+    def step(self, data: TensorDict, weights: TaskWeights) -> tuple[TensorDict, dict[str, float]]:
+        """Meta-update θ ← Adam(∇_θ Σ_k w_k L_k) (paper Eq. (15), weighted) on the support/query
+        ``data`` ``[K]``; returns the per-task ``"loss"`` before the update."""
         losses = self._losses(self._training_loss, data)
         self.descend(losses, weights)
-        return TensorDict({"loss": losses.detach()}, batch_size=losses.shape)
+        return TensorDict({"loss": losses.detach()}, batch_size=losses.shape), {}
 
-    def evaluate(self, tasks: TensorDict, collector: Collector | None = None) -> Tensor:
-        """Post-adaptation query MSE per task at the current θ (no meta-gradient kept), on the
-        data :meth:`task_data` picks (the last step's, for the tasks of that step)."""
-        batched_loss = self._training_loss if collector is None else self._batched_loss
-        data = self.task_data(tasks, collector)
+    def evaluate(self, data: TensorDict) -> Tensor:
+        """Post-adaptation query MSE per task ``[K]`` of ``data`` at the current θ (no
+        meta-gradient kept)."""
         with torch.no_grad():  # torch.func.grad still differentiates the inner step
-            return self._losses(batched_loss, data)
+            return self._losses(self._training_loss, data)

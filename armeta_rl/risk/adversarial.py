@@ -30,9 +30,9 @@ class AdversarialPrinciple(nn.Module):
     """AR-MAML / AR-CNP's task source: the flow adversary, updated every ``update_every`` steps.
 
     ``state_dict()`` holds the adversary's parameters plus, as torch's ``_extra_state``, the Adam
-    and scheduler states and the tasks drawn for the next :meth:`propose` (plain tensors, numbers
-    and lists: ``torch.load(weights_only=True)`` reads it). Like any ``nn.Module`` state dict its
-    tensors alias the live ones; copy before mutating.
+    and scheduler states (plain tensors, numbers and lists: ``torch.load(weights_only=True)``
+    reads it). Like any ``nn.Module`` state dict its tensors alias the live ones; copy before
+    mutating.
 
     Args:
         adversary: p_φ (its ``base`` is p0).
@@ -45,10 +45,12 @@ class AdversarialPrinciple(nn.Module):
         grad_clip: maximum gradient norm, or ``None`` for no clipping.
         baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
         initial_samples: M, the number of fresh p0 samples for the λ term of the gradient (≥ 1).
-        compile: ``torch.compile`` the flow's passes in :meth:`update` (the surrogate's
-            log-densities and the draw of the next tasks): ``False``, ``True`` (inductor) or a
-            backend name; see :mod:`armeta_rl.compiling`.
+        compile: ``torch.compile`` the flow's passes (the draw of :meth:`propose` and the
+            log-densities of :meth:`update`): ``False``, ``True`` (inductor) or a backend name;
+            see :mod:`armeta_rl.compiling`.
     """
+
+    needs_next_losses = True
 
     def __init__(
         self,
@@ -80,28 +82,20 @@ class AdversarialPrinciple(nn.Module):
         self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
             self.optimizer, T_max=total_updates
         )
-        self._drawn: dict[str, Any] | None = None
         self._backup: list[Tensor] = []
-        self.register_load_state_dict_post_hook(self._stamp_drawn)
 
     @property
     def initial(self) -> TaskDistribution:
         """p0, the adversary's base distribution."""
         return self.adversary.base
 
+    @torch.no_grad()
     def propose(self, n: int) -> TensorDict:
-        """``n`` tasks drawn from p_φ, with their log-probabilities.
+        """``n`` tasks τ = g_φ(τ0), τ0 ~ p0, drawn from p_φ with their log-probabilities (paper
+        Eq. nf_logdeterm)."""
+        return self.adversary.as_tasks(*self._push_forward(self.initial.sample_params(n)))
 
-        The first call after :meth:`update` returns the tasks that the update drew from the new
-        p_φ to check its density, if ``n`` matches and φ has not been changed since; so a
-        meta-iteration runs the flow once to sample and once (the inverse) to update.
-        """
-        drawn, self._drawn = self._drawn, None
-        if drawn is not None and len(drawn["tasks"]) == n and self._versions() == drawn["versions"]:
-            return drawn["tasks"]
-        return self.adversary.sample(n)
-
-    def weights(self, losses: Tensor) -> Tensor:
+    def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
         """Uniform weights 1/K: the leader minimizes the plain average over tasks from p_φ."""
         return torch.full_like(losses, 1.0 / losses.numel())
 
@@ -113,8 +107,8 @@ class AdversarialPrinciple(nn.Module):
         samples) and ``adversary/kl_p0`` (from the ``initial_samples`` p0 samples), all of p_φ
         before the step and free by-products of the surrogate; ``adversary/lr`` (the rate used)
         and ``adversary/grad_norm`` (before clipping). Precise entropy and KL of the final p_φ go
-        to the evaluation report. After the step it draws ``K`` tasks from the new p_φ: their
-        log-densities check the new flow, and the next :meth:`propose` returns them.
+        to the evaluation report. After the step the new p_φ's log-density at ``tasks`` checks the
+        new flow; it draws no random numbers.
 
         Raises:
             TrainingDiverged: if the losses, the surrogate, its gradient, the new parameters or the
@@ -146,12 +140,10 @@ class AdversarialPrinciple(nn.Module):
         self.optimizer.zero_grad(set_to_none=True)
         largest = torch.nn.utils.get_total_norm(self._phi, norm_type=math.inf, foreach=True)
         with torch.no_grad():
-            params, log_prob = self._push_forward(self.initial.sample_params(len(losses)))
+            log_prob = self._log_prob(tasks[TASK_KEY])
         if not (torch.isfinite(largest) and torch.isfinite(log_prob).all()):
             self._restore(snapshot)
             raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
-        self._drawn = {"tasks": self.adversary.as_tasks(params, log_prob),
-                       "versions": self._versions()}
         return {
             "adversary/objective": stats["objective"],
             "adversary/entropy": stats["entropy"],
@@ -160,17 +152,9 @@ class AdversarialPrinciple(nn.Module):
             "adversary/grad_norm": float(grad_norm),
         }
 
-    def _versions(self) -> tuple[int, ...]:
-        """In-place modification counters of φ: they change whenever φ does."""
-        return tuple(p._version for p in self._phi)
-
     def get_extra_state(self) -> dict[str, Any]:
-        """Optimizer, learning-rate schedule and the tasks :meth:`propose` returns next (drawn
-        from p_φ by the last update, so a resumed run proposes the same tasks), stored in
-        ``state_dict()["_extra_state"]``."""
-        drawn = {} if self._drawn is None else self._drawn["tasks"].to_dict()
-        return {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict(),
-                "drawn": drawn}
+        """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``."""
+        return {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`get_extra_state` returned. A schedule saved with another horizon
@@ -181,11 +165,6 @@ class AdversarialPrinciple(nn.Module):
         self.scheduler.load_state_dict(state["scheduler"])
         if self.scheduler.T_max != total_updates:
             self.replan(total_updates)
-        drawn = state.get("drawn") or {}
-        self._drawn = None
-        if drawn:
-            tasks = TensorDict(dict(drawn), batch_size=[len(drawn[TASK_KEY])])
-            self._drawn = {"tasks": tasks, "versions": None}
 
     def replan(self, total_updates: int) -> None:
         """Re-plan the cosine schedule for ``total_updates`` follower updates in all, keeping the
@@ -203,11 +182,6 @@ class AdversarialPrinciple(nn.Module):
         self.scheduler.load_state_dict(planned.state_dict())
         for group, lr in zip(self.optimizer.param_groups, planned.get_last_lr(), strict=True):
             group["lr"] = lr
-
-    def _stamp_drawn(self, *_: Any) -> None:
-        """After ``load_state_dict`` has set φ, tie the restored draw to it."""
-        if self._drawn is not None:
-            self._drawn["versions"] = self._versions()
 
     @torch.no_grad()
     def _snapshot(self) -> tuple[list[Tensor], bool, dict[str, Any]]:

@@ -12,26 +12,33 @@ from torch import Tensor
 class RiskPrinciple(Protocol):
     """ERM, CVaR (DR), worst-case (TR), group-DRO and the flow adversary (AR).
 
-    ``update_every`` is the follower's update interval ``u`` in meta-iterations; ``0`` means the
-    principle never needs :meth:`update` (plain ERM), so the trainer skips the evaluation it costs.
+    ``update_every`` is the update interval ``u`` in meta-iterations; ``0`` means the principle
+    never needs :meth:`update` (plain ERM). ``needs_next_losses`` says which losses :meth:`update`
+    reads: ``True`` for a follower of the game, the losses of the step's tasks at θ_{t+1} (the
+    trainer evaluates the leader again for them); ``False`` for the step's own losses at θ_t,
+    which cost nothing more (DR reports their tail statistics).
     """
 
     update_every: int
+    needs_next_losses: bool
 
     def propose(self, n: int) -> TensorDict:
         """``n`` tasks ``{"params": [n, d], "log_prob": [n]}`` for the next leader step."""
         ...
 
-    def weights(self, losses: Tensor) -> Tensor:
-        """Non-negative task weights ``[K]`` summing to one, from detached losses ``[K]``."""
+    def weights(self, losses: Tensor, tasks: TensorDict) -> Tensor:
+        """Non-negative task weights ``[K]`` summing to one, from detached losses ``[K]`` of
+        ``tasks`` ``[K]``: a pure function of both (the trainer binds ``tasks`` and hands the
+        leader ``losses ↦ weights(losses, tasks)``)."""
         ...
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
-        """Follower step on the losses of ``tasks`` at θ_{t+1}; returns scalars to log."""
+        """Update on the losses of ``tasks`` (see ``needs_next_losses``); returns scalars to
+        log."""
         ...
 
     def state_dict(self) -> dict[str, Any]:
-        """Follower parameters and optimizer state, for checkpoints."""
+        """Parameters and optimizer state, for checkpoints."""
         ...
 
     def load_state_dict(self, state: dict[str, Any]) -> None:

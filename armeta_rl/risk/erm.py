@@ -18,6 +18,7 @@ class ERMPrinciple(nn.Module):
     """
 
     update_every = 0
+    needs_next_losses = False
 
     def __init__(self, initial: TaskDistribution) -> None:
         super().__init__()
@@ -27,8 +28,8 @@ class ERMPrinciple(nn.Module):
         """``n`` tasks drawn from p0."""
         return self.initial.sample(n)
 
-    def weights(self, losses: Tensor) -> Tensor:
-        """Uniform weights 1/K."""
+    def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
+        """Uniform weights 1/K, whatever the tasks."""
         return torch.full_like(losses, 1.0 / losses.numel())
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:

@@ -46,6 +46,7 @@ class _GroupPrinciple(nn.Module):
     """Group weights q over a grid of the identifier box; subclasses define the q step."""
 
     update_every = 1
+    needs_next_losses = True
     config_key = "risk.groups"
 
     def __init__(self, initial: TaskDistribution, groups_per_axis: int, step_size: float) -> None:
@@ -57,7 +58,6 @@ class _GroupPrinciple(nn.Module):
         self.num_groups = groups_per_axis ** initial.space.dim
         self.register_buffer("q", torch.full((self.num_groups,), 1.0 / self.num_groups,
                                              dtype=torch.float64))
-        self._last_groups: Tensor | None = None
 
     def group_of(self, params: Tensor) -> Tensor:
         """Group index ``[n]`` of each task: its grid cell, numbered row-major over the axes.
@@ -72,27 +72,19 @@ class _GroupPrinciple(nn.Module):
         return (cell * strides).sum(-1)
 
     def propose(self, n: int) -> TensorDict:
-        """``n`` tasks from p0; their groups are kept for the :meth:`weights` call that follows."""
-        tasks = self.initial.sample(n)
-        self._last_groups = self.group_of(tasks[TASK_KEY])
-        return tasks
+        """``n`` tasks from p0."""
+        return self.initial.sample(n)
 
-    def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
+    def weights(self, losses: Tensor, tasks: TensorDict) -> Tensor:
         """w_k = q_{g(k)} / n_{g(k)} / Σ_{g present} q_g for the tasks of a batch.
 
         n_g is the number of batch tasks in group g, so Σ_k w_k L_k = Σ_g q_g L̄_g / Σ_{g present}
         q_g: the q-weighted group risk, renormalized over the groups present in the batch. If every
         present group has q_g = 0 (``tr`` can sit on a vertex whose group the batch missed), the
         present groups share the weight equally, the limit of q + ε·1 as ε → 0. The groups are
-        those of ``tasks`` when given, else of the batch last returned by :meth:`propose` (the
-        trainer's ``propose`` → ``leader.step(tasks, principle.weights)``).
+        those of ``tasks``, the batch the losses belong to.
         """
-        if tasks is not None:
-            groups = self.group_of(tasks[TASK_KEY])
-        elif self._last_groups is not None:
-            groups = self._last_groups
-        else:
-            raise RuntimeError("weights() needs tasks, or a batch from propose() first")
+        groups = self.group_of(tasks[TASK_KEY])
         if groups.numel() != losses.numel():
             raise ValueError(f"{losses.numel()} losses for a batch of {groups.numel()} tasks")
         groups = groups.to(losses.device)

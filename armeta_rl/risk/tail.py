@@ -23,10 +23,15 @@ def tail_size(batch_size: int, alpha: float) -> int:
     """Number of tasks kept in the worst (1 − α) tail of a batch: ``ceil((1 − α)·K)``.
 
     The ceiling keeps at least one task for every α in (0, 1); with α = 0.5 and an even ``K`` it
-    is exactly ``K / 2``. The product is rounded to 9 decimals first so that floating-point noise
-    (``0.3 * 10 = 3.0000000000000004``) does not add a task.
+    is exactly ``K / 2``.
     """
-    return math.ceil(round((1.0 - alpha) * batch_size, 9))
+    return exact_ceil((1.0 - alpha) * batch_size)
+
+
+def exact_ceil(value: float) -> int:
+    """The ceiling of ``value`` rounded to 9 decimals first, so that floating-point noise
+    (``0.3 * 10 = 3.0000000000000004``) does not add one."""
+    return math.ceil(round(value, 9))
 
 
 class TailRiskPrinciple(nn.Module):
@@ -42,10 +47,13 @@ class TailRiskPrinciple(nn.Module):
             is ``tasks.batch_size[0]``, not ``n``); the weights zero the tasks outside the tail.
             When ``False`` (default) the tail of a meta-batch of ``n`` tasks is about ``(1 − α)·n``.
 
-    Never needs a follower step: ``update_every = 0``.
+    It has no follower; its :meth:`update` reports VaR_α and CVaR_α of each step's own losses
+    (``update_every = 1`` on the step's losses, ``needs_next_losses = False``: no extra
+    evaluation).
     """
 
-    update_every = 0
+    update_every = 1
+    needs_next_losses = False
 
     def __init__(self, initial: TaskDistribution, alpha: float = 0.5,
                  oversample: bool = False) -> None:
@@ -57,7 +65,7 @@ class TailRiskPrinciple(nn.Module):
 
     def propose(self, n: int) -> TensorDict:
         """Candidate tasks from p0: ``n``, or ``ceil(n / (1 − α))`` when oversampling."""
-        count = math.ceil(round(n / (1.0 - self.alpha), 9)) if self.oversample else n
+        count = exact_ceil(n / (1.0 - self.alpha)) if self.oversample else n
         return self.initial.sample(count)
 
     def value_at_risk(self, losses: Tensor) -> Tensor:
@@ -65,7 +73,7 @@ class TailRiskPrinciple(nn.Module):
         keep = tail_size(losses.numel(), self.alpha)
         return torch.topk(losses.detach(), keep).values[-1]
 
-    def weights(self, losses: Tensor) -> Tensor:
+    def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
         """Weight ``1 / m`` on the ``m = ceil((1 − α)·K)`` largest losses, 0 elsewhere.
 
         Σ_k w_k L_k is then the empirical CVaR_α of the batch. Ties at the VaR are broken by
@@ -77,7 +85,8 @@ class TailRiskPrinciple(nn.Module):
         return weights.index_fill(0, worst, 1.0 / keep)
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
-        """No follower to update; reports VaR_α and CVaR_α of ``losses`` for logging."""
+        """No follower to update; reports VaR_α and CVaR_α of the step's ``losses`` (the loss the
+        leader minimized) for logging."""
         losses = losses.detach()
         return {
             "risk/var": float(self.value_at_risk(losses)),

@@ -1,5 +1,5 @@
-"""Meta-RL: Gaussian policy, linear baseline, GAE inner step and the MAML-TRPO leader
-(``armeta_rl.rl.maml_trpo.MAMLTRPOLeader``)."""
+"""Meta-RL building blocks: the Gaussian policy, the linear baseline and GAE advantages, and the
+TRPO step (the MAML-TRPO leader that uses them is :mod:`armeta_rl.learners.maml_trpo`)."""
 
 from armeta_rl.rl.policy import GaussianMLP, make_actor
 

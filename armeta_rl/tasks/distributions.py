@@ -74,6 +74,14 @@ class TaskDistribution(nn.Module):
         """Entropy H[p] = -E_p[ln p(τ)] (Monte Carlo unless a subclass knows it exactly)."""
         return -self.log_prob(self.sample_params(n)).mean()
 
+    @torch.no_grad()
+    def kl_from(self, initial: TaskDistribution, n: int = 4096) -> Tensor:
+        """Monte-Carlo KL(p0 ‖ p) = E_{p0}[ln p0(τ) − ln p(τ)] from ``n`` fresh samples of
+        ``initial`` (p0): how far p has moved from p0, the shift the constraint of paper Eq.
+        game_meta_obj bounds; a detached scalar."""
+        params = initial.sample_params(n)
+        return (initial.log_prob(params) - self.log_prob(params)).mean()
+
     def _inside(self, params: Tensor) -> Tensor:
         return ((params >= self.low) & (params <= self.high)).all(-1)
 

@@ -76,11 +76,6 @@ class TaskSpace:
         low, high = self.bounds(params.dtype, params.device)
         return (params - low) / (high - low)
 
-    def from_unit(self, unit: Tensor) -> Tensor:
-        """Inverse of :meth:`to_unit`."""
-        low, high = self.bounds(unit.dtype, unit.device)
-        return low + unit * (high - low)
-
     def contains(self, params: Tensor) -> Tensor:
         """Boolean ``[n]``: whether each row of ``params`` lies in the closed box."""
         low, high = self.bounds(params.dtype, params.device)

@@ -9,9 +9,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.devices import CPU, forked_rng
 from armeta_rl.learners.base import Leader
+from armeta_rl.risk.tail import tail_size
 from armeta_rl.tasks import TaskDistribution
 
 
@@ -24,13 +25,12 @@ def cvar(values: Tensor, alpha: float, higher_better: bool = False) -> float:
     """CVaR_α: the mean of the worst ``(1 − α)`` fraction of ``values``.
 
     "Worst" is the largest values for a loss (``higher_better=False``) and the smallest for a
-    return. The tail holds ``ceil((1 − α)·n)`` values (at least one).
+    return. The tail holds ``ceil((1 − α)·n)`` values (at least one; :func:`tail_size`).
     """
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
     flat = values.detach().flatten().to(torch.float64)
-    tail = max(1, math.ceil(round((1.0 - alpha) * flat.numel(), 9)))
-    worst = flat.topk(tail, largest=not higher_better).values
+    worst = flat.topk(tail_size(flat.numel(), alpha), largest=not higher_better).values
     return float(worst.mean())
 
 
@@ -64,7 +64,7 @@ def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str,
 def evaluate_on(
     leader: Leader,
     distribution: TaskDistribution,
-    collector: Collector,
+    collector: TaskCollector,
     n_tasks: int,
     alphas: Sequence[float],
     seed: int,
@@ -80,7 +80,8 @@ def evaluate_on(
     with forked_rng(device):
         torch.manual_seed(seed)
         tasks = distribution.sample(n_tasks)
-        losses = leader.evaluate(tasks, collector)
+        with torch.no_grad():
+            losses = leader.evaluate(leader.collect(tasks, collector))
     return summarize(losses, leader.metric, alphas)
 
 

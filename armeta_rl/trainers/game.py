@@ -2,6 +2,10 @@
 (14)): the leader steps on tasks proposed by the risk principle, then the follower
 steps on the same tasks' losses at θ_{t+1}.
 
+One iteration reads ``tasks = principle.propose(K)``, ``data = leader.collect(tasks)``,
+``leader.step(data, weights)`` and ``principle.update(tasks, losses)``: every call takes what it
+needs and returns what it makes.
+
 The loop knows nothing about regression or RL: the leader owns collection, adaptation and its
 update; the principle owns task proposal, task weights and the follower update.
 """
@@ -11,8 +15,12 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
+from functools import partial
+from typing import Any
 
 import torch
+from tensordict import TensorDict
+from torch import Tensor
 from tqdm.auto import tqdm
 
 from armeta_rl.errors import TrainingDiverged
@@ -69,18 +77,61 @@ class GameTrainer:
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
-        """One meta-iteration t → t+1; returns its scalars."""
+        """One meta-iteration t → t+1; returns its scalars.
+
+        The data flow in the open: the principle proposes tasks, the leader collects their data
+        and steps on them with the principle's weights of these tasks, and every ``update_every``
+        iterations the principle updates on the tasks' losses (:meth:`follower_losses`).
+        """
         start = time.perf_counter()
         tasks = self.principle.propose(self.meta_batch)
         if not torch.isfinite(tasks[TASK_KEY]).all() or torch.isnan(tasks["log_prob"]).any():
             raise TrainingDiverged(
                 f"non-finite task identifiers proposed at iteration {self.iteration + 1}"
             )
+        weights = partial(self.principle.weights, tasks=tasks)
         if self.train_leader:
-            out = self.leader.step(tasks, self.principle.weights)
-        else:
-            out = {"loss": self.leader.evaluate(tasks).detach()}
+            data = self.leader.collect(tasks)
+            out, scalars = self.leader.step(data, weights)
+        else:  # θ stays: its losses on the proposed tasks are the follower's at θ_{t+1} = θ_t
+            with torch.no_grad():
+                data = self.leader.collect(tasks)
+                out, scalars = {"loss": self.leader.evaluate(data)}, {}
         losses = out["loss"]
+        self.check_losses(losses)
+        logs = {
+            "train/leader_loss": float((weights(losses) * losses).sum()),
+            "train/task_loss_mean": float(losses.mean()),
+        }
+        logs.update(
+            {f"train/{key}": float(value.mean()) for key, value in out.items() if key != "loss"}
+        )
+        logs.update({f"train/{key}": value for key, value in scalars.items()})
+        self.iteration += 1
+        every = self.principle.update_every
+        if every and self.iteration % every == 0:
+            follower = (self.follower_losses(tasks, data, losses) if self.train_leader
+                        else losses)
+            logs.update(self.principle.update(tasks, follower))
+        logs["time/iteration_ms"] = 1000.0 * (time.perf_counter() - start)
+        return logs
+
+    def follower_losses(self, tasks: TensorDict, data: Any, step_losses: Tensor) -> Tensor:
+        """The per-task losses the principle's update reads.
+
+        A follower of the game (``needs_next_losses``) reads L at θ_{t+1} (paper Algorithms 1
+        and 2): on the step's own data, or, for an on-policy leader whose data are θ_t's rollouts,
+        on data collected afresh for the same tasks. A principle that only reports statistics of
+        the step reads the step's losses at θ_t, which cost nothing more.
+        """
+        if not self.principle.needs_next_losses:
+            return step_losses
+        with torch.no_grad():
+            next_data = self.leader.collect(tasks) if self.leader.on_policy else data
+            return self.leader.evaluate(next_data)
+
+    def check_losses(self, losses: Tensor) -> None:
+        """Raise :class:`TrainingDiverged` on a non-finite task loss or one beyond ±``max_loss``."""
         worst = float(losses.detach().abs().max())
         if not math.isfinite(worst):
             raise TrainingDiverged(
@@ -91,20 +142,6 @@ class GameTrainer:
                 f"a task loss reached {worst:.3g} at iteration {self.iteration + 1}, beyond "
                 f"trainer.max_loss = {self.max_loss:g}"
             )
-        logs = {
-            "train/leader_loss": float((self.principle.weights(losses) * losses).sum()),
-            "train/task_loss_mean": float(losses.mean()),
-        }
-        logs.update(
-            {f"train/{key}": float(value.mean()) for key, value in out.items() if key != "loss"}
-        )
-        self.iteration += 1
-        every = self.principle.update_every
-        if every and self.iteration % every == 0:
-            scored = self.leader.evaluate(tasks) if self.train_leader else losses
-            logs.update(self.principle.update(tasks, scored))
-        logs["time/iteration_ms"] = 1000.0 * (time.perf_counter() - start)
-        return logs
 
     def run(self, stop_at: int | None = None) -> int:
         """Train until ``iterations`` (or ``stop_at``, checkpointing there); returns the iteration

@@ -26,7 +26,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.config import check_keys
 from armeta_rl.learners.base import TaskWeights
@@ -100,10 +100,11 @@ class MAMLTRPOLeader:
     """
 
     metric = "return"
+    on_policy = True
 
     def __init__(
         self,
-        collector: Collector,
+        collector: TaskCollector,
         obs_dim: int = 2,
         action_dim: int = 2,
         hidden_sizes: Sequence[int] = (64, 64),
@@ -209,14 +210,16 @@ class MAMLTRPOLeader:
 
     # -- Leader protocol ----------------------------------------------------------------------
 
-    def collect_meta_batch(
-        self, tasks: TensorDictBase, collector: Collector | None = None, create_graph: bool = True
-    ) -> MetaBatch:
-        """Roll out π_θ, adapt every task (one batched inner step), roll out the adapted policies.
+    def collect(self, tasks: TensorDictBase, collector: TaskCollector | None = None) -> MetaBatch:
+        """Roll out π_θ, adapt every task (one batched inner step), roll out the adapted policies,
+        with ``collector`` or the leader's own.
 
-        With ``create_graph`` the adapted parameters keep their graph to θ (for the meta-gradient).
+        Under grad mode the adapted parameters keep their graph to θ (for the meta-gradient of
+        :meth:`step`); under ``torch.no_grad()`` (the follower's and the evaluation's data, which
+        are only scored) they do not.
         """
-        collector = collector or self.collector
+        create_graph = torch.is_grad_enabled()
+        collector = self.collector if collector is None else collector
         train = collector.collect(tasks, None, policy=self.net)
         train_advantages = self.advantages(train)
         with torch.enable_grad():
@@ -337,17 +340,17 @@ class MAMLTRPOLeader:
             "trpo/kl": 0.0 if accepted is None else found["kl"].item(),
         }
 
-    def step(self, tasks: TensorDictBase, weights: TaskWeights) -> TensorDict:
-        """Collect before/after adaptation, score, then one TRPO step on Σ_k w_k L^out_k with
-        ``w = weights(losses)``.
+    def step(
+        self, batch: MetaBatch, weights: TaskWeights
+    ) -> tuple[TensorDict, dict[str, float]]:
+        """Score the episodes of :meth:`collect` before and after adaptation, then one TRPO step
+        on Σ_k w_k L^out_k with ``w = weights(losses)``.
 
-        Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"``,
-        ``"return_post"`` and the step's TRPO diagnostics broadcast to ``[K]`` (the trainer logs
-        their means): ``"trpo_kl"`` (Σ_k w_k KL_k of the accepted step), ``"trpo_improvement"``
-        (decrease of the weighted surrogate) and ``"trpo_line_search_steps"`` (backtracking
-        steps taken; −1 when no step was accepted).
+        Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"`` and
+        ``"return_post"``, and the step's TRPO diagnostics: ``"trpo_kl"`` (Σ_k w_k KL_k of the
+        accepted step), ``"trpo_improvement"`` (decrease of the weighted surrogate) and
+        ``"trpo_line_search_steps"`` (backtracking steps taken; −1 when no step was accepted).
         """
-        batch = self.collect_meta_batch(tasks)
         return_pre = episode_returns(batch.train).mean(-1)
         return_post = episode_returns(batch.valid).mean(-1)
         losses = -return_post
@@ -357,24 +360,20 @@ class MAMLTRPOLeader:
             "trpo_improvement": update["trpo/surrogate_before"] - update["trpo/surrogate_after"],
             "trpo_line_search_steps": update["trpo/line_search_steps"],
         }
-        return TensorDict(
-            {
-                "loss": losses, "return_pre": return_pre, "return_post": return_post,
-                **{key: torch.full_like(losses, value) for key, value in diagnostics.items()},
-            },
+        per_task = TensorDict(
+            {"loss": losses, "return_pre": return_pre, "return_post": return_post},
             batch_size=[losses.shape[0]],
         )
+        return per_task, diagnostics
 
-    def evaluate(self, tasks: TensorDictBase, collector: Collector | None = None) -> Tensor:
-        """Per-task −(mean return after one inner step) ``[K]`` at the current θ: explore with
-        π_θ, adapt on those episodes, and roll out the adapted policies afresh.
+    def evaluate(self, batch: MetaBatch) -> Tensor:
+        """Per-task −(mean return after one inner step) ``[K]``: the adapted policies' returns on
+        the post-adaptation episodes of ``batch``.
 
-        The trainer calls this for the follower's update, after the leader's step, so the
-        adversary scores tasks at θ_{t+1} as the game prescribes. It costs two rollouts and one
-        inner step (no second-order graph, no TRPO), a small fraction of a meta-iteration, so the
-        returns of :meth:`step` (measured at θ_t) are not reused in its place.
+        The data are θ's own rollouts (``on_policy``), so the follower's losses at θ_{t+1} come
+        from a fresh :meth:`collect` after the step (two rollouts and one inner step, no TRPO),
+        not from the step's batch collected at θ_t.
         """
-        batch = self.collect_meta_batch(tasks, collector, create_graph=False)
         return -episode_returns(batch.valid).mean(-1)
 
     def state_dict(self) -> dict[str, Any]:

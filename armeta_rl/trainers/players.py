@@ -1,18 +1,9 @@
-"""Run directories: their lock, building a run's players from its config and restoring them from
-disk.
-
-A run directory holds ``run.lock``, ``config.yaml`` (the resolved config), ``checkpoints/``,
-``logs/``, ``eval.json`` and ``density.png``.
-"""
+"""A run's players (task space, p0, leader, principle, evaluation collector): built from its
+config, or rebuilt from a saved run directory with its latest checkpoint."""
 
 from __future__ import annotations
 
-import errno
-import fcntl
-import os
 import random
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -20,7 +11,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from armeta_rl.collectors.base import Collector
+from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import load_run_config
 from armeta_rl.devices import CPU, resolve_device
 from armeta_rl.errors import ConfigError
@@ -36,58 +27,6 @@ from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 
-LOCK_FILE = "run.lock"
-
-
-def check_run_dir(run_dir: Path, key: str) -> None:
-    """Refuse, before anything is written, a run directory that is an existing file, or that
-    cannot be created or written (a read-only file system or directory)."""
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ConfigError(key, str(run_dir), "is an existing file, not a directory")
-    existing = next(p for p in (run_dir, *run_dir.parents) if p.exists())
-    if not existing.is_dir():
-        raise ConfigError(key, str(run_dir), f"cannot be created: {existing} is a file")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(key, str(run_dir), f"cannot be written: {existing} is read-only")
-
-
-@contextmanager
-def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
-    """Hold an exclusive lock on ``run_dir`` (``fcntl.flock`` on ``run.lock``, which names the
-    holder's pid) for the ``with`` block, creating the directory.
-
-    The kernel releases the lock when its holder exits, however it exits, so a lock left by a dead
-    process is taken over. Taking a lock this process already holds is a no-op (the CLI locks the
-    run directory before Hydra writes to it, and the run locks it again).
-
-    Raises:
-        ConfigError: naming ``key``, if another live process holds the lock.
-    """
-    run_dir.mkdir(parents=True, exist_ok=True)
-    path = run_dir / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as error:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-        os.close(fd)
-        if error.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-            raise
-        if holder == str(os.getpid()):
-            yield path
-            return
-        raise ConfigError(
-            key, str(run_dir),
-            f"is in use by another run (pid {holder or '?'}): wait for it to end or choose "
-            "another directory",
-        ) from None
-    try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield path
-    finally:
-        os.close(fd)
-
 
 @dataclass
 class Players:
@@ -97,7 +36,7 @@ class Players:
     initial: TaskDistribution
     leader: Leader
     principle: RiskPrinciple
-    eval_collector: Collector
+    eval_collector: TaskCollector
     device: torch.device = CPU
 
     @property

@@ -1,0 +1,142 @@
+"""``eval.json``: the trained leader scored on p0 and on an adversarial distribution, with each
+distribution's entropy and KL from p0; and the same for any saved learner against any saved
+adversary (``armeta-eval``)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from armeta_rl.collectors.base import TaskCollector
+from armeta_rl.collectors.episodes import EpisodeCollector
+from armeta_rl.collectors.regression import NoisySupport
+from armeta_rl.config import check_config
+from armeta_rl.devices import CPU, forked_rng, resolve_device
+from armeta_rl.errors import ConfigError
+from armeta_rl.tasks import TaskDistribution
+from armeta_rl.trainers.evaluation import evaluate_on
+from armeta_rl.trainers.players import Players, load_players
+
+EVAL_FILE = "eval.json"
+
+
+def evaluate_players(
+    cfg: DictConfig, players: Players, adversary: TaskDistribution | None = None
+) -> dict[str, Any]:
+    """``eval.json``'s content: the leader on p0 and on an adversarial distribution.
+
+    ``adversary`` defaults to the run's own p_φ (AR methods); ERM-style runs have none unless one
+    is given (``armeta-eval`` scores any learner on any saved adversary).
+    """
+    ev = cfg.eval
+    noisy = noisy_support_collector(cfg, players)
+    adversary = adversary if adversary is not None else players.adversary
+    distributions = {"initial": players.initial}
+    if adversary is not None:
+        distributions["adversarial"] = adversary
+    report: dict[str, Any] = {
+        "metric": players.leader.metric,
+        "benchmark": cfg.benchmark.name,
+        "method": cfg.method.name,
+    }
+    for offset, (name, distribution) in enumerate(distributions.items()):
+        report[name] = evaluate_on(
+            players.leader,
+            distribution,
+            players.eval_collector,
+            ev.n_tasks,
+            list(ev.alphas),
+            ev.seed + offset,
+            players.device,
+        )
+        report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset,
+                                               device=players.device))
+    if noisy is not None:
+        report["support_noise"] = ev.support_noise
+        for offset, (name, distribution) in enumerate(distributions.items()):
+            report[f"{name}_noisy"] = evaluate_on(
+                players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset,
+                players.device,
+            )
+    return report
+
+
+def noisy_support_collector(cfg: DictConfig, players: Players) -> TaskCollector | None:
+    """The evaluation collector with N(0, σ²) noise on the support labels for σ =
+    ``eval.support_noise`` (the paper's random perturbation test), or ``None`` when σ = 0.
+
+    RL benchmarks adapt on episodes, which have no support labels, so σ > 0 is refused there;
+    :func:`run_training` asks before training, so the error does not wait for the evaluation.
+    """
+    sigma = cfg.eval.support_noise
+    if not sigma > 0:
+        return None
+    if isinstance(players.eval_collector, EpisodeCollector):
+        raise ConfigError(
+            "eval.support_noise", sigma,
+            f"must be 0 on {cfg.benchmark.name}: its tasks are adapted from episodes, which have "
+            "no support labels to perturb",
+        )
+    return NoisySupport(players.eval_collector, sigma)
+
+
+def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
+                       samples: int = 4096, device: torch.device = CPU) -> dict[str, float]:
+    """Entropy H[p] and KL(p0 ‖ p) of a task distribution on ``device`` (Monte Carlo with exact
+    log-densities; the paper's entropy table reports H of p0 and of the learned p_φ)."""
+    with forked_rng(device), torch.no_grad():
+        torch.manual_seed(seed)
+        entropy = float(distribution.entropy(samples))
+        kl = float(distribution.kl_from(initial, samples))
+    return {"entropy": entropy, "kl_p0": kl}
+
+
+def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
+    """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``."""
+    scalars = {}
+    for name, section in report.items():
+        if isinstance(section, dict) and "mean" in section:
+            scalars[f"eval/{name}/mean"] = section["mean"]
+            if section.get("sem") is not None:
+                scalars[f"eval/{name}/sem"] = section["sem"]
+            scalars.update({f"eval/{name}/cvar_{a}": v for a, v in section["cvar"].items()})
+    return scalars
+
+
+def cross_evaluate(
+    learner_dir: str | Path,
+    adversary_dir: str | Path | None,
+    eval_overrides: dict[str, Any] | None = None,
+    device: str = "cpu",
+) -> dict[str, Any]:
+    """Score the learner saved in ``learner_dir`` on p0 and on the adversary saved in
+    ``adversary_dir`` (same benchmark), both loaded onto ``device`` wherever they were trained;
+    ``eval_overrides`` replace the learner run's ``eval.*``."""
+    resolve_device(device)
+    cfg, players = load_players(learner_dir, "learner", device)
+    adversary = None
+    if adversary_dir is not None:
+        adv_cfg, adv_players = load_players(adversary_dir, "adversary", device)
+        if adv_players.adversary is None:
+            raise ConfigError(
+                "adversary",
+                str(adversary_dir),
+                f"was trained with method {adv_cfg.method.name}, which has no adversary",
+            )
+        if adv_players.space != players.space:
+            raise ConfigError(
+                "adversary",
+                str(adversary_dir),
+                f"its identifier box {adv_players.space} differs from the learner's "
+                f"{players.space}",
+            )
+        adversary = adv_players.adversary
+    cfg = OmegaConf.merge(cfg, {"eval": eval_overrides or {}})
+    check_config(cfg)
+    report = evaluate_players(cfg, players, adversary)
+    report["learner"] = str(learner_dir)
+    report["adversary"] = None if adversary_dir is None else str(adversary_dir)
+    return report
