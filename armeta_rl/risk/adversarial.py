@@ -92,7 +92,7 @@ class AdversarialPrinciple(nn.Module):
     @torch.no_grad()
     def propose(self, n: int) -> TensorDict:
         """``n`` tasks τ = g_φ(τ0), τ0 ~ p0, drawn from p_φ with their log-probabilities (paper
-        Eq. nf_logdeterm)."""
+        Eq. (10))."""
         return self.adversary.as_tasks(*self._push_forward(self.initial.sample_params(n)))
 
     def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
