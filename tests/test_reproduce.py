@@ -12,8 +12,11 @@ import textwrap
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
 
 import armeta_rl.reproduce.plan as plan_module
+from armeta_rl.cli import config_dir
+from armeta_rl.config import check_config
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.aggregate import (
     collect,
@@ -348,6 +351,26 @@ def test_every_experiment_plans_at_every_profile():
     cnp = make_plan("cnp_table", "paper").runs[0].overrides
     # The experiment's own paper settings come after the shared ones, so they win.
     assert cnp[-2:] == ("trainer.iterations=15000", f"risk.ar.lr={0.5 / 15000}")
+
+
+@pytest.mark.parametrize("profile,config", [("paper_ray", "ant_goal_ray"),
+                                            ("paper_warp", "ant_goal_warp")])
+def test_the_ant_experiment_plans_for_bigger_hardware_and_others_refuse_it(profile, config):
+    """ant_pos at the Ray and Warp profiles trains those configs in the ``ant_goal`` rows (the
+    paper's 4 seeds, 40 tasks a batch); the Ray workers divide the meta-batch and the evaluation
+    tasks (the Warp runs ask for CUDA, which the config check wants present). An experiment
+    without Ant has no settings there: one line."""
+    plan = make_plan("ant_pos", profile)
+    assert {run.config for run in plan.runs} == {config}
+    assert {run.benchmark for run in plan.runs} == {"ant_goal"}
+    assert sorted({run.seed for run in plan.runs}) == [0, 1, 2, 3]
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg = compose("train", overrides=list(plan.runs[0].command()))
+    assert cfg.benchmark.name == config
+    if profile == "paper_ray":
+        check_config(cfg)
+    with pytest.raises(ConfigError, match=f"'{profile}.benchmarks' = 'sinusoid_uniform'"):
+        make_plan("table1", profile)
 
 
 def _packaged_copy(tmp_path: Path, profiles_text: str) -> Path:
