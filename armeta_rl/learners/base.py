@@ -1,4 +1,5 @@
-"""The leader protocol (docs/architecture.md): MAML, CNP and MAML-TRPO all implement it."""
+"""The leader protocol (docs/architecture.md): MAML, CNP and MAML-TRPO all implement it; and
+the model sizes a leader takes from its collector (:func:`sizes`)."""
 
 from __future__ import annotations
 
