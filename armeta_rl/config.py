@@ -5,7 +5,10 @@ The schema is a tree of dataclasses, :class:`TrainSchema` at its root, mirroring
 ``configs/train.yaml``. A field's annotation is the key's type (``bool``, ``int``, ``float``,
 ``str``, ``list[...]``, ``X | None``, a nested schema, or ``Any`` / ``dict[str, Any]`` for parts
 a benchmark or method fills freely, such as collector arguments); its :func:`key` metadata is the
-range and its wording. The YAML files keep the values. :func:`check_config` checks a composed
+range and its wording. The YAML files keep the values, but for a learner's options: their
+defaults are the fields' (each learner module's options dataclass, registered in
+:data:`armeta_rl.factory.LEARNERS`), from which :data:`LearnerSchema` and the composed
+``learner:`` section are derived. :func:`check_config` checks a composed
 config against the schema, strictly: ``first_order: off`` is a string, not a boolean, and is
 refused. Keys present only with some benchmarks or methods (``benchmark.collector.workers``)
 are checked when present. See docs/configuration.md.
@@ -23,6 +26,7 @@ from pathlib import Path
 from typing import Any, Union
 
 import yaml
+from hydra.core.config_store import ConfigStore
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from armeta_rl.devices import DEVICE_FORMS, is_device_name, resolve_device
@@ -46,41 +50,56 @@ OmegaConf.register_new_resolver("method_name", method_name, replace=True)
 
 
 def key(
-    allowed: str = "", test: Callable[[Any], bool] | None = None, old_runs: Any = _MISSING
+    allowed: str = "",
+    test: Callable[[Any], bool] | None = None,
+    old_runs: Any = _MISSING,
+    default: Any = None,
 ) -> Any:
     """A schema field: ``test`` (on a value of the right type) and ``allowed``, the end of the
     error line when it fails (``must be >= 1``, ``allowed: a, b``); ``old_runs`` is the value a
     run directory saved before the key existed gets when it is loaded (only for keys added after
-    runs were saved)."""
-    return field(default=None, metadata={"allowed": allowed, "test": test, "old_runs": old_runs})
+    runs were saved); ``default`` is the key's value in a composed config, for the keys whose
+    values are declared here rather than in ``configs/`` (a learner's options, :func:`defaults`)."""
+    metadata = {"allowed": allowed, "test": test, "old_runs": old_runs}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=metadata)
+    return field(default=default, metadata=metadata)
 
 
-def at_least(low: float) -> Any:
-    return key(f"must be >= {low:g}", lambda v: v >= low)
+def at_least(low: float, default: Any = None) -> Any:
+    return key(f"must be >= {low:g}", lambda v: v >= low, default=default)
 
 
-def above(low: float) -> Any:
-    return key(f"must be > {low:g}", lambda v: v > low)
+def above(low: float, default: Any = None) -> Any:
+    return key(f"must be > {low:g}", lambda v: v > low, default=default)
 
 
-def inside(low: float, high: float, closed: str = "()") -> Any:
+def inside(low: float, high: float, closed: str = "()", default: Any = None) -> Any:
     """In the interval from ``low`` to ``high``; ``closed`` gives its brackets, e.g. ``"(]"``."""
     lo = (lambda v: v >= low) if closed[0] == "[" else (lambda v: v > low)
     hi = (lambda v: v <= high) if closed[1] == "]" else (lambda v: v < high)
-    return key(f"must be in {closed[0]}{low:g}, {high:g}{closed[1]}", lambda v: lo(v) and hi(v))
+    return key(f"must be in {closed[0]}{low:g}, {high:g}{closed[1]}", lambda v: lo(v) and hi(v),
+               default=default)
 
 
-def one_of(*choices: str) -> Any:
-    return key(f"allowed: {', '.join(choices)}", lambda v: v in choices)
+def one_of(*choices: str, default: Any = None) -> Any:
+    return key(f"allowed: {', '.join(choices)}", lambda v: v in choices, default=default)
 
 
-def each(check: Any, nonempty: bool = False) -> Any:
+def each(check: Any, nonempty: bool = False, default: Any = None) -> Any:
     """Every element of a list passes ``check`` (a field made by :func:`at_least` and the like);
     with ``nonempty`` the list must have one at least."""
     words, test = check.metadata["allowed"].removeprefix("must be "), check.metadata["test"]
     allowed = f"must be a non-empty list, every element {words}" if nonempty else (
         f"every element must be {words}")
-    return key(allowed, lambda v: (len(v) > 0 or not nonempty) and all(test(a) for a in v))
+    return key(allowed, lambda v: (len(v) > 0 or not nonempty) and all(test(a) for a in v),
+               default=default)
+
+
+def defaults(options: type) -> dict[str, Any]:
+    """The default value of every key of an options dataclass (a learner's ``learner.<name>``
+    section), as a composed config holds them."""
+    return dataclasses.asdict(options())
 
 
 def seeds(top: int = SEED_RANGE[1]) -> Any:
@@ -111,59 +130,6 @@ class EvalSchema:
     alphas: list[float] = each(inside(0, 1), nonempty=True)
     seed: int = seeds(SEED_RANGE[1] - 1)  # the adversarial distribution is scored at seed + 1
     support_noise: float = at_least(0)
-
-
-@dataclass
-class MamlSchema:
-    hidden: list[int] = each(at_least(1))
-    inner_lr: float = above(0)
-    inner_steps: int = at_least(1)
-    first_order: bool = key()
-    outer_lr: float = above(0)
-    adaptation: str = one_of("vmap", "low_rank")
-    compile: Any = key()  # false, true or a backend: checked by armeta_rl.compiling
-
-
-@dataclass
-class CnpSchema:
-    lr: float = above(0)
-    hidden: int = at_least(1)
-    likelihood: str = one_of("gaussian", "mse")
-
-
-@dataclass
-class MamlTrpoSchema:
-    hidden_sizes: list[int] = each(at_least(1))
-    inner_lr: float = above(0)
-    gamma: float = inside(0, 1, "(]")
-    gae_lambda: float = inside(0, 1, "[]")
-    max_kl: float = above(0)
-    cg_iterations: int = at_least(1)
-    cg_damping: float = at_least(0)
-    ls_max_steps: int = at_least(1)
-    ls_backtrack_ratio: float = inside(0, 1)
-    baseline_reg: float = at_least(0)
-    first_order: bool = key()
-    hvp_episodes: int | None = at_least(1)
-
-
-@dataclass
-class AnilSchema:
-    hidden: list[int] = each(at_least(1), nonempty=True)
-    inner_lr: float = above(0)
-    inner_steps: int = at_least(1)
-    first_order: bool = key()
-    outer_lr: float = above(0)
-
-
-@dataclass
-class LearnerSchema:
-    """One section per learner of :data:`armeta_rl.factory.LEARNERS` (and MAML's meta-RL form)."""
-
-    maml: MamlSchema = key()
-    cnp: CnpSchema = key()
-    maml_trpo: MamlTrpoSchema = key()
-    anil: AnilSchema = key()
 
 
 @dataclass
@@ -414,11 +380,16 @@ def check_config(cfg: DictConfig) -> None:
 
 def check_learner(cfg: DictConfig) -> None:
     """``method.learner`` names a registered learner (:data:`armeta_rl.factory.LEARNERS`)."""
-    from armeta_rl.factory import LEARNERS
-
     name = OmegaConf.select(cfg, "method.learner")
     if name is not None and name not in LEARNERS:
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
+
+
+def section(cfg: DictConfig, key: str) -> dict[str, Any]:
+    """The keys under ``key`` of a composed config as a plain, resolved dict (``{}`` when absent):
+    what a builder hands on as arguments (``section(cfg, "learner.anil")``)."""
+    node = OmegaConf.select(cfg, key)
+    return {} if node is None else OmegaConf.to_container(node, resolve=True)
 
 
 def check_task_split(cfg: DictConfig) -> None:
@@ -454,3 +425,22 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
     if not isinstance(cfg, DictConfig):
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
     return with_old_run_defaults(without_removed_keys(cfg))
+
+
+# The registry's learner modules declare their options with this module's helpers, so it is
+# imported once they are defined.
+from armeta_rl.factory import LEARNERS, learner_sections  # noqa: E402
+
+LearnerSchema = dataclasses.make_dataclass(
+    "LearnerSchema", [(name, options, key()) for name, options in learner_sections().items()]
+)
+LearnerSchema.__doc__ = """``learner:``: one section per learner of
+:data:`armeta_rl.factory.LEARNERS` and per meta-RL form, its options."""
+
+# configs/train.yaml composes `learner_options`: the `learner:` section, every learner's options at
+# their defaults, so a learner's values are declared once, in its options. (A root config, not a
+# config group: `learner=x` stays a value, refused by the schema as before.)
+ConfigStore.instance().store(
+    name="learner_options",
+    node={"learner": {name: defaults(options) for name, options in learner_sections().items()}},
+)

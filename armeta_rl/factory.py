@@ -2,8 +2,9 @@
 
 Leaders and risk principles are looked up by the names a method config gives
 (``method.learner``, ``method.risk``) in :data:`LEARNERS` and :data:`PRINCIPLES`; each builder reads
-its own section (``learner.<name>``, ``risk.<name>``) and the model's sizes from the collector, so
-adding a player is one function and one entry here. Every builder takes the run's ``device``
+its own section (``learner.<name>``, ``risk.<name>``) and the model's sizes from the collector. A
+learner's builder and options live in its module, so adding one is that module and one entry in
+:data:`LEARNERS`. Every builder takes the run's ``device``
 (:func:`armeta_rl.devices.resolve_device`) as an argument and builds its player there.
 """
 
@@ -11,7 +12,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
@@ -19,16 +19,16 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.collectors.base import TaskCollector
+from armeta_rl.config import section
 from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
+from armeta_rl.learners.anil import AnilOptions, build_anil
 from armeta_rl.learners.base import Leader
+from armeta_rl.learners.cnp import CnpOptions, build_cnp
+from armeta_rl.learners.maml import MamlOptions, build_maml
+from armeta_rl.learners.maml_trpo import MamlTrpoOptions, build_maml_trpo
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
-
-
-def _section(cfg: DictConfig, key: str) -> dict[str, Any]:
-    node = OmegaConf.select(cfg, key)
-    return {} if node is None else OmegaConf.to_container(node, resolve=True)
 
 
 def build_space(cfg: DictConfig) -> TaskSpace:
@@ -41,7 +41,7 @@ def build_initial(
     cfg: DictConfig, space: TaskSpace, device: torch.device = CPU
 ) -> TaskDistribution:
     """The benchmark's initial task distribution p0, on ``device``."""
-    initial = _section(cfg, "benchmark.initial")
+    initial = section(cfg, "benchmark.initial")
     return make_initial(
         space, initial.get("kind", "uniform"), initial.get("loc"), initial.get("scale")
     ).to(device)
@@ -74,87 +74,52 @@ def build_collector(
     return collector
 
 
-OLD_SIZE_KEYS = ("benchmark.model.in_features", "benchmark.model.out_features")
-"""Where configs saved before sizes came from the collector state them."""
+Builder = Callable[[DictConfig, TaskCollector, torch.device], Leader]
+"""Builds a learner from a composed config, with its model's sizes from the collector
+(:func:`armeta_rl.learners.base.sizes`), on the run's device."""
 
 
-def sizes(cfg: DictConfig, collector: TaskCollector, stated: tuple[str, str]) -> tuple[int, int]:
-    """The leader's input and output sizes, as the collector defines them (``in_features`` and
-    ``out_features``: x and y, or the env's observation and action). A config saved before sizes
-    came from the collector states them at the keys ``stated``: such a value is accepted when it
-    is the collector's, so old runs load, and refused otherwise."""
-    defined = int(collector.in_features), int(collector.out_features)
-    for key, size in zip(stated, defined):
-        value = OmegaConf.select(cfg, key, default=None)
-        if value is not None and value != size:
-            raise ConfigError(key, value, f"is defined by the collector: {size}")
-    return defined
+@dataclass(frozen=True)
+class RLForm:
+    """A learner's meta-RL form on episode data: its own config section ``learner.<section>``,
+    its builder and its options."""
 
-
-def _maml(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
-    from armeta_rl.learners.maml import MAMLLeader
-    from armeta_rl.learners.mlp import make_mlp
-
-    opts = _section(cfg, "learner.maml")
-    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
-    target = OmegaConf.select(cfg, "benchmark.collector.target", default=None)
-    if head == "tied_angle" and target != "next":
-        raise ConfigError("benchmark.model.head", head,
-                          f"predicts the next observation: needs benchmark.collector.target=next, "
-                          f"not {target}")
-    model = make_mlp(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden", (128, 128, 128)),
-                     head).to(device)
-    return MAMLLeader(model, collector, **opts)
-
-
-def _cnp(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
-    from armeta_rl.learners.cnp import CNPLeader
-
-    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
-    if head != "none":
-        raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
-    return CNPLeader(*sizes(cfg, collector, OLD_SIZE_KEYS), collector,
-                     **_section(cfg, "learner.cnp"), device=device)
-
-
-def _maml_trpo(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
-    from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
-
-    old_keys = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
-    obs_dim, action_dim = sizes(cfg, collector, old_keys)
-    opts = {k: v for k, v in _section(cfg, "learner.maml_trpo").items()
-            if f"learner.maml_trpo.{k}" not in old_keys}
-    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim, **opts,
-                          device=device)
-
-
-def _anil(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> Leader:
-    from armeta_rl.learners.anil import ANILLeader, BodyHead
-
-    opts = _section(cfg, "learner.anil")
-    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden")).to(device)
-    return ANILLeader(model, collector, **opts)
+    section: str
+    build: Builder
+    options: type
 
 
 @dataclass(frozen=True)
 class Learner:
     """A registered meta-learner: its builder on regression and system-identification data
-    (``build``), and the builder of its meta-RL form on episode data (``rl``; ``None``: it has
-    none). A builder reads its own ``learner.<name>`` section (defaults in
-    ``configs/train.yaml``, types and ranges in :mod:`armeta_rl.config`) and takes the model's
-    sizes from the collector (:func:`sizes`) and builds it on the run's device."""
+    (``build``), its options (``options``: a dataclass of :mod:`armeta_rl.config` fields, the type,
+    range and default value of every key of its ``learner.<name>`` section), and its meta-RL form
+    on episode data (``rl``; ``None``: it has none). The composed config's ``learner:`` section and
+    its schema are derived from the options (:func:`learner_sections`)."""
 
-    build: Callable[[DictConfig, TaskCollector, torch.device], Leader]
-    rl: Callable[[DictConfig, TaskCollector, torch.device], Leader] | None = None
+    build: Builder
+    options: type
+    rl: RLForm | None = None
 
 
 LEARNERS: dict[str, Learner] = {
-    "maml": Learner(_maml, rl=_maml_trpo),
-    "cnp": Learner(_cnp),
-    "anil": Learner(_anil),
+    "maml": Learner(build_maml, MamlOptions, rl=RLForm("maml_trpo", build_maml_trpo,
+                                                       MamlTrpoOptions)),
+    "cnp": Learner(build_cnp, CnpOptions),
+    "anil": Learner(build_anil, AnilOptions),
 }
 """Every meta-learner ``method.learner`` may name; adding one is a module and an entry here
 (docs/adding-a-learner.md)."""
+
+
+def learner_sections() -> dict[str, type]:
+    """The options of every ``learner.<name>`` section: each learner's, and its meta-RL form's."""
+    sections = {}
+    for name, learner in LEARNERS.items():
+        sections[name] = learner.options
+        if learner.rl is not None:
+            sections[learner.rl.section] = learner.rl.options
+    return sections
 
 
 def _erm(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
@@ -167,7 +132,7 @@ def _ar(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPri
     from armeta_rl.adversary.flow_adversary import FlowAdversary
     from armeta_rl.risk.adversarial import AdversarialPrinciple
 
-    opts = _section(cfg, "risk.ar")
+    opts = section(cfg, "risk.ar")
     adversary = FlowAdversary(
         space, initial, opts.pop("flow", "spline"), **opts.pop("flow_kwargs", {})
     )
@@ -178,19 +143,19 @@ def _ar(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPri
 def _dr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
     from armeta_rl.risk.tail import TailRiskPrinciple
 
-    return TailRiskPrinciple(initial, **_section(cfg, "risk.dr"))
+    return TailRiskPrinciple(initial, **section(cfg, "risk.dr"))
 
 
 def _tr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
     from armeta_rl.risk.groups import WorstCasePrinciple
 
-    return WorstCasePrinciple(initial, **_section(cfg, "risk.tr"))
+    return WorstCasePrinciple(initial, **section(cfg, "risk.tr"))
 
 
 def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
     from armeta_rl.risk.groups import GroupDROPrinciple
 
-    return GroupDROPrinciple(initial, **_section(cfg, "risk.dro"))
+    return GroupDROPrinciple(initial, **section(cfg, "risk.dro"))
 
 
 PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPrinciple]] = {
@@ -212,13 +177,13 @@ def build_leader(cfg: DictConfig, collector: TaskCollector, device: torch.device
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
     if not isinstance(collector, EpisodeCollector):
         return LEARNERS[name].build(cfg, collector, device)
-    build = LEARNERS[name].rl
-    if build is None:
+    rl = LEARNERS[name].rl
+    if rl is None:
         with_rl = [learner for learner, entry in LEARNERS.items() if entry.rl is not None]
         raise ConfigError("method", cfg.method.name,
                           f"benchmark {cfg.benchmark.name} gathers episodes: it supports methods "
                           f"whose learner is one of: {', '.join(with_rl)}")
-    return build(cfg, collector, device)
+    return rl.build(cfg, collector, device)
 
 
 def build_principle(

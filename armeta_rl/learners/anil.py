@@ -11,20 +11,24 @@ The outer loop is MAML's: θ ← Adam(∇_θ Σ_k w_k L_k(θ)), batched over tas
 costs one layer's gradient instead of the whole network's, and the meta-gradient still reaches the
 body through θ'_head (unless ``first_order``).
 
-This module is the worked example of docs/adding-a-learner.md: the learner is this class and
-one entry in :data:`armeta_rl.factory.LEARNERS`.
+This module is the worked example of docs/adding-a-learner.md: the learner is this module (its
+class, options and builder) and one entry in :data:`armeta_rl.factory.LEARNERS`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
+import torch
+from omegaconf import DictConfig
 from torch import Tensor, nn
 from torch.func import functional_call, grad
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import check_keys
+from armeta_rl.config import above, at_least, check_keys, each, key, section
+from armeta_rl.learners.base import OLD_SIZE_KEYS, sizes
 from armeta_rl.learners.maml import MAMLLeader
 
 Params = dict[str, Tensor]
@@ -89,3 +93,21 @@ class ANILLeader(MAMLLeader):
                 steps = {name: s.detach() for name, s in steps.items()}
             head = {name: p - self.inner_lr * steps[name] for name, p in head.items()}
         return {**params, **head}
+
+
+@dataclass
+class AnilOptions:
+    """``learner.anil``: ANIL's keys, their types, ranges and defaults."""
+
+    hidden: list[int] = each(at_least(1), nonempty=True, default=[128, 128, 128])
+    inner_lr: float = above(0, default=0.01)
+    inner_steps: int = at_least(1, default=1)
+    first_order: bool = key(default=False)
+    outer_lr: float = above(0, default=0.001)
+
+
+def build_anil(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> ANILLeader:
+    """ANIL from ``learner.anil``, its network sized by the collector, on ``device``."""
+    opts = section(cfg, "learner.anil")
+    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden")).to(device)
+    return ANILLeader(model, collector, **opts)

@@ -12,15 +12,19 @@ set, and the decoder is a two-layer MLP on (z, x_query); ReLU activations, Adam 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
+from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from torch import Tensor, nn
 from torch.nn import functional as F
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import check_keys
-from armeta_rl.learners.base import OneNetworkLeader, TaskWeights
+from armeta_rl.config import above, at_least, check_keys, one_of, section
+from armeta_rl.errors import ConfigError
+from armeta_rl.learners.base import OLD_SIZE_KEYS, OneNetworkLeader, TaskWeights, sizes
 
 MIN_STD = 0.1
 
@@ -118,3 +122,22 @@ class CNPLeader(OneNetworkLeader):
         """Per-task query MSE ``[K]`` of the predicted mean on ``data`` at the current θ."""
         mean, _ = self.predict(data)
         return (mean - data["query", "y"]).square().mean((-2, -1))
+
+
+@dataclass
+class CnpOptions:
+    """``learner.cnp``: the CNP's keys, their types, ranges and defaults (encoder 3 × ``hidden``
+    → mean over the support set → decoder ``hidden`` → (μ, σ))."""
+
+    lr: float = above(0, default=0.001)
+    hidden: int = at_least(1, default=128)
+    likelihood: str = one_of("gaussian", "mse", default="gaussian")  # Gaussian NLL (paper) or mse
+
+
+def build_cnp(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> CNPLeader:
+    """The CNP from ``learner.cnp``, sized by the collector, on ``device``."""
+    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
+    if head != "none":
+        raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
+    return CNPLeader(*sizes(cfg, collector, OLD_SIZE_KEYS), collector,
+                     **section(cfg, "learner.cnp"), device=device)

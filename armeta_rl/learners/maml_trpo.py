@@ -23,13 +23,14 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
+from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.config import check_keys
-from armeta_rl.learners.base import TaskWeights
+from armeta_rl.config import above, at_least, check_keys, each, inside, key, section
+from armeta_rl.learners.base import TaskWeights, sizes
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
 from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
 from armeta_rl.rl.trpo import (
@@ -381,3 +382,42 @@ class MAMLTRPOLeader:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["policy"])
+
+
+@dataclass
+class MamlTrpoOptions:
+    """``learner.maml_trpo``: MAML's form on episode benchmarks (point_nav, ant_goal), MAML-TRPO
+    with pytorch-maml-rl's settings: its keys, their types, ranges and defaults. The policy's
+    input and output sizes are the env's observation and action."""
+
+    # Gaussian MLP, tanh, state-independent log-std (init 0)
+    hidden_sizes: list[int] = each(at_least(1), default=[64, 64])
+    inner_lr: float = above(0, default=0.1)
+    gamma: float = inside(0, 1, "(]", default=0.99)
+    gae_lambda: float = inside(0, 1, "[]", default=1.0)
+    max_kl: float = above(0, default=0.01)
+    cg_iterations: int = at_least(1, default=10)
+    cg_damping: float = at_least(0, default=1.0e-5)
+    ls_max_steps: int = at_least(1, default=15)
+    ls_backtrack_ratio: float = inside(0, 1, default=0.8)
+    baseline_reg: float = at_least(0, default=1.0e-5)
+    first_order: bool = key(default=False)
+    # None: exact KL Hessian-vector products on all episodes; n: on the first n episodes per task
+    # (≈ 20/n times cheaper conjugate gradient)
+    hvp_episodes: int | None = at_least(1, default=None)
+
+
+OLD_SIZE_KEYS = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
+"""Where configs saved before sizes came from the collector state the policy's sizes."""
+
+
+def build_maml_trpo(
+    cfg: DictConfig, collector: TaskCollector, device: torch.device
+) -> MAMLTRPOLeader:
+    """MAML-TRPO from ``learner.maml_trpo``, its policy sized by the collector's env, on
+    ``device``."""
+    obs_dim, action_dim = sizes(cfg, collector, OLD_SIZE_KEYS)
+    opts = {k: v for k, v in section(cfg, "learner.maml_trpo").items()
+            if f"learner.maml_trpo.{k}" not in OLD_SIZE_KEYS}
+    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim, **opts,
+                          device=device)
