@@ -222,7 +222,8 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     "args,expected",
     [
         (["table2"], "'experiment' = 'table2': allowed: ant_pos, cnp_table"),
-        (["table1", "profile=huge"], "'profile' = 'huge': allowed: quick, paper, tiny"),
+        (["table1", "profile=huge"],
+         "'profile' = 'huge': allowed: quick, paper, paper_ray, paper_warp, tiny"),
         (["table1", "launcher=mpi"], "'launcher' = 'mpi': allowed: local"),
         (["table1", "benchmarks=point_nav"], "'benchmarks' = 'point_nav': table1 has:"),
         (["table1", "seeds=7"], "'seeds' = 7: table1 at profile quick has: 0, 1"),

@@ -1,5 +1,5 @@
-"""``armeta-reproduce <experiment> [profile=quick|paper|tiny] [benchmarks=a,b] [seeds=0,1]
-[results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N] [hydra.launcher.…=…]
+"""``armeta-reproduce <experiment> [profile=quick|paper|paper_ray|paper_warp|tiny]
+[benchmarks=a,b] [seeds=0,1] [results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N] [hydra.launcher.…=…]
 [+train.<key>=<value>]``: one artefact of the paper.
 
 It trains the experiment's runs (one ``armeta-train`` multirun), then its attack runs against the
