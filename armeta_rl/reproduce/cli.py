@@ -1,6 +1,6 @@
 """``armeta-reproduce <experiment> [profile=quick|paper|paper_ray|paper_warp|tiny]
-[benchmarks=a,b] [seeds=0,1] [results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N] [hydra.launcher.…=…]
-[+train.<key>=<value>]``: one artefact of the paper.
+[benchmarks=a,b] [seeds=0,1] [results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N]
+[hydra.launcher.…=…] [+train.<key>=<value>]``: one artefact of the paper.
 
 It trains the experiment's runs (one ``armeta-train`` multirun), then its attack runs against the
 finished ones (a second), scores them on the adversaries (one ``armeta-eval`` multirun) and
