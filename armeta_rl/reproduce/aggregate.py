@@ -80,6 +80,15 @@ def curve_over_seeds(records: Sequence[dict[str, Any]]) -> tuple[list[float], li
     return alphas, [over_seeds([dict(zip(a, v))[alpha] for a, v in curves]) for alpha in alphas]
 
 
+def method_curve(records: Iterable[dict[str, Any]], benchmark: str, method: str,
+                 distribution: str) -> tuple[list[float], list[SeedSummary]] | None:
+    """The clean-label CVaR_α curve over seeds of ``method`` on ``benchmark`` and
+    ``distribution`` (:func:`curve_over_seeds`), or ``None`` when no seed has finished."""
+    chosen = select(records, benchmark=benchmark, method=method, distribution=distribution,
+                    noisy=False)
+    return curve_over_seeds(chosen) if chosen else None
+
+
 def section_records(report: dict[str, Any], section: str, distribution: str,
                     noisy: bool) -> list[dict[str, Any]]:
     """The record of ``report[section]`` (one distribution of an ``eval.json``), if present."""

@@ -13,7 +13,7 @@ import matplotlib.image
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from armeta_rl.reproduce.aggregate import curve_over_seeds, display, select, summary
+from armeta_rl.reproduce.aggregate import display, method_curve, select, summary
 
 
 def _figure(rows: int, cols: int, width: float = 4.2, height: float = 3.4) -> Figure:
@@ -32,11 +32,10 @@ def cvar_curves(records: Sequence[dict[str, Any]], benchmarks: Sequence[str],
         for col, (distribution, label) in enumerate(distributions.items()):
             ax = axes[row][col]
             for method in methods:
-                chosen = select(records, benchmark=benchmark, method=method,
-                                distribution=distribution, noisy=False)
-                if not chosen:
+                curve = method_curve(records, benchmark, method, distribution)
+                if curve is None:
                     continue
-                alphas, points = curve_over_seeds(chosen)
+                alphas, points = curve
                 mean = [p.mean for p in points]
                 se = [0.0 if p.n < 2 else p.se for p in points]
                 ax.plot(alphas, mean, marker="o", markersize=3, label=display(method))

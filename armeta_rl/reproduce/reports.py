@@ -14,9 +14,9 @@ from armeta_rl.reproduce import figures
 from armeta_rl.reproduce.aggregate import (
     INITIAL,
     SeedSummary,
-    curve_over_seeds,
     display,
     markdown_table,
+    method_curve,
     select,
     summary,
 )
@@ -108,11 +108,10 @@ def cvar_curves(plan: Plan, records: list[dict[str, Any]], results: Path) -> str
     for benchmark in benchmarks:
         for distribution, label in distributions.items():
             for method in methods:
-                chosen = select(records, benchmark=benchmark, method=method,
-                                distribution=distribution, noisy=False)
-                if not chosen:
+                curve = method_curve(records, benchmark, method, distribution)
+                if curve is None:
                     continue
-                alphas, points = curve_over_seeds(chosen)
+                alphas, points = curve
                 by_alpha = dict(zip(alphas, points))
                 rows.append([display(benchmark), label, display(method),
                              *(_cell(by_alpha.get(a), se=True) for a in shown)])
