@@ -149,14 +149,21 @@ def test_bad_values_are_config_errors_also_from_inside_the_actors(local_cluster)
     collector.close()
 
 
+def _wait_until_all_cpus_are_free(timeout_s: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while ray.available_resources().get("CPU") != ray.cluster_resources()["CPU"]:
+        assert time.monotonic() < deadline, "the Ray instance never reported all its CPUs free"
+        time.sleep(0.1)
+
+
 def test_the_box_and_sizes_are_read_on_one_workers_env_without_actors(local_cluster):
     """``check_space`` and the sizes probe one worker's env in this process: with 2 workers a
     1-task probe cannot be split over actors, and no actor starts before the first collection."""
     collector = RayEpisodeCollector(MAKE_ENV, EPISODES, STEPS, workers=2, timeout_s=120)
-    cpus = ray.available_resources()["CPU"]
+    _wait_until_all_cpus_are_free()  # a fresh instance may report its CPUs late
     collector.check_space(TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0]))
     assert (collector.in_features, collector.out_features) == (119, 8)
-    assert ray.available_resources()["CPU"] == cpus  # no actor holds a CPU
+    assert ray.available_resources().get("CPU") == ray.cluster_resources()["CPU"]  # no actor
     with pytest.raises(ConfigError, match="benchmark.space"):
         collector.check_space(TaskSpace(["x", "y", "z"], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]))
     collector.close()
