@@ -17,7 +17,7 @@ from torch import Tensor
 
 from armeta_rl.adversary.flows import FLOW_KINDS, make_box_flow
 from armeta_rl.errors import ConfigError
-from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.tasks.distributions import TaskDistribution, entropy_estimate
 from armeta_rl.tasks.space import TaskSpace
 
 
@@ -62,8 +62,8 @@ class FlowAdversary(TaskDistribution):
         return self.push_forward(self.base.sample_params(n))
 
     def push_forward(self, initial: Tensor) -> tuple[Tensor, Tensor]:
-        """τ = g(τ0) for points ``initial = τ0 [n, d]`` of p0, and ln p_φ(τ) = ln p0(τ0) −
-        ln|det ∂g/∂τ0| (Eq. (10)); the random draw stays with the caller."""
+        """τ = g(τ0) for points ``initial = τ0 [n, d]`` of p0 (paper Eq. (9)), and ln p_φ(τ) =
+        ln p0(τ0) − ln|det ∂g/∂τ0| (Eq. (10)); the random draw stays with the caller."""
         params, log_det = self.flow(initial)
         return params, self.base.log_prob(initial) - log_det
 
@@ -73,7 +73,8 @@ class FlowAdversary(TaskDistribution):
 
     def log_prob(self, params: Tensor) -> Tensor:
         """Exact ln p_φ(τ) ``[n]`` (float64) at any ``params [n, d]``: ln p0(g⁻¹(τ)) +
-        ln|det ∂g⁻¹/∂τ| inside the box, ``-inf`` outside. Differentiable with respect to φ."""
+        ln|det ∂g⁻¹/∂τ| inside the box (paper Eq. (10) through the inverse flow, the form of its
+        Eq. (44)), ``-inf`` outside. Differentiable with respect to φ."""
         params = params.to(torch.float64)
         inside = self._inside(params)
         safe = torch.where(inside[:, None], params, self.centre)
@@ -82,6 +83,6 @@ class FlowAdversary(TaskDistribution):
 
     @torch.no_grad()
     def entropy(self, n: int = 4096) -> Tensor:
-        """Monte-Carlo entropy H[p_φ] = −E_{p_φ}[ln p_φ(τ)] from ``n`` samples (paper Remark
-        "Entropy of the Generated Task Distribution"); a detached float64 scalar."""
-        return -self.sample_with_log_prob(n)[1].mean()
+        """Monte-Carlo entropy H[p_φ] = −E_{p_φ}[ln p_φ(τ)] from ``n`` samples (paper Eq. (12),
+        :func:`~armeta_rl.tasks.distributions.entropy_estimate`); a detached float64 scalar."""
+        return entropy_estimate(self.sample_with_log_prob(n)[1])

@@ -78,7 +78,8 @@ class BoxFlow(nn.Module):
         return (self.low + x * self.width).clamp(self.low, self.high), log_det
 
     def forward(self, params: Tensor) -> tuple[Tensor, Tensor]:
-        """τ = g(τ0) for ``params = τ0 [n, d]`` in the box, and ln|det ∂g/∂τ0| ``[n]``."""
+        """τ = g(τ0) = g_M ∘ … ∘ g_1(τ0) (paper Eq. (9)) for ``params = τ0 [n, d]`` in the box,
+        and ln|det ∂g/∂τ0| = Σ_i ln|det ∂g_i/∂τ^{i−1}| ``[n]``, the sum of Eq. (10)."""
         return self._run(params, inverse=False)
 
     def inverse(self, params: Tensor) -> tuple[Tensor, Tensor]:

@@ -1,4 +1,4 @@
-"""The follower's score-function surrogate (paper Eqs. (6) and (17)).
+"""The follower's objective and its score-function surrogate (paper Eqs. (6) and (17)).
 
 The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. (6)). Its gradient is
 
@@ -19,6 +19,7 @@ box; docs/protocol.md.)
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
@@ -27,14 +28,16 @@ from torch import Tensor
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.distributions import entropy_estimate, kl_estimate
 from armeta_rl.tasks.protocol import TASK_KEY
 
 BASELINES = ("mean", "leave_one_out")
 
 
 def score_baseline(losses: Tensor, baseline: str = "mean") -> Tensor:
-    """The baseline V of the score-function estimator: the batch mean (the paper's choice) or,
-    per task, the mean of the other tasks' losses (independent of τ_k, hence exactly unbiased)."""
+    """The baseline V of the score-function estimator (paper Eq. (17)): the batch mean (the
+    paper's choice) or, per task, the mean of the other tasks' losses (independent of τ_k, hence
+    exactly unbiased)."""
     if baseline == "mean":
         return losses.mean().expand_as(losses)
     if baseline == "leave_one_out":
@@ -42,6 +45,23 @@ def score_baseline(losses: Tensor, baseline: str = "mean") -> Tensor:
             raise ConfigError("risk.ar.baseline", baseline, "needs at least 2 tasks per update")
         return (losses.sum() - losses) / (losses.numel() - 1)
     raise ConfigError("risk.ar.baseline", baseline, "allowed: " + ", ".join(BASELINES))
+
+
+def adversary_objective(losses: Tensor, lam: float, initial_log_prob: Tensor) -> Tensor:
+    """Monte-Carlo estimate of the follower's objective J(θ, φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ]
+    (paper Eq. (6)): the mean of the losses ``[K]`` of tasks drawn from p_φ plus λ times the mean
+    of ln p_φ at draws of p0 (``initial_log_prob`` ``[M]``)."""
+    return losses.mean() + lam * initial_log_prob.mean()
+
+
+def score_function_surrogate(
+    advantages: Tensor, task_log_prob: Tensor, lam: float, initial_log_prob: Tensor
+) -> Tensor:
+    """A scalar whose gradient in φ is the score-function estimate of ∇_φ J (paper Eq. (17)):
+    (1/K) Σ_k (L_k − V_k)·ln p_φ(τ_k) + (λ/M) Σ_m ln p_φ(τ_m^0), with ``advantages`` L_k − V_k
+    ``[K]`` held fixed, ``task_log_prob`` ln p_φ(τ_k) ``[K]`` and ``initial_log_prob``
+    ln p_φ(τ_m^0) ``[M]`` at draws of p0, both differentiable in φ."""
+    return (advantages * task_log_prob).mean() + lam * initial_log_prob.mean()
 
 
 def adversary_surrogate(
@@ -53,7 +73,8 @@ def adversary_surrogate(
     baseline: str = "mean",
     log_prob: Callable[[Tensor], Tensor] | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
-    """A scalar whose gradient in φ is the estimate of ∇_φ J of paper Eq. (17).
+    """The surrogate of :func:`score_function_surrogate` (paper Eq. (17)) for ``tasks`` and their
+    losses, with ln p_φ evaluated once for the tasks and the p0 draws together.
 
     Args:
         adversary: p_φ.
@@ -78,13 +99,26 @@ def adversary_surrogate(
     points = torch.cat([params.to(torch.float64), initial_params.to(torch.float64)]).detach()
     sizes = [len(params), len(initial_params)]
     log_p_tasks, log_p_initial = (log_prob or adversary.log_prob)(points).split(sizes)
-    surrogate = (advantages * log_p_tasks).mean() + lam * log_p_initial.mean()
+    surrogate = score_function_surrogate(advantages, log_p_tasks, lam, log_p_initial)
     log_p_initial = log_p_initial.detach()
-    objective = losses.mean() + lam * log_p_initial.mean()
-    kl = (adversary.base.log_prob(initial_params) - log_p_initial).mean()
+    objective = adversary_objective(losses, lam, log_p_initial)
+    kl = kl_estimate(adversary.base.log_prob(initial_params), log_p_initial)
     return surrogate, {
         "objective": float(objective),
         "loss_mean": float(losses.mean()),
-        "entropy": float(-log_p_tasks.detach().mean()),
+        "entropy": float(entropy_estimate(log_p_tasks.detach())),
         "kl_p0": float(kl),
     }
+
+
+def surrogate_gradient(
+    surrogate: Tensor, optimizer: torch.optim.Optimizer, phi: list[Tensor],
+    grad_clip: float | None,
+) -> Tensor:
+    """Set the gradients of φ (``phi``, the parameters ``optimizer`` steps) to ∇_φ ``surrogate``,
+    the estimate of ∇_φ J of paper Eq. (17), clipped to total norm ``grad_clip`` (``None``: not
+    clipped), for the ascent step of Eq. (14) (second line); returns the norm before clipping."""
+    optimizer.zero_grad(set_to_none=True)
+    surrogate.backward()
+    max_norm = math.inf if grad_clip is None else grad_clip
+    return torch.nn.utils.clip_grad_norm_(phi, max_norm, foreach=True)

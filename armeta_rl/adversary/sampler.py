@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import BASELINES, adversary_surrogate
+from armeta_rl.adversary.objective import BASELINES, adversary_surrogate, surrogate_gradient
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.tasks import TASK_KEY
 
@@ -103,10 +103,7 @@ class TaskSampler:
         surrogate, stats = adversary_surrogate(
             self.adversary, params, losses, self.lam, initial, self.baseline
         )
-        self.optimizer.zero_grad(set_to_none=True)
-        surrogate.backward()
-        max_norm = math.inf if self.grad_clip is None else self.grad_clip
-        grad_norm = torch.nn.utils.clip_grad_norm_(phi, max_norm, foreach=True)
+        grad_norm = surrogate_gradient(surrogate, self.optimizer, phi, self.grad_clip)
         if not (torch.isfinite(surrogate) and torch.isfinite(grad_norm)):
             self.optimizer.zero_grad(set_to_none=True)
             raise TrainingDiverged(f"adversary surrogate or gradient is not finite "

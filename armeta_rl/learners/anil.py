@@ -28,8 +28,8 @@ from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import above, at_least, check_keys, each, key, section
-from armeta_rl.learners.base import OLD_SIZE_KEYS, sizes
-from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.learners.base import OLD_SIZE_KEYS, mean_squared_error, sizes
+from armeta_rl.learners.maml import MAMLLeader, sgd_step
 
 Params = dict[str, Tensor]
 
@@ -80,8 +80,7 @@ class ANILLeader(MAMLLeader):
 
     def support_loss(self, head: Params, params: Params, x: Tensor, y: Tensor) -> Tensor:
         """L(D^S; θ_body, head): the mean squared error with the head's parameters ``head``."""
-        prediction = functional_call(self.model, {**params, **head}, (x,))
-        return (prediction - y).pow(2).mean()
+        return mean_squared_error(functional_call(self.model, {**params, **head}, (x,)), y)
 
     def adapt(self, params: Params, x: Tensor, y: Tensor) -> Params:
         """θ'_τ = (θ_body, θ'_head): ``inner_steps`` SGD steps of the head on one task's support
@@ -91,7 +90,7 @@ class ANILLeader(MAMLLeader):
             steps = grad(self.support_loss)(head, params, x, y)
             if self.first_order:
                 steps = {name: s.detach() for name, s in steps.items()}
-            head = {name: p - self.inner_lr * steps[name] for name, p in head.items()}
+            head = sgd_step(head, steps, self.inner_lr)
         return {**params, **head}
 
 

@@ -18,6 +18,21 @@ TaskWeights = Callable[[Tensor], Tensor]
 """Maps detached per-task losses ``[K]`` to non-negative weights ``[K]`` that sum to one."""
 
 
+def weighted_sum(weights: Tensor, per_task: Tensor) -> Tensor:
+    """Σ_k w_k x_k over the tasks of a batch: with x_k = L_k the leader's objective, the Monte
+    Carlo average of paper Eq. (15) for w_k = 1/K and its reweighted forms for the other
+    principles (Eqs. (19) and (21)); MAML-TRPO also weighs its per-task KL constraint with it."""
+    return (weights * per_task).sum()
+
+
+def mean_squared_error(prediction: Tensor, target: Tensor,
+                       dim: int | tuple[int, ...] | None = None) -> Tensor:
+    """The regression risk L(D; θ) (paper Sec. 2, "in regression"): the mean of
+    (prediction − target)² over all entries, or over ``dim`` (one value per task)."""
+    error = (prediction - target).pow(2)
+    return error.mean() if dim is None else error.mean(dim)
+
+
 @runtime_checkable
 class Leader(Protocol):
     """The meta-learner θ: collects data for the tasks, adapts, scores and updates itself.
@@ -86,7 +101,7 @@ class OneNetworkLeader:
         """One optimizer step on Σ_k w_k L_k with ``w = weights(L.detach())``."""
         task_weights = weights(losses.detach())
         self.optimizer.zero_grad(set_to_none=True)
-        (task_weights * losses).sum().backward()
+        weighted_sum(task_weights, losses).backward()
         self.optimizer.step()
 
     def state_dict(self) -> dict[str, Any]:

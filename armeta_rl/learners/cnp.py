@@ -1,4 +1,5 @@
-"""Conditional neural process leader (Garnelo et al. 2018; paper, Example AR-CNP and Algorithm 2).
+"""Conditional neural process leader (Garnelo et al. 2018; paper, Example AR-CNP, Eq. (8), and
+Algorithm 2).
 
 θ = {θ_1, θ_2}: a set encoder h_{θ_1} maps the support set to a representation
 z = mean_i h_{θ_1}(x_i, y_i), and a decoder g_{θ_2}(z, x) predicts a Gaussian over y at each query
@@ -24,7 +25,13 @@ from torchrl.modules import MLP
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import above, at_least, check_keys, one_of, section
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.base import OLD_SIZE_KEYS, OneNetworkLeader, TaskWeights, sizes
+from armeta_rl.learners.base import (
+    OLD_SIZE_KEYS,
+    OneNetworkLeader,
+    TaskWeights,
+    mean_squared_error,
+    sizes,
+)
 
 MIN_STD = 0.1
 
@@ -45,7 +52,8 @@ class ConditionalNeuralProcess(nn.Module):
                            num_cells=[hidden], activation_class=nn.ReLU)
 
     def represent(self, support_x: Tensor, support_y: Tensor) -> Tensor:
-        """z = mean over the support points of h(x, y): ``[*B, S, ·]`` → ``[*B, hidden]``."""
+        """z = h_{θ_1}(D^S) of paper Eq. (8): the mean over the support points of the encoder's
+        h(x, y), ``[*B, S, ·]`` → ``[*B, hidden]``."""
         return self.encoder(torch.cat([support_x, support_y], -1)).mean(-2)
 
     def forward(self, support_x: Tensor, support_y: Tensor,
@@ -97,10 +105,11 @@ class CNPLeader(OneNetworkLeader):
         return self.model(data["support", "x"], data["support", "y"], data["query", "x"])
 
     def task_losses(self, data: TensorDict) -> tuple[Tensor, Tensor]:
-        """Per-task training loss ``[K]`` (the chosen likelihood) and query MSE ``[K]``."""
+        """Per-task training loss L(D^Q_τ; z, θ_2) of paper Eq. (8) ``[K]`` (the chosen likelihood)
+        and query MSE ``[K]``."""
         mean, std = self.predict(data)
         target = data["query", "y"]
-        squared_error = (mean - target).square().mean((-2, -1))
+        squared_error = mean_squared_error(mean, target, (-2, -1))
         if self.likelihood == "mse":
             return squared_error, squared_error
         return gaussian_nll(mean, std, target).mean((-2, -1)), squared_error
@@ -121,7 +130,7 @@ class CNPLeader(OneNetworkLeader):
     def evaluate(self, data: TensorDict) -> Tensor:
         """Per-task query MSE ``[K]`` of the predicted mean on ``data`` at the current θ."""
         mean, _ = self.predict(data)
-        return (mean - data["query", "y"]).square().mean((-2, -1))
+        return mean_squared_error(mean, data["query", "y"], (-2, -1))
 
 
 @dataclass

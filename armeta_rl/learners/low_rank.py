@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 from torch.func import grad
 
+from armeta_rl.learners.base import mean_squared_error
 from armeta_rl.learners.mlp import MLP, relu
 
 Params = dict[str, Tensor]
@@ -61,7 +62,7 @@ def _descent_objective(
     """−γ Σ_τ L(D^S_τ) (the per-task losses are independent, so the gradient with respect to task
     τ's pre-activations is task τ's own Δ), with the layers' inputs as auxiliary output."""
     out, inputs = _forward(layers, x, updates, shifts)
-    return -inner_lr * (out - y).pow(2).mean((1, 2)).sum(), inputs
+    return -inner_lr * mean_squared_error(out, y, (1, 2)).sum(), inputs
 
 
 _inner_step = grad(_descent_objective, has_aux=True)
@@ -95,4 +96,4 @@ def low_rank_query_losses(
             for (rows, steps), (h, d) in zip(updates, step)
         ]
     out, _ = _forward(layers, query_x, updates)
-    return (out - query_y).pow(2).mean((1, 2))
+    return mean_squared_error(out, query_y, (1, 2))

@@ -24,13 +24,25 @@ from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.config import above, at_least, check_keys, each, key, one_of, section
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.base import OLD_SIZE_KEYS, OneNetworkLeader, TaskWeights, sizes
+from armeta_rl.learners.base import (
+    OLD_SIZE_KEYS,
+    OneNetworkLeader,
+    TaskWeights,
+    mean_squared_error,
+    sizes,
+)
 from armeta_rl.learners.low_rank import low_rank_query_losses
 from armeta_rl.learners.mlp import MLP, make_mlp
 
 Params = dict[str, Tensor]
 
 ADAPTATIONS = ("vmap", "low_rank")
+
+
+def sgd_step(params: Params, gradients: Params, lr: float) -> Params:
+    """θ' = θ − γ∇_θ L(D^S_τ; θ), the inner (adaptation) step inside paper Eq. (7), for the
+    named parameters ``params`` and their ``gradients``, step size γ = ``lr``."""
+    return {name: p - lr * gradients[name] for name, p in params.items()}
 
 
 class MAMLLeader(OneNetworkLeader):
@@ -84,7 +96,7 @@ class MAMLLeader(OneNetworkLeader):
 
     def _mse(self, params: Params, x: Tensor, y: Tensor) -> Tensor:
         """L(D; θ): the mean squared error of the network with parameters ``params``."""
-        return (functional_call(self.model, params, (x,), tie_weights=False) - y).pow(2).mean()
+        return mean_squared_error(functional_call(self.model, params, (x,), tie_weights=False), y)
 
     def adapt(self, params: Params, x: Tensor, y: Tensor) -> Params:
         """θ'_τ = θ − γ∇_θ L(D^S_τ; θ) on one task's support set ``(x, y)`` (Eq. (7); Algorithm 1,
@@ -93,7 +105,7 @@ class MAMLLeader(OneNetworkLeader):
             gradients = self._support_gradient(params, x, y)
             if self.first_order:
                 gradients = {name: g.detach() for name, g in gradients.items()}
-            params = {name: p - self.inner_lr * gradients[name] for name, p in params.items()}
+            params = sgd_step(params, gradients, self.inner_lr)
         return params
 
     def query_loss(

@@ -30,13 +30,16 @@ from torch import Tensor
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.config import above, at_least, check_keys, each, inside, key, section
-from armeta_rl.learners.base import TaskWeights, sizes
+from armeta_rl.learners.base import TaskWeights, sizes, weighted_sum
+from armeta_rl.learners.maml import sgd_step
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
-from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
+from armeta_rl.rl.policy import GaussianMLP, loc_scale, log_prob
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
     flatten,
+    mean_kl,
     meta_kl_hessian_vector_product,
+    surrogate_loss,
     trust_region_step,
     unflatten,
 )
@@ -153,7 +156,8 @@ class MAMLTRPOLeader:
     def inner_loss(
         self, params: Params, trajectories: TensorDictBase, advantages: Tensor
     ) -> Tensor:
-        """Per-task REINFORCE loss ``[K]``: −mean(log π(a|s)·Â) under per-task ``params``."""
+        """Per-task REINFORCE loss ``[K]``: −mean(log π(a|s)·Â) under per-task ``params`` (the
+        policy-gradient loss of the inner step, MAML paper Sec. 5.3; Williams 1992)."""
         loc, scale = loc_scale(self.net, params, trajectories["observation"])
         logp = log_prob(loc, scale, trajectories["action"])
         return -episode_mean(logp * advantages, trajectories["mask"])
@@ -161,7 +165,8 @@ class MAMLTRPOLeader:
     def inner_step(
         self, theta: Params, trajectories: TensorDictBase, advantages: Tensor, create_graph: bool
     ) -> tuple[Params, Params]:
-        """One inner policy-gradient step per task: θ'_k = θ − α ∇L^in_k(θ), ``[K]`` leading.
+        """One inner policy-gradient step per task: θ'_k = θ − α ∇L^in_k(θ), ``[K]`` leading (the
+        inner step of paper Eq. (7) with the policy-gradient loss, :func:`sgd_step`).
 
         θ is broadcast to ``[K]``; since L^in_k depends only on slice k, the gradient of Σ_k L^in_k
         with respect to the broadcast tensor holds every task's gradient at once.
@@ -174,7 +179,7 @@ class MAMLTRPOLeader:
         grads = torch.autograd.grad(
             loss, list(expanded.values()), create_graph=create_graph and not self.first_order
         )
-        adapted = {name: p - self.inner_lr * g for (name, p), g in zip(expanded.items(), grads)}
+        adapted = sgd_step(expanded, dict(zip(expanded, grads)), self.inner_lr)
         return expanded, adapted
 
     def adapt(
@@ -204,10 +209,10 @@ class MAMLTRPOLeader:
         """:meth:`outer_terms` from the adapted policies' (loc, scale) on ``valid``:
         L^out_k = −mean(π_θ'_k(a|s)/π_data(a|s)·Â) and KL_k(π_θ'_k ‖ π_old), each ``[K]``."""
         loc, scale = outputs
-        ratio = (log_prob(loc, scale, valid["action"]) - valid["log_prob"]).exp()
-        loss = -episode_mean(ratio * advantages, valid["mask"])
-        kl = episode_mean(kl_divergence(loc, scale, *old), valid["mask"])
-        return loss, kl
+        loss = surrogate_loss(
+            log_prob(loc, scale, valid["action"]), valid["log_prob"], advantages, valid["mask"]
+        )
+        return loss, mean_kl(loc, scale, *old, valid["mask"])
 
     # -- Leader protocol ----------------------------------------------------------------------
 
@@ -256,7 +261,7 @@ class MAMLTRPOLeader:
                                  batch.valid["observation"])
         old = (outputs[0].detach(), outputs[1].detach())
         loss_k, _ = self.outer_terms_of_outputs(outputs, batch.valid, batch.valid_advantages, old)
-        surrogate = (weights * loss_k).sum()
+        surrogate = weighted_sum(weights, loss_k)
         # ∇_θ Σ_k w_k L^out_k(θ'_k(θ)) = Σ_k J_k ∇_θ'_k (...), J_k the inner step's Jacobian
         outer_grad = torch.autograd.grad(surrogate, leaves, retain_graph=keep)
         gradient = flatten(torch.autograd.grad(
@@ -290,7 +295,7 @@ class MAMLTRPOLeader:
         current = tuple(o.detach() for o in outputs)
 
         def weighted_kl(outs: list[Tensor]) -> Tensor:
-            return (weights * episode_mean(kl_divergence(*outs, *current), valid["mask"])).sum()
+            return weighted_sum(weights, mean_kl(*outs, *current, valid["mask"]))
 
         return meta_kl_hessian_vector_product(
             weighted_kl, outputs, leaves, list(broadcast.values()), list(adapted.values()),
@@ -323,7 +328,7 @@ class MAMLTRPOLeader:
                     {k: v.detach() for k, v in candidate.items()}, batch.valid,
                     batch.valid_advantages, old,
                 )
-            found["loss"], found["kl"] = (w * loss_c).sum(), (w * kl_c).sum()
+            found["loss"], found["kl"] = weighted_sum(w, loss_c), weighted_sum(w, kl_c)
             return found["loss"], found["kl"]
 
         theta0 = flatten(params).detach()
@@ -353,8 +358,8 @@ class MAMLTRPOLeader:
         ``"trpo_line_search_steps"`` (backtracking steps taken; −1 when no step was accepted).
         """
         return_pre = episode_returns(batch.train).mean(-1)
-        return_post = episode_returns(batch.valid).mean(-1)
-        losses = -return_post
+        losses = self.evaluate(batch)
+        return_post = -losses
         update = self.trpo_update(batch, weights(losses))
         diagnostics = {
             "trpo_kl": update["trpo/kl"],

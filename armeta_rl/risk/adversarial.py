@@ -18,10 +18,11 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import adversary_surrogate
+from armeta_rl.adversary.objective import adversary_surrogate, surrogate_gradient
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
 
@@ -96,8 +97,9 @@ class AdversarialPrinciple(nn.Module):
         return self.adversary.as_tasks(*self._push_forward(self.initial.sample_params(n)))
 
     def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
-        """Uniform weights 1/K: the leader minimizes the plain average over tasks from p_φ."""
-        return torch.full_like(losses, 1.0 / losses.numel())
+        """Uniform weights 1/K: the leader minimizes the plain average over tasks from p_φ (paper
+        Eq. (15), :func:`~armeta_rl.risk.erm.uniform_weights`)."""
+        return uniform_weights(losses)
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
         """One follower ascent step on the losses of ``tasks`` at θ_{t+1} (paper Eq.
@@ -126,10 +128,7 @@ class AdversarialPrinciple(nn.Module):
                 "adversary surrogate is not finite (a task outside the box, "
                 "or a non-finite flow log-density)"
             )
-        self.optimizer.zero_grad(set_to_none=True)
-        surrogate.backward()
-        max_norm = math.inf if self.grad_clip is None else self.grad_clip
-        grad_norm = torch.nn.utils.clip_grad_norm_(self._phi, max_norm, foreach=True)
+        grad_norm = surrogate_gradient(surrogate, self.optimizer, self._phi, self.grad_clip)
         if not torch.isfinite(grad_norm):
             self.optimizer.zero_grad(set_to_none=True)
             raise TrainingDiverged(f"adversary gradient is not finite (norm {float(grad_norm)})")

@@ -10,6 +10,13 @@ from torch import Tensor, nn
 from armeta_rl.tasks.distributions import TaskDistribution
 
 
+def uniform_weights(losses: Tensor) -> Tensor:
+    """Weights 1/K on the K tasks of a batch: with Σ_k w_k L_k the Monte-Carlo average
+    (1/K) Σ_k L(D^Q_{τ_k}, D^S_{τ_k}; θ) of paper Eq. (15), the expected risk of Eq. (1) under
+    the distribution the tasks were drawn from."""
+    return torch.full_like(losses, 1.0 / losses.numel())
+
+
 class ERMPrinciple(nn.Module):
     """Plain expected risk under the initial task distribution p0; there is no follower.
 
@@ -29,8 +36,8 @@ class ERMPrinciple(nn.Module):
         return self.initial.sample(n)
 
     def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
-        """Uniform weights 1/K, whatever the tasks."""
-        return torch.full_like(losses, 1.0 / losses.numel())
+        """Uniform weights 1/K, whatever the tasks (:func:`uniform_weights`)."""
+        return uniform_weights(losses)
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
         """Nothing to update; the trainer skips it since ``update_every == 0``."""

@@ -76,7 +76,8 @@ class _GroupPrinciple(nn.Module):
         return self.initial.sample(n)
 
     def weights(self, losses: Tensor, tasks: TensorDict) -> Tensor:
-        """w_k = q_{g(k)} / n_{g(k)} / Σ_{g present} q_g for the tasks of a batch.
+        """w_k = q_{g(k)} / n_{g(k)} / Σ_{g present} q_g for the tasks of a batch (the group
+        objective of paper Eq. (19) with the max over groups relaxed to the weights q).
 
         n_g is the number of batch tasks in group g, so Σ_k w_k L_k = Σ_g q_g L̄_g / Σ_{g present}
         q_g: the q-weighted group risk, renormalized over the groups present in the batch. If every
@@ -117,7 +118,8 @@ class _GroupPrinciple(nn.Module):
 
 
 class WorstCasePrinciple(_GroupPrinciple):
-    """``tr``: TR-MAML (Collins et al. 2020), min_θ max_{q∈Δ} Σ_g q_g L_g(θ).
+    """``tr``: TR-MAML (Collins et al. 2020), min_θ max_{q∈Δ} Σ_g q_g L_g(θ): the worst case of
+    paper Eq. (3), taken over the grid's groups.
 
     q takes a projected gradient-ascent step on the group losses every meta-iteration:
     q ← Π_Δ(q + η·L̄) (:func:`project_to_simplex`). Linear in q, the objective's maximizer is a
@@ -138,11 +140,12 @@ class WorstCasePrinciple(_GroupPrinciple):
         super().__init__(initial, groups_per_axis, step_size)
 
     def _ascent_step(self, q: Tensor, group_losses: Tensor) -> Tensor:
+        """q ← Π_Δ(q + η·L̄), the projected ascent step on the inner max of Eq. (3)."""
         return project_to_simplex(q + self.step_size * group_losses)
 
 
 class GroupDROPrinciple(_GroupPrinciple):
-    """``dro``: group DRO (Sagawa et al. 2020), min_θ max_{q∈Δ} Σ_g q_g L_g(θ).
+    """``dro``: group DRO (Sagawa et al. 2020), min_θ max_{q∈Δ} Σ_g q_g L_g(θ) (paper Eq. (19)).
 
     q takes an exponentiated-gradient (mirror-ascent) step every meta-iteration:
     q ← q·exp(η·L̄) / Σ_g q_g·exp(η·L̄_g), computed in log space so large losses cannot overflow.
@@ -160,4 +163,5 @@ class GroupDROPrinciple(_GroupPrinciple):
         super().__init__(initial, groups_per_axis, step_size)
 
     def _ascent_step(self, q: Tensor, group_losses: Tensor) -> Tensor:
+        """q ← q·exp(η·L̄) / Z, the exponentiated-gradient step on the inner max of Eq. (19)."""
         return torch.softmax(q.log() + self.step_size * group_losses, 0)

@@ -1,7 +1,7 @@
 """Tail-risk minimization, the ``dr`` principle (DR-MAML, Wang et al. 2023).
 
-Paper, table "A Summary of Used Methods" and appendix "Robust Fast Adaptation Strategies in the
-Task Space": the leader minimizes E_{p_α(τ;θ)}[L(D^Q_τ, D^S_τ; θ)], the expected loss over the
+Paper Eq. (2) (and Eq. (20) in its appendix "Robust Fast Adaptation Strategies in the Task
+Space"): the leader minimizes E_{p_α(τ;θ)}[L(D^Q_τ, D^S_τ; θ)], the expected loss over the
 normalized tail of the task-loss distribution, i.e. CVaR_α of the task loss under the fixed p0.
 In a batch this is the importance-weighted form (Eq. (21)): the α-quantile (VaR) of
 the batch losses is estimated and the tasks at or above it get equal weight, the others zero.
@@ -32,6 +32,30 @@ def exact_ceil(value: float) -> int:
     """The ceiling of ``value`` rounded to 9 decimals first, so that floating-point noise
     (``0.3 * 10 = 3.0000000000000004``) does not add one."""
     return math.ceil(round(value, 9))
+
+
+def value_at_risk(losses: Tensor, alpha: float) -> Tensor:
+    """Empirical α-quantile (VaR_α) of a batch of losses ``[K]``: the smallest loss kept in the
+    tail of :func:`tail_size` tasks."""
+    keep = tail_size(losses.numel(), alpha)
+    return torch.topk(losses.detach(), keep).values[-1]
+
+
+def tail_weights(losses: Tensor, alpha: float) -> Tensor:
+    """The importance weights ω(τ_k; θ) of paper Eq. (21) for a batch of losses ``[K]``: ``1 / m``
+    on the ``m = ceil((1 − α)·K)`` largest losses, 0 elsewhere, so that Σ_k ω_k L_k is the
+    batch's empirical CVaR_α. Ties at the VaR are broken by :func:`torch.topk`, so exactly ``m``
+    tasks are kept."""
+    keep = tail_size(losses.numel(), alpha)
+    worst = torch.topk(losses.detach(), keep).indices
+    weights = torch.zeros_like(losses)
+    return weights.index_fill(0, worst, 1.0 / keep)
+
+
+def tail_risk(losses: Tensor, alpha: float) -> Tensor:
+    """Σ_k ω_k L_k with the weights of :func:`tail_weights`: the estimate of paper Eq. (21) of
+    the tail risk of Eq. (2), the value the DR leader minimizes."""
+    return (tail_weights(losses, alpha) * losses).sum()
 
 
 class TailRiskPrinciple(nn.Module):
@@ -68,27 +92,15 @@ class TailRiskPrinciple(nn.Module):
         count = exact_ceil(n / (1.0 - self.alpha)) if self.oversample else n
         return self.initial.sample(count)
 
-    def value_at_risk(self, losses: Tensor) -> Tensor:
-        """Empirical α-quantile (VaR_α) of the batch: the smallest loss kept in the tail."""
-        keep = tail_size(losses.numel(), self.alpha)
-        return torch.topk(losses.detach(), keep).values[-1]
-
     def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
-        """Weight ``1 / m`` on the ``m = ceil((1 − α)·K)`` largest losses, 0 elsewhere.
-
-        Σ_k w_k L_k is then the empirical CVaR_α of the batch. Ties at the VaR are broken by
-        :func:`torch.topk`, so exactly ``m`` tasks are kept.
-        """
-        keep = tail_size(losses.numel(), self.alpha)
-        worst = torch.topk(losses.detach(), keep).indices
-        weights = torch.zeros_like(losses)
-        return weights.index_fill(0, worst, 1.0 / keep)
+        """The weights ω of paper Eq. (21) (:func:`tail_weights`), whatever the tasks."""
+        return tail_weights(losses, self.alpha)
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
         """No follower to update; reports VaR_α and CVaR_α of the step's ``losses`` (the loss the
-        leader minimized) for logging."""
+        leader minimized, :func:`tail_risk`) for logging."""
         losses = losses.detach()
         return {
-            "risk/var": float(self.value_at_risk(losses)),
-            "risk/cvar": float((self.weights(losses) * losses).sum()),
+            "risk/var": float(value_at_risk(losses, self.alpha)),
+            "risk/cvar": float(tail_risk(losses, self.alpha)),
         }

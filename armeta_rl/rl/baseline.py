@@ -43,7 +43,8 @@ def baseline_features(trajectories: TensorDictBase) -> Tensor:
 
 
 def fit_linear_baseline(features: Tensor, targets: Tensor, reg: float = 1e-5) -> Tensor:
-    """Per-task ridge regression: coefficients ``[K, f]`` minimizing
+    """Per-task ridge regression (Duan et al. 2016's linear feature baseline): coefficients
+    ``[K, f]`` minimizing
     ‖X_k c_k − y_k‖² + reg‖c_k‖² for features ``[K, ..., f]`` and targets ``[K, ...]``.
 
     Solves the normal equations (X_kᵀX_k + reg·I) c_k = X_kᵀ y_k for all tasks at once with
@@ -96,7 +97,8 @@ def normalize_per_task(advantages: Tensor, mask: Tensor, eps: float = 1e-8) -> T
 def gae_advantages(trajectories: TensorDictBase, gamma: float = 0.99, lmbda: float = 1.0,
                    reg: float = 1e-5) -> Tensor:
     """Normalized GAE advantages ``[K, E, T]`` with the per-task linear baseline (ridge ``reg``)
-    as V.
+    as V: Â_t = Σ_l (γλ)^l δ_{t+l}, δ_t = r_t + γV(s_{t+1}) − V(s_t) (Schulman et al. 2016, GAE
+    Eq. (16)), then :func:`normalize_per_task`.
 
     torchrl's ``generalized_advantage_estimate`` with V(s_t) from the baseline, V(s_{t+1}) the
     next step's value, and episodes ending at ``done`` (goal reached or time limit).

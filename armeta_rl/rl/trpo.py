@@ -1,5 +1,7 @@
-"""TRPO pieces (Schulman et al. 2015, App. C) used by MAML-TRPO's outer step (MAML paper,
-Sec. 5.3): conjugate gradient, Hessian-vector products of the mean KL, backtracking line search.
+"""TRPO pieces (Schulman et al. 2015) used by MAML-TRPO's outer step (MAML paper, Sec. 5.3): the
+importance-sampled surrogate and mean KL of the trust-region problem (Eq. (14) there), and
+conjugate gradient, Hessian-vector products of the mean KL, the natural-gradient step and the
+backtracking line search that solve it (App. C there).
 
 Parameters are handled as a list of tensors and flattened into one vector for the linear algebra.
 """
@@ -10,6 +12,9 @@ from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
+
+from armeta_rl.rl.baseline import episode_mean
+from armeta_rl.rl.policy import kl_divergence
 
 
 def flatten(tensors: Sequence[Tensor]) -> Tensor:
@@ -24,6 +29,27 @@ def unflatten(vector: Tensor, like: Sequence[Tensor]) -> list[Tensor]:
         out.append(vector[start : start + t.numel()].view_as(t))
         start += t.numel()
     return out
+
+
+def surrogate_loss(
+    log_prob: Tensor, data_log_prob: Tensor, advantages: Tensor, mask: Tensor
+) -> Tensor:
+    """Per-task TRPO surrogate loss ``[K]``, −mean(π_θ(a|s)/q(a|s)·Â) over each task's episodes
+    (Schulman et al. 2015, Eq. (14), negated to be minimized): ``log_prob`` is ln π_θ(a|s) of the
+    policy being optimized and ``data_log_prob`` ln q(a|s) of the policy that sampled the actions,
+    all ``[K, E, T]`` with the valid steps in ``mask``."""
+    ratio = (log_prob - data_log_prob).exp()
+    return -episode_mean(ratio * advantages, mask)
+
+
+def mean_kl(
+    loc: Tensor, scale: Tensor, old_loc: Tensor, old_scale: Tensor, mask: Tensor
+) -> Tensor:
+    """Per-task mean KL ``[K]`` over each task's episodes of the diagonal Gaussian policy
+    (``loc``, ``scale``) from the old one, the trust-region constraint's divergence (Schulman et
+    al. 2015, Eq. (14); measured as KL(π ‖ π_old), pytorch-maml-rl's direction: both directions
+    have the same Hessian, the Fisher matrix, at π = π_old)."""
+    return episode_mean(kl_divergence(loc, scale, old_loc, old_scale), mask)
 
 
 def conjugate_gradient(
@@ -103,7 +129,8 @@ def meta_kl_hessian_vector_product(
 def trust_region_step(
     gradient: Tensor, hvp: Callable[[Tensor], Tensor], max_kl: float, cg_iterations: int = 10
 ) -> Tensor:
-    """The full natural-gradient step s = √(2δ / gᵀF⁻¹g)·F⁻¹g (to be *subtracted* from θ), with
+    """The full natural-gradient step s = √(2δ / gᵀF⁻¹g)·F⁻¹g (Schulman et al. 2015, App. C;
+    to be *subtracted* from θ), with
     F⁻¹g from conjugate gradient; its quadratic KL model ½ sᵀFs equals δ = ``max_kl`` (F s from
     conjugate gradient's residual: ``cg_iterations`` products in all)."""
     direction, product = conjugate_gradient(hvp, gradient, cg_iterations)

@@ -21,6 +21,20 @@ from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 
 
+def entropy_estimate(log_prob: Tensor) -> Tensor:
+    """Monte-Carlo entropy H[p] = −E_p[ln p(τ)] from the log-densities ``[n]`` of samples of p: the
+    entropy of paper Eq. (12) (Remark "Entropy of the Generated Task Distribution"), estimated
+    as in the first line of its proof, Eq. (46)."""
+    return -log_prob.mean()
+
+
+def kl_estimate(initial_log_prob: Tensor, log_prob: Tensor) -> Tensor:
+    """Monte-Carlo D_KL[p0 ‖ p] = E_{p0}[ln p0(τ) − ln p(τ)] from the log-densities ``[n]`` of p0
+    and of p at samples of p0: the distribution shift that the constraint of paper Eq. (4)
+    bounds by δ."""
+    return (initial_log_prob - log_prob).mean()
+
+
 class TaskDistribution(nn.Module):
     """Base class: a distribution over the task box with an exact log-density."""
 
@@ -71,16 +85,16 @@ class TaskDistribution(nn.Module):
         return params.to(dtype).clamp(*self._inner_bounds[key])
 
     def entropy(self, n: int = 4096) -> Tensor:
-        """Entropy H[p] = -E_p[ln p(τ)] (Monte Carlo unless a subclass knows it exactly)."""
-        return -self.log_prob(self.sample_params(n)).mean()
+        """Entropy H[p] = -E_p[ln p(τ)] (Monte Carlo, :func:`entropy_estimate`, unless a subclass
+        knows it exactly)."""
+        return entropy_estimate(self.log_prob(self.sample_params(n)))
 
     @torch.no_grad()
     def kl_from(self, initial: TaskDistribution, n: int = 4096) -> Tensor:
-        """Monte-Carlo KL(p0 ‖ p) = E_{p0}[ln p0(τ) − ln p(τ)] from ``n`` fresh samples of
-        ``initial`` (p0): how far p has moved from p0, the shift the constraint of paper Eq.
-        game_meta_obj bounds; a detached scalar."""
+        """Monte-Carlo KL(p0 ‖ p) (:func:`kl_estimate`, paper Eq. (4)) from ``n`` fresh samples of
+        ``initial`` (p0): how far p has moved from p0; a detached scalar."""
         params = initial.sample_params(n)
-        return (initial.log_prob(params) - self.log_prob(params)).mean()
+        return kl_estimate(initial.log_prob(params), self.log_prob(params))
 
     def _inside(self, params: Tensor) -> Tensor:
         return ((params >= self.low) & (params <= self.high)).all(-1)

@@ -22,10 +22,13 @@ def higher_is_better(metric: str) -> bool:
 
 
 def cvar(values: Tensor, alpha: float, higher_better: bool = False) -> float:
-    """CVaR_α: the mean of the worst ``(1 − α)`` fraction of ``values``.
+    """CVaR_α, the meta-test metric of paper Sec. 5 ("Evaluation Metrics"): the mean of the worst
+    ``(1 − α)`` fraction of ``values``, in float64.
 
     "Worst" is the largest values for a loss (``higher_better=False``) and the smallest for a
-    return. The tail holds ``ceil((1 − α)·n)`` values (at least one; :func:`tail_size`).
+    return. The tail holds ``ceil((1 − α)·n)`` values (at least one; :func:`tail_size`). For a
+    loss it is the number Σ_k ω_k L_k of Eq. (21) that the DR principle logs in training
+    (:func:`~armeta_rl.risk.tail.tail_risk`), here summed in float64 for reports.
     """
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
@@ -71,7 +74,8 @@ def evaluate_on(
     device: torch.device = CPU,
 ) -> dict[str, Any]:
     """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``, all on
-    ``device``.
+    ``device``: with ``distribution`` the trained adversary p_φ*, the mean is the estimate of
+    E_{p_φ*}[L] of paper Eq. (48).
 
     Runs under its own seed inside a forked RNG (the CPU's and ``device``'s), so every method (and
     a resumed run) is scored on the same tasks and data, and training's random stream is left
