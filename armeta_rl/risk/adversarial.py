@@ -133,6 +133,19 @@ class AdversarialPrinciple(nn.Module):
             self.optimizer.zero_grad(set_to_none=True)
             raise TrainingDiverged(f"adversary gradient is not finite (norm {float(grad_norm)})")
         lr = self.optimizer.param_groups[0]["lr"]
+        self._ascend(tasks)
+        return {
+            "adversary/objective": stats["objective"],
+            "adversary/entropy": stats["entropy"],
+            "adversary/kl_p0": stats["kl_p0"],
+            "adversary/lr": float(lr),
+            "adversary/grad_norm": float(grad_norm),
+        }
+
+    def _ascend(self, tasks: TensorDict) -> None:
+        """φ ← Adam-ascent step on the gradients already set (paper Eq. (14), second line), then
+        one step of the schedule; undone, with ``TrainingDiverged``, if the new parameters or the
+        new log-density at ``tasks`` are not finite."""
         snapshot = self._snapshot()
         self.optimizer.step()
         self.scheduler.step()
@@ -143,13 +156,6 @@ class AdversarialPrinciple(nn.Module):
         if not (torch.isfinite(largest) and torch.isfinite(log_prob).all()):
             self._restore(snapshot)
             raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
-        return {
-            "adversary/objective": stats["objective"],
-            "adversary/entropy": stats["entropy"],
-            "adversary/kl_p0": stats["kl_p0"],
-            "adversary/lr": float(lr),
-            "adversary/grad_norm": float(grad_norm),
-        }
 
     def get_extra_state(self) -> dict[str, Any]:
         """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``."""
