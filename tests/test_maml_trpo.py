@@ -34,7 +34,9 @@ from armeta_rl.rl.trpo import (
     backtracking_line_search,
     conjugate_gradient,
     flatten,
+    mean_kl,
     meta_kl_hessian_vector_product,
+    surrogate_loss,
     unflatten,
 )
 from armeta_rl.tasks import BoxUniform, TaskSpace
@@ -443,3 +445,30 @@ def test_short_seeded_run_improves_post_adaptation_return() -> None:
 def test_bad_hyper_parameters_raise_config_error(key: str, kwargs: dict) -> None:
     with pytest.raises(ConfigError, match=f"learner.maml_trpo.{key}"):
         MAMLTRPOLeader(PointNavigationCollector(), **kwargs)
+
+
+def test_trpo_surrogate_at_the_sampling_policy_is_the_policy_gradient_and_the_kl_is_flat():
+    """At π_θ = q the surrogate −mean(π_θ/q·Â) equals −mean(Â) and its gradient is that of the
+    policy-gradient loss −mean(ln π_θ·Â) (Schulman et al. 2015: the surrogate matches the
+    objective to first order); the mean KL is zero there, with zero gradient."""
+    torch.manual_seed(0)
+    loc = torch.randn(3, 2, 5, 2, dtype=torch.float64, requires_grad=True)
+    log_scale = torch.randn(2, dtype=torch.float64, requires_grad=True)
+    scale = log_scale.exp().expand_as(loc)
+    action = torch.randn(3, 2, 5, 2, dtype=torch.float64)
+    advantages = torch.randn(3, 2, 5, dtype=torch.float64)
+    mask = torch.arange(5) < torch.randint(1, 6, (3, 2, 1))
+    logp = log_prob(loc, scale, action)
+    surrogate = surrogate_loss(logp, logp.detach(), advantages, mask)
+    torch.testing.assert_close(surrogate, -episode_mean(advantages, mask))
+    by_ratio = torch.autograd.grad(surrogate.sum(), [loc, log_scale], retain_graph=True)
+    by_score = torch.autograd.grad(-episode_mean(logp * advantages, mask).sum(), [loc, log_scale],
+                                   retain_graph=True)
+    for a, b in zip(by_ratio, by_score):
+        torch.testing.assert_close(a, b)
+    kl = mean_kl(loc, scale, loc.detach(), scale.detach(), mask)
+    torch.testing.assert_close(kl, torch.zeros(3, dtype=torch.float64))
+    for g in torch.autograd.grad(kl.sum(), [loc, log_scale]):
+        torch.testing.assert_close(g, torch.zeros_like(g))
+    moved = mean_kl(loc.detach() + 0.1, scale.detach(), loc.detach(), scale.detach(), mask)
+    assert (moved > 0).all()

@@ -16,8 +16,9 @@ from armeta_rl.learners.mlp import make_mlp
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
 from armeta_rl.risk.groups import GroupDROPrinciple, WorstCasePrinciple, project_to_simplex
-from armeta_rl.risk.tail import TailRiskPrinciple
+from armeta_rl.risk.tail import TailRiskPrinciple, tail_risk
 from armeta_rl.tasks import BoxUniform, TaskSpace
+from armeta_rl.trainers.evaluation import cvar
 from armeta_rl.trainers.game import GameTrainer
 
 SPACE = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
@@ -79,6 +80,18 @@ def test_tail_weighted_loss_is_the_rockafellar_uryasev_cvar(alpha):
     var = logs["risk/var"]  # a minimizer of the Rockafellar–Uryasev objective
     assert var + float((losses - var).clamp_min(0).mean()) / (1 - alpha) == pytest.approx(
         float(objective.min()), rel=1e-12)
+
+
+@pytest.mark.parametrize("alpha", [0.3, 0.5, 0.9])
+@pytest.mark.parametrize("batch", [1, 7, 10, 25])
+def test_the_training_tail_risk_is_the_evaluation_cvar(alpha, batch):
+    """Σ_k ω_k L_k of Eq. (21), which DR minimizes and logs, and the meta-test CVaR_α are one
+    number, tail size included, whether or not (1 − α)·K is an integer."""
+    torch.manual_seed(batch)
+    losses = torch.rand(batch, dtype=torch.float64) * 5
+    assert float(tail_risk(losses, alpha)) == pytest.approx(cvar(losses, alpha), rel=1e-12)
+    assert cvar(-losses, alpha, higher_better=True) == pytest.approx(-cvar(losses, alpha),
+                                                                     rel=1e-12)
 
 
 def test_tail_risk_proposes_from_p0_and_oversamples():
