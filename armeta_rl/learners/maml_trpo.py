@@ -244,6 +244,14 @@ class MAMLTRPOLeader:
             return None
         return slice(0, self.hvp_episodes)
 
+    def adapted_outputs(self, adapted: Params, valid: TensorDictBase) -> SurrogateGraph:
+        """The adapted parameters θ'_k as detached leaves and the adapted policies' (loc, scale) on
+        the episodes ``valid`` computed from them, graph kept."""
+        leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
+        return SurrogateGraph(
+            leaves, loc_scale(self.net, dict(zip(adapted, leaves)), valid["observation"])
+        )
+
     def surrogate_gradient(
         self, batch: MetaBatch, weights: Tensor
     ) -> tuple[Tensor, Tensor, SurrogateGraph]:
@@ -256,9 +264,7 @@ class MAMLTRPOLeader:
         episode, and freed otherwise.
         """
         keep = self._hvp_subset(batch) is None
-        leaves = [a.detach().requires_grad_(True) for a in batch.adapted.values()]
-        outputs = loc_scale(self.net, dict(zip(batch.adapted, leaves)),
-                                 batch.valid["observation"])
+        leaves, outputs = self.adapted_outputs(batch.adapted, batch.valid)
         old = (outputs[0].detach(), outputs[1].detach())
         loss_k, _ = self.outer_terms_of_outputs(outputs, batch.valid, batch.valid_advantages, old)
         surrogate = weighted_sum(weights, loss_k)
@@ -290,8 +296,7 @@ class MAMLTRPOLeader:
             broadcast, adapted = self.inner_step(
                 self.theta(), batch.train[:, subset], batch.train_advantages[:, subset], True
             )
-            leaves = [a.detach().requires_grad_(True) for a in adapted.values()]
-            outputs = loc_scale(self.net, dict(zip(adapted, leaves)), valid["observation"])
+            leaves, outputs = self.adapted_outputs(adapted, valid)
         current = tuple(o.detach() for o in outputs)
 
         def weighted_kl(outs: list[Tensor]) -> Tensor:

@@ -92,8 +92,8 @@ class AdversarialPrinciple(nn.Module):
 
     @torch.no_grad()
     def propose(self, n: int) -> TensorDict:
-        """``n`` tasks τ = g_φ(τ0), τ0 ~ p0, drawn from p_φ with their log-probabilities (paper
-        Eq. (10))."""
+        """``n`` tasks τ = g_φ(τ0), τ0 ~ p0, drawn from p_φ (paper Eq. (9)) with their
+        log-probabilities (Eq. (10))."""
         return self.adversary.as_tasks(*self._push_forward(self.initial.sample_params(n)))
 
     def weights(self, losses: Tensor, tasks: TensorDict | None = None) -> Tensor:
