@@ -350,15 +350,17 @@ def test_line_search_takes_the_first_improving_step_inside_the_bound() -> None:
         return (theta - 1).square().mean(), theta.square().mean()
 
     theta0 = torch.zeros(5)
-    new, accepted = backtracking_line_search(
+    new, accepted, loss, kl = backtracking_line_search(
         evaluate, theta0, -2 * torch.ones(5), torch.tensor(1.0), max_kl=1.0, max_steps=15, ratio=0.8
     )
     # 2·0.8^i must satisfy (2·0.8^i)² < 1: the first such i is 4
     assert accepted == 4
     torch.testing.assert_close(new, torch.full((5,), 2 * 0.8**4))
-    unchanged, none = backtracking_line_search(evaluate, theta0, 2 * torch.ones(5),
-                                               torch.tensor(1.0), max_kl=1.0)
+    assert all(map(torch.equal, (loss, kl), evaluate(new)))  # what the accepted step scored
+    unchanged, none, loss, kl = backtracking_line_search(evaluate, theta0, 2 * torch.ones(5),
+                                                         torch.tensor(1.0), max_kl=1.0)
     assert none is None and torch.equal(unchanged, theta0)
+    assert loss.item() == 1.0 and kl.item() == 0.0  # θ and its loss unchanged
 
 
 def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> None:

@@ -322,7 +322,6 @@ class MAMLTRPOLeader:
         hvp = self.kl_hessian_product(batch, w, graph)
         full_step = trust_region_step(gradient, hvp, self.max_kl, self.cg_iterations)
         del hvp, graph
-        found: dict[str, Tensor] = {}
 
         def evaluate(vector: Tensor) -> tuple[Tensor, Tensor]:
             vector = vector.detach().requires_grad_(True)
@@ -333,11 +332,10 @@ class MAMLTRPOLeader:
                     {k: v.detach() for k, v in candidate.items()}, batch.valid,
                     batch.valid_advantages, old,
                 )
-            found["loss"], found["kl"] = weighted_sum(w, loss_c), weighted_sum(w, kl_c)
-            return found["loss"], found["kl"]
+            return weighted_sum(w, loss_c), weighted_sum(w, kl_c)
 
         theta0 = flatten(params).detach()
-        new_theta, accepted = backtracking_line_search(
+        new_theta, accepted, loss, kl = backtracking_line_search(
             evaluate, theta0, full_step, surrogate, self.max_kl,
             self.ls_max_steps, self.ls_backtrack_ratio,
         )
@@ -347,8 +345,8 @@ class MAMLTRPOLeader:
         return {
             "trpo/line_search_steps": float(-1 if accepted is None else accepted),
             "trpo/surrogate_before": surrogate.item(),
-            "trpo/surrogate_after": surrogate.item() if accepted is None else found["loss"].item(),
-            "trpo/kl": 0.0 if accepted is None else found["kl"].item(),
+            "trpo/surrogate_after": loss.item(),
+            "trpo/kl": kl.item(),
         }
 
     def step(

@@ -147,18 +147,18 @@ def backtracking_line_search(
     max_kl: float,
     max_steps: int = 15,
     ratio: float = 0.8,
-) -> tuple[Tensor, int | None]:
+) -> tuple[Tensor, int | None, Tensor, Tensor]:
     """Try θ − ratio^i·step for i = 0 … max_steps−1; accept the first that lowers the loss and
     keeps the KL within ``max_kl``.
 
-    ``evaluate(θ)`` returns (loss, KL) at θ. Returns (new θ, accepted i), or (θ, None) when no
-    step qualifies, in which case θ is unchanged.
+    ``evaluate(θ)`` returns (loss, KL) at θ. Returns (new θ, accepted i, loss and KL at the new
+    θ), or (θ, None, ``old_loss``, 0) when no step qualifies, in which case θ is unchanged.
     """
     fraction = 1.0
     for i in range(max_steps):
         candidate = theta - fraction * step
         loss, kl = evaluate(candidate)
         if loss.item() < old_loss.item() and kl.item() < max_kl:
-            return candidate, i
+            return candidate, i, loss, kl
         fraction *= ratio
-    return theta, None
+    return theta, None, old_loss, torch.zeros_like(old_loss)
