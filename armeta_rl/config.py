@@ -23,7 +23,7 @@ import typing
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Union
+from typing import Any, ClassVar, Union
 
 import yaml
 from hydra.core.config_store import ConfigStore
@@ -100,6 +100,23 @@ def defaults(options: type) -> dict[str, Any]:
     """The default value of every key of an options dataclass (a learner's ``learner.<name>``
     section), as a composed config holds them."""
     return dataclasses.asdict(options())
+
+
+@dataclass(frozen=True)
+class Options:
+    """A learner's options: the keys of its config section ``section`` (``"learner.maml"``), one
+    field each, made with this module's helpers (type, range and default value, declared once).
+    The learner's constructor takes them
+    (``MAMLLeader(model, collector, MamlOptions(inner_lr=0.05))``) and its builder makes them
+    from the section (``MamlOptions(**section(cfg, "learner.maml"))``). They are checked when
+    made, so a bad value from Python is refused with the line the CLI prints
+    (``config key 'learner.maml.inner_lr' = 0: must be > 0``)."""
+
+    section: ClassVar[str]
+
+    def __post_init__(self) -> None:
+        values = {spec.name: getattr(self, spec.name) for spec in dataclasses.fields(self)}
+        _check_node(type(self), _plain(values), f"{self.section}.")
 
 
 def seeds(top: int = SEED_RANGE[1]) -> Any:
@@ -291,8 +308,12 @@ def check_keys(prefix: str, **values: Any) -> None:
     for name in prefix.split("."):
         hint = typing.get_type_hints(schema)[name]
         schema = _optional(hint) or hint
-    plain = {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
-    _check_node(schema, plain, f"{prefix}.")
+    _check_node(schema, _plain(values), f"{prefix}.")
+
+
+def _plain(values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` as a config holds them: a tuple (``hidden=(64, 64)``) is a list."""
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
 
 
 def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, dataclasses.Field]:
