@@ -27,7 +27,7 @@ from torch.func import functional_call, grad
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import Options, above, at_least, each, key, section
+from armeta_rl.fields import Options, above, at_least, each, key, section
 from armeta_rl.learners.base import OLD_SIZE_KEYS, sizes
 from armeta_rl.learners.maml import MAMLLeader, MamlOptions
 

@@ -22,8 +22,8 @@ from torch.nn import functional as F
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import Options, above, at_least, one_of, section
 from armeta_rl.errors import ConfigError
+from armeta_rl.fields import Options, above, at_least, one_of, section
 from armeta_rl.learners.base import OLD_SIZE_KEYS, OneNetworkLeader, TaskWeights, sizes
 
 MIN_STD = 0.1

@@ -22,8 +22,8 @@ from torch.func import functional_call, grad, vmap
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.compiling import compile_backend, maybe_compile
-from armeta_rl.config import Options, above, at_least, each, key, one_of, section
 from armeta_rl.errors import ConfigError
+from armeta_rl.fields import Options, above, at_least, each, key, one_of, section
 from armeta_rl.learners.base import OLD_SIZE_KEYS, OneNetworkLeader, TaskWeights, sizes
 from armeta_rl.learners.low_rank import low_rank_query_losses
 from armeta_rl.learners.mlp import MLP, make_mlp

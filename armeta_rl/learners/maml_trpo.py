@@ -29,7 +29,7 @@ from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.config import Options, above, at_least, each, inside, key, section
+from armeta_rl.fields import Options, above, at_least, each, inside, key, section
 from armeta_rl.learners.base import TaskWeights, sizes
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
 from armeta_rl.rl.policy import GaussianMLP, kl_divergence, loc_scale, log_prob
