@@ -5,7 +5,4 @@ Implements "Robust Fast Adaptation from Adversarially Explicit Task Distribution
 game against a meta-learner (MAML, CNP, MAML-TRPO).
 """
 
-# registers what configs/ use: ${method_name:...} and the learners' options (learner_options)
-import armeta_rl.config  # noqa: F401
-
 __version__ = "0.1.0"

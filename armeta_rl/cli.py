@@ -28,7 +28,18 @@ _ABSENT = object()
 
 
 def config_dir() -> Path:
-    """The Hydra config directory: packaged in a wheel, or the repository's ``configs/``."""
+    """The Hydra config directory, ready to compose from: ``train.yaml`` composes
+    ``learner_options`` and resolves ``${method_name:...}``, which :mod:`armeta_rl.config` stores
+    in Hydra's ConfigStore and registers with OmegaConf when imported. That import loads the
+    learners (torch), so it is made here, where configs are composed, and not by
+    ``import armeta_rl`` or by importing this module."""
+    import armeta_rl.config  # noqa: F401
+
+    return config_files()
+
+
+def config_files() -> Path:
+    """Where the config files are: packaged in a wheel, or the repository's ``configs/``."""
     packaged = Path(__file__).parent / "configs"
     return packaged if packaged.is_dir() else Path(__file__).resolve().parents[1] / "configs"
 
@@ -40,7 +51,7 @@ def _fail(prog: str, message: str, code: int = 2) -> NoReturn:
 
 def group_choices(group: str) -> list[str]:
     """Names of the configs available for a config group, e.g. the benchmarks."""
-    return sorted(path.stem for path in (config_dir() / group).glob("*.yaml"))
+    return sorted(path.stem for path in (config_files() / group).glob("*.yaml"))
 
 
 def _has_key(cfg: DictConfig, key: str) -> bool:

@@ -4,26 +4,24 @@ once), its check, and loading the resolved config a run directory keeps.
 The schema is a tree of dataclasses, :class:`TrainSchema` at its root, mirroring
 ``configs/train.yaml``. A field's annotation is the key's type (``bool``, ``int``, ``float``,
 ``str``, ``list[...]``, ``X | None``, a nested schema, or ``Any`` / ``dict[str, Any]`` for parts
-a benchmark or method fills freely, such as collector arguments); its :func:`key` metadata is the
-range and its wording. The YAML files keep the values, but for a learner's options: their
-defaults are the fields' (each learner module's options dataclass, registered in
-:data:`armeta_rl.factory.LEARNERS`), from which :data:`LearnerSchema` and the composed
-``learner:`` section are derived. :func:`check_config` checks a composed
-config against the schema, strictly: ``first_order: off`` is a string, not a boolean, and is
-refused. Keys present only with some benchmarks or methods (``benchmark.collector.workers``)
-are checked when present. See docs/configuration.md.
+a benchmark or method fills freely, such as collector arguments); its metadata
+(:func:`armeta_rl.fields.key`) is the range and its wording. The YAML files keep the values,
+but for a learner's options: their defaults are the fields' (each learner module's
+:class:`~armeta_rl.fields.Options`, registered in :data:`armeta_rl.factory.LEARNERS`), from
+which :data:`LearnerSchema` and the composed ``learner:`` section are derived.
+:func:`check_config` checks a composed config against the schema, strictly:
+``first_order: off`` is a string, not a boolean, and is refused. Keys present only with some
+benchmarks or methods (``benchmark.collector.workers``) are checked when present. See
+docs/configuration.md.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
-import types
 import typing
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Union
+from typing import Any
 
 import yaml
 from hydra.core.config_store import ConfigStore
@@ -31,8 +29,22 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from armeta_rl.devices import DEVICE_FORMS, is_device_name, resolve_device
 from armeta_rl.errors import ConfigError
+from armeta_rl.factory import LEARNERS, learner_sections
+from armeta_rl.fields import (  # noqa: F401 (_conforms: the schema tests check types with it)
+    _MISSING,
+    _check_node,
+    _conforms,
+    _optional,
+    _plain,
+    above,
+    at_least,
+    defaults,
+    each,
+    inside,
+    key,
+    one_of,
+)
 
-_MISSING = object()
 CONFIG_FILE = "config.yaml"
 SEED_RANGE = (-(2**63), 2**64 - 1)
 """The seeds ``torch.manual_seed`` accepts."""
@@ -47,59 +59,6 @@ def method_name(risk: str, learner: str) -> str:
 
 
 OmegaConf.register_new_resolver("method_name", method_name, replace=True)
-
-
-def key(
-    allowed: str = "",
-    test: Callable[[Any], bool] | None = None,
-    old_runs: Any = _MISSING,
-    default: Any = None,
-) -> Any:
-    """A schema field: ``test`` (on a value of the right type) and ``allowed``, the end of the
-    error line when it fails (``must be >= 1``, ``allowed: a, b``); ``old_runs`` is the value a
-    run directory saved before the key existed gets when it is loaded (only for keys added after
-    runs were saved); ``default`` is the key's value in a composed config, for the keys whose
-    values are declared here rather than in ``configs/`` (a learner's options, :func:`defaults`)."""
-    metadata = {"allowed": allowed, "test": test, "old_runs": old_runs}
-    if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata=metadata)
-    return field(default=default, metadata=metadata)
-
-
-def at_least(low: float, default: Any = None) -> Any:
-    return key(f"must be >= {low:g}", lambda v: v >= low, default=default)
-
-
-def above(low: float, default: Any = None) -> Any:
-    return key(f"must be > {low:g}", lambda v: v > low, default=default)
-
-
-def inside(low: float, high: float, closed: str = "()", default: Any = None) -> Any:
-    """In the interval from ``low`` to ``high``; ``closed`` gives its brackets, e.g. ``"(]"``."""
-    lo = (lambda v: v >= low) if closed[0] == "[" else (lambda v: v > low)
-    hi = (lambda v: v <= high) if closed[1] == "]" else (lambda v: v < high)
-    return key(f"must be in {closed[0]}{low:g}, {high:g}{closed[1]}", lambda v: lo(v) and hi(v),
-               default=default)
-
-
-def one_of(*choices: str, default: Any = None) -> Any:
-    return key(f"allowed: {', '.join(choices)}", lambda v: v in choices, default=default)
-
-
-def each(check: Any, nonempty: bool = False, default: Any = None) -> Any:
-    """Every element of a list passes ``check`` (a field made by :func:`at_least` and the like);
-    with ``nonempty`` the list must have one at least."""
-    words, test = check.metadata["allowed"].removeprefix("must be "), check.metadata["test"]
-    allowed = f"must be a non-empty list, every element {words}" if nonempty else (
-        f"every element must be {words}")
-    return key(allowed, lambda v: (len(v) > 0 or not nonempty) and all(test(a) for a in v),
-               default=default)
-
-
-def defaults(options: type) -> dict[str, Any]:
-    """The default value of every key of an options dataclass (a learner's ``learner.<name>``
-    section), as a composed config holds them."""
-    return dataclasses.asdict(options())
 
 
 def seeds(top: int = SEED_RANGE[1]) -> Any:
@@ -219,70 +178,6 @@ class TrainSchema:
     benchmark: BenchmarkSchema = key()
 
 
-def _type_words(hint: Any) -> str:
-    """What a value of type ``hint`` is, in words: ``an integer``, ``a list of numbers``, ..."""
-    if _optional(hint) is not None:
-        return f"{_type_words(_optional(hint))} or null"
-    origin = typing.get_origin(hint)
-    if origin is list:
-        inner = _type_words(typing.get_args(hint)[0]).split(" ", 1)[1]
-        return f"a list of {inner}s"
-    if origin is dict or dataclasses.is_dataclass(hint):
-        return "a group of keys"
-    return {bool: "a boolean (true or false)", int: "an integer", float: "a finite number",
-            str: "a string"}[hint]
-
-
-def _optional(hint: Any) -> Any:
-    """``X`` for ``X | None``, else ``None``."""
-    if typing.get_origin(hint) in (Union, types.UnionType):
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return args[0]
-    return None
-
-
-def _conforms(value: Any, hint: Any) -> bool:
-    """Whether ``value`` (plain Python) has type ``hint``, strictly (no string is a boolean)."""
-    if hint is Any:
-        return True
-    if _optional(hint) is not None:
-        return value is None or _conforms(value, _optional(hint))
-    origin = typing.get_origin(hint)
-    if origin is list:
-        return isinstance(value, list) and all(
-            _conforms(v, typing.get_args(hint)[0]) for v in value
-        )
-    if origin is dict or dataclasses.is_dataclass(hint):
-        return isinstance(value, dict)
-    if hint is float:
-        return (isinstance(value, (int, float)) and not isinstance(value, bool)
-                and math.isfinite(value))
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    return isinstance(value, hint)
-
-
-def _check_node(schema: type, node: dict, prefix: str) -> None:
-    hints = typing.get_type_hints(schema)
-    for spec in dataclasses.fields(schema):
-        if spec.name not in node:
-            continue
-        name, value, hint = f"{prefix}{spec.name}", node[spec.name], hints[spec.name]
-        if not _conforms(value, hint):
-            choices = spec.metadata["allowed"] if spec.metadata["allowed"].startswith(
-                "allowed:") else ""
-            raise ConfigError(name, value, f"must be {_type_words(hint)}" + (
-                f"; {choices}" if choices else ""))
-        if value is None:
-            continue
-        nested = _optional(hint) or hint
-        if dataclasses.is_dataclass(nested):
-            _check_node(nested, value, f"{name}.")
-        test = spec.metadata["test"]
-        if test is not None and not test(value):
-            raise ConfigError(name, value, spec.metadata["allowed"])
-
-
 def check_keys(prefix: str, **values: Any) -> None:
     """Check constructor arguments that are the config keys ``<prefix>.<name>`` (e.g.
     ``check_keys("risk.dr", alpha=alpha)``) against their schema fields: an object built from
@@ -291,8 +186,7 @@ def check_keys(prefix: str, **values: Any) -> None:
     for name in prefix.split("."):
         hint = typing.get_type_hints(schema)[name]
         schema = _optional(hint) or hint
-    plain = {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
-    _check_node(schema, plain, f"{prefix}.")
+    _check_node(schema, _plain(values), f"{prefix}.")
 
 
 def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, dataclasses.Field]:
@@ -385,13 +279,6 @@ def check_learner(cfg: DictConfig) -> None:
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
 
 
-def section(cfg: DictConfig, key: str) -> dict[str, Any]:
-    """The keys under ``key`` of a composed config as a plain, resolved dict (``{}`` when absent):
-    what a builder hands on as arguments (``section(cfg, "learner.anil")``)."""
-    node = OmegaConf.select(cfg, key)
-    return {} if node is None else OmegaConf.to_container(node, resolve=True)
-
-
 def check_task_split(cfg: DictConfig) -> None:
     """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs every
     task count it collects to divide evenly: checked here for the meta-batch and ``eval.n_tasks``,
@@ -401,11 +288,11 @@ def check_task_split(cfg: DictConfig) -> None:
         return
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError("benchmark.collector.workers", workers, "must be an integer >= 1")
-    for key in ("trainer.meta_batch", "eval.n_tasks"):
-        count = OmegaConf.select(cfg, key)
+    for name in ("trainer.meta_batch", "eval.n_tasks"):
+        count = OmegaConf.select(cfg, name)
         if count % workers:
             raise ConfigError(
-                "benchmark.collector.workers", workers, f"must divide {key} = {count}"
+                "benchmark.collector.workers", workers, f"must divide {name} = {count}"
             )
 
 
@@ -426,10 +313,6 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
     return with_old_run_defaults(without_removed_keys(cfg))
 
-
-# The registry's learner modules declare their options with this module's helpers, so it is
-# imported once they are defined.
-from armeta_rl.factory import LEARNERS, learner_sections  # noqa: E402
 
 LearnerSchema = dataclasses.make_dataclass(
     "LearnerSchema", [(name, options, key()) for name, options in learner_sections().items()]

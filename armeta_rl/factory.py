@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 from hydra.errors import InstantiationException
@@ -19,16 +20,20 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import section
 from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
+from armeta_rl.fields import section
 from armeta_rl.learners.anil import AnilOptions, build_anil
 from armeta_rl.learners.base import Leader
 from armeta_rl.learners.cnp import CnpOptions, build_cnp
 from armeta_rl.learners.maml import MamlOptions, build_maml
 from armeta_rl.learners.maml_trpo import MamlTrpoOptions, build_maml_trpo
-from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
+
+if TYPE_CHECKING:
+    # For annotations only: the principles' modules import armeta_rl.config, which imports this
+    # registry; the builders below import each principle where they build it.
+    from armeta_rl.risk.base import RiskPrinciple
 
 
 def build_space(cfg: DictConfig) -> TaskSpace:

@@ -28,7 +28,7 @@ from torch import nn
 
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
-from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -73,7 +73,7 @@ def main() -> None:
     rows.append(("both rollouts + inner step (sampling)", t, 2 * k * e * steps / t))
     for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5),
                                 ("HVP on 2 episodes/task", 2)):
-        leader = MAMLTRPOLeader(collector, hvp_episodes=hvp_episodes)
+        leader = MAMLTRPOLeader(collector, options=MamlTrpoOptions(hvp_episodes=hvp_episodes))
         t = seconds(lambda leader=leader: leader.step(leader.collect(tasks), erm), args.repeats)
         rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
 

@@ -16,7 +16,7 @@ from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 from armeta_rl.collectors.regression import SinusoidCollector
-from armeta_rl.learners.anil import ANILLeader, BodyHead
+from armeta_rl.learners.anil import ANILLeader, AnilOptions, BodyHead
 from armeta_rl.tasks import TASK_KEY
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
@@ -48,7 +48,8 @@ def closed_form_losses(leader: ANILLeader, data: TensorDict, first_order: bool) 
 def test_meta_gradient_is_the_closed_form_head_step(first_order: bool) -> None:
     torch.manual_seed(0)
     collector = SinusoidCollector(n_support=5, n_query=7)
-    leader = ANILLeader(BodyHead(1, 1, [8, 6]), collector, inner_lr=0.3, first_order=first_order)
+    leader = ANILLeader(BodyHead(1, 1, [8, 6]), collector,
+                        AnilOptions(inner_lr=0.3, first_order=first_order))
     leader.model.double()
     tasks = torch.tensor([[1.0, 0.5], [3.0, 2.0], [4.5, 0.1]], dtype=torch.float64)
     data = collector.collect(TensorDict({TASK_KEY: tasks}, [3]))
@@ -69,7 +70,7 @@ def test_meta_gradient_is_the_closed_form_head_step(first_order: bool) -> None:
 def test_the_inner_loop_moves_the_head_only() -> None:
     torch.manual_seed(1)
     collector = SinusoidCollector()
-    leader = ANILLeader(BodyHead(1, 1, [16, 16]), collector, inner_steps=2)
+    leader = ANILLeader(BodyHead(1, 1, [16, 16]), collector, AnilOptions(inner_steps=2))
     data = collector.collect(TensorDict({TASK_KEY: torch.tensor([[2.0, 1.0]])}, [1]))
     theta = dict(leader.model.named_parameters())
     adapted = leader.adapt(theta, data["support", "x"][0], data["support", "y"][0])
@@ -106,6 +107,6 @@ def test_the_guide_shows_the_shipped_code():
     shipped = {"python": "".join((ROOT / "armeta_rl" / name).read_text() for name in sources),
                "yaml": (ROOT / "configs" / "train.yaml").read_text()}
     blocks = re.findall(r"```(python|yaml)\n(.*?)```", page, re.S)
-    assert len(blocks) == 5
+    assert len(blocks) == 6
     for language, block in blocks:
         assert block in shipped[language], block

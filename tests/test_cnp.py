@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
-from armeta_rl.learners.cnp import CNPLeader, gaussian_nll
+from armeta_rl.learners.cnp import CNPLeader, CnpOptions, gaussian_nll
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 SINUSOID = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
@@ -51,7 +51,7 @@ def test_shapes_on_sinusoid_tasks():
 def test_shapes_with_vector_inputs_and_outputs():
     torch.manual_seed(1)
     data = random_data(4, 6, 9, 3, 2)
-    leader = CNPLeader(3, 2, SinusoidCollector(), hidden=32)
+    leader = CNPLeader(3, 2, SinusoidCollector(), CnpOptions(hidden=32))
     mean, std = leader.predict(data)
     assert mean.shape == std.shape == (4, 9, 2)
     assert leader.evaluate(data).shape == (4,)
@@ -151,7 +151,7 @@ def test_state_dict_restores_network_and_adam():
 ])
 def test_bad_config_is_rejected(key, kwargs):
     with pytest.raises(ConfigError) as error:
-        CNPLeader(1, 1, SinusoidCollector(), **kwargs)
+        CnpOptions(**kwargs)
     assert error.value.key == key
 
 
@@ -159,7 +159,8 @@ def train_on_sinusoids(likelihood: str, steps: int) -> tuple[TensorDict, TensorD
     """Held-out (loss, mse) per task (10 support, 50 query points) before and after training."""
     torch.manual_seed(0)
     p0 = BoxUniform(SINUSOID)
-    leader = CNPLeader(1, 1, SinusoidCollector(n_support=10, n_query=10), likelihood=likelihood)
+    leader = CNPLeader(1, 1, SinusoidCollector(n_support=10, n_query=10),
+                       CnpOptions(likelihood=likelihood))
     held_out, evaluation = p0.sample(64), SinusoidCollector(n_support=10, n_query=50)
 
     def score() -> TensorDict:

@@ -15,7 +15,7 @@ from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.compiling import compile_backend
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader
+from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import make_mlp, relu
 from armeta_rl.risk.adversarial import AdversarialPrinciple
 from armeta_rl.tasks import BoxUniform, TaskSpace
@@ -56,8 +56,8 @@ def train_leader(
 ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     """Initial parameters, then losses and evaluations of three steps, then final parameters."""
     torch.manual_seed(0)
-    leader = MAMLLeader(make_mlp(1, 1, (32, 32)), SinusoidCollector(5, 5), compile=compile,
-                        adaptation=adaptation)
+    leader = MAMLLeader(make_mlp(1, 1, (32, 32)), SinusoidCollector(5, 5),
+                        MamlOptions(compile=compile, adaptation=adaptation))
     initial = [p.detach().clone() for p in leader.model.parameters()]
     tasks = BoxUniform(SPACE).sample(6)
     losses = []

@@ -11,7 +11,7 @@ from torch.func import functional_call
 
 from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader
+from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import make_mlp
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -23,10 +23,8 @@ def make_leader(first_order=False, inner_steps=1, hidden=(128, 128, 128), adapta
     return MAMLLeader(
         make_mlp(1, 1, hidden),
         SinusoidCollector(5, 5),
-        inner_lr=0.01,
-        inner_steps=inner_steps,
-        first_order=first_order,
-        adaptation=adaptation,
+        MamlOptions(inner_lr=0.01, inner_steps=inner_steps, first_order=first_order,
+                    adaptation=adaptation),
     )
 
 
@@ -66,8 +64,8 @@ def test_batched_maml_equals_per_task_loop(first_order, inner_steps, adaptation)
 def test_batched_maml_equals_per_task_loop_with_vector_inputs_and_outputs(adaptation):
     """Sys-id shapes: 4 inputs, 3 outputs, 10 support and 190 query points per task."""
     torch.manual_seed(5)
-    leader = MAMLLeader(make_mlp(4, 3, (32, 32)), SinusoidCollector(5, 5), inner_lr=0.05,
-                        adaptation=adaptation)
+    leader = MAMLLeader(make_mlp(4, 3, (32, 32)), SinusoidCollector(5, 5),
+                        MamlOptions(inner_lr=0.05, adaptation=adaptation))
     data = TensorDict(
         {
             part: {"x": torch.randn(3, n, 4), "y": torch.randn(3, n, 3)}
@@ -114,7 +112,7 @@ def test_bad_adaptation_is_a_config_error():
         make_leader(adaptation="loop")
     sequential = nn.Sequential(nn.Linear(1, 8), nn.ReLU(), nn.Linear(8, 1))
     with pytest.raises(ConfigError, match="learner.maml.adaptation.*not a Sequential; use vmap"):
-        MAMLLeader(sequential, SinusoidCollector(5, 5), adaptation="low_rank")
+        MAMLLeader(sequential, SinusoidCollector(5, 5), MamlOptions(adaptation="low_rank"))
 
 
 @pytest.mark.parametrize("out_features", [1, 3, 16])

@@ -15,7 +15,7 @@ from torch.func import functional_call
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions
 from armeta_rl.rl.baseline import (
     baseline_features,
     baseline_values,
@@ -208,7 +208,8 @@ def fake_batch(k: int = 3, e: int = 2, t: int = 5) -> tuple[TensorDict, torch.Te
 
 
 def test_batched_inner_step_equals_per_task_loop() -> None:
-    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2), hidden_sizes=(8, 8))
+    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2),
+                            options=MamlTrpoOptions(hidden_sizes=(8, 8)))
     data, advantages = fake_batch()
     adapted = leader.adapt(leader.theta(), data, advantages, create_graph=True)
     queries = torch.randn(3, 7, 2)
@@ -249,7 +250,8 @@ def test_per_task_policy_equals_each_tasks_network(batch: tuple[int, ...]) -> No
 def meta_hvp_pair(dtype: torch.dtype, hidden: tuple[int, ...] = (8, 8)):
     """The fast meta-KL Hessian-vector product and the plain double-backward reference, at the
     adapted policies of a small leader on fake data, with task weights."""
-    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2), hidden_sizes=hidden)
+    leader = MAMLTRPOLeader(PointNavigationCollector(episodes=2),
+                            options=MamlTrpoOptions(hidden_sizes=hidden))
     leader.net.to(dtype)
     train, train_advantages = fake_batch()
     valid, _ = fake_batch()
@@ -323,7 +325,8 @@ def test_leader_kl_hessian_product_is_the_second_order_hessian_on_its_episodes(
 ) -> None:
     torch.manual_seed(6)
     collector = PointNavigationCollector(episodes=4, max_steps=10, seed=0)
-    leader = MAMLTRPOLeader(collector, hidden_sizes=(8, 8), hvp_episodes=hvp_episodes)
+    leader = MAMLTRPOLeader(
+        collector, options=MamlTrpoOptions(hidden_sizes=(8, 8), hvp_episodes=hvp_episodes))
     batch = leader.collect(BoxUniform(SPACE).sample(3))
     weights = torch.tensor([0.5, 0.3, 0.2])
     graph = leader.surrogate_gradient(batch, weights)[2]
@@ -366,7 +369,7 @@ def test_line_search_takes_the_first_improving_step_inside_the_bound() -> None:
 def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> None:
     torch.manual_seed(4)
     collector = PointNavigationCollector(episodes=4, max_steps=20, seed=0)
-    leader = MAMLTRPOLeader(collector, max_kl=1e-3)
+    leader = MAMLTRPOLeader(collector, options=MamlTrpoOptions(max_kl=1e-3))
     tasks = BoxUniform(SPACE).sample(3)
     batch = leader.collect(tasks)
     weights = torch.tensor([0.7, 0.2, 0.1])
@@ -446,7 +449,7 @@ def test_short_seeded_run_improves_post_adaptation_return() -> None:
 )
 def test_bad_hyper_parameters_raise_config_error(key: str, kwargs: dict) -> None:
     with pytest.raises(ConfigError, match=f"learner.maml_trpo.{key}"):
-        MAMLTRPOLeader(PointNavigationCollector(), **kwargs)
+        MamlTrpoOptions(**kwargs)
 
 
 def test_trpo_surrogate_at_the_sampling_policy_is_the_policy_gradient_and_the_kl_is_flat():

@@ -1,5 +1,6 @@
 """Every method trains through the CLI; the RL benchmarks train end to end."""
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -10,7 +11,13 @@ from omegaconf import OmegaConf
 
 from armeta_rl.cli import group_choices
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import build_collector, build_initial, build_leader, build_space
+from armeta_rl.factory import (
+    build_collector,
+    build_initial,
+    build_leader,
+    build_space,
+    learner_sections,
+)
 from armeta_rl.trainers.training import run_training
 
 METHODS = [
@@ -111,3 +118,11 @@ def test_model_sizes_come_from_the_collector(benchmark, method, stated):
     OmegaConf.update(cfg, stated, size + 1)
     with pytest.raises(ConfigError, match=f"'{stated}' = {size + 1}: is defined by the collector"):
         build_leader(cfg, collector)
+
+
+@pytest.mark.parametrize(("name", "options"), learner_sections().items())
+def test_learner_options_refuse_a_bad_value_under_their_own_section(name, options):
+    """Options built from Python are checked when made, naming the key of their own section."""
+    first = dataclasses.fields(options)[0].name
+    with pytest.raises(ConfigError, match=f"'learner.{name}.{first}' = 'bogus'"):
+        options(**{first: "bogus"})

@@ -13,7 +13,7 @@ from tensordict import TensorDict
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import build_collector
-from armeta_rl.learners.maml import MAMLLeader
+from armeta_rl.learners.maml import MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import TiedAngleHead, make_mlp
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.players import build_players
@@ -98,7 +98,7 @@ def test_tied_angle_head_is_refused_where_it_cannot_apply():
     with pytest.raises(ConfigError, match="benchmark.model.head"):
         make_mlp(4, 3, head="angles")
     with pytest.raises(ConfigError, match="learner.maml.adaptation"):
-        MAMLLeader(make_mlp(4, 3, head="tied_angle"), None, adaptation="low_rank")
+        MAMLLeader(make_mlp(4, 3, head="tied_angle"), None, MamlOptions(adaptation="low_rank"))
     for overrides in (("benchmark.collector.target=delta",), ("method=cnp",)):
         with pytest.raises(ConfigError, match="benchmark.model.head"):
             build_players(compose_train("benchmark=pendulum_normal_paper", *overrides))

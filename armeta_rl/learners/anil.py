@@ -18,7 +18,7 @@ class, options and builder) and one entry in :data:`armeta_rl.factory.LEARNERS`.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import torch
 from omegaconf import DictConfig
@@ -27,9 +27,9 @@ from torch.func import functional_call, grad
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import above, at_least, check_keys, each, key, section
+from armeta_rl.fields import Options, above, at_least, each, key, section
 from armeta_rl.learners.base import OLD_SIZE_KEYS, mean_squared_error, sizes
-from armeta_rl.learners.maml import MAMLLeader, sgd_step
+from armeta_rl.learners.maml import MAMLLeader, MamlOptions, sgd_step
 
 Params = dict[str, Tensor]
 
@@ -49,6 +49,27 @@ class BodyHead(nn.Module):
         return self.head(self.body(x))
 
 
+@dataclass(frozen=True)
+class AnilOptions(Options):
+    """``learner.anil``: ANIL's keys, their types, ranges and defaults.
+
+    Attributes:
+        hidden: the widths of the body the builder makes (every layer but the head).
+        inner_lr: γ, the step size of the head's inner SGD steps.
+        inner_steps: number of inner steps.
+        first_order: drop the second-order terms (treat ∇_{θ_head} L^S as a constant).
+        outer_lr: Adam learning rate of the meta-update.
+    """
+
+    section = "learner.anil"
+
+    hidden: list[int] = each(at_least(1), nonempty=True, default=[128, 128, 128])
+    inner_lr: float = above(0, default=0.01)
+    inner_steps: int = at_least(1, default=1)
+    first_order: bool = key(default=False)
+    outer_lr: float = above(0, default=0.001)
+
+
 class ANILLeader(MAMLLeader):
     """ANIL on regression data ``{"support": {"x", "y"}, "query": {"x", "y"}}``, metric MSE.
 
@@ -58,25 +79,14 @@ class ANILLeader(MAMLLeader):
     Args:
         model: the network; its parameters are θ.
         collector: produces support/query data for a batch of tasks.
-        inner_lr: γ, the step size of the head's inner SGD steps.
-        inner_steps: number of inner steps.
-        first_order: drop the second-order terms (treat ∇_{θ_head} L^S as a constant).
-        outer_lr: Adam learning rate of the meta-update.
+        options: the keys of ``learner.anil`` (:class:`AnilOptions`).
     """
 
     def __init__(
-        self,
-        model: BodyHead,
-        collector: TaskCollector,
-        inner_lr: float = 0.01,
-        inner_steps: int = 1,
-        first_order: bool = False,
-        outer_lr: float = 1e-3,
+        self, model: BodyHead, collector: TaskCollector, options: AnilOptions = AnilOptions()
     ) -> None:
-        check_keys("learner.anil", inner_lr=inner_lr, inner_steps=inner_steps,
-                   first_order=first_order, outer_lr=outer_lr)
-        super().__init__(model, collector, inner_lr, inner_steps, first_order,
-                         outer_lr, adaptation="vmap")
+        # MAML's per-task form, vmapped, with ANIL's inner step (adapt) in it
+        super().__init__(model, collector, MamlOptions(**asdict(options), adaptation="vmap"))
 
     def support_loss(self, head: Params, params: Params, x: Tensor, y: Tensor) -> Tensor:
         """L(D^S; θ_body, head): the mean squared error with the head's parameters ``head``."""
@@ -94,19 +104,8 @@ class ANILLeader(MAMLLeader):
         return {**params, **head}
 
 
-@dataclass
-class AnilOptions:
-    """``learner.anil``: ANIL's keys, their types, ranges and defaults."""
-
-    hidden: list[int] = each(at_least(1), nonempty=True, default=[128, 128, 128])
-    inner_lr: float = above(0, default=0.01)
-    inner_steps: int = at_least(1, default=1)
-    first_order: bool = key(default=False)
-    outer_lr: float = above(0, default=0.001)
-
-
 def build_anil(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> ANILLeader:
     """ANIL from ``learner.anil``, its network sized by the collector, on ``device``."""
-    opts = section(cfg, "learner.anil")
-    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden")).to(device)
-    return ANILLeader(model, collector, **opts)
+    options = AnilOptions(**section(cfg, "learner.anil"))
+    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), options.hidden).to(device)
+    return ANILLeader(model, collector, options)

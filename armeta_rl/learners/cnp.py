@@ -23,8 +23,8 @@ from torch.nn import functional as F
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import above, at_least, check_keys, one_of, section
 from armeta_rl.errors import ConfigError
+from armeta_rl.fields import Options, above, at_least, one_of, section
 from armeta_rl.learners.base import (
     OLD_SIZE_KEYS,
     OneNetworkLeader,
@@ -70,6 +70,26 @@ def gaussian_nll(mean: Tensor, std: Tensor, target: Tensor) -> Tensor:
     return F.gaussian_nll_loss(mean, target, std.square(), full=True, reduction="none")
 
 
+@dataclass(frozen=True)
+class CnpOptions(Options):
+    """``learner.cnp``: the CNP's keys, their types, ranges and defaults (encoder 3 × ``hidden``
+    → mean over the support set → decoder ``hidden`` → (μ, σ)).
+
+    Attributes:
+        lr: Adam learning rate (1e-3 in the paper).
+        hidden: width of every hidden layer and of the representation z (128 in the paper).
+        likelihood: training loss per task, averaged over query points and output dimensions:
+            ``"gaussian"`` (negative log-likelihood of the predicted Gaussian, as in Garnelo et al.)
+            or ``"mse"`` (squared error of the predicted mean; the std head is then unused).
+    """
+
+    section = "learner.cnp"
+
+    lr: float = above(0, default=0.001)
+    hidden: int = at_least(1, default=128)
+    likelihood: str = one_of("gaussian", "mse", default="gaussian")  # Gaussian NLL (paper) or mse
+
+
 class CNPLeader(OneNetworkLeader):
     """The CNP as a leader: collect support/query data, predict, score, one Adam step.
 
@@ -77,11 +97,7 @@ class CNPLeader(OneNetworkLeader):
         in_features: dimension of the inputs x.
         out_features: dimension of the targets y.
         collector: returns ``{"support": {"x", "y"}, "query": {"x", "y"}}`` with batch ``[K]``.
-        lr: Adam learning rate (1e-3 in the paper).
-        hidden: width of every hidden layer and of the representation z (128 in the paper).
-        likelihood: training loss per task, averaged over query points and output dimensions:
-            ``"gaussian"`` (negative log-likelihood of the predicted Gaussian, as in Garnelo et al.)
-            or ``"mse"`` (squared error of the predicted mean; the std head is then unused).
+        options: the keys of ``learner.cnp`` (:class:`CnpOptions`).
         device: where the network and Adam's state live (its initial weights are drawn on the
             CPU, so a seed gives the same network on every device).
 
@@ -92,13 +108,12 @@ class CNPLeader(OneNetworkLeader):
     metric = "mse"
 
     def __init__(self, in_features: int, out_features: int, collector: TaskCollector,
-                 lr: float = 1e-3, hidden: int = 128, likelihood: str = "gaussian",
+                 options: CnpOptions = CnpOptions(),
                  device: torch.device | str = "cpu") -> None:
-        check_keys("learner.cnp", hidden=hidden, lr=lr, likelihood=likelihood)
         self.collector = collector
-        self.likelihood = likelihood
-        self.model = ConditionalNeuralProcess(in_features, out_features, hidden).to(device)
-        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=lr)
+        self.likelihood = options.likelihood
+        self.model = ConditionalNeuralProcess(in_features, out_features, options.hidden).to(device)
+        self.optimizer = torch.optim.Adam(self.model.parameters(), lr=options.lr)
 
     def predict(self, data: TensorDict) -> tuple[Tensor, Tensor]:
         """Predictive mean and std ``[K, Q, out]`` at the query inputs of ``data``."""
@@ -133,20 +148,10 @@ class CNPLeader(OneNetworkLeader):
         return mean_squared_error(mean, data["query", "y"], (-2, -1))
 
 
-@dataclass
-class CnpOptions:
-    """``learner.cnp``: the CNP's keys, their types, ranges and defaults (encoder 3 × ``hidden``
-    → mean over the support set → decoder ``hidden`` → (μ, σ))."""
-
-    lr: float = above(0, default=0.001)
-    hidden: int = at_least(1, default=128)
-    likelihood: str = one_of("gaussian", "mse", default="gaussian")  # Gaussian NLL (paper) or mse
-
-
 def build_cnp(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> CNPLeader:
     """The CNP from ``learner.cnp``, sized by the collector, on ``device``."""
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
     if head != "none":
         raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
     return CNPLeader(*sizes(cfg, collector, OLD_SIZE_KEYS), collector,
-                     **section(cfg, "learner.cnp"), device=device)
+                     CnpOptions(**section(cfg, "learner.cnp")), device=device)

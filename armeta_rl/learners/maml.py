@@ -22,8 +22,8 @@ from torch.func import functional_call, grad, vmap
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.compiling import compile_backend, maybe_compile
-from armeta_rl.config import above, at_least, check_keys, each, key, one_of, section
 from armeta_rl.errors import ConfigError
+from armeta_rl.fields import Options, above, at_least, each, key, one_of, section
 from armeta_rl.learners.base import (
     OLD_SIZE_KEYS,
     OneNetworkLeader,
@@ -45,12 +45,13 @@ def sgd_step(params: Params, gradients: Params, lr: float) -> Params:
     return {name: p - lr * gradients[name] for name, p in params.items()}
 
 
-class MAMLLeader(OneNetworkLeader):
-    """MAML on regression data ``{"support": {"x", "y"}, "query": {"x", "y"}}``, metric MSE.
+@dataclass(frozen=True)
+class MamlOptions(Options):
+    """``learner.maml``: MAML's keys, their types, ranges and defaults.
 
-    Args:
-        model: the network; its parameters are θ.
-        collector: produces support/query data for a batch of tasks.
+    Attributes:
+        hidden: the hidden widths of the MLP the builder makes (a leader built from Python is
+            handed its network and ignores it).
         inner_lr: γ, the step size of the inner (adaptation) SGD steps.
         inner_steps: number of inner steps.
         first_order: drop the second-order term (treat ∇_θ L^S as a constant).
@@ -63,35 +64,57 @@ class MAMLLeader(OneNetworkLeader):
             :mod:`armeta_rl.compiling`.
     """
 
+    section = "learner.maml"
+
+    hidden: list[int] = each(at_least(1), default=[128, 128, 128])  # the paper's MLP: 3 × 128, ReLU
+    # The paper's text gives 1e-3 for both loops. Measured (sinusoid_uniform, MAML, 7,500
+    # iterations, seeds 0/1/2): inner 1e-3 reaches mean MSE 0.659/0.639/0.727 on p0, inner
+    # 0.01 reaches 0.460/0.475/0.457 (the paper's MAML row: 0.499), so the inner learning rate
+    # defaults to 0.01 (docs/protocol.md, section 5).
+    inner_lr: float = above(0, default=0.01)
+    inner_steps: int = at_least(1, default=1)
+    first_order: bool = key(default=False)
+    outer_lr: float = above(0, default=0.001)
+    # vmap (any network) or low_rank (the same maths without per-task weights, faster on small
+    # support sets: the sinusoid benchmarks choose it; see docs/speed-options.md)
+    adaptation: str = one_of(*ADAPTATIONS, default="vmap")
+    # torch.compile the batched MAML loss: true (inductor) or a backend; pays on long runs only
+    # (see docs/speed-options.md); checked by armeta_rl.compiling
+    compile: Any = key(default=False)
+
+
+class MAMLLeader(OneNetworkLeader):
+    """MAML on regression data ``{"support": {"x", "y"}, "query": {"x", "y"}}``, metric MSE.
+
+    Args:
+        model: the network; its parameters are θ.
+        collector: produces support/query data for a batch of tasks.
+        options: the keys of ``learner.maml`` (:class:`MamlOptions`).
+    """
+
     metric = "mse"
 
     def __init__(
         self,
         model: nn.Module,
         collector: TaskCollector,
-        inner_lr: float = 0.01,
-        inner_steps: int = 1,
-        first_order: bool = False,
-        outer_lr: float = 1e-3,
-        adaptation: str = "vmap",
-        compile: bool | str | None = False,
+        options: MamlOptions = MamlOptions(),
     ) -> None:
-        check_keys("learner.maml", inner_lr=inner_lr, inner_steps=inner_steps,
-                   first_order=first_order, outer_lr=outer_lr, adaptation=adaptation)
-        if adaptation == "low_rank" and not isinstance(model, MLP):
-            raise ConfigError("learner.maml.adaptation", adaptation,
+        if options.adaptation == "low_rank" and not isinstance(model, MLP):
+            raise ConfigError("learner.maml.adaptation", options.adaptation,
                               f"needs the package's MLP, not a {type(model).__name__}; use vmap")
         self.model, self.collector = model, collector
-        self.inner_lr, self.inner_steps, self.first_order = inner_lr, int(inner_steps), first_order
+        self.inner_lr, self.inner_steps = options.inner_lr, int(options.inner_steps)
+        self.first_order = options.first_order
         # The fused Adam kernel: one op for all parameters.
-        self.optimizer = torch.optim.Adam(model.parameters(), lr=outer_lr, fused=True)
+        self.optimizer = torch.optim.Adam(model.parameters(), lr=options.outer_lr, fused=True)
         self._support_gradient = grad(self._mse)
         self._batched_loss = (
-            self._low_rank_losses if adaptation == "low_rank"
+            self._low_rank_losses if options.adaptation == "low_rank"
             else vmap(self.query_loss, in_dims=(None, 0, 0, 0, 0))
         )
         self._training_loss = maybe_compile(
-            self._batched_loss, compile_backend("learner.maml.compile", compile)
+            self._batched_loss, compile_backend("learner.maml.compile", options.compile)
         )
 
     def _mse(self, params: Params, x: Tensor, y: Tensor) -> Tensor:
@@ -150,36 +173,14 @@ class MAMLLeader(OneNetworkLeader):
             return self._losses(self._training_loss, data)
 
 
-@dataclass
-class MamlOptions:
-    """``learner.maml``: MAML's keys, their types, ranges and defaults."""
-
-    hidden: list[int] = each(at_least(1), default=[128, 128, 128])  # the paper's MLP: 3 × 128, ReLU
-    # The paper's text gives 1e-3 for both loops. Measured (sinusoid_uniform, MAML, 7,500
-    # iterations, seeds 0/1/2): inner 1e-3 reaches mean MSE 0.659/0.639/0.727 on p0, inner
-    # 0.01 reaches 0.460/0.475/0.457 (the paper's MAML row: 0.499), so the inner learning rate
-    # defaults to 0.01 (docs/protocol.md, section 5).
-    inner_lr: float = above(0, default=0.01)
-    inner_steps: int = at_least(1, default=1)
-    first_order: bool = key(default=False)
-    outer_lr: float = above(0, default=0.001)
-    # vmap (any network) or low_rank (the same maths without per-task weights, faster on small
-    # support sets: the sinusoid benchmarks choose it; see docs/speed-options.md)
-    adaptation: str = one_of(*ADAPTATIONS, default="vmap")
-    # torch.compile the batched MAML loss: true (inductor) or a backend; pays on long runs only
-    # (see docs/speed-options.md); checked by armeta_rl.compiling
-    compile: Any = key(default=False)
-
-
 def build_maml(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> MAMLLeader:
     """MAML from ``learner.maml``, its MLP sized by the collector, on ``device``."""
-    opts = section(cfg, "learner.maml")
+    options = MamlOptions(**section(cfg, "learner.maml"))
     head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
     target = OmegaConf.select(cfg, "benchmark.collector.target", default=None)
     if head == "tied_angle" and target != "next":
         raise ConfigError("benchmark.model.head", head,
                           f"predicts the next observation: needs benchmark.collector.target=next, "
                           f"not {target}")
-    model = make_mlp(*sizes(cfg, collector, OLD_SIZE_KEYS), opts.pop("hidden", (128, 128, 128)),
-                     head).to(device)
-    return MAMLLeader(model, collector, **opts)
+    model = make_mlp(*sizes(cfg, collector, OLD_SIZE_KEYS), options.hidden, head).to(device)
+    return MAMLLeader(model, collector, options)

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.config import above, at_least, check_keys, each, inside, key, section
+from armeta_rl.fields import Options, above, at_least, each, inside, key, section
 from armeta_rl.learners.base import TaskWeights, sizes, weighted_sum
 from armeta_rl.learners.maml import sgd_step
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
@@ -76,13 +76,13 @@ class SurrogateGraph(NamedTuple):
     outputs: tuple[Tensor, Tensor]
 
 
-class MAMLTRPOLeader:
-    """The meta-RL leader θ (Gaussian MLP policy) trained by MAML-TRPO.
+@dataclass(frozen=True)
+class MamlTrpoOptions(Options):
+    """``learner.maml_trpo``: MAML's form on episode benchmarks (point_nav, ant_goal), MAML-TRPO
+    with pytorch-maml-rl's settings: its keys, their types, ranges and defaults. The policy's
+    input and output sizes are the env's observation and action.
 
-    Args:
-        collector: episode collector (e.g. ``PointNavigationCollector``); it is called as
-            ``collect(tasks, policy_params, policy=net)``.
-        obs_dim, action_dim: policy input and output sizes.
+    Attributes:
         hidden_sizes: hidden layers of the policy MLP.
         inner_lr: inner policy-gradient step size α.
         gamma, gae_lambda: discount and GAE λ.
@@ -98,6 +98,35 @@ class MAMLTRPOLeader:
             products retake the inner step on the first ``n`` training episodes, so the inner
             step's Jacobian is estimated from the subsample too (it is most of their cost). The
             surrogate, its gradient and the line search always use every episode.
+    """
+
+    section = "learner.maml_trpo"
+
+    # Gaussian MLP, tanh, state-independent log-std (init 0)
+    hidden_sizes: list[int] = each(at_least(1), default=[64, 64])
+    inner_lr: float = above(0, default=0.1)
+    gamma: float = inside(0, 1, "(]", default=0.99)
+    gae_lambda: float = inside(0, 1, "[]", default=1.0)
+    max_kl: float = above(0, default=0.01)
+    cg_iterations: int = at_least(1, default=10)
+    cg_damping: float = at_least(0, default=1.0e-5)
+    ls_max_steps: int = at_least(1, default=15)
+    ls_backtrack_ratio: float = inside(0, 1, default=0.8)
+    baseline_reg: float = at_least(0, default=1.0e-5)
+    first_order: bool = key(default=False)
+    # None: exact KL Hessian-vector products on all episodes; n: on the first n episodes per task
+    # (≈ 20/n times cheaper conjugate gradient)
+    hvp_episodes: int | None = at_least(1, default=None)
+
+
+class MAMLTRPOLeader:
+    """The meta-RL leader θ (Gaussian MLP policy) trained by MAML-TRPO.
+
+    Args:
+        collector: episode collector (e.g. ``PointNavigationCollector``); it is called as
+            ``collect(tasks, policy_params, policy=net)``.
+        obs_dim, action_dim: policy input and output sizes.
+        options: the keys of ``learner.maml_trpo`` (:class:`MamlTrpoOptions`).
         device: where the policy and every meta-update computation live (its initial weights are
             drawn on the CPU, so a seed gives the same policy on every device); the collector
             rolls it out on its env's device.
@@ -111,37 +140,20 @@ class MAMLTRPOLeader:
         collector: TaskCollector,
         obs_dim: int = 2,
         action_dim: int = 2,
-        hidden_sizes: Sequence[int] = (64, 64),
-        inner_lr: float = 0.1,
-        gamma: float = 0.99,
-        gae_lambda: float = 1.0,
-        max_kl: float = 1e-2,
-        cg_iterations: int = 10,
-        cg_damping: float = 1e-5,
-        ls_max_steps: int = 15,
-        ls_backtrack_ratio: float = 0.8,
-        baseline_reg: float = 1e-5,
-        first_order: bool = False,
-        hvp_episodes: int | None = None,
+        options: MamlTrpoOptions = MamlTrpoOptions(),
         device: torch.device | str = "cpu",
     ) -> None:
-        check_keys(
-            "learner.maml_trpo",
-            hidden_sizes=hidden_sizes, inner_lr=inner_lr, gamma=gamma, gae_lambda=gae_lambda,
-            max_kl=max_kl, cg_iterations=cg_iterations, cg_damping=cg_damping,
-            ls_max_steps=ls_max_steps, ls_backtrack_ratio=ls_backtrack_ratio,
-            baseline_reg=baseline_reg, first_order=first_order, hvp_episodes=hvp_episodes,
-        )
         self.collector = collector
-        self.net = GaussianMLP(obs_dim, action_dim, tuple(hidden_sizes)).to(device)
-        self.inner_lr = float(inner_lr)
-        self.gamma, self.gae_lambda = float(gamma), float(gae_lambda)
-        self.max_kl = float(max_kl)
-        self.cg_iterations, self.cg_damping = int(cg_iterations), float(cg_damping)
-        self.ls_max_steps, self.ls_backtrack_ratio = int(ls_max_steps), float(ls_backtrack_ratio)
-        self.baseline_reg = float(baseline_reg)
-        self.first_order = bool(first_order)
-        self.hvp_episodes = None if hvp_episodes is None else int(hvp_episodes)
+        self.net = GaussianMLP(obs_dim, action_dim, tuple(options.hidden_sizes)).to(device)
+        self.inner_lr = float(options.inner_lr)
+        self.gamma, self.gae_lambda = float(options.gamma), float(options.gae_lambda)
+        self.max_kl = float(options.max_kl)
+        self.cg_iterations, self.cg_damping = int(options.cg_iterations), float(options.cg_damping)
+        self.ls_max_steps = int(options.ls_max_steps)
+        self.ls_backtrack_ratio = float(options.ls_backtrack_ratio)
+        self.baseline_reg = float(options.baseline_reg)
+        self.first_order = bool(options.first_order)
+        self.hvp_episodes = options.hvp_episodes
 
     # -- functional pieces ------------------------------------------------------------------
 
@@ -392,29 +404,6 @@ class MAMLTRPOLeader:
         self.net.load_state_dict(state["policy"])
 
 
-@dataclass
-class MamlTrpoOptions:
-    """``learner.maml_trpo``: MAML's form on episode benchmarks (point_nav, ant_goal), MAML-TRPO
-    with pytorch-maml-rl's settings: its keys, their types, ranges and defaults. The policy's
-    input and output sizes are the env's observation and action."""
-
-    # Gaussian MLP, tanh, state-independent log-std (init 0)
-    hidden_sizes: list[int] = each(at_least(1), default=[64, 64])
-    inner_lr: float = above(0, default=0.1)
-    gamma: float = inside(0, 1, "(]", default=0.99)
-    gae_lambda: float = inside(0, 1, "[]", default=1.0)
-    max_kl: float = above(0, default=0.01)
-    cg_iterations: int = at_least(1, default=10)
-    cg_damping: float = at_least(0, default=1.0e-5)
-    ls_max_steps: int = at_least(1, default=15)
-    ls_backtrack_ratio: float = inside(0, 1, default=0.8)
-    baseline_reg: float = at_least(0, default=1.0e-5)
-    first_order: bool = key(default=False)
-    # None: exact KL Hessian-vector products on all episodes; n: on the first n episodes per task
-    # (≈ 20/n times cheaper conjugate gradient)
-    hvp_episodes: int | None = at_least(1, default=None)
-
-
 OLD_SIZE_KEYS = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
 """Where configs saved before sizes came from the collector state the policy's sizes."""
 
@@ -427,5 +416,5 @@ def build_maml_trpo(
     obs_dim, action_dim = sizes(cfg, collector, OLD_SIZE_KEYS)
     opts = {k: v for k, v in section(cfg, "learner.maml_trpo").items()
             if f"learner.maml_trpo.{k}" not in OLD_SIZE_KEYS}
-    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim, **opts,
-                          device=device)
+    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim,
+                          options=MamlTrpoOptions(**opts), device=device)

@@ -20,7 +20,7 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from armeta_rl.cli import config_dir
+from armeta_rl.cli import config_files
 from armeta_rl.errors import ConfigError
 
 PROFILES_FILE = "profiles.yaml"
@@ -103,7 +103,7 @@ class Plan:
 
 def experiment_names() -> list[str]:
     """The experiments in ``configs/reproduce/`` (every YAML but the shared profiles)."""
-    folder = config_dir() / "reproduce"
+    folder = config_files() / "reproduce"
     return sorted(p.stem for p in folder.glob("*.yaml") if p.name != PROFILES_FILE)
 
 
@@ -112,13 +112,13 @@ def load_spec(experiment: str) -> dict[str, Any]:
     names = experiment_names()
     if experiment not in names:
         raise ConfigError("experiment", experiment, f"allowed: {', '.join(names)}")
-    path = config_dir() / "reproduce" / f"{experiment}.yaml"
+    path = config_files() / "reproduce" / f"{experiment}.yaml"
     return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
 
 
 def load_profiles() -> dict[str, Any]:
     """``configs/reproduce/profiles.yaml``: seeds and per-benchmark overrides per profile."""
-    return OmegaConf.to_container(OmegaConf.load(config_dir() / "reproduce" / PROFILES_FILE))
+    return OmegaConf.to_container(OmegaConf.load(config_files() / "reproduce" / PROFILES_FILE))
 
 
 def benchmark_setting(profile: str, benchmark: str, entry: Any) -> tuple[str, list[str]]:
