@@ -248,6 +248,24 @@ def test_seeded_collection_is_reproducible(env_name):
     assert not torch.equal(first["query", "y"], third["query", "y"])
 
 
+@pytest.mark.parametrize(("target", "normalize"), [("delta", "none"), ("next", "none"),
+                                                   ("next", "scale")])
+def test_collected_data_can_be_differentiated_through(target, normalize):
+    """The rollout runs in inference mode, but the data ``collect`` returns are ordinary tensors:
+    a network's backward pass saves them (inference tensors would raise there)."""
+    collector = SysIdCollector("acrobot", episodes=1, target=target, normalize=normalize)
+    torch.manual_seed(0)
+    data = collector.collect(_tasks(3))
+    assert collector.rollout(_tasks(3)["params"])["observation"].is_inference()
+    network = torch.nn.Linear(collector.in_features, collector.out_features)
+    for part in ("support", "query"):
+        x, y = data[part, "x"], data[part, "y"]
+        assert not x.is_inference() and not y.is_inference()
+        network.zero_grad()
+        (network(x) - y).square().mean().backward()
+        assert torch.isfinite(network.weight.grad).all() and network.weight.grad.abs().sum() > 0
+
+
 @pytest.mark.parametrize(
     ("key", "kwargs"),
     [

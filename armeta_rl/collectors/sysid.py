@@ -141,8 +141,15 @@ class SysIdCollector:
             raise ConfigError("benchmark.space.low", list(space.low),
                               f"{self.env_name} identifiers must be > 0")
 
+    @torch.inference_mode()
     def rollout(self, params: Tensor) -> TensorDict:
-        """Random-policy rollout ``[K, episodes, steps]`` of the systems ``params`` ``[K, d]``."""
+        """Random-policy rollout ``[K, episodes, steps]`` of the systems ``params`` ``[K, d]``.
+
+        The transitions are data that nothing differentiates, so the env runs in
+        ``torch.inference_mode``: its many small tensor ops skip autograd's bookkeeping. The
+        returned tensors are inference tensors (read them, or copy them before an in-place
+        change); :meth:`collect` builds ordinary tensors from them.
+        """
         n_tasks = params.shape[0]
         env = self._env(n_tasks)
         env.set_seed(int(torch.randint(0, 2**62, ())))

@@ -59,6 +59,9 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return torch.randint(0, 3, self.batch_size, device=self.device)
 
     def _precompute(self) -> None:
+        # gymnasium's AVAIL_TORQUE: the torque of each action
+        self.available_torque = torch.tensor([-1.0, 0.0, 1.0], dtype=self.dtype,
+                                             device=self.device)
         # The physics works on feature-major states [4, n_envs] (contiguous rows).
         self.max_velocity = torch.tensor([[self.max_vel_1], [self.max_vel_2]], dtype=self.dtype,
                                          device=self.device)
@@ -87,7 +90,7 @@ class AcrobotEnv(IdentifiedSystemEnv):
     def _observe_rows(self, state: Tensor) -> Tensor:
         """From feature-major states ``[4, n_envs]``: (cos θ1, sin θ1, cos θ2, sin θ2, θ̇1, θ̇2)
         ``[6, n_envs]``."""
-        theta1, theta2, dtheta1, dtheta2 = state
+        theta1, theta2, dtheta1, dtheta2 = state.unbind()
         return torch.stack([theta1.cos(), theta1.sin(), theta2.cos(), theta2.sin(), dtheta1,
                             dtheta2])
 
@@ -95,14 +98,17 @@ class AcrobotEnv(IdentifiedSystemEnv):
         """ds/dt ``[4, n_envs]`` of the book equations (gymnasium's ``AcrobotEnv._dsdt``) at
         feature-major states ``[4, n_envs]``; gymnasium's cos(θ1 + θ2 − π/2) and cos(θ1 − π/2)
         are written sin(θ1 + θ2) and sin θ1."""
-        theta1, theta2, dtheta1, dtheta2 = state
+        theta1, theta2, dtheta1, dtheta2 = state.unbind()
         d1_rest, two_coupling, coupling, d2_rest, gravity2, gravity1 = self.constants
         sin2, cos2 = theta2.sin(), theta2.cos()
         d1 = d1_rest + two_coupling * cos2
         d2 = d2_rest + coupling * cos2
         phi2 = gravity2 * (theta1 + theta2).sin()
-        phi1 = -coupling * sin2 * dtheta2 * (dtheta2 + 2 * dtheta1) + gravity1 * theta1.sin() + phi2
-        ddtheta2 = ((torque + d2 / d1 * phi1 - coupling * sin2 * dtheta1.square() - phi2)
+        coupled = coupling * sin2  # m2 l1 lc2 sin θ2
+        # gymnasium's m2 l1 lc2 θ̇2² sin θ2 + 2 m2 l1 lc2 θ̇2 θ̇1 sin θ2, factored
+        velocity_terms = coupled * dtheta2 * torch.add(dtheta2, dtheta1, alpha=2)
+        phi1 = gravity1 * theta1.sin() - velocity_terms + phi2
+        ddtheta2 = ((torque + d2 / d1 * phi1 - coupled * dtheta1.square() - phi2)
                     / (d2_rest - d2.square() / d1))
         ddtheta1 = -(d2 * ddtheta2 + phi1) / d1
         return torch.stack([dtheta1, dtheta2, ddtheta1, ddtheta2])
@@ -118,12 +124,14 @@ class AcrobotEnv(IdentifiedSystemEnv):
         return torch.add(state, slope, alpha=self.dt / 6.0)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        torque = tensordict["action"].reshape(self.n_envs).to(self.dtype) - 1.0
+        torque = self.available_torque[tensordict["action"].reshape(self.n_envs)]
         state = self._rk4(self._state, torque)
         self._wrap_angles_(state[:2])
         state[2:].clamp_(self.min_velocity, self.max_velocity)
-        theta1, theta2 = state[0], state[1]
-        terminated = -theta1.cos() - (theta1 + theta2).cos() > 1.0
+        observation = self._observe_rows(state)
+        # gymnasium's _terminal: the tip above the bar, -cos θ1 - cos(θ1 + θ2) > 1
+        cos1, cos12 = observation[0], (state[0] + state[1]).cos()
+        terminated = -cos1 - cos12 > 1.0
         reward = terminated.to(self.dtype) - 1.0
         self._state = state
-        return self._output(state.T, self._observe_rows(state).T, reward, terminated)
+        return self._output(state.T, observation.T, reward, terminated)
