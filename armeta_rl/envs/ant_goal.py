@@ -94,6 +94,27 @@ def observation_size(model: mujoco.MjModel) -> int:
     return model.nq + model.nv + 6 * (model.nbody - 1) + 9 + 3
 
 
+def _check_arguments(max_steps: int, frame_skip: int, healthy_z_range: Sequence[float],
+                     reset_noise_scale: float, goal_range: float, threads: int | None) -> None:
+    """One :class:`ConfigError` line for the first bad constructor argument of the env."""
+    checks = {
+        f"{KEY}.max_steps": (max_steps, int(max_steps) >= 1, "must be >= 1"),
+        f"{KEY}.frame_skip": (frame_skip, int(frame_skip) >= 1, "must be >= 1"),
+        f"{KEY}.healthy_z_range": (
+            healthy_z_range,
+            len(healthy_z_range) == 2 and healthy_z_range[0] < healthy_z_range[1],
+            "[low, high] with low < high",
+        ),
+        f"{KEY}.reset_noise_scale": (reset_noise_scale, reset_noise_scale >= 0, "must be >= 0"),
+        f"{KEY}.goal_range": (goal_range, goal_range > 0, "must be > 0"),
+        f"{KEY}.threads": (threads, threads is None or int(threads) >= 1,
+                           "must be null (one per core) or an integer >= 1"),
+    }
+    for key, (value, ok, allowed) in checks.items():
+        if not ok:
+            raise ConfigError(key, value, allowed)
+
+
 class AntGoalEnv(EnvBase):
     """MuJoCo Ant goal-position env with batch size ``[tasks, episodes]``; see the module docstring.
 
@@ -128,22 +149,8 @@ class AntGoalEnv(EnvBase):
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        checks = {
-            f"{KEY}.max_steps": (max_steps, int(max_steps) >= 1, "must be >= 1"),
-            f"{KEY}.frame_skip": (frame_skip, int(frame_skip) >= 1, "must be >= 1"),
-            f"{KEY}.healthy_z_range": (
-                healthy_z_range,
-                len(healthy_z_range) == 2 and healthy_z_range[0] < healthy_z_range[1],
-                "[low, high] with low < high",
-            ),
-            f"{KEY}.reset_noise_scale": (reset_noise_scale, reset_noise_scale >= 0, "must be >= 0"),
-            f"{KEY}.goal_range": (goal_range, goal_range > 0, "must be > 0"),
-            f"{KEY}.threads": (threads, threads is None or int(threads) >= 1,
-                               "must be null (one per core) or an integer >= 1"),
-        }
-        for key, (value, ok, allowed) in checks.items():
-            if not ok:
-                raise ConfigError(key, value, allowed)
+        _check_arguments(max_steps, frame_skip, healthy_z_range, reset_noise_scale, goal_range,
+                         threads)
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         self.max_steps, self.frame_skip = int(max_steps), int(frame_skip)
         self.ctrl_cost_weight = float(ctrl_cost_weight)
@@ -165,6 +172,17 @@ class AntGoalEnv(EnvBase):
         self._forces = np.empty_like(self._cfrc_ext)
         self._obs = np.empty((self.n_sims, observation_size(self.model)))
 
+        self._make_specs()
+        self._generator = torch.Generator()
+        self._set_seed(seed)
+        unit = torch.rand(*self.batch_size, 2, generator=self._generator, dtype=torch.float64)
+        self._goal = self.goal_range * (2 * unit - 1)
+        self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long)
+        self.sim.reset()
+
+    def _make_specs(self) -> None:
+        """The TorchRL specs: observation and goal, the goal as state, the actuators' box,
+        reward and done flags, all of batch shape ``batch_size``."""
         shape, dtype = self.batch_size, torch.get_default_dtype()
         low, high = self.model.actuator_ctrlrange.T
         self.observation_spec = Composite(
@@ -189,12 +207,6 @@ class AntGoalEnv(EnvBase):
             truncated=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
             shape=shape,
         )
-        self._generator = torch.Generator()
-        self._set_seed(seed)
-        unit = torch.rand(*shape, 2, generator=self._generator, dtype=torch.float64)
-        self._goal = self.goal_range * (2 * unit - 1)
-        self._steps = torch.zeros(*shape, 1, dtype=torch.long)
-        self.sim.reset()
 
     def _make_batch(self, threads: int) -> Batch:
         """The ``n_sims`` simulations of the model, stepped natively on ``threads`` threads
