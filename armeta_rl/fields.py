@@ -37,8 +37,8 @@ def key(
     runs were saved); ``default`` is the key's value in a composed config, for the keys whose
     values are declared here rather than in ``configs/`` (a learner's options, :func:`defaults`)."""
     metadata = {"allowed": allowed, "test": test, "old_runs": old_runs}
-    if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata=metadata)
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata=metadata)
     return field(default=default, metadata=metadata)
 
 
