@@ -37,7 +37,6 @@ from armeta_rl.fields import (  # noqa: F401 (_conforms: the schema tests check 
     _check_node,
     _conforms,
     _optional,
-    _plain,
     above,
     at_least,
     defaults,
