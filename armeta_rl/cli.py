@@ -29,10 +29,10 @@ _ABSENT = object()
 
 def config_dir() -> Path:
     """The Hydra config directory, ready to compose from: ``train.yaml`` composes
-    ``learner_options`` and resolves ``${method_name:...}``, which :mod:`armeta_rl.config` stores
-    in Hydra's ConfigStore and registers with OmegaConf when imported. That import loads the
-    learners (torch), so it is made here, where configs are composed, and not by
-    ``import armeta_rl`` or by importing this module."""
+    ``learner_options`` and ``risk_options`` and resolves ``${method_name:...}``, which
+    :mod:`armeta_rl.config` stores in Hydra's ConfigStore and registers with OmegaConf when
+    imported. That import loads the learners (torch), so it is made here, where configs are
+    composed, and not by ``import armeta_rl`` or by importing this module."""
     import armeta_rl.config  # noqa: F401
 
     return config_files()

@@ -6,9 +6,11 @@ The schema is a tree of dataclasses, :class:`TrainSchema` at its root, mirroring
 ``str``, ``list[...]``, ``X | None``, a nested schema, or ``Any`` / ``dict[str, Any]`` for parts
 a benchmark or method fills freely, such as collector arguments); its metadata
 (:func:`armeta_rl.fields.key`) is the range and its wording. The YAML files keep the values,
-but for a learner's options: their defaults are the fields' (each learner module's
-:class:`~armeta_rl.fields.Options`, registered in :data:`armeta_rl.factory.LEARNERS`), from
-which :data:`LearnerSchema` and the composed ``learner:`` section are derived.
+but for a learner's and a risk principle's options: their defaults are the fields' (each
+learner's or principle's module's :class:`~armeta_rl.fields.Options`, registered in
+:data:`armeta_rl.factory.LEARNERS` and :data:`armeta_rl.factory.PRINCIPLES`), from which
+:data:`LearnerSchema`, :data:`RiskSchema` and the composed ``learner:`` and ``risk:`` sections
+are derived.
 :func:`check_config` checks a composed config against the schema, strictly:
 ``first_order: off`` is a string, not a boolean, and is refused. Keys present only with some
 benchmarks or methods (``benchmark.collector.workers``) are checked when present. See
@@ -29,13 +31,12 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from armeta_rl.devices import DEVICE_FORMS, is_device_name, resolve_device
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import LEARNERS, learner_sections
+from armeta_rl.factory import LEARNERS, learner_sections, risk_sections
 from armeta_rl.fields import (  # noqa: F401 (_conforms: the schema tests check types with it)
     _MISSING,
     _check_node,
     _conforms,
     _optional,
-    _plain,
     above,
     at_least,
     defaults,
@@ -91,37 +92,11 @@ class EvalSchema:
     support_noise: float = at_least(0)
 
 
-@dataclass
-class ArSchema:
-    flow: str = one_of("spline", "planar")
-    flow_kwargs: dict[str, Any] = key()  # the flow's own arguments: checked by the flow
-    lam: float = key("must be >= 0 (λ ≥ 0)", lambda v: v >= 0)
-    update_every: int = at_least(1)
-    lr: float = above(0)
-    grad_clip: float | None = above(0)
-    baseline: str = one_of("mean", "leave_one_out")
-    initial_samples: int = at_least(1)
-    compile: Any = key()
-
-
-@dataclass
-class DrSchema:
-    alpha: float = inside(0, 1)
-    oversample: bool = key()
-
-
-@dataclass
-class GroupsSchema:
-    groups_per_axis: int = at_least(1)
-    step_size: float = above(0)
-
-
-@dataclass
-class RiskSchema:
-    ar: ArSchema = key()
-    dr: DrSchema = key()
-    tr: GroupsSchema = key()
-    dro: GroupsSchema = key()
+RiskSchema = dataclasses.make_dataclass(
+    "RiskSchema", [(name, options, key()) for name, options in risk_sections().items()]
+)
+RiskSchema.__doc__ = """``risk:``: one section per risk principle of
+:data:`armeta_rl.factory.PRINCIPLES` that has options, its options."""
 
 
 @dataclass
@@ -176,17 +151,6 @@ class TrainSchema:
     method: MethodSchema = key()
     logger: LoggerSchema = key()
     benchmark: BenchmarkSchema = key()
-
-
-def check_keys(prefix: str, **values: Any) -> None:
-    """Check constructor arguments that are the config keys ``<prefix>.<name>`` (e.g.
-    ``check_keys("risk.dr", alpha=alpha)``) against their schema fields: an object built from
-    Python rather than from a config refuses a bad value with the same line as the CLI."""
-    schema = TrainSchema
-    for name in prefix.split("."):
-        hint = typing.get_type_hints(schema)[name]
-        schema = _optional(hint) or hint
-    _check_node(schema, _plain(values), f"{prefix}.")
 
 
 def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, dataclasses.Field]:
@@ -326,4 +290,9 @@ LearnerSchema.__doc__ = """``learner:``: one section per learner of
 ConfigStore.instance().store(
     name="learner_options",
     node={"learner": {name: defaults(options) for name, options in learner_sections().items()}},
+)
+# ... and `risk_options`, the `risk:` section: every risk principle's options at their defaults.
+ConfigStore.instance().store(
+    name="risk_options",
+    node={"risk": {name: defaults(options) for name, options in risk_sections().items()}},
 )

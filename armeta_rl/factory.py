@@ -2,9 +2,9 @@
 
 Leaders and risk principles are looked up by the names a method config gives
 (``method.learner``, ``method.risk``) in :data:`LEARNERS` and :data:`PRINCIPLES`; each builder reads
-its own section (``learner.<name>``, ``risk.<name>``) and the model's sizes from the collector. A
-learner's builder and options live in its module, so adding one is that module and one entry in
-:data:`LEARNERS`. Every builder takes the run's ``device``
+its own section (``learner.<name>``, ``risk.<name>``) into the options its module declares, and
+the model's sizes from the collector. A learner's builder and options live in its module, so adding
+one is that module and one entry in :data:`LEARNERS`. Every builder takes the run's ``device``
 (:func:`armeta_rl.devices.resolve_device`) as an argument and builds its player there.
 """
 
@@ -12,13 +12,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 
+from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
@@ -28,12 +28,12 @@ from armeta_rl.learners.base import Leader
 from armeta_rl.learners.cnp import CnpOptions, build_cnp
 from armeta_rl.learners.maml import MamlOptions, build_maml
 from armeta_rl.learners.maml_trpo import MamlTrpoOptions, build_maml_trpo
+from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
+from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.risk.erm import ERMPrinciple
+from armeta_rl.risk.groups import DroOptions, GroupDROPrinciple, TrOptions, WorstCasePrinciple
+from armeta_rl.risk.tail import DrOptions, TailRiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
-
-if TYPE_CHECKING:
-    # For annotations only: the principles' modules import armeta_rl.config, which imports this
-    # registry; the builders below import each principle where they build it.
-    from armeta_rl.risk.base import RiskPrinciple
 
 
 def build_space(cfg: DictConfig) -> TaskSpace:
@@ -128,48 +128,52 @@ def learner_sections() -> dict[str, type]:
 
 
 def _erm(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    from armeta_rl.risk.erm import ERMPrinciple
-
     return ERMPrinciple(initial)
 
 
 def _ar(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    from armeta_rl.adversary.flow_adversary import FlowAdversary
-    from armeta_rl.risk.adversarial import AdversarialPrinciple
-
-    opts = section(cfg, "risk.ar")
-    adversary = FlowAdversary(
-        space, initial, opts.pop("flow", "spline"), **opts.pop("flow_kwargs", {})
-    )
-    total_updates = max(1, cfg.trainer.iterations // max(1, opts.get("update_every", 1)))
-    return AdversarialPrinciple(adversary, total_updates=total_updates, **opts)
+    options = ArOptions(**section(cfg, "risk.ar"))
+    adversary = FlowAdversary(space, initial, options.flow, **options.flow_kwargs)
+    total_updates = max(1, cfg.trainer.iterations // options.update_every)
+    return AdversarialPrinciple(adversary, options, total_updates=total_updates)
 
 
 def _dr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    from armeta_rl.risk.tail import TailRiskPrinciple
-
-    return TailRiskPrinciple(initial, **section(cfg, "risk.dr"))
+    return TailRiskPrinciple(initial, DrOptions(**section(cfg, "risk.dr")))
 
 
 def _tr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    from armeta_rl.risk.groups import WorstCasePrinciple
-
-    return WorstCasePrinciple(initial, **section(cfg, "risk.tr"))
+    return WorstCasePrinciple(initial, TrOptions(**section(cfg, "risk.tr")))
 
 
 def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    from armeta_rl.risk.groups import GroupDROPrinciple
-
-    return GroupDROPrinciple(initial, **section(cfg, "risk.dro"))
+    return GroupDROPrinciple(initial, DroOptions(**section(cfg, "risk.dro")))
 
 
-PRINCIPLES: dict[str, Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPrinciple]] = {
-    "erm": _erm,
-    "ar": _ar,
-    "dr": _dr,
-    "tr": _tr,
-    "dro": _dro,
+@dataclass(frozen=True)
+class Principle:
+    """A registered risk principle: its builder and its options (the type, range and default
+    value of every key of its ``risk.<name>`` section; ``None``: it has no section, as ERM). The
+    composed config's ``risk:`` section and its schema are derived from the options
+    (:func:`risk_sections`)."""
+
+    build: Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPrinciple]
+    options: type | None = None
+
+
+PRINCIPLES: dict[str, Principle] = {
+    "erm": Principle(_erm),
+    "ar": Principle(_ar, ArOptions),
+    "dr": Principle(_dr, DrOptions),
+    "tr": Principle(_tr, TrOptions),
+    "dro": Principle(_dro, DroOptions),
 }
+"""Every risk principle ``method.risk`` may name."""
+
+
+def risk_sections() -> dict[str, type]:
+    """The options of every ``risk.<name>`` section."""
+    return {name: entry.options for name, entry in PRINCIPLES.items() if entry.options is not None}
 
 
 def build_leader(cfg: DictConfig, collector: TaskCollector, device: torch.device = CPU) -> Leader:
@@ -199,4 +203,4 @@ def build_principle(
     name = cfg.method.risk
     if name not in PRINCIPLES:
         raise ConfigError("method.risk", name, f"allowed: {', '.join(PRINCIPLES)}")
-    return PRINCIPLES[name](cfg, space, initial).to(device)
+    return PRINCIPLES[name].build(cfg, space, initial).to(device)

@@ -1,11 +1,13 @@
 """Config fields: a key's type (the field's annotation), allowed range, the wording of the error
 line for a value out of it, and default value, declared once with :func:`key` and its shorthands
 (:func:`at_least`, :func:`above`, :func:`inside`, :func:`one_of`, :func:`each`); the strict check
-of plain values against a dataclass of such fields; and :class:`Options`, a learner's options.
+of plain values against a dataclass of such fields; and :class:`Options`, a learner's or a risk
+principle's options.
 
-:mod:`armeta_rl.config`'s schema and every learner's options are made of these fields. This
-module imports no learner, so a learner module can declare its options here while
-:mod:`armeta_rl.config` derives the ``learner:`` schema from the registered learners.
+:mod:`armeta_rl.config`'s schema and every learner's and risk principle's options are made of
+these fields. This module imports no learner or principle, so their modules can declare their
+options here while :mod:`armeta_rl.config` derives the ``learner:`` and ``risk:`` schemas from the
+registered ones.
 """
 
 from __future__ import annotations
@@ -35,10 +37,11 @@ def key(
     error line when it fails (``must be >= 1``, ``allowed: a, b``); ``old_runs`` is the value a
     run directory saved before the key existed gets when it is loaded (only for keys added after
     runs were saved); ``default`` is the key's value in a composed config, for the keys whose
-    values are declared here rather than in ``configs/`` (a learner's options, :func:`defaults`)."""
+    values are declared here rather than in ``configs/`` (a learner's or a risk principle's
+    options, :func:`defaults`)."""
     metadata = {"allowed": allowed, "test": test, "old_runs": old_runs}
-    if isinstance(default, list):
-        return field(default_factory=lambda: list(default), metadata=metadata)
+    if isinstance(default, (list, dict)):
+        return field(default_factory=lambda: type(default)(default), metadata=metadata)
     return field(default=default, metadata=metadata)
 
 
@@ -74,15 +77,15 @@ def each(check: Any, nonempty: bool = False, default: Any = None) -> Any:
 
 def defaults(options: type) -> dict[str, Any]:
     """The default value of every key of an options dataclass (a learner's ``learner.<name>``
-    section), as a composed config holds them."""
+    or a risk principle's ``risk.<name>`` section), as a composed config holds them."""
     return dataclasses.asdict(options())
 
 
 @dataclass(frozen=True)
 class Options:
-    """A learner's options: the keys of its config section ``section`` (``"learner.maml"``), one
-    field each, made with this module's helpers (type, range and default value, declared once).
-    The learner's constructor takes them
+    """A learner's or a risk principle's options: the keys of its config section ``section``
+    (``"learner.maml"``, ``"risk.dr"``), one field each, made with this module's helpers (type,
+    range and default value, declared once). The constructor takes them
     (``MAMLLeader(model, collector, MamlOptions(inner_lr=0.05))``) and its builder makes them
     from the section (``MamlOptions(**section(cfg, "learner.maml"))``). They are checked when
     made, so a bad value from Python is refused with the line the CLI prints

@@ -20,7 +20,7 @@ import torch
 from timing import markdown_table, write_section
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.risk.adversarial import AdversarialPrinciple
+from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 TASKS, WARMUP, REPEATS = 25, 10, 200
@@ -69,7 +69,7 @@ def main() -> None:
     for name, options, compiled in rows:
         kind = name.split()[0]
         adversary = FlowAdversary(space, BoxUniform(space), kind, **options)
-        principle = AdversarialPrinciple(adversary, lr=1e-2, compile=compiled)
+        principle = AdversarialPrinciple(adversary, ArOptions(lr=1e-2, compile=compiled))
         propose, update, total = time_iterations(principle, corner)
         size = sum(p.numel() for p in principle.parameters())
         label = f"{name}, compiled" if compiled else name

@@ -131,8 +131,7 @@ def meta_iteration_seconds(
 
     space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
     collector = task_split_collector(workers, episodes, horizon)
-    model = load_ant_model()
-    leader = MAMLTRPOLeader(collector, obs_dim=observation_size(model), action_dim=model.nu)
+    leader = MAMLTRPOLeader(collector)
     task_batch = BoxUniform(space).sample(tasks)
 
     def erm_weights(losses: torch.Tensor) -> torch.Tensor:

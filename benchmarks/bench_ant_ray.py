@@ -42,7 +42,7 @@ from tensordict import TensorDict
 
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
 from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray
-from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, observation_size
+from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -52,10 +52,9 @@ PAPER_TASKS, RUN_ITERATIONS = 40, 500
 
 
 def make_leader(collector, seed: int) -> MAMLTRPOLeader:
-    """MAML-TRPO with ant_goal's policy sizes, its network initialised from ``seed``."""
-    model = load_ant_model()
+    """MAML-TRPO sized by ant_goal's env, its network initialised from ``seed``."""
     torch.manual_seed(seed)
-    return MAMLTRPOLeader(collector, obs_dim=observation_size(model), action_dim=model.nu)
+    return MAMLTRPOLeader(collector)
 
 
 def timed_step(leader: MAMLTRPOLeader, tasks: TensorDict, seed: int) -> float:

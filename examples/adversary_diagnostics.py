@@ -20,8 +20,9 @@ Pendulum-N):
     (the smallest value of each identifier goes to the box's low edge, the largest to its high
     edge), scored with the same episodes as the unmapped grids.
 
-λ is the run's ``risk.ar.lam`` (0.2 where the config has none); p0, the box and the flow of φ0
-come from the run's config. Everything is seeded by ``--seed`` and deterministic on the CPU.
+λ is the run's ``risk.ar.lam`` (``ArOptions``' default where the config has none); p0, the box
+and the flow of φ0 come from the run's config. Everything is seeded by ``--seed`` and
+deterministic on the CPU.
 
     python examples/adversary_diagnostics.py runs/maml_n --compare uniform --minmax
     python examples/adversary_diagnostics.py runs/maml_n --grid 7 --episodes 4 --json diag.json
@@ -48,12 +49,13 @@ from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.config import load_run_config
 from armeta_rl.errors import ConfigError
+from armeta_rl.fields import section
 from armeta_rl.learners.base import Leader
+from armeta_rl.risk.adversarial import ArOptions
 from armeta_rl.tasks.distributions import BoxUniform, TaskDistribution, TruncatedNormal
 from armeta_rl.trainers.evaluation import cvar
 from armeta_rl.trainers.players import load_players
 
-DEFAULT_LAM = 0.2
 CHUNK = 400
 """Tasks scored in one call of the learner: bounds the memory of a grid's episodes."""
 COMPARE = ("none", "uniform")
@@ -151,21 +153,18 @@ def adversary_gradient(cfg: DictConfig, leader: Leader, collector: TaskCollector
     estimate (the root of the mean squared distance to the mean) and the median per-batch
     norm, against the run's clipping norm ``risk.ar.grad_clip``."""
     torch.manual_seed(seed)
-    flow = OmegaConf.select(cfg, "risk.ar.flow", default="spline")
-    flow_kwargs = OmegaConf.to_container(
-        OmegaConf.select(cfg, "risk.ar.flow_kwargs", default=OmegaConf.create({})))
-    adversary = FlowAdversary(initial.space, initial, flow, **flow_kwargs)
+    options = ArOptions(**section(cfg, "risk.ar"))
+    adversary = FlowAdversary(initial.space, initial, options.flow, **options.flow_kwargs)
     phi = list(adversary.parameters())
     drawn = adversary.sample(batches * tasks)
     losses = task_losses(leader, collector, initial, drawn["params"].double(), seed + 1)
-    baseline = OmegaConf.select(cfg, "risk.ar.baseline", default="mean")
-    initial_samples = OmegaConf.select(cfg, "risk.ar.initial_samples", default=256)
     optimizer = torch.optim.SGD(phi, lr=0.0)   # only holds φ for surrogate_gradient
     gradients, norms = [], []
     for batch in range(batches):
         part = slice(batch * tasks, (batch + 1) * tasks)
         surrogate, _ = adversary_surrogate(adversary, drawn[part], losses[part], lam,
-                                           initial.sample_params(initial_samples), baseline)
+                                           initial.sample_params(options.initial_samples),
+                                           options.baseline)
         norms.append(float(surrogate_gradient(surrogate, optimizer, phi, None)))
         gradients.append(torch.cat([p.grad.flatten() for p in phi if p.grad is not None]))
     g = torch.stack(gradients).double()
@@ -174,7 +173,7 @@ def adversary_gradient(cfg: DictConfig, leader: Leader, collector: TaskCollector
         "mean_norm": float((g.mean(0).pow(2).sum() - noise / batches).clamp(min=0).sqrt()),
         "batch_sd": float(noise.sqrt()),
         "median_batch_norm": float(torch.tensor(norms).median()),
-        "grad_clip": OmegaConf.select(cfg, "risk.ar.grad_clip", default=None),
+        "grad_clip": options.grad_clip,
     }
 
 
@@ -228,7 +227,7 @@ def diagnose(run: str, args: argparse.Namespace) -> dict[str, Any]:
     """All the diagnostics of ``run`` as one JSON-ready dict."""
     check_run(load_run_config(run, "run"), "run")
     cfg, players = load_players(run, "run", device="cpu")
-    lam = float(OmegaConf.select(cfg, "risk.ar.lam", default=DEFAULT_LAM))
+    lam = float(ArOptions(**section(cfg, "risk.ar")).lam)
     leader, collector, initial = players.leader, players.eval_collector, players.initial
     grid = box_grid(initial, args.grid)
     losses = task_losses(leader, collector, initial, grid.repeat_interleave(args.episodes, 0),

@@ -14,7 +14,7 @@ from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.objective import adversary_surrogate
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.plots import plot_density
-from armeta_rl.risk.adversarial import AdversarialPrinciple
+from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
 from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
@@ -311,8 +311,12 @@ def test_bad_names_raise_config_errors() -> None:
 
 # --- the follower: AdversarialPrinciple ----------------------------------------------------------
 
-def make_principle(flow: str = "spline", seed: int = 0, **kwargs) -> AdversarialPrinciple:
-    return AdversarialPrinciple(make_adversary(flow, "uniform", seed=seed), **kwargs)
+def make_principle(
+    flow: str = "spline", seed: int = 0, total_updates: int = 1000, **options
+) -> AdversarialPrinciple:
+    """A principle on a fresh adversary, with the keys of ``risk.ar`` in ``options``."""
+    return AdversarialPrinciple(make_adversary(flow, "uniform", seed=seed), ArOptions(**options),
+                                total_updates=total_updates)
 
 
 def run_updates(principle: AdversarialPrinciple, steps: int, k: int = 32) -> dict[str, float]:

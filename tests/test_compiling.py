@@ -17,7 +17,7 @@ from armeta_rl.compiling import compile_backend
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import make_mlp, relu
-from armeta_rl.risk.adversarial import AdversarialPrinciple
+from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 SPACE = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
@@ -82,7 +82,8 @@ def test_compiled_maml_steps_equal_eager_steps(adaptation):
 def train_adversary(compile: bool | str) -> tuple[AdversarialPrinciple, list[torch.Tensor]]:
     torch.manual_seed(0)
     principle = AdversarialPrinciple(
-        FlowAdversary(SPACE, BoxUniform(SPACE), "spline", hidden=8), lr=0.05, compile=compile
+        FlowAdversary(SPACE, BoxUniform(SPACE), "spline", hidden=8),
+        ArOptions(lr=0.05, compile=compile),
     )
     proposed = []
     for _ in range(3):

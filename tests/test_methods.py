@@ -15,9 +15,12 @@ from armeta_rl.factory import (
     build_collector,
     build_initial,
     build_leader,
+    build_principle,
     build_space,
     learner_sections,
+    risk_sections,
 )
+from armeta_rl.fields import defaults
 from armeta_rl.trainers.training import run_training
 
 METHODS = [
@@ -126,3 +129,25 @@ def test_learner_options_refuse_a_bad_value_under_their_own_section(name, option
     first = dataclasses.fields(options)[0].name
     with pytest.raises(ConfigError, match=f"'learner.{name}.{first}' = 'bogus'"):
         options(**{first: "bogus"})
+
+
+@pytest.mark.parametrize(("name", "options"), risk_sections().items())
+def test_risk_options_refuse_a_bad_value_under_their_own_section(name, options):
+    """A risk principle's options, like a learner's, are checked when made."""
+    first = dataclasses.fields(options)[0].name
+    with pytest.raises(ConfigError, match=f"'risk.{name}.{first}' = 'bogus'"):
+        options(**{first: "bogus"})
+
+
+@pytest.mark.parametrize(("name", "options"), risk_sections().items())
+def test_a_principle_built_from_python_has_the_values_of_the_default_run(name, options):
+    """The composed ``risk.<name>`` section of the default run is its options' defaults, and the
+    builder hands them to the principle: a principle made from Python with ``options()`` (TR's
+    and DRO's tuned step sizes included) is the one ``armeta-train method=<name>_maml`` trains."""
+    cfg = compose_train(f"method={name}_maml")
+    assert OmegaConf.to_container(cfg.risk[name]) == defaults(options)
+    built = build_principle(cfg, build_space(cfg), build_initial(cfg, build_space(cfg)))
+    kept = {spec.name for spec in dataclasses.fields(options)} & set(vars(built))
+    assert kept
+    for field in kept:
+        assert getattr(built, field) == getattr(options(), field), field

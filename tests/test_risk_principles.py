@@ -15,8 +15,14 @@ from armeta_rl.learners.maml import MAMLLeader
 from armeta_rl.learners.mlp import make_mlp
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
-from armeta_rl.risk.groups import GroupDROPrinciple, WorstCasePrinciple, project_to_simplex
-from armeta_rl.risk.tail import TailRiskPrinciple, tail_risk
+from armeta_rl.risk.groups import (
+    DroOptions,
+    GroupDROPrinciple,
+    TrOptions,
+    WorstCasePrinciple,
+    project_to_simplex,
+)
+from armeta_rl.risk.tail import DrOptions, TailRiskPrinciple, tail_risk
 from armeta_rl.tasks import BoxUniform, TaskSpace
 from armeta_rl.trainers.evaluation import cvar
 from armeta_rl.trainers.game import GameTrainer
@@ -48,7 +54,7 @@ def on_simplex(q: torch.Tensor) -> bool:
 def test_tail_risk_keeps_exactly_the_worst_half():
     torch.manual_seed(0)
     losses = torch.rand(10)
-    weights = TailRiskPrinciple(BoxUniform(SPACE), alpha=0.5).weights(losses)
+    weights = TailRiskPrinciple(BoxUniform(SPACE), DrOptions(alpha=0.5)).weights(losses)
     kept = weights > 0
     assert int(kept.sum()) == 5
     assert set(kept.nonzero().flatten().tolist()) == set(torch.argsort(losses)[5:].tolist())
@@ -59,7 +65,8 @@ def test_tail_risk_keeps_exactly_the_worst_half():
 @pytest.mark.parametrize(("alpha", "batch", "kept"), [(0.5, 7, 4), (0.7, 10, 3), (0.3, 10, 7),
                                                        (0.9, 5, 1), (0.99, 4, 1)])
 def test_tail_size_is_the_ceiling_of_the_tail_mass(alpha, batch, kept):
-    weights = TailRiskPrinciple(BoxUniform(SPACE), alpha=alpha).weights(torch.randn(batch))
+    principle = TailRiskPrinciple(BoxUniform(SPACE), DrOptions(alpha=alpha))
+    weights = principle.weights(torch.randn(batch))
     assert int((weights > 0).sum()) == kept
     assert on_simplex(weights)
 
@@ -69,7 +76,7 @@ def test_tail_weighted_loss_is_the_rockafellar_uryasev_cvar(alpha):
     """Σ w L = min_v v + E[(L − v)_+] / (1 − α) when (1 − α)·K is an integer."""
     torch.manual_seed(1)
     losses = torch.randn(16, dtype=torch.float64).exp()
-    principle = TailRiskPrinciple(BoxUniform(SPACE), alpha=alpha)
+    principle = TailRiskPrinciple(BoxUniform(SPACE), DrOptions(alpha=alpha))
     candidates = torch.cat([losses, torch.linspace(0, float(losses.max()), 2001,
                                                    dtype=torch.float64)])
     objective = candidates + (losses[None] - candidates[:, None]).clamp_min(0).mean(1) / (1 - alpha)
@@ -96,7 +103,8 @@ def test_the_training_tail_risk_is_the_evaluation_cvar(alpha, batch):
 
 def test_tail_risk_proposes_from_p0_and_oversamples():
     p0 = BoxUniform(SPACE)
-    plain, over = TailRiskPrinciple(p0), TailRiskPrinciple(p0, alpha=0.5, oversample=True)
+    plain = TailRiskPrinciple(p0)
+    over = TailRiskPrinciple(p0, DrOptions(alpha=0.5, oversample=True))
     torch.manual_seed(3)
     tasks = plain.propose(8)
     torch.manual_seed(3)
@@ -120,7 +128,7 @@ def test_dr_training_logs_the_tail_of_each_steps_losses():
         trainer = GameTrainer(leader, principle, iterations=3, meta_batch=8, progress=False)
         return [trainer.train_iteration() for _ in range(3)], torch.get_rng_state()
 
-    logs, rng = train(TailRiskPrinciple(BoxUniform(SPACE), alpha=0.5))
+    logs, rng = train(TailRiskPrinciple(BoxUniform(SPACE), DrOptions(alpha=0.5)))
     for scalars in logs:
         assert scalars["risk/cvar"] == pytest.approx(scalars["train/leader_loss"], rel=1e-6)
         assert scalars["risk/var"] <= scalars["risk/cvar"]
@@ -132,7 +140,7 @@ def test_dr_training_logs_the_tail_of_each_steps_losses():
 @pytest.mark.parametrize("alpha", [0.0, 1.0, -0.1, 1.5, "half", None])
 def test_tail_risk_rejects_bad_alpha(alpha):
     with pytest.raises(ConfigError) as error:
-        TailRiskPrinciple(BoxUniform(SPACE), alpha=alpha)
+        TailRiskPrinciple(BoxUniform(SPACE), DrOptions(alpha=alpha))
     assert error.value.key == "risk.dr.alpha"
 
 
@@ -185,12 +193,12 @@ def test_simplex_projection_known_cases():
 
 # --- tr and dro: group weights --------------------------------------------------------------------
 
-GROUP_PRINCIPLES = [WorstCasePrinciple, GroupDROPrinciple]
+GROUP_PRINCIPLES = [(WorstCasePrinciple, TrOptions), (GroupDROPrinciple, DroOptions)]
 
 
 @pytest.mark.parametrize("per_axis", [1, 3, 4])
 def test_groups_are_the_grid_cells(per_axis):
-    principle = WorstCasePrinciple(BoxUniform(SPACE), groups_per_axis=per_axis)
+    principle = WorstCasePrinciple(BoxUniform(SPACE), TrOptions(groups_per_axis=per_axis))
     assert principle.num_groups == per_axis**2
     torch.manual_seed(6)
     params = BoxUniform(SPACE).sample_params(500)
@@ -203,9 +211,9 @@ def test_groups_are_the_grid_cells(per_axis):
     assert torch.equal(principle.group_of(params), cells[0] * per_axis + cells[1])
 
 
-@pytest.mark.parametrize("kind", GROUP_PRINCIPLES)
-def test_group_weights_divide_q_among_each_groups_tasks(kind):
-    principle = kind(BoxUniform(SPACE), groups_per_axis=3)
+@pytest.mark.parametrize(("kind", "options"), GROUP_PRINCIPLES)
+def test_group_weights_divide_q_among_each_groups_tasks(kind, options):
+    principle = kind(BoxUniform(SPACE), options(groups_per_axis=3))
     assert principle.update_every == 1 and isinstance(principle, RiskPrinciple)
     # uniform q, every group present equally often: plain ERM
     tasks = make_tasks(cell_centers([(i, j) for i in range(3) for j in range(3)] * 2))
@@ -225,11 +233,11 @@ def test_group_weights_divide_q_among_each_groups_tasks(kind):
     assert torch.allclose(principle.weights(torch.rand(3), tasks), torch.tensor([0.5, 0.25, 0.25]))
 
 
-@pytest.mark.parametrize("kind", GROUP_PRINCIPLES)
-def test_group_weights_are_a_function_of_the_losses_and_their_tasks(kind):
+@pytest.mark.parametrize(("kind", "options"), GROUP_PRINCIPLES)
+def test_group_weights_are_a_function_of_the_losses_and_their_tasks(kind, options):
     """Weights depend on the tasks passed in, not on what propose saw: a copy of the batch, or
     a second propose in between, gives the same weights."""
-    principle = kind(BoxUniform(SPACE), groups_per_axis=3)
+    principle = kind(BoxUniform(SPACE), options(groups_per_axis=3))
     principle.load_state_dict({"q": torch.softmax(torch.randn(9, dtype=torch.float64), 0)})
     torch.manual_seed(7)
     tasks = principle.propose(32)
@@ -243,9 +251,9 @@ def test_group_weights_are_a_function_of_the_losses_and_their_tasks(kind):
         principle.weights(torch.rand(31), tasks)
 
 
-@pytest.mark.parametrize("kind", GROUP_PRINCIPLES)
-def test_group_weights_move_toward_the_worst_group_and_stay_on_the_simplex(kind):
-    principle = kind(BoxUniform(SPACE), groups_per_axis=3, step_size=0.05)
+@pytest.mark.parametrize(("kind", "options"), GROUP_PRINCIPLES)
+def test_group_weights_move_toward_the_worst_group_and_stay_on_the_simplex(kind, options):
+    principle = kind(BoxUniform(SPACE), options(groups_per_axis=3, step_size=0.05))
     cells = [(i, j) for i in range(3) for j in range(3)] * 2
     tasks = make_tasks(cell_centers(cells))
     group_loss = torch.tensor([1.0, 0.5, 0.8, 1.2, 3.0, 0.1, 0.9, 1.1, 0.4])
@@ -263,7 +271,7 @@ def test_group_weights_move_toward_the_worst_group_and_stay_on_the_simplex(kind)
 
 
 def test_worst_case_reaches_the_vertex_of_the_worst_group():
-    principle = WorstCasePrinciple(BoxUniform(SPACE), groups_per_axis=3, step_size=0.1)
+    principle = WorstCasePrinciple(BoxUniform(SPACE), TrOptions(groups_per_axis=3, step_size=0.1))
     tasks = make_tasks(cell_centers([(i, j) for i in range(3) for j in range(3)]))
     losses = torch.tensor([1.0, 0.5, 0.8, 1.2, 3.0, 0.1, 0.9, 1.1, 0.4])
     first = project_to_simplex(principle.q + 0.1 * losses.double())
@@ -276,7 +284,7 @@ def test_worst_case_reaches_the_vertex_of_the_worst_group():
 
 def test_group_dro_is_exponentiated_gradient():
     """After t steps with fixed group means L̄: ln(q_g / q_h) = η·t·(L̄_g − L̄_h), L̄ = 0 if absent."""
-    principle = GroupDROPrinciple(BoxUniform(SPACE), groups_per_axis=3, step_size=0.02)
+    principle = GroupDROPrinciple(BoxUniform(SPACE), DroOptions(groups_per_axis=3, step_size=0.02))
     tasks = make_tasks(cell_centers([(0, 0), (0, 0), (1, 1), (2, 2)]))
     losses = torch.tensor([1.0, 3.0, 4.0, 0.5])  # means: g0 = 2, g4 = 4, g8 = 0.5, others absent
     for _ in range(25):
@@ -288,23 +296,22 @@ def test_group_dro_is_exponentiated_gradient():
     assert on_simplex(principle.q)
 
 
-@pytest.mark.parametrize("kind", GROUP_PRINCIPLES)
-def test_group_state_dict_round_trip(kind):
-    principle = kind(BoxUniform(SPACE), groups_per_axis=3)
+@pytest.mark.parametrize(("kind", "options"), GROUP_PRINCIPLES)
+def test_group_state_dict_round_trip(kind, options):
+    principle = kind(BoxUniform(SPACE), options(groups_per_axis=3))
     tasks = make_tasks(cell_centers([(0, 1), (2, 2)]))
     principle.update(tasks, torch.tensor([2.0, 0.5]))
-    restored = kind(BoxUniform(SPACE), groups_per_axis=3)
+    restored = kind(BoxUniform(SPACE), options(groups_per_axis=3))
     restored.load_state_dict(principle.state_dict())
     assert torch.equal(restored.q, principle.q)
     assert not torch.equal(restored.q, torch.full((9,), 1 / 9, dtype=torch.float64))
 
 
-@pytest.mark.parametrize(("kind", "prefix"), [(WorstCasePrinciple, "risk.tr"),
-                                              (GroupDROPrinciple, "risk.dro")])
+@pytest.mark.parametrize(("options", "prefix"), [(TrOptions, "risk.tr"), (DroOptions, "risk.dro")])
 @pytest.mark.parametrize(("key", "value"), [("groups_per_axis", 0), ("groups_per_axis", 2.5),
                                             ("step_size", 0.0), ("step_size", -1.0),
                                             ("step_size", math.inf)])
-def test_group_principles_reject_bad_config(kind, prefix, key, value):
+def test_group_options_reject_bad_config(options, prefix, key, value):
     with pytest.raises(ConfigError) as error:
-        kind(BoxUniform(SPACE), **{key: value})
+        options(**{key: value})
     assert error.value.key == f"{prefix}.{key}"

@@ -10,7 +10,7 @@ import torch
 
 from armeta_rl.adversary import FlowAdversary, TaskSampler
 from armeta_rl.errors import ConfigError, TrainingDiverged
-from armeta_rl.risk.adversarial import AdversarialPrinciple
+from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
 SPACE = TaskSpace(["torso_mass", "friction"], [0.5, 0.2], [2.0, 1.5])
@@ -52,8 +52,11 @@ def test_update_equals_adversarial_principle_follower_update(lam, baseline):
     adversary = make_adversary(seed=1)
     sampler = TaskSampler(copy.deepcopy(adversary), lam=lam, lr=1e-2, total_updates=5,
                           baseline=baseline, initial_samples=32)
-    principle = AdversarialPrinciple(copy.deepcopy(adversary), lam=lam, lr=1e-2,
-                                     total_updates=5, baseline=baseline, initial_samples=32)
+    principle = AdversarialPrinciple(
+        copy.deepcopy(adversary),
+        ArOptions(lam=lam, lr=1e-2, baseline=baseline, initial_samples=32),
+        total_updates=5,
+    )
     for step in range(3):
         torch.manual_seed(100 + step)
         tasks = sampler.sample(16)

@@ -15,7 +15,7 @@ import math
 import torch
 from torch import Tensor
 
-from armeta_rl.adversary.flows import FLOW_KINDS, make_box_flow
+from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS, make_box_flow
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.distributions import TaskDistribution, entropy_estimate
 from armeta_rl.tasks.space import TaskSpace
@@ -42,7 +42,7 @@ class FlowAdversary(TaskDistribution):
         self,
         space: TaskSpace,
         base: TaskDistribution,
-        flow: str = "spline",
+        flow: str = DEFAULT_FLOW,
         **flow_kwargs: int | float | str,
     ) -> None:
         if flow not in FLOW_KINDS:

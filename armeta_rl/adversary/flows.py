@@ -33,6 +33,10 @@ from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.space import TaskSpace
 
 FLOW_KINDS = ("spline", "planar")
+DEFAULT_FLOW = "spline"
+"""The flow of ``risk.ar.flow`` (:class:`~armeta_rl.risk.adversarial.ArOptions`),
+:class:`~armeta_rl.adversary.flow_adversary.FlowAdversary` and :func:`make_box_flow` unless
+told otherwise: exact and box-preserving."""
 
 IDENTITY_DERIVATIVE = math.log(math.expm1(1.0 - DEFAULT_MIN_DERIVATIVE))
 """Pre-softplus knot derivative that gives a rational-quadratic spline slope one (identity)."""
@@ -249,7 +253,9 @@ class PlanarBoxFlow(BoxFlow):
         return unit.clamp(self.eps, 1.0 - self.eps)
 
 
-def make_box_flow(space: TaskSpace, kind: str = "spline", **kwargs: int | float | str) -> BoxFlow:
+def make_box_flow(
+    space: TaskSpace, kind: str = DEFAULT_FLOW, **kwargs: int | float | str
+) -> BoxFlow:
     """Build the box flow named ``kind`` (``spline`` or ``planar``) with its keyword options."""
     flows = {"spline": SplineBoxFlow, "planar": PlanarBoxFlow}
     if kind not in flows:

@@ -124,8 +124,8 @@ class MAMLTRPOLeader:
 
     Args:
         collector: episode collector (e.g. ``PointNavigationCollector``); it is called as
-            ``collect(tasks, policy_params, policy=net)``.
-        obs_dim, action_dim: policy input and output sizes.
+            ``collect(tasks, policy_params, policy=net)``, and its env's observation and action
+            sizes (``in_features``, ``out_features``) size the policy.
         options: the keys of ``learner.maml_trpo`` (:class:`MamlTrpoOptions`).
         device: where the policy and every meta-update computation live (its initial weights are
             drawn on the CPU, so a seed gives the same policy on every device); the collector
@@ -138,13 +138,12 @@ class MAMLTRPOLeader:
     def __init__(
         self,
         collector: TaskCollector,
-        obs_dim: int = 2,
-        action_dim: int = 2,
         options: MamlTrpoOptions = MamlTrpoOptions(),
         device: torch.device | str = "cpu",
     ) -> None:
         self.collector = collector
-        self.net = GaussianMLP(obs_dim, action_dim, tuple(options.hidden_sizes)).to(device)
+        self.net = GaussianMLP(int(collector.in_features), int(collector.out_features),
+                               tuple(options.hidden_sizes)).to(device)
         self.inner_lr = float(options.inner_lr)
         self.gamma, self.gae_lambda = float(options.gamma), float(options.gae_lambda)
         self.max_kl = float(options.max_kl)
@@ -412,9 +411,8 @@ def build_maml_trpo(
     cfg: DictConfig, collector: TaskCollector, device: torch.device
 ) -> MAMLTRPOLeader:
     """MAML-TRPO from ``learner.maml_trpo``, its policy sized by the collector's env, on
-    ``device``."""
-    obs_dim, action_dim = sizes(cfg, collector, OLD_SIZE_KEYS)
+    ``device`` (sizes a config saved before then states are checked against the env's)."""
+    sizes(cfg, collector, OLD_SIZE_KEYS)
     opts = {k: v for k, v in section(cfg, "learner.maml_trpo").items()
             if f"learner.maml_trpo.{k}" not in OLD_SIZE_KEYS}
-    return MAMLTRPOLeader(collector, obs_dim=obs_dim, action_dim=action_dim,
-                          options=MamlTrpoOptions(**opts), device=device)
+    return MAMLTRPOLeader(collector, options=MamlTrpoOptions(**opts), device=device)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -18,13 +19,57 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import adversary_surrogate, surrogate_gradient
+from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
+from armeta_rl.adversary.objective import BASELINES, adversary_surrogate, surrogate_gradient
 from armeta_rl.compiling import compile_backend, maybe_compile
-from armeta_rl.config import check_keys
 from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.fields import Options, above, at_least, key, one_of
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
+
+
+@dataclass(frozen=True)
+class ArOptions(Options):
+    """``risk.ar``: the keys of :class:`AdversarialPrinciple` and of its flow adversary, their
+    types, ranges and defaults.
+
+    Attributes:
+        flow: the flow of p_φ the builder makes, ``"spline"`` (rational-quadratic spline
+            coupling flow) or ``"planar"`` (the paper's leaky-ReLU planar flow); a principle built
+            from Python is handed its :class:`FlowAdversary` and ignores it and ``flow_kwargs``.
+        flow_kwargs: the flow's own arguments (spline: ``layers``, ``bins``, ``hidden``,
+            ``blocks``; planar: ``layers``, ``activation``, ``eps``), checked by the flow.
+        lam: Lagrange multiplier λ ≥ 0 of E_{p0}[ln p_φ(τ)].
+        update_every: follower update interval u in leader steps.
+        lr: Adam learning rate of the follower, cosine-annealed over the run.
+        grad_clip: maximum norm of φ's gradient, or ``None`` for no clipping.
+        baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
+        initial_samples: M, the number of fresh p0 samples for the λ term of the gradient.
+        compile: ``torch.compile`` the flow's passes (the draw of
+            :meth:`AdversarialPrinciple.propose` and the log-densities of
+            :meth:`AdversarialPrinciple.update`): ``False``, ``True`` (inductor) or a backend
+            name; see :mod:`armeta_rl.compiling`.
+    """
+
+    section = "risk.ar"
+
+    # spline (exact, box-preserving) or planar (the paper's 2 layers)
+    flow: str = one_of(*FLOW_KINDS, default=DEFAULT_FLOW)
+    # spline: layers (default 1 on a 2-D box, else 2), bins, hidden, blocks; checked by the flow
+    flow_kwargs: dict[str, Any] = key(default={})
+    # the paper's: 0.2 regression/sys-id, 0 for RL (the RL benchmarks set it)
+    lam: float = key("must be >= 0 (λ ≥ 0)", lambda v: v >= 0, default=0.2)
+    update_every: int = at_least(1, default=1)
+    # The code's: 1e-4 every 10th iteration; the paper profile's choice: docs/protocol.md,
+    # section 2.
+    lr: float = above(0, default=0.001)
+    # Active in nearly every update, not only early (docs/protocol.md, section 5); the code clips
+    # at 5; None (null): off.
+    grad_clip: float | None = above(0, default=1.0)
+    baseline: str = one_of(*BASELINES, default="mean")  # mean (the paper's) or leave_one_out
+    initial_samples: int = at_least(1, default=256)
+    compile: Any = key(default=False)  # checked by armeta_rl.compiling
 
 
 class AdversarialPrinciple(nn.Module):
@@ -37,18 +82,10 @@ class AdversarialPrinciple(nn.Module):
 
     Args:
         adversary: p_φ (its ``base`` is p0).
-        lam: Lagrange multiplier λ ≥ 0 (paper: 0.2 for regression and system identification, 0 for
-            continuous control).
-        update_every: follower update interval u in leader steps (≥ 1).
-        lr: Adam learning rate of the follower (> 0).
+        options: the keys of ``risk.ar`` (:class:`ArOptions`): λ, the follower's step, its
+            baseline and schedule.
         total_updates: ``T_max`` of the cosine schedule (≥ 1); the rate reaches 0 after that many
-            follower updates.
-        grad_clip: maximum gradient norm, or ``None`` for no clipping.
-        baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
-        initial_samples: M, the number of fresh p0 samples for the λ term of the gradient (≥ 1).
-        compile: ``torch.compile`` the flow's passes (the draw of :meth:`propose` and the
-            log-densities of :meth:`update`): ``False``, ``True`` (inductor) or a backend name;
-            see :mod:`armeta_rl.compiling`.
+            follower updates (the builder: ``trainer.iterations // update_every``).
     """
 
     needs_next_losses = True
@@ -56,30 +93,23 @@ class AdversarialPrinciple(nn.Module):
     def __init__(
         self,
         adversary: FlowAdversary,
-        lam: float = 0.2,
-        update_every: int = 1,
-        lr: float = 1e-3,
+        options: ArOptions = ArOptions(),
         total_updates: int = 1000,
-        grad_clip: float | None = 1.0,
-        baseline: str = "mean",
-        initial_samples: int = 256,
-        compile: bool | str | None = False,
     ) -> None:
         super().__init__()
-        check_keys("risk.ar", lam=lam, update_every=update_every, lr=lr, grad_clip=grad_clip,
-                   baseline=baseline, initial_samples=initial_samples)
         if isinstance(total_updates, bool) or not isinstance(total_updates, int) or (
             total_updates < 1
         ):
             raise ConfigError("risk.ar.total_updates", total_updates, "must be an integer >= 1")
         self.adversary = adversary
-        self.lam, self.update_every, self.grad_clip = float(lam), update_every, grad_clip
-        self.baseline, self.initial_samples = baseline, initial_samples
+        self.lam, self.update_every = float(options.lam), options.update_every
+        self.grad_clip = options.grad_clip
+        self.baseline, self.initial_samples = options.baseline, options.initial_samples
         self._phi = list(adversary.parameters())
-        backend = compile_backend("risk.ar.compile", compile)
+        backend = compile_backend("risk.ar.compile", options.compile)
         self._log_prob = maybe_compile(adversary.log_prob, backend)
         self._push_forward = maybe_compile(adversary.push_forward, backend)
-        self.optimizer = torch.optim.Adam(self._phi, lr=lr, maximize=True, fused=True)
+        self.optimizer = torch.optim.Adam(self._phi, lr=options.lr, maximize=True, fused=True)
         self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
             self.optimizer, T_max=total_updates
         )

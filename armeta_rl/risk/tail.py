@@ -10,12 +10,13 @@ the batch losses is estimated and the tasks at or above it get equal weight, the
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from armeta_rl.config import check_keys
+from armeta_rl.fields import Options, inside, key
 from armeta_rl.tasks.distributions import TaskDistribution
 
 
@@ -58,18 +59,34 @@ def tail_risk(losses: Tensor, alpha: float) -> Tensor:
     return (tail_weights(losses, alpha) * losses).sum()
 
 
+@dataclass(frozen=True)
+class DrOptions(Options):
+    """``risk.dr``: the keys of :class:`TailRiskPrinciple`, their types, ranges and defaults.
+
+    Attributes:
+        alpha: confidence level α ∈ (0, 1); the leader trains on the worst ``ceil((1 − α)·K)``
+            tasks of each batch of ``K`` (see :func:`tail_size`).
+        oversample: when ``True``, :meth:`TailRiskPrinciple.propose` draws
+            ``ceil(n / (1 − α))`` candidates instead of ``n``, so that the tail the leader trains
+            on holds about ``n`` tasks, as many as an ERM step uses. The trainer then passes the
+            whole returned batch to the leader (its size is ``tasks.batch_size[0]``, not ``n``);
+            the weights zero the tasks outside the tail. When ``False`` the tail of a meta-batch
+            of ``n`` tasks is about ``(1 − α)·n``.
+    """
+
+    section = "risk.dr"
+
+    alpha: float = inside(0, 1, default=0.5)  # as in the paper
+    oversample: bool = key(default=False)  # propose ceil(K / (1 − α)): the tail keeps ≈ K tasks
+
+
 class TailRiskPrinciple(nn.Module):
-    """CVaR_α (tail-risk) weighting of tasks drawn from the fixed initial distribution p0.
+    """CVaR_α (tail-risk) weighting of tasks drawn from the fixed initial distribution p0
+    (DR, Wang et al. 2023: the update is on the worst (1 − α) tail of the batch).
 
     Args:
         initial: p0, where every task comes from.
-        alpha: confidence level α ∈ (0, 1); the leader trains on the worst ``ceil((1 − α)·K)``
-            tasks of each batch of ``K`` (see :func:`tail_size`). ``0.5`` as in the paper.
-        oversample: when ``True``, :meth:`propose` draws ``ceil(n / (1 − α))`` candidates instead
-            of ``n``, so that the tail the leader trains on holds about ``n`` tasks, as many as an
-            ERM step uses. The trainer then passes the whole returned batch to the leader (its size
-            is ``tasks.batch_size[0]``, not ``n``); the weights zero the tasks outside the tail.
-            When ``False`` (default) the tail of a meta-batch of ``n`` tasks is about ``(1 − α)·n``.
+        options: the keys of ``risk.dr`` (:class:`DrOptions`): α and whether to oversample.
 
     It has no follower; its :meth:`update` reports VaR_α and CVaR_α of each step's own losses
     (``update_every = 1`` on the step's losses, ``needs_next_losses = False``: no extra
@@ -79,13 +96,11 @@ class TailRiskPrinciple(nn.Module):
     update_every = 1
     needs_next_losses = False
 
-    def __init__(self, initial: TaskDistribution, alpha: float = 0.5,
-                 oversample: bool = False) -> None:
+    def __init__(self, initial: TaskDistribution, options: DrOptions = DrOptions()) -> None:
         super().__init__()
-        check_keys("risk.dr", alpha=alpha, oversample=oversample)
         self.initial = initial
-        self.alpha = float(alpha)
-        self.oversample = oversample
+        self.alpha = float(options.alpha)
+        self.oversample = options.oversample
 
     def propose(self, n: int) -> TensorDict:
         """Candidate tasks from p0: ``n``, or ``ceil(n / (1 − α))`` when oversampling."""
