@@ -280,6 +280,7 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
 def _train_task(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
+    from armeta_rl.allocator import keep_freed_memory
     from armeta_rl.trainers.training import run_training
 
     if cfg.resume:
@@ -287,6 +288,8 @@ def _train_task(cfg: DictConfig) -> None:
         run_dir = Path(cfg.resume)
     else:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if cfg.trainer.keep_freed_memory:
+        keep_freed_memory()
     run_training(cfg, run_dir)
 
 
