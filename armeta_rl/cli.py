@@ -204,16 +204,17 @@ def check_values(args: list[str], prog: str) -> None:
                 _fail(prog, f"{error}{where}")
 
 
-RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
+RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device", "trainer.keep_freed_memory")
 """The keys a resumed run may change (``hydra.*`` aside): train longer, stop earlier, continue on
-another device (its checkpoint loads there)."""
+another device (its checkpoint loads there), with or without glibc keeping freed memory (which
+changes no value)."""
 
 
 def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
     config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised and
-    ``device`` changed if given. Any other override, or fewer iterations, is refused (one line,
-    exit code 2)."""
+    ``device`` and ``trainer.keep_freed_memory`` changed if given. Any other override, or fewer
+    iterations, is refused (one line, exit code 2)."""
     from armeta_rl.config import check_config, load_run_config
 
     saved = _checked(prog, load_run_config, run_dir, "resume")
@@ -280,6 +281,7 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
 def _train_task(cfg: DictConfig) -> None:
     from hydra.core.hydra_config import HydraConfig
 
+    from armeta_rl.allocator import keep_freed_memory
     from armeta_rl.trainers.training import run_training
 
     if cfg.resume:
@@ -287,6 +289,8 @@ def _train_task(cfg: DictConfig) -> None:
         run_dir = Path(cfg.resume)
     else:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if cfg.trainer.keep_freed_memory:
+        keep_freed_memory()
     run_training(cfg, run_dir)
 
 

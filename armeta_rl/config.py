@@ -79,6 +79,7 @@ class TrainerSchema:
     checkpoint_every: int = at_least(1)
     stop_at: int | None = at_least(1)
     progress: bool = key()
+    keep_freed_memory: bool = key(old_runs=True)
     max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
     density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
     frozen_leader: str | None = key(old_runs=None)  # checked by armeta_rl.trainers.players

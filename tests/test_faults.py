@@ -401,6 +401,12 @@ def test_resume_refuses_every_override_but_more_iterations(stopped, capsys, over
     assert len(err) == 1 and refusal in err[0], err
 
 
+def test_resume_may_switch_keeping_freed_memory(stopped):
+    cfg = resume_config(str(stopped), [f"resume={stopped}", "trainer.keep_freed_memory=false"],
+                        "armeta-train")
+    assert cfg.trainer.keep_freed_memory is False
+
+
 def test_resume_with_more_iterations_follows_the_longer_cosine_schedule(tmp_path):
     """A run trained to N1 = 6 iterations and resumed with trainer.iterations = 10 uses, from
     iteration 7 on, exactly the adversary learning rates of a run planned for 10 from the start

@@ -1,0 +1,57 @@
+"""``trainer.keep_freed_memory``: glibc keeps freed blocks, which changes where memory comes from
+and no value of a run. Each check runs in its own process, since the setting is process-wide."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+
+TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
+
+FAULTS = """
+import resource, sys, torch
+from armeta_rl.allocator import keep_freed_memory
+if sys.argv[1] == "keep":
+    assert keep_freed_memory()
+def faults():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+for _ in range(3):  # glibc's own thresholds adapt to the first blocks freed
+    torch.ones(12 << 20).sum()
+before = faults()
+for _ in range(20):
+    torch.ones(12 << 20).sum()  # 48 MiB, allocated, written and freed
+print(faults() - before)
+"""
+
+
+def page_faults(mode: str) -> int:
+    """Minor page faults of 20 allocations of a 48 MiB tensor, after 3 warm-up allocations."""
+    result = subprocess.run([sys.executable, "-c", FAULTS, mode], capture_output=True, text=True,
+                            check=True)
+    return int(result.stdout)
+
+
+def test_freed_blocks_are_reused_instead_of_faulted_in_again():
+    kept, returned = page_faults("keep"), page_faults("default")
+    pages = 20 * (48 << 20) // 4096
+    assert returned > pages / 2  # glibc's defaults hand each block back to the kernel
+    assert kept < pages / 4
+
+
+def test_a_seeded_run_is_the_same_with_and_without_it(tmp_path):
+    def evaluation(keep: bool) -> dict:
+        out = tmp_path / str(keep)
+        subprocess.run(
+            [*TRAIN, "benchmark=point_nav", "trainer.iterations=2", "trainer.meta_batch=2",
+             "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
+             "eval.n_tasks=2", "trainer.progress=false", "trainer.density_every=0", "seed=7",
+             "logger=none", f"trainer.keep_freed_memory={str(keep).lower()}",
+             f"hydra.run.dir={out}"],
+            capture_output=True, text=True, check=True, timeout=300,
+        )
+        return json.loads((out / "eval.json").read_text())
+
+    assert evaluation(True) == evaluation(False)
