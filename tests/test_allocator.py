@@ -35,10 +35,11 @@ def page_faults(mode: str) -> int:
 
 
 def test_freed_blocks_are_reused_instead_of_faulted_in_again():
+    """Relative, so that it holds whatever page size the kernel faults in (transparent huge
+    pages make both counts smaller)."""
     kept, returned = page_faults("keep"), page_faults("default")
-    pages = 20 * (48 << 20) // 4096
-    assert returned > pages / 2  # glibc's defaults hand each block back to the kernel
-    assert kept < pages / 4
+    assert returned > 0  # glibc's defaults hand each block back to the kernel
+    assert kept * 4 < returned
 
 
 def test_a_seeded_run_is_the_same_with_and_without_it(tmp_path):
