@@ -36,6 +36,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from timing import markdown_table, reference_product_ms, wall_times, write_section
 
+from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.players import build_players
@@ -137,6 +138,7 @@ def main() -> None:
     if args.turns < 1:
         parser.error(f"--turns must be at least 1, got {args.turns}")
     torch.set_num_threads(1)
+    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
     torch.manual_seed(0)
     rows, yardsticks, fast_yardsticks = [], [], {}
     for benchmark in args.benchmarks:

@@ -26,6 +26,7 @@ from tensordict import TensorDict
 from timing import markdown_table, wall_times, write_section
 from torch import nn
 
+from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions
@@ -45,6 +46,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     torch.set_num_threads(1)
+    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
     torch.manual_seed(0)
     k, e, steps = args.tasks, args.episodes, 100
     space = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
