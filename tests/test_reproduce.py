@@ -354,6 +354,15 @@ def test_every_experiment_plans_at_every_profile():
     assert cnp[-2:] == ("trainer.iterations=15000", f"risk.ar.lr={0.5 / 15000}")
 
 
+def test_the_quick_profile_trains_the_paper_profiles_configs():
+    """quick is the paper's protocol shortened: every row of every experiment trains the same
+    benchmark config at both profiles (the authors' p0 and data, not the package's own)."""
+    for experiment in experiment_names():
+        configs = [{run.benchmark: run.config for run in make_plan(experiment, profile).runs}
+                   for profile in ("quick", "paper")]
+        assert configs[0] == configs[1], experiment
+
+
 @pytest.mark.parametrize("profile,config", [("paper_ray", "ant_goal_ray"),
                                             ("paper_warp", "ant_goal_warp")])
 def test_the_ant_experiment_plans_for_bigger_hardware_and_others_refuse_it(profile, config):
