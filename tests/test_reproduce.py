@@ -9,10 +9,12 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
 import armeta_rl.reproduce.plan as plan_module
 from armeta_rl.cli import config_dir
@@ -26,7 +28,7 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
-from armeta_rl.reproduce.cli import check_runs, reproduce
+from armeta_rl.reproduce.cli import MANIFEST, SweepClock, check_runs, reproduce
 from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
 from armeta_rl.reproduce.reports import table
 
@@ -322,6 +324,25 @@ def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
         os.utime(run / "eval.json", (end, end))
     assert train_seconds(plan, tmp_path, {}) == {first: 30.0, second: 12.5}
     assert train_seconds(plan, tmp_path, {first: 7.0}) == {first: 7.0, second: 12.5}
+
+
+def test_a_killed_sweep_keeps_its_wall_time_up_to_the_clocks_last_write(tmp_path):
+    """While a sweep runs, the manifest on disk (what a kill would leave) holds the wall time
+    from before plus the time so far; the caller's manifest is not touched."""
+    manifest = {"experiment": "table1", "profile": "tiny", "train": [],
+                "wall_seconds": {"table1": 5.0}}
+    with SweepClock(tmp_path, manifest, "table1", every=0.05) as clock:
+        deadline = time.time() + 30
+        while not (tmp_path / MANIFEST).is_file() and time.time() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.2)
+        left = OmegaConf.load(tmp_path / MANIFEST)
+        assert 5.0 + 0.05 <= left.wall_seconds.table1 <= 5.0 + clock.seconds
+        assert left.experiment == "table1" and left.profile == "tiny"
+    assert manifest["wall_seconds"] == {"table1": 5.0}
+    seconds = clock.seconds
+    time.sleep(0.02)
+    assert clock.seconds == seconds >= 0.25  # frozen at the block's end
 
 
 def test_a_profile_entry_may_train_another_config_for_a_row(tmp_path):

@@ -16,9 +16,12 @@ overrides.
 
 from __future__ import annotations
 
+import copy
 import sys
+import threading
 import time
 from pathlib import Path
+from types import TracebackType
 from typing import NoReturn
 
 from omegaconf import OmegaConf
@@ -69,6 +72,58 @@ def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
                           f"is not empty and has no {MANIFEST}: not an {PROG} results directory")
     return {"experiment": plan.experiment, "profile": plan.profile, "train": list(extra),
             "wall_seconds": {}}
+
+
+def save_manifest(results: Path, manifest: dict) -> None:
+    """Write ``manifest`` as the results directory's ``reproduce.yaml`` atomically (a kill
+    leaves the old file or the new one)."""
+    from armeta_rl.trainers.run_dir import write_text_atomically
+
+    write_text_atomically(results / MANIFEST, OmegaConf.to_yaml(OmegaConf.create(manifest)))
+
+
+class SweepClock:
+    """Time an invocation's sweeps and keep the running total in the results manifest.
+
+    Inside the ``with`` block a thread writes, every ``every`` seconds, ``manifest`` with
+    ``wall_seconds[experiment]`` = its value before the block + the time so far. A sweep killed
+    mid-batch (a preempted job, a session's end) so keeps its wall time up to the last write,
+    where counting only at the end would lose the whole invocation. ``manifest`` itself is not
+    changed: :attr:`seconds` is the block's time, for the caller's final manifest.
+    """
+
+    def __init__(self, results: Path, manifest: dict, experiment: str,
+                 every: float = 60.0) -> None:
+        self.results = results
+        self.manifest = copy.deepcopy(manifest)
+        self.before = self.manifest["wall_seconds"].get(experiment, 0.0)
+        self.experiment = experiment
+        self.every = every
+        self.started = 0.0
+        self.ended: float | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._keep, name="sweep-clock", daemon=True)
+
+    @property
+    def seconds(self) -> float:
+        """The time inside the block (so far, while it runs)."""
+        return (self.ended if self.ended is not None else time.time()) - self.started
+
+    def _keep(self) -> None:
+        while not self._stop.wait(self.every):
+            self.manifest["wall_seconds"][self.experiment] = self.before + self.seconds
+            save_manifest(self.results, self.manifest)
+
+    def __enter__(self) -> SweepClock:
+        self.started = time.time()
+        self._thread.start()
+        return self
+
+    def __exit__(self, kind: type[BaseException] | None, error: BaseException | None,
+                 trace: TracebackType | None) -> None:
+        self.ended = time.time()
+        self._stop.set()
+        self._thread.join()
 
 
 def check_runs(plan: Plan) -> None:
@@ -147,8 +202,7 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     manifest = claim(results, plan, extra)
     check_runs(plan)
     results.mkdir(parents=True, exist_ok=True)
-    OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
-    started = time.time()
+    save_manifest(results, manifest)
     runs = [r for r in plan.runs if not finished(results, r)]
     attack_note = (f", {len(plan.attacks)} attack runs" if plan.attacks else "")
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
@@ -157,29 +211,32 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     code = 0
     if launcher == "none":
         runs = []
-    if runs:
-        code = launch(train, "armeta-train", [train_job(results, r) for r in runs], results,
-                      f"{experiment} train", len(plan.runs) - len(runs),
-                      (*selected, *hydra_args))
-    attacks = [] if launcher == "none" else [  # the second batch: targets finished
-        a for a in plan.attacks if not finished(results, a) and finished(results, a.target)]
-    if attacks:
-        code = launch(train, "armeta-train", [train_job(results, a) for a in attacks], results,
-                      f"{experiment} attack", sum(finished(results, a) for a in plan.attacks),
-                      (*selected, *hydra_args)) or code
-    evals = [e for e in plan.evals if not finished(results, e)]
-    ready = [e for e in evals if finished(results, e.learner) and finished(results, e.adversary)]
-    if ready and launcher != "none":
-        code = launch(evaluate, "armeta-eval", [eval_job(results, e) for e in ready], results,
-                      f"{experiment} eval", len(plan.evals) - len(evals),
-                      (*selected, *hydra_args)) or code
+    with SweepClock(results, manifest, experiment) as clock:
+        if runs:
+            code = launch(train, "armeta-train", [train_job(results, r) for r in runs], results,
+                          f"{experiment} train", len(plan.runs) - len(runs),
+                          (*selected, *hydra_args))
+        attacks = [] if launcher == "none" else [  # the second batch: targets finished
+            a for a in plan.attacks if not finished(results, a) and finished(results, a.target)]
+        if attacks:
+            code = launch(train, "armeta-train", [train_job(results, a) for a in attacks],
+                          results, f"{experiment} attack",
+                          sum(finished(results, a) for a in plan.attacks),
+                          (*selected, *hydra_args)) or code
+        evals = [e for e in plan.evals if not finished(results, e)]
+        ready = [e for e in evals
+                 if finished(results, e.learner) and finished(results, e.adversary)]
+        if ready and launcher != "none":
+            code = launch(evaluate, "armeta-eval", [eval_job(results, e) for e in ready],
+                          results, f"{experiment} eval", len(plan.evals) - len(evals),
+                          (*selected, *hydra_args)) or code
     wall = manifest["wall_seconds"]
     if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
-        wall[experiment] = wall.get(experiment, 0.0) + (time.time() - started)
+        wall[experiment] = clock.before + clock.seconds
     whole = make_plan(experiment, profile, extra, benchmarks)  # the report covers every seed
     seconds = train_seconds(whole, results, dict(manifest.get("train_seconds", {})))
     manifest["train_seconds"] = seconds
-    OmegaConf.save(OmegaConf.create(manifest), results / MANIFEST)
+    save_manifest(results, manifest)
     report = write_report(whole, results, wall.get(experiment, 0.0), seconds)
     print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
     incomplete = any(not finished(results, r)
