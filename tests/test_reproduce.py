@@ -157,6 +157,19 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
     assert _eval_files(table1_dir) == before
 
 
+def test_a_sweep_restricted_to_another_benchmark_keeps_the_finished_rows(table1_dir, tmp_path):
+    results = tmp_path / "table1"
+    shutil.copytree(table1_dir, results)
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_normal",)) == 1  # aggregates only: nothing ran
+    text = (results / "table1.md").read_text()
+    assert "| Sinusoid-U | Initial |" in text
+    assert ("**partial**: 12/24 training runs (4 of them attack runs) and 30/60 evaluations"
+            in text)
+    rows = (results / "table1.csv").read_text().splitlines()
+    assert rows == (table1_dir / "table1.csv").read_text().splitlines()
+
+
 def test_over_seeds_by_hand():
     summary = over_seeds([1.0, 2.0, 3.0, 6.0])
     assert summary.mean == 3.0

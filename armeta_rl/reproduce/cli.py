@@ -8,10 +8,10 @@ aggregates everything into ``<experiment>.csv``, ``<experiment>.md`` and PNG fig
 results directory (default ``results/<experiment>``).
 Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
 interrupted resumes from its checkpoint, so running the same command again continues a sweep.
-``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds,
-``launcher=none`` only aggregates, ``hydra.*`` and ``hydra/<group>=`` arguments go to both
-multiruns (launcher settings) and ``+train.<key>=<value>`` is appended to every training run's
-overrides.
+``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds (the
+report keeps the other benchmarks' finished runs), ``launcher=none`` only aggregates, ``hydra.*``
+and ``hydra/<group>=`` arguments go to both multiruns (launcher settings) and
+``+train.<key>=<value>`` is appended to every training run's overrides.
 """
 
 from __future__ import annotations
@@ -181,14 +181,26 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
     return path
 
 
+def reported_plan(results: Path, experiment: str, profile: str, extra: tuple[str, ...],
+                  benchmarks: tuple[str, ...] | None) -> Plan:
+    """The plan a report covers: every seed of the requested ``benchmarks`` and of each other
+    benchmark of the experiment with a finished run in ``results``, so a sweep restricted to some
+    benchmarks never drops the rows that the directory already holds for the others."""
+    whole = make_plan(experiment, profile, extra)
+    if benchmarks is None:
+        return whole
+    shown = {*benchmarks, *(run.benchmark for run in whole.runs if finished(results, run))}
+    return make_plan(experiment, profile, extra, tuple(shown))
+
+
 def reproduce(experiment: str, profile: str = "quick", results: Path | None = None,
               launcher: str = "local", jobs: int | None = None,
               hydra_args: tuple[str, ...] = (), extra: tuple[str, ...] = (),
               benchmarks: tuple[str, ...] | None = None,
               seeds: tuple[int, ...] | None = None) -> int:
     """Run what is missing of ``experiment`` at ``profile`` (restricted to ``benchmarks`` and
-    ``seeds``) and aggregate the experiment's benchmarks over all its seeds; the exit code (0
-    when every run and evaluation of the restriction finished).
+    ``seeds``) and aggregate over all seeds the benchmarks of :func:`reported_plan`; the exit
+    code (0 when every run and evaluation of the restriction finished).
 
     Raises:
         ConfigError: an unknown experiment, profile or launcher, a results directory that is not
@@ -233,7 +245,7 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     wall = manifest["wall_seconds"]
     if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
         wall[experiment] = clock.before + clock.seconds
-    whole = make_plan(experiment, profile, extra, benchmarks)  # the report covers every seed
+    whole = reported_plan(results, experiment, profile, extra, benchmarks)
     seconds = train_seconds(whole, results, dict(manifest.get("train_seconds", {})))
     manifest["train_seconds"] = seconds
     save_manifest(results, manifest)
