@@ -254,28 +254,51 @@ def _checked(prog: str, check: Callable[..., Any], *args: Any) -> Any:
 
 def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
     """Run ``task`` turning the package's user errors into one line and an exit code: 2 for a
-    bad value, 1 for a run that diverged or a disk that failed it."""
+    bad value, 1 for a run that diverged or a disk that failed it. A job of a ``run_list`` sweep
+    (``armeta-reproduce``) raises :class:`~armeta_rl.errors.JobFailed` with that code instead of
+    exiting, so that the jobs beside it run on; the sweeper exits with the code once all ran."""
 
     def wrapped(cfg: DictConfig) -> None:
-        from armeta_rl.errors import (
-            CollectionFailed,
-            ConfigError,
-            RunDirectoryError,
-            TrainingDiverged,
-        )
+        from armeta_rl.errors import JobFailed
 
         try:
-            task(cfg)
-        except ConfigError as error:
-            _fail(prog, str(error))
-        except (TrainingDiverged, CollectionFailed) as error:
-            _fail(prog, f"training stopped: {error}", code=1)
-        except RunDirectoryError as error:
-            _fail(prog, str(error), code=1)
-        except OSError as error:
-            _fail(prog, f"{error.strerror or error}: {error.filename or ''}".rstrip(": "), code=1)
+            _report_errors(prog, task, cfg)
+        except SystemExit as stop:
+            if stop.code and _in_run_list_sweep():
+                raise JobFailed(stop.code if isinstance(stop.code, int) else 1) from None
+            raise
 
     return wrapped
+
+
+def _in_run_list_sweep() -> bool:
+    """Whether this job belongs to a ``hydra/sweeper=run_list`` multirun."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    from hydra_plugins.armeta_run_list.run_list_sweeper import RunListSweeperConf
+
+    if not HydraConfig.initialized():
+        return False
+    hydra_cfg = HydraConfig.get()
+    return (hydra_cfg.mode == RunMode.MULTIRUN
+            and hydra_cfg.sweeper.get("_target_") == RunListSweeperConf._target_)
+
+
+def _report_errors(prog: str, task: Callable[[DictConfig], None], cfg: DictConfig) -> None:
+    """Run ``task`` on ``cfg``; a user error exits with its one line (:func:`_guarded`)."""
+    from armeta_rl.errors import CollectionFailed, ConfigError, RunDirectoryError, TrainingDiverged
+
+    try:
+        task(cfg)
+    except ConfigError as error:
+        _fail(prog, str(error))
+    except (TrainingDiverged, CollectionFailed) as error:
+        _fail(prog, f"training stopped: {error}", code=1)
+    except RunDirectoryError as error:
+        _fail(prog, str(error), code=1)
+    except OSError as error:
+        _fail(prog, f"{error.strerror or error}: {error.filename or ''}".rstrip(": "), code=1)
 
 
 def _train_task(cfg: DictConfig) -> None:

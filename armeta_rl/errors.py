@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from hydra.errors import CompactHydraException
+
 
 class ConfigError(ValueError):
     """A configuration value is not allowed.
@@ -53,3 +55,18 @@ class IdentifierError(ConfigError):
 
 class CollectionFailed(RuntimeError):
     """A collection worker died or stopped answering; the run stops, keeping its last checkpoint."""
+
+
+class JobFailed(CompactHydraException):
+    """A job of a ``run_list`` sweep stopped with a user error, already printed as one line with
+    its exit ``code``. Raised in place of ``SystemExit`` so that Hydra records the job as failed
+    and the launcher runs the others (a ``SystemExit`` in a joblib worker aborts the jobs running
+    beside it, losing their work); the sweeper exits with the code once every job ran."""
+
+    def __init__(self, code: int) -> None:
+        self.code = code
+        super().__init__(f"a job of the sweep stopped with exit code {code}; its error is above")
+
+    def __reduce__(self) -> tuple[type, tuple[int]]:
+        """Pickle by the exit code, so that the error comes back from a worker process."""
+        return type(self), (self.code,)

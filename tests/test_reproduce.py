@@ -157,6 +157,50 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
     assert _eval_files(table1_dir) == before
 
 
+def test_a_run_killed_before_its_first_checkpoint_starts_again(table1_dir, tmp_path, capsys):
+    """A run killed before it wrote a checkpoint leaves its config and logs behind; the sweep
+    starts it again in its directory (``resume=`` with no checkpoint) and gets the numbers of the
+    uninterrupted run."""
+    results = tmp_path / "table1"
+    shutil.copytree(table1_dir, results)
+    run = results / "runs/sinusoid_uniform/dr_maml/seed0"
+    before = (run / "eval.json").read_bytes()
+    (run / "eval.json").unlink()
+    shutil.rmtree(run / "checkpoints")
+    capsys.readouterr()
+    assert reproduce("table1", "tiny", results, launcher="basic",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    assert "(1 to run)" in capsys.readouterr().out
+    assert (run / "eval.json").read_bytes() == before
+    assert f"resume={run}" in (results / ".sweeps" / "table1-train.yaml").read_text()
+
+
+def test_a_failing_job_does_not_stop_the_other_jobs_of_its_sweep(tmp_path, capsys):
+    """A job that stops with a user error (here: its directory is held by another live process)
+    prints its line; the jobs after it still run, and the sweep exits with the job's code."""
+    from armeta_rl.cli import train
+    from armeta_rl.reproduce.launch import launch, train_job
+
+    blocked, other = make_plan("noise", "tiny", benchmarks=("sinusoid_uniform",)).runs[:2]
+    (tmp_path / blocked.subdir).mkdir(parents=True)
+    holder = subprocess.Popen(
+        [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'w'); "
+         "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(300)",
+         str(tmp_path / blocked.subdir / "run.lock")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline() == "held\n"
+        code = launch(train, "armeta-train", [train_job(tmp_path, r) for r in (blocked, other)],
+                      tmp_path, "noise train", 0, ())
+    finally:
+        holder.kill()
+        holder.wait()
+    assert code == 2
+    assert (tmp_path / other.subdir / "eval.json").is_file()
+    assert not (tmp_path / blocked.subdir / "eval.json").exists()
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error" in line]
+    assert len(errors) == 1 and "is in use by another run" in errors[0], errors
+
+
 def test_a_sweep_restricted_to_another_benchmark_keeps_the_finished_rows(table1_dir, tmp_path):
     results = tmp_path / "table1"
     shutil.copytree(table1_dir, results)

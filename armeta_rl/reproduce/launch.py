@@ -17,7 +17,7 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.reproduce.plan import EvalJob, TrainRun, has_checkpoint
+from armeta_rl.reproduce.plan import EvalJob, TrainRun, interrupted
 
 LAUNCHERS = ("local", "basic", "ray", "slurm", "none")
 """``local``: joblib processes on this machine (``jobs=`` of them, default all cores);
@@ -41,9 +41,10 @@ def launcher_overrides(launcher: str, jobs: int | None) -> list[str]:
 
 
 def train_job(results: Path, run: TrainRun) -> dict:
-    """The sweeper's entry for ``run``: its overrides, or ``resume=`` when an interrupted run left
-    a checkpoint (it continues where it stopped, bit-identical to an uninterrupted run)."""
-    overrides = ([f"resume={results / run.subdir}"] if has_checkpoint(results, run)
+    """The sweeper's entry for ``run``: its overrides, or ``resume=`` for an interrupted run (its
+    directory holds its config): it continues from its last checkpoint, or starts again from the
+    beginning if it had written none, bit-identical to an uninterrupted run either way."""
+    overrides = ([f"resume={results / run.subdir}"] if interrupted(results, run)
                  else run.command(results))
     return {"name": run.subdir, "overrides": [*overrides, f"hydra.sweep.subdir={run.subdir}"],
             "done": str(results / run.subdir / "eval.json")}

@@ -21,6 +21,7 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from armeta_rl.cli import config_files
+from armeta_rl.config import CONFIG_FILE
 from armeta_rl.errors import ConfigError
 
 PROFILES_FILE = "profiles.yaml"
@@ -243,6 +244,7 @@ def finished(results: Path, run: TrainRun | EvalJob) -> bool:
     return (results / path).is_file()
 
 
-def has_checkpoint(results: Path, run: TrainRun) -> bool:
-    """Whether an unfinished run left a checkpoint to resume from."""
-    return any((results / run.subdir / "checkpoints").glob("checkpoint-*"))
+def interrupted(results: Path, run: TrainRun) -> bool:
+    """Whether an unfinished run was started: its directory holds the config that ``armeta-train
+    resume=`` continues under (from its last checkpoint, or from the start if it wrote none)."""
+    return not finished(results, run) and (results / run.subdir / CONFIG_FILE).is_file()

@@ -12,6 +12,9 @@ the file the job writes when it finishes (read by :class:`armeta_rl.reproduce.pr
 Unlike the basic sweeper it does not compose every job before launching (that doubles the
 composition time of a large sweep): ``armeta-reproduce`` checks each distinct run config first,
 and the launcher composes each job as it runs it.
+
+Every job runs even when some fail: a job's user error comes back as
+:class:`armeta_rl.errors.JobFailed`, and the sweep then exits with the highest code among them.
 """
 
 # No `from __future__ import annotations`: Hydra loads plugin modules without registering them in
@@ -25,6 +28,8 @@ from hydra.core.plugins import Plugins
 from hydra.plugins.sweeper import Sweeper
 from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
+
+from armeta_rl.errors import JobFailed
 
 
 @dataclass
@@ -66,6 +71,12 @@ class RunListSweeper(Sweeper):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         OmegaConf.save(self.config, sweep_dir / "multirun.yaml")
         returns = self.launcher.launch(batch, initial_job_idx=0)
+        codes = []
         for result in returns:
-            _ = result.return_value  # re-raises a job's exception, as the basic sweeper does
+            try:
+                _ = result.return_value  # re-raises a job's exception, as the basic sweeper does
+            except JobFailed as failed:  # its one line is printed; the other jobs ran
+                codes.append(failed.code)
+        if codes:
+            raise SystemExit(max(codes))
         return returns
