@@ -7,7 +7,8 @@ finished ones (a second), scores them on the adversaries (one ``armeta-eval`` mu
 aggregates everything into ``<experiment>.csv``, ``<experiment>.md`` and PNG figures in the
 results directory (default ``results/<experiment>``).
 Runs that have their ``eval.json`` (evaluations: their report) are skipped, and a run that was
-interrupted resumes from its checkpoint, so running the same command again continues a sweep.
+interrupted resumes from its last checkpoint (from the start if it wrote none), so running the
+same command again continues a sweep.
 ``benchmarks=`` and ``seeds=`` restrict the experiment to some of its benchmarks and seeds (the
 report keeps the other benchmarks' finished runs), ``launcher=none`` only aggregates, ``hydra.*``
 and ``hydra/<group>=`` arguments go to both multiruns (launcher settings) and
