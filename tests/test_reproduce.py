@@ -40,6 +40,7 @@ FIRST_BENCHMARK = {
     "entropy": "sinusoid_uniform",
     "noise": "sinusoid_uniform",
     "point_robot": "point_nav",
+    "meta_rl_point": "point_nav",
     "ant_pos": "ant_goal",
 }
 
