@@ -400,11 +400,13 @@ def _eval_task(cfg: DictConfig) -> None:
     from armeta_rl.trainers.report import cross_evaluate
     from armeta_rl.trainers.run_dir import write_text_atomically
 
-    suffix = "" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}"
+    shifts = OmegaConf.to_container(cfg.shifts) if OmegaConf.is_list(cfg.shifts) else cfg.shifts
+    suffix = ("" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}") or (
+        "" if shifts is None else "_shifts")
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     check_writable(out, "out")
     overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    report = cross_evaluate(cfg.learner, cfg.adversary, overrides, cfg.device)
+    report = cross_evaluate(cfg.learner, cfg.adversary, overrides, cfg.device, shifts)
     write_text_atomically(out, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     print(f"written: {out}")
@@ -426,7 +428,8 @@ def check_writable(path: Path, key: str) -> None:
 
 
 def evaluate() -> None:
-    """``armeta-eval``: score a saved learner on p0 and on a saved adversary."""
+    """``armeta-eval``: score a saved learner on p0, on a saved adversary and on its benchmark's
+    shift suite."""
     args = sys.argv[1:]
     multirun = "-m" in args or "--multirun" in args  # a sweep's jobs carry their own learner=
     if not multirun and not any(a.startswith("learner=") for a in args):

@@ -83,6 +83,7 @@ class TrainerSchema:
     max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
     density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
     frozen_leader: str | None = key(old_runs=None)  # checked by armeta_rl.trainers.players
+    follower_rollouts: int = key("must be >= 1", lambda v: v >= 1, old_runs=1)
 
 
 @dataclass
@@ -91,6 +92,7 @@ class EvalSchema:
     alphas: list[float] = each(inside(0, 1), nonempty=True)
     seed: int = seeds(SEED_RANGE[1] - 1)  # the adversarial distribution is scored at seed + 1
     support_noise: float = at_least(0)
+    rollouts: int = key("must be >= 1", lambda v: v >= 1, old_runs=1)  # R per task
 
 
 RiskSchema = dataclasses.make_dataclass(
@@ -135,6 +137,7 @@ class BenchmarkSchema:
     collector: dict[str, Any] = key()  # the collector's arguments: checked by the collector
     eval_collector: dict[str, Any] = key()
     model: dict[str, Any] = key()  # the model's choices (head): checked by make_mlp
+    shift_suite: str | None = key(old_runs=None)  # configs/shift_suites/<name>.yaml: checked there
 
 
 @dataclass

@@ -131,11 +131,13 @@ def _erm(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPr
     return ERMPrinciple(initial)
 
 
-def _ar(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
+def _ar(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution,
+        reference_loss: Callable[[torch.Tensor], torch.Tensor] | None = None) -> RiskPrinciple:
     options = ArOptions(**section(cfg, "risk.ar"))
     adversary = FlowAdversary(space, initial, options.flow, **options.flow_kwargs)
     total_updates = max(1, cfg.trainer.iterations // options.update_every)
-    return AdversarialPrinciple(adversary, options, total_updates=total_updates)
+    return AdversarialPrinciple(adversary, options, total_updates=total_updates,
+                                reference_loss=reference_loss)
 
 
 def _dr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
@@ -155,15 +157,17 @@ class Principle:
     """A registered risk principle: its builder and its options (the type, range and default
     value of every key of its ``risk.<name>`` section; ``None``: it has no section, as ERM). The
     composed config's ``risk:`` section and its schema are derived from the options
-    (:func:`risk_sections`)."""
+    (:func:`risk_sections`). ``build(cfg, space, initial)`` makes it; with ``takes_reference``
+    also ``reference_loss=`` the benchmark's reference loss (the collector's, or ``None``)."""
 
-    build: Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPrinciple]
+    build: Callable[..., RiskPrinciple]
     options: type | None = None
+    takes_reference: bool = False
 
 
 PRINCIPLES: dict[str, Principle] = {
     "erm": Principle(_erm),
-    "ar": Principle(_ar, ArOptions),
+    "ar": Principle(_ar, ArOptions, takes_reference=True),
     "dr": Principle(_dr, DrOptions),
     "tr": Principle(_tr, TrOptions),
     "dro": Principle(_dro, DroOptions),
@@ -196,11 +200,17 @@ def build_leader(cfg: DictConfig, collector: TaskCollector, device: torch.device
 
 
 def build_principle(
-    cfg: DictConfig, space: TaskSpace, initial: TaskDistribution, device: torch.device = CPU
+    cfg: DictConfig, space: TaskSpace, initial: TaskDistribution, device: torch.device = CPU,
+    collector: TaskCollector | None = None,
 ) -> RiskPrinciple:
     """The risk principle named by ``method.risk``, on ``device`` (its task distributions, e.g.
-    the flow adversary, and its state such as group weights)."""
+    the flow adversary, and its state such as group weights); a principle that takes a
+    reference loss gets ``collector``'s ``reference_loss`` (``None`` if it has none)."""
     name = cfg.method.risk
     if name not in PRINCIPLES:
         raise ConfigError("method.risk", name, f"allowed: {', '.join(PRINCIPLES)}")
-    return PRINCIPLES[name].build(cfg, space, initial).to(device)
+    entry = PRINCIPLES[name]
+    if entry.takes_reference:
+        reference = getattr(collector, "reference_loss", None)
+        return entry.build(cfg, space, initial, reference_loss=reference).to(device)
+    return entry.build(cfg, space, initial).to(device)

@@ -39,7 +39,8 @@ def test_cvar_rejects_alpha_outside_unit_interval():
 
 def test_summary_of_returns_negates_losses():
     report = summarize(torch.tensor([1.0, 3.0]), "return", [0.5])
-    assert report == {"mean": -2.0, "sem": 1.0, "cvar": {"0.5": -3.0}, "n_tasks": 2}
+    assert report == {"mean": -2.0, "sem": 1.0, "cvar": {"0.5": -3.0}, "cvar_sem": {"0.5": 2.0},
+                      "n_tasks": 2, "rollouts": 1, "rollout_sd": None, "per_task": [-1.0, -3.0]}
 
 
 def test_standard_error_is_the_spread_of_means_over_task_draws():

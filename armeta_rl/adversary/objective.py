@@ -32,6 +32,22 @@ from armeta_rl.tasks.distributions import entropy_estimate, kl_estimate
 from armeta_rl.tasks.protocol import TASK_KEY
 
 BASELINES = ("mean", "leave_one_out")
+SIGNALS = ("loss", "regret")
+
+
+def regret(losses: Tensor, reference_losses: Tensor) -> Tensor:
+    """The regret L(τ) − L*(τ) ``[K]`` of each task against a reference loss ``[K]`` (e.g. minus
+    the best return any policy can get there): what the learner leaves on the table, free of how
+    large the task's loss is in itself (regret-based environment design, Dennis et al. 2020)."""
+    return losses - reference_losses
+
+
+def standardized(advantages: Tensor, losses: Tensor) -> Tensor:
+    """``advantages`` divided by the batch standard deviation of ``losses`` (unchanged when the
+    losses are all equal): the loss term of the surrogate then has unit scale whatever the loss's
+    units (MSE, returns), so λ is relative to the loss scale."""
+    spread = losses.std() if losses.numel() > 1 else losses.new_zeros(())
+    return advantages / spread if spread > 0 else advantages
 
 
 def score_baseline(losses: Tensor, baseline: str = "mean") -> Tensor:
@@ -72,6 +88,7 @@ def adversary_surrogate(
     initial_params: Tensor,
     baseline: str = "mean",
     log_prob: Callable[[Tensor], Tensor] | None = None,
+    standardize: bool = False,
 ) -> tuple[Tensor, dict[str, float]]:
     """The surrogate of :func:`score_function_surrogate` (paper Eq. (17)) for ``tasks`` and their
     losses, with ln p_φ evaluated once for the tasks and the p0 draws together.
@@ -86,6 +103,8 @@ def adversary_surrogate(
         baseline: ``"mean"`` or ``"leave_one_out"``.
         log_prob: the function computing ln p_φ (default ``adversary.log_prob``; e.g. a compiled
             version of it).
+        standardize: divide the advantages L_k − V_k by the batch standard deviation of the
+            losses (:func:`standardized`; ``objective`` is then in those units too).
 
     Returns:
         ``(surrogate, stats)``: ascend ``surrogate``. ``stats`` holds Monte-Carlo estimates at the
@@ -96,12 +115,15 @@ def adversary_surrogate(
     params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
     losses = losses.detach().to(torch.float64)
     advantages = losses - score_baseline(losses, baseline)
+    if standardize:
+        advantages = standardized(advantages, losses)
     points = torch.cat([params.to(torch.float64), initial_params.to(torch.float64)]).detach()
     sizes = [len(params), len(initial_params)]
     log_p_tasks, log_p_initial = (log_prob or adversary.log_prob)(points).split(sizes)
     surrogate = score_function_surrogate(advantages, log_p_tasks, lam, log_p_initial)
     log_p_initial = log_p_initial.detach()
-    objective = adversary_objective(losses, lam, log_p_initial)
+    scaled = standardized(losses, losses) if standardize else losses
+    objective = adversary_objective(scaled, lam, log_p_initial)
     kl = kl_estimate(adversary.base.log_prob(initial_params), log_p_initial)
     return surrogate, {
         "objective": float(objective),

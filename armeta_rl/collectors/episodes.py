@@ -24,7 +24,13 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
+from armeta_rl.envs.point_navigation import (
+    TRUNCATED_KEY,
+    PointNavigationEnv,
+    Region,
+    check_regions,
+    reference_return,
+)
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
 from armeta_rl.tasks.protocol import TASK_KEY
@@ -183,14 +189,27 @@ class PointNavigationCollector(EpisodeCollector):
         squared_distance: reward minus the squared distance.
         seed: seed of the env (used only for goals that are never set).
         device: where the env steps and the trajectories are returned.
+        truncated_regions: goal regions with the truncated (sparse) reward −min(dist, ρ).
     """
 
     def __init__(self, episodes: int = 20, max_steps: int = 100,
                  sparse_regions: Sequence[Region] = (), squared_distance: bool = False,
-                 seed: int | None = None, device: torch.device | str = "cpu") -> None:
-        make_env = partial(PointNavigationEnv, sparse_regions=check_regions(sparse_regions),
-                           squared_distance=bool(squared_distance), seed=seed, device=device)
+                 seed: int | None = None, device: torch.device | str = "cpu",
+                 truncated_regions: Sequence[Region] = ()) -> None:
+        self.sparse_regions = check_regions(sparse_regions)
+        self.truncated_regions = check_regions(truncated_regions, TRUNCATED_KEY, "radius")
+        self.squared_distance = bool(squared_distance)
+        make_env = partial(PointNavigationEnv, sparse_regions=self.sparse_regions,
+                           squared_distance=self.squared_distance, seed=seed, device=device,
+                           truncated_regions=self.truncated_regions)
         super().__init__(make_env, episodes, max_steps, device)
+
+    def reference_loss(self, params: torch.Tensor) -> torch.Tensor:
+        """Minus the best return any policy gets on each goal ``[K, 2]`` in an episode (the
+        straight path at full speed, :func:`~armeta_rl.envs.point_navigation.reference_return`):
+        the reference L* of the adversary's regret ``risk.ar.signal=regret``."""
+        return -reference_return(params, self.max_steps, self.sparse_regions,
+                                 self.truncated_regions, self.squared_distance)
 
 
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:

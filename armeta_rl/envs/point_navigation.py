@@ -13,10 +13,22 @@ y ∈ [0.25, 0.5] (top-left corner) have every step reward multiplied by 0.6, an
 x ∈ [0.25, 0.5], y ∈ [-0.5, -0.25] (bottom-right corner) by 0.4. The scale depends on the *task*
 (the goal), not on where the robot is. :data:`PAPER_SPARSE_REGIONS` holds this list; an empty list
 gives plain navigation.
+
+Scaled regions are not harder to adapt to: MAML-TRPO normalizes each task's advantages, so a task
+whose rewards are all scaled by 0.4 gets the same inner and outer steps as unscaled, only a return
+0.4 times as large (docs/meta-rl.md measures it). *Truncated regions* make a region hard instead:
+goals there give the reward −min(‖p − g‖, ρ) (``truncated_regions`` entries ``((x_low, x_high),
+(y_low, y_high), ρ)``), constant farther than ρ from the goal, so only episodes that come within ρ
+of it say where it is: a sparse reward, as PEARL's sparse point robot, on the dense reward's scale
+(``point_nav_sparse``).
+
+:func:`reference_return` is the best return any policy gets on a goal, that of the straight
+path at full speed, in closed form: the reference of the adversary's regret signal.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import torch
@@ -40,35 +52,81 @@ GOAL_NAMES = ("goal_x", "goal_y")
 MAX_SPEED = 0.1
 GOAL_TOLERANCE = 0.01
 REGIONS_KEY = "benchmark.collector.sparse_regions"
+TRUNCATED_KEY = "benchmark.collector.truncated_regions"
 
 
-def check_regions(regions: Sequence[Region]) -> tuple[Region, ...]:
+def check_regions(regions: Sequence[Region], key: str = REGIONS_KEY,
+                  value: str = "scale") -> tuple[Region, ...]:
+    """``regions`` as floats; :class:`ConfigError` naming ``key`` for an entry that is not
+    ``[[xlo, xhi], [ylo, yhi], value]`` with xlo < xhi, ylo < yhi and value >= 0."""
     checked = []
     for region in regions:
         try:
             (x_low, x_high), (y_low, y_high), scale = region
             x_low, x_high, y_low, y_high, scale = map(float, (x_low, x_high, y_low, y_high, scale))
         except (TypeError, ValueError) as error:
-            raise ConfigError(
-                REGIONS_KEY, region, "entries: [[xlo, xhi], [ylo, yhi], scale]"
-            ) from error
+            raise ConfigError(key, region, f"entries: [[xlo, xhi], [ylo, yhi], {value}]") from error
         if not (x_low < x_high and y_low < y_high and scale >= 0):
-            raise ConfigError(
-                REGIONS_KEY, region, "needs xlo < xhi, ylo < yhi and scale >= 0"
-            )
+            raise ConfigError(key, region, f"needs xlo < xhi, ylo < yhi and {value} >= 0")
         checked.append(((x_low, x_high), (y_low, y_high), scale))
     return tuple(checked)
+
+
+def goal_region_value(goal: torch.Tensor, regions: Sequence[Region],
+                      default: float = 1.0) -> torch.Tensor:
+    """Per-task value ``[...]`` for goals ``[..., 2]``: the value of the first region that
+    contains the goal (closed box), ``default`` elsewhere."""
+    value = torch.full(goal.shape[:-1], default, dtype=goal.dtype, device=goal.device)
+    for (x_low, x_high), (y_low, y_high), region_value in reversed(tuple(regions)):
+        x, y = goal[..., 0], goal[..., 1]
+        inside = (x >= x_low) & (x <= x_high) & (y >= y_low) & (y <= y_high)
+        value = torch.where(inside, torch.full_like(value, region_value), value)
+    return value
 
 
 def goal_reward_scale(goal: torch.Tensor, regions: Sequence[Region]) -> torch.Tensor:
     """Per-task reward scale ``[...]`` for goals ``[..., 2]``: the scale of the first region that
     contains the goal (closed box), 1 elsewhere."""
-    scale = torch.ones(goal.shape[:-1], dtype=goal.dtype, device=goal.device)
-    for (x_low, x_high), (y_low, y_high), region_scale in reversed(tuple(regions)):
-        x, y = goal[..., 0], goal[..., 1]
-        inside = (x >= x_low) & (x <= x_high) & (y >= y_low) & (y <= y_high)
-        scale = torch.where(inside, torch.full_like(scale, region_scale), scale)
-    return scale
+    return goal_region_value(goal, regions)
+
+
+def goal_distance_cap(goal: torch.Tensor, regions: Sequence[Region],
+                      squared_distance: bool = False) -> torch.Tensor:
+    """Per-task cap ``[...]`` on the distance the reward feels, for goals ``[..., 2]``: ρ (ρ²
+    for the squared distance) of the first truncated region that contains the goal, ∞
+    elsewhere."""
+    cap = goal_region_value(goal, regions, math.inf)
+    return cap.square() if squared_distance else cap
+
+
+def step_reward(offset: torch.Tensor, scale: torch.Tensor, cap: torch.Tensor,
+                squared_distance: bool) -> torch.Tensor:
+    """The step reward −scale·min(dist, cap) ``[..., 1]`` of offsets p − g ``[..., 2]``, dist
+    the distance ‖p − g‖ (or its square); ``scale`` and ``cap`` ``[..., 1]``."""
+    squared = offset.square().sum(-1, keepdim=True)
+    distance = squared if squared_distance else squared.sqrt()
+    return -scale * torch.minimum(distance, cap)
+
+
+def reference_return(goal: torch.Tensor, max_steps: int, sparse_regions: Sequence[Region] = (),
+                     truncated_regions: Sequence[Region] = (),
+                     squared_distance: bool = False) -> torch.Tensor:
+    """The best return ``[...]`` any policy gets on goals ``[..., 2]``: that of moving every
+    coordinate toward the goal at full speed, in closed form.
+
+    From the origin, after t steps each coordinate is at most 0.1·t from 0, and the full-speed
+    path is at the point of that box nearest the goal, offset max(|g_i| − 0.1·t, 0) per axis: no
+    policy is nearer at any step, every reward decreases with the distance and is ≤ 0, and this
+    path ends (within 0.01 of the goal) first, so its return is the largest.
+    """
+    steps = torch.arange(1, max_steps + 1, dtype=goal.dtype, device=goal.device)
+    offset = (goal.abs().unsqueeze(-2) - MAX_SPEED * steps.unsqueeze(-1)).clamp(min=0)
+    scale = goal_reward_scale(goal, sparse_regions)[..., None, None]
+    cap = goal_distance_cap(goal, truncated_regions, squared_distance)[..., None, None]
+    reward = step_reward(offset, scale, cap, squared_distance).squeeze(-1)
+    reached = (offset < GOAL_TOLERANCE).all(-1)
+    before_end = (reached.cumsum(-1) - reached.long()) == 0
+    return (reward * before_end).sum(-1)
 
 
 class PointNavigationEnv(EnvBase):
@@ -87,6 +145,8 @@ class PointNavigationEnv(EnvBase):
         batch_size: ``[tasks, episodes]`` (any batch shape works).
         max_steps: time limit; reaching it sets ``"truncated"``.
         sparse_regions: list of ``((xlo, xhi), (ylo, yhi), scale)``; see the module docstring.
+        truncated_regions: list of ``((xlo, xhi), (ylo, yhi), ρ)``: goals there give the
+            reward −min(‖p − g‖, ρ) (squared: −min(‖p − g‖², ρ²)); see the module docstring.
         squared_distance: reward ``-‖p - g‖²`` instead of ``-‖p - g‖``.
         seed: seed of the generator that draws default goals.
         device: torch device.
@@ -100,12 +160,14 @@ class PointNavigationEnv(EnvBase):
         squared_distance: bool = False,
         seed: int | None = None,
         device: torch.device | str = "cpu",
+        truncated_regions: Sequence[Region] = (),
     ) -> None:
         if int(max_steps) < 1:
             raise ConfigError("benchmark.collector.max_steps", max_steps, "must be >= 1")
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         self.max_steps = int(max_steps)
         self.sparse_regions = check_regions(sparse_regions)
+        self.truncated_regions = check_regions(truncated_regions, TRUNCATED_KEY, "radius")
         self.squared_distance = bool(squared_distance)
         shape = self.batch_size
         dtype = torch.get_default_dtype()
@@ -134,8 +196,14 @@ class PointNavigationEnv(EnvBase):
         self._set_seed(seed)
         self._position = torch.zeros(*shape, 2, dtype=dtype, device=self.device)
         self._goal = self._draw_goals(shape, dtype)
-        self._scale = goal_reward_scale(self._goal, self.sparse_regions).unsqueeze(-1)
+        self._set_goal_rewards()
         self._steps = torch.zeros(*shape, 1, dtype=torch.long, device=self.device)
+
+    def _set_goal_rewards(self) -> None:
+        """Each entry's reward scale and distance cap ``[*batch, 1]`` from its goal."""
+        self._scale = goal_reward_scale(self._goal, self.sparse_regions).unsqueeze(-1)
+        self._cap = goal_distance_cap(
+            self._goal, self.truncated_regions, self.squared_distance).unsqueeze(-1)
 
     def _draw_goals(self, shape: torch.Size, dtype: torch.dtype) -> torch.Tensor:
         unit = torch.rand(*shape, 2, generator=self._generator, device=self.device)
@@ -156,7 +224,7 @@ class PointNavigationEnv(EnvBase):
         if goal is not None:
             goal = goal.to(self._goal.dtype).expand_as(self._goal)
             self._goal = torch.where(mask, goal, self._goal)
-            self._scale = goal_reward_scale(self._goal, self.sparse_regions).unsqueeze(-1)
+            self._set_goal_rewards()
         self._position = torch.where(mask, torch.zeros_like(self._position), self._position)
         self._steps = torch.where(mask, torch.zeros_like(self._steps), self._steps)
         false = torch.zeros(*shape, 1, dtype=torch.bool, device=self.device)
@@ -177,9 +245,7 @@ class PointNavigationEnv(EnvBase):
         self._position = self._position + action
         self._steps = self._steps + 1
         offset = self._position - self._goal
-        squared = offset.square().sum(-1, keepdim=True)
-        distance = squared if self.squared_distance else squared.sqrt()
-        reward = -distance * self._scale
+        reward = step_reward(offset, self._scale, self._cap, self.squared_distance)
         terminated = (offset.abs() < GOAL_TOLERANCE).all(-1, keepdim=True)
         truncated = self._steps >= self.max_steps
         return TensorDict(

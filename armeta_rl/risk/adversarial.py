@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,7 +21,13 @@ from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
-from armeta_rl.adversary.objective import BASELINES, adversary_surrogate, surrogate_gradient
+from armeta_rl.adversary.objective import (
+    BASELINES,
+    SIGNALS,
+    adversary_surrogate,
+    regret,
+    surrogate_gradient,
+)
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.fields import Options, above, at_least, key, one_of
@@ -46,6 +53,14 @@ class ArOptions(Options):
         grad_clip: maximum norm of φ's gradient, or ``None`` for no clipping.
         baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
         initial_samples: M, the number of fresh p0 samples for the λ term of the gradient.
+        signal: what the adversary ascends: ``"loss"`` (the paper's task loss L) or
+            ``"regret"``, L − L* against the benchmark's reference loss L* (minus the best
+            return any policy gets on the task, where the benchmark knows it: the point robot's
+            straight path), so a task counts as hard for what the learner misses there, not
+            for how low its returns are in themselves.
+        standardize: divide the signal's advantages by their batch standard deviation: the
+            loss term of J has unit scale, so λ is relative to the loss scale and one value
+            serves MSE and returns (docs/meta-rl.md).
         compile: ``torch.compile`` the flow's passes (the draw of
             :meth:`AdversarialPrinciple.propose` and the log-densities of
             :meth:`AdversarialPrinciple.update`): ``False``, ``True`` (inductor) or a backend
@@ -69,6 +84,8 @@ class ArOptions(Options):
     grad_clip: float | None = above(0, default=1.0)
     baseline: str = one_of(*BASELINES, default="mean")  # mean (the paper's) or leave_one_out
     initial_samples: int = at_least(1, default=256)
+    signal: str = one_of(*SIGNALS, default="loss")  # loss (the paper's) or regret
+    standardize: bool = key(default=False)  # λ relative to the loss scale
     compile: Any = key(default=False)  # checked by armeta_rl.compiling
 
 
@@ -86,6 +103,8 @@ class AdversarialPrinciple(nn.Module):
             baseline and schedule.
         total_updates: ``T_max`` of the cosine schedule (≥ 1); the rate reaches 0 after that many
             follower updates (the builder: ``trainer.iterations // update_every``).
+        reference_loss: the benchmark's reference loss L*(τ) ``[K]`` of identifiers ``[K, d]``,
+            needed by ``signal="regret"`` (the builder: the collector's ``reference_loss``).
     """
 
     needs_next_losses = True
@@ -95,6 +114,7 @@ class AdversarialPrinciple(nn.Module):
         adversary: FlowAdversary,
         options: ArOptions = ArOptions(),
         total_updates: int = 1000,
+        reference_loss: Callable[[Tensor], Tensor] | None = None,
     ) -> None:
         super().__init__()
         if isinstance(total_updates, bool) or not isinstance(total_updates, int) or (
@@ -105,6 +125,12 @@ class AdversarialPrinciple(nn.Module):
         self.lam, self.update_every = float(options.lam), options.update_every
         self.grad_clip = options.grad_clip
         self.baseline, self.initial_samples = options.baseline, options.initial_samples
+        if options.signal == "regret" and reference_loss is None:
+            raise ConfigError("risk.ar.signal", options.signal,
+                              "needs a benchmark that knows a reference return (the point "
+                              "robot's); allowed here: loss")
+        self.signal, self.standardize = options.signal, options.standardize
+        self.reference_loss = reference_loss
         self._phi = list(adversary.parameters())
         backend = compile_backend("risk.ar.compile", options.compile)
         self._log_prob = maybe_compile(adversary.log_prob, backend)
@@ -149,9 +175,12 @@ class AdversarialPrinciple(nn.Module):
         losses = losses.detach().to(torch.float64)
         if not torch.isfinite(losses).all():
             raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
+        if self.signal == "regret":
+            losses = regret(losses, self.reference_loss(tasks[TASK_KEY]).to(losses))
         initial = self.initial.sample_params(self.initial_samples)
         surrogate, stats = adversary_surrogate(
-            self.adversary, tasks, losses, self.lam, initial, self.baseline, self._log_prob
+            self.adversary, tasks, losses, self.lam, initial, self.baseline, self._log_prob,
+            self.standardize,
         )
         if not torch.isfinite(surrogate):
             raise TrainingDiverged(

@@ -80,6 +80,22 @@ def read_identifiers(
     return params
 
 
+def repeat_tasks(tasks: TensorDictBase, times: int) -> TensorDictBase:
+    """``tasks`` ``[K]`` repeated ``times`` times, rollout-major ``[times·K]`` (entry ``r·K + k``
+    is task ``k``'s ``r``-th copy), so one batched collection gives every task ``times``
+    independent rollouts; ``times = 1`` returns ``tasks`` itself."""
+    if times == 1:
+        return tasks
+    n_tasks = tasks.batch_size[0]
+    return tasks.expand(times, n_tasks).reshape(times * n_tasks)
+
+
+def per_rollout(values: Tensor, times: int) -> Tensor:
+    """Per-task values ``[times·K]`` of tasks repeated by :func:`repeat_tasks` as
+    ``[times, K]``."""
+    return values.reshape(times, -1)
+
+
 def _describe(value: object) -> object:
     """A short stand-in for a tensor in an error message: its shape and dtype."""
     if isinstance(value, Tensor):

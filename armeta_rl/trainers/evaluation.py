@@ -1,4 +1,6 @@
-"""Meta-test metrics: average and CVaR_α over tasks (paper Section 5, "Evaluation Metrics")."""
+"""Meta-test metrics: average and CVaR_α over tasks (paper Section 5, "Evaluation Metrics"), each
+with its standard error over tasks, every task scored on R independent rollouts, and paired
+differences between two learners scored on the same tasks and random streams (docs/meta-rl.md)."""
 
 from __future__ import annotations
 
@@ -14,6 +16,11 @@ from armeta_rl.devices import CPU, forked_rng
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.tail import tail_size
 from armeta_rl.tasks import TaskDistribution
+from armeta_rl.tasks.protocol import per_rollout, repeat_tasks
+
+PER_TASK_DIGITS = 6
+"""Significant digits of the per-task scores an evaluation report keeps (for paired
+differences between reports)."""
 
 
 def higher_is_better(metric: str) -> bool:
@@ -37,6 +44,30 @@ def cvar(values: Tensor, alpha: float, higher_better: bool = False) -> float:
     return float(worst.mean())
 
 
+def cvar_influence(values: Tensor, alpha: float, higher_better: bool = False) -> Tensor:
+    """The influence values ``z`` ``[n]`` (float64) of the CVaR_α estimate of :func:`cvar`:
+    z_i = t + (x_i − t)₊·n/k for losses and z_i = t − (t − x_i)₊·n/k for returns, with k the tail
+    size (:func:`tail_size`) and t the worst value outside the tail (the (k+1)-th worst; for
+    k = n, z = x).
+
+    CVaR = t + E[(L − t)₊]/(1 − α) for a threshold t at the α-quantile (Rockafellar and Uryasev
+    2000), so mean(z) is exactly :func:`cvar` (the tail's values are at least t, the others at
+    most t) and std(z)/√n is the estimate's standard error by the delta method; differences of
+    two learners' z on the same tasks give the paired standard error of a CVaR difference.
+    Taking t just outside the tail rather than at its last value keeps the tail's own spread in
+    z when the tail is a few values (one value: the error is that value's distance to the
+    next).
+    """
+    flat = values.detach().flatten().to(torch.float64)
+    n, size = flat.numel(), tail_size(flat.numel(), alpha)
+    if size == n:
+        return flat
+    worst_first = -flat if higher_better else flat
+    threshold = worst_first.topk(size + 1).values[-1]
+    z = threshold + (worst_first - threshold).clamp(min=0) * (n / size)
+    return -z if higher_better else z
+
+
 def standard_error(values: Tensor) -> float | None:
     """Standard error of the mean over tasks, s/√n with s the sample standard deviation (``None``
     for a single task): how far the mean of ``n`` evaluation tasks may lie from the mean over the
@@ -47,20 +78,64 @@ def standard_error(values: Tensor) -> float | None:
     return float(flat.std() / math.sqrt(flat.numel()))
 
 
-def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str, Any]:
-    """``{"mean", "sem", "cvar": {α: …}, "n_tasks"}`` of per-task losses, in the units of
-    ``metric`` (``sem``: the mean's standard error over tasks).
+def rollout_sd(per_rollout_values: Tensor) -> float | None:
+    """The standard deviation of one rollout's score around its task's mean, pooled over tasks
+    (√ of the mean within-task sample variance) from values ``[R, n]``; ``None`` for R = 1. A
+    task's score, the mean of R rollouts, has noise rollout_sd/√R."""
+    if per_rollout_values.shape[0] < 2:
+        return None
+    return float(per_rollout_values.to(torch.float64).var(0).mean().sqrt())
 
-    For ``metric == "return"`` the per-task loss is the negative return, so the summary reports
-    returns and CVaR over the lowest returns.
+
+def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str, Any]:
+    """``{"mean", "sem", "cvar": {α: …}, "cvar_sem": {α: …}, "n_tasks", "rollouts",
+    "rollout_sd", "per_task"}`` of per-task losses ``[n]`` or, with R rollouts per task,
+    ``[R, n]``, in the units of ``metric``.
+
+    A task's score is the mean of its R rollouts; ``sem`` and ``cvar_sem`` are the standard
+    errors over tasks of the mean and of CVaR_α (:func:`standard_error`,
+    :func:`cvar_influence`); ``rollout_sd`` is one rollout's noise (:func:`rollout_sd`);
+    ``per_task`` holds the task scores (:data:`PER_TASK_DIGITS` significant digits) for paired
+    differences (:func:`paired_difference`). For ``metric == "return"`` the per-task loss is the
+    negative return, so the summary reports returns and CVaR over the lowest returns.
     """
     higher_better = higher_is_better(metric)
-    values = -losses if higher_better else losses
+    rollouts = losses.detach().to(torch.float64).reshape(-1, losses.shape[-1])
+    values = -rollouts if higher_better else rollouts
+    scores = values.mean(0)
     return {
-        "mean": float(values.to(torch.float64).mean()),
-        "sem": standard_error(values),
-        "cvar": {str(alpha): cvar(values, alpha, higher_better) for alpha in alphas},
-        "n_tasks": int(values.numel()),
+        "mean": float(scores.mean()),
+        "sem": standard_error(scores),
+        "cvar": {str(alpha): cvar(scores, alpha, higher_better) for alpha in alphas},
+        "cvar_sem": {str(alpha): standard_error(cvar_influence(scores, alpha, higher_better))
+                     for alpha in alphas},
+        "n_tasks": int(scores.numel()),
+        "rollouts": int(values.shape[0]),
+        "rollout_sd": rollout_sd(values),
+        "per_task": [float(f"{v:.{PER_TASK_DIGITS}g}") for v in scores.tolist()],
+    }
+
+
+def paired_difference(first: Sequence[float], second: Sequence[float], metric: str,
+                      alphas: Sequence[float]) -> dict[str, Any]:
+    """First learner minus second on the same tasks (their reports' ``per_task`` scores, in
+    task order): ``{"mean", "sem", "cvar": {α: …}, "cvar_sem": {α: …}, "n_tasks"}``. The
+    standard errors are over tasks of the per-task differences (of the mean; of the CVaR
+    influence values, :func:`cvar_influence`), so what the two learners share (the tasks, the
+    random streams) cancels."""
+    a, b = torch.tensor(first, dtype=torch.float64), torch.tensor(second, dtype=torch.float64)
+    if a.shape != b.shape:
+        raise ValueError(f"paired scores need the same tasks: {a.numel()} against {b.numel()}")
+    higher_better = higher_is_better(metric)
+    return {
+        "mean": float((a - b).mean()),
+        "sem": standard_error(a - b),
+        "cvar": {str(alpha): cvar(a, alpha, higher_better) - cvar(b, alpha, higher_better)
+                 for alpha in alphas},
+        "cvar_sem": {str(alpha): standard_error(cvar_influence(a, alpha, higher_better)
+                                                - cvar_influence(b, alpha, higher_better))
+                     for alpha in alphas},
+        "n_tasks": int(a.numel()),
     }
 
 
@@ -72,41 +147,44 @@ def evaluate_on(
     alphas: Sequence[float],
     seed: int,
     device: torch.device = CPU,
+    rollouts: int = 1,
 ) -> dict[str, Any]:
-    """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``, all on
-    ``device``: with ``distribution`` the trained adversary p_φ*, the mean is the estimate of
-    E_{p_φ*}[L] of paper Eq. (48).
+    """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``, each
+    task on ``rollouts`` independent rollouts (R: adaptation from fresh data, then the adapted
+    learner's loss), all on ``device``: with ``distribution`` the trained adversary p_φ*, the mean
+    is the estimate of E_{p_φ*}[L] of paper Eq. (48).
 
-    Runs under its own seed inside a forked RNG (the CPU's and ``device``'s), so every method (and
-    a resumed run) is scored on the same tasks and data, and training's random stream is left
-    untouched.
+    The R copies of every task are collected and adapted in one batch (rollout-major,
+    :func:`~armeta_rl.tasks.protocol.repeat_tasks`). Runs under its own seed inside a forked RNG
+    (the CPU's and ``device``'s), so every method (and a resumed run) is scored on the same tasks
+    and random streams, and training's random stream is left untouched.
     """
     with forked_rng(device):
         torch.manual_seed(seed)
         tasks = distribution.sample(n_tasks)
         with torch.no_grad():
-            losses = leader.evaluate(leader.collect(tasks, collector))
-    return summarize(losses, leader.metric, alphas)
+            losses = leader.evaluate(leader.collect(repeat_tasks(tasks, rollouts), collector))
+    return summarize(per_rollout(losses, rollouts), leader.metric, alphas)
 
 
 def format_table(report: dict[str, Any]) -> str:
-    """The ``eval.json`` figures as a fixed-width text table."""
+    """The ``eval.json`` figures as a fixed-width text table: each mean and CVaR with its
+    standard error over tasks, the tasks and the rollouts per task."""
     alphas = None
-    rows = []
+    lines = []
     for name, section in report.items():
         if not isinstance(section, dict) or "mean" not in section:
             continue
         alphas = alphas or list(section["cvar"])
-        sem = section.get("sem")
-        rows.append((name, section["mean"], "-" if sem is None else f"{sem:.4f}",
-                     [section["cvar"][a] for a in alphas], section["n_tasks"]))
-    header = f"{'distribution':<16}{'mean':>10}{'sem':>9}" + "".join(
-        f"{'cvar_' + a:>11}" for a in alphas or []
-    )
-    lines = [f"metric: {report.get('metric')}", header + f"{'tasks':>8}"]
-    for name, mean, sem, cvars, n in rows:
-        lines.append(
-            f"{name:<16}{mean:>10.4f}{sem:>9}" + "".join(f"{c:>11.4f}" for c in cvars)
-            + f"{n:>8d}"
-        )
-    return "\n".join(lines)
+        cells = [_with_sem(section["mean"], section.get("sem"))] + [
+            _with_sem(section["cvar"][a], section.get("cvar_sem", {}).get(a)) for a in alphas]
+        lines.append(f"{name:<32}" + "".join(f"{c:>20}" for c in cells)
+                     + f"{section['n_tasks']:>7d}{section.get('rollouts', 1):>4d}")
+    header = f"{'distribution':<32}{'mean ± sem':>20}" + "".join(
+        f"{'cvar_' + a + ' ± sem':>20}" for a in alphas or [])
+    return "\n".join([f"metric: {report.get('metric')}", header + f"{'tasks':>7}{'R':>4}",
+                      *lines])
+
+
+def _with_sem(value: float, sem: float | None) -> str:
+    return f"{value:.4f}" if sem is None else f"{value:.4f} ± {sem:.4f}"

@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
-from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.protocol import TASK_KEY, per_rollout, repeat_tasks
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 
 LogFn = Callable[[dict[str, float], int], None]
@@ -49,6 +49,9 @@ class GameTrainer:
             logging and checkpoint), e.g. to draw the adversary's density.
         train_leader: step the leader (``False``: θ stays fixed and the follower is trained
             against it on the losses of its proposed tasks at that θ, ``trainer.frozen_leader``).
+        follower_rollouts: for an on-policy leader, the follower's loss of a task is the mean
+            of this many independent rollouts at θ_{t+1} (1: one, the paper's), collected in one
+            batch: less noise in the follower's signal for that many more rollouts.
     """
 
     def __init__(
@@ -66,6 +69,7 @@ class GameTrainer:
         max_loss: float | None = None,
         after_iteration: Callable[[int], None] | None = None,
         train_leader: bool = True,
+        follower_rollouts: int = 1,
     ) -> None:
         self.leader, self.principle = leader, principle
         self.iterations, self.meta_batch = iterations, meta_batch
@@ -74,6 +78,7 @@ class GameTrainer:
         self.progress, self.max_loss = progress, max_loss
         self.after_iteration = after_iteration
         self.train_leader = train_leader
+        self.follower_rollouts = follower_rollouts
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
@@ -94,9 +99,8 @@ class GameTrainer:
             data = self.leader.collect(tasks)
             out, scalars = self.leader.step(data, weights)
         else:  # θ stays: its losses on the proposed tasks are the follower's at θ_{t+1} = θ_t
-            with torch.no_grad():
-                data = self.leader.collect(tasks)
-                out, scalars = {"loss": self.leader.evaluate(data)}, {}
+            data = None
+            out, scalars = {"loss": self.fresh_losses(tasks)}, {}
         losses = out["loss"]
         self.check_losses(losses)
         logs = {
@@ -121,14 +125,24 @@ class GameTrainer:
 
         A follower of the game (``needs_next_losses``) reads L at θ_{t+1} (paper Algorithms 1
         and 2): on the step's own data, or, for an on-policy leader whose data are θ_t's rollouts,
-        on data collected afresh for the same tasks. A principle that only reports statistics of
-        the step reads the step's losses at θ_t, which cost nothing more.
+        on data collected afresh for the same tasks (the mean of ``follower_rollouts`` of them).
+        A principle that only reports statistics of the step reads the step's losses at θ_t,
+        which cost nothing more.
         """
         if not self.principle.needs_next_losses:
             return step_losses
-        with torch.no_grad():
-            next_data = self.leader.collect(tasks) if self.leader.on_policy else data
-            return self.leader.evaluate(next_data)
+        if not self.leader.on_policy:
+            with torch.no_grad():
+                return self.leader.evaluate(data)
+        return self.fresh_losses(tasks)
+
+    @torch.no_grad()
+    def fresh_losses(self, tasks: TensorDict) -> Tensor:
+        """The losses ``[K]`` of ``tasks`` at the current θ on data collected afresh: per task,
+        the mean of ``follower_rollouts`` independent rollouts, collected in one batch."""
+        rollouts = self.follower_rollouts
+        losses = self.leader.evaluate(self.leader.collect(repeat_tasks(tasks, rollouts)))
+        return losses if rollouts == 1 else per_rollout(losses, rollouts).mean(0)
 
     def check_losses(self, losses: Tensor) -> None:
         """Raise :class:`TrainingDiverged` on a non-finite task loss or one beyond ±``max_loss``."""

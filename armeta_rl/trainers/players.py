@@ -62,7 +62,7 @@ def build_players(cfg: DictConfig) -> Players:
     collector = build_collector(cfg, "benchmark.collector", device)
     eval_collector = build_collector(cfg, "benchmark.eval_collector", device)
     leader = build_leader(cfg, collector, device)
-    principle = build_principle(cfg, space, initial, device)
+    principle = build_principle(cfg, space, initial, device, collector)
     return Players(space, initial, leader, principle, eval_collector, device)
 
 

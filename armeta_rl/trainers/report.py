@@ -1,9 +1,11 @@
 """``eval.json``: the trained leader scored on p0 and on an adversarial distribution, with each
 distribution's entropy and KL from p0; and the same for any saved learner against any saved
-adversary (``armeta-eval``)."""
+adversary and on the benchmark's shift suite (``armeta-eval``)."""
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -17,49 +19,57 @@ from armeta_rl.config import check_config
 from armeta_rl.devices import CPU, forked_rng, resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
+from armeta_rl.tasks.shifts import shift_seed, suite_shifts
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.players import Players, load_players
 
 EVAL_FILE = "eval.json"
 
 
+SHIFT_PREFIX = "shift/"
+"""A shift's section in a report: ``shift/<name>``."""
+
+
 def evaluate_players(
-    cfg: DictConfig, players: Players, adversary: TaskDistribution | None = None
+    cfg: DictConfig, players: Players, adversary: TaskDistribution | None = None,
+    shifts: dict[str, TaskDistribution] | None = None,
 ) -> dict[str, Any]:
-    """``eval.json``'s content: the leader on p0 and on an adversarial distribution.
+    """``eval.json``'s content: the leader on p0, on an adversarial distribution and on
+    ``shifts`` (named distributions, each its section ``shift/<name>``).
 
     ``adversary`` defaults to the run's own p_φ (AR methods); ERM-style runs have none unless one
-    is given (``armeta-eval`` scores any learner on any saved adversary).
+    is given (``armeta-eval`` scores any learner on any saved adversary). Every section records
+    the seed its tasks were drawn under: p0 ``eval.seed``, the adversary ``eval.seed + 1``, a
+    shift :func:`~armeta_rl.tasks.shifts.shift_seed`, so two reports of the same benchmark pair
+    task by task.
     """
     ev = cfg.eval
     noisy = noisy_support_collector(cfg, players)
     adversary = adversary if adversary is not None else players.adversary
-    distributions = {"initial": players.initial}
+    distributions = {"initial": (players.initial, ev.seed)}
     if adversary is not None:
-        distributions["adversarial"] = adversary
+        distributions["adversarial"] = (adversary, ev.seed + 1)
+    for name, shift in (shifts or {}).items():
+        distributions[SHIFT_PREFIX + name] = (shift, shift_seed(ev.seed, name))
     report: dict[str, Any] = {
         "metric": players.leader.metric,
         "benchmark": cfg.benchmark.name,
         "method": cfg.method.name,
     }
-    for offset, (name, distribution) in enumerate(distributions.items()):
+    for name, (distribution, seed) in distributions.items():
         report[name] = evaluate_on(
-            players.leader,
-            distribution,
-            players.eval_collector,
-            ev.n_tasks,
-            list(ev.alphas),
-            ev.seed + offset,
-            players.device,
+            players.leader, distribution, players.eval_collector, ev.n_tasks, list(ev.alphas),
+            seed, players.device, ev.rollouts,
         )
-        report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset,
+        report[name]["seed"] = seed
+        report[name].update(distribution_stats(distribution, players.initial, seed,
                                                device=players.device))
     if noisy is not None:
         report["support_noise"] = ev.support_noise
-        for offset, (name, distribution) in enumerate(distributions.items()):
+        for name, (distribution, seed) in distributions.items():
             report[f"{name}_noisy"] = evaluate_on(
-                players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), ev.seed + offset,
-                players.device,
+                players.leader, distribution, noisy, ev.n_tasks, list(ev.alphas), seed,
+                players.device, ev.rollouts,
             )
     return report
 
@@ -84,14 +94,16 @@ def noisy_support_collector(cfg: DictConfig, players: Players) -> TaskCollector 
 
 
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
-                       samples: int = 4096, device: torch.device = CPU) -> dict[str, float]:
+                       samples: int = 4096, device: torch.device = CPU
+                       ) -> dict[str, float | None]:
     """Entropy H[p] and KL(p0 ‖ p) of a task distribution on ``device`` (Monte Carlo with exact
-    log-densities; the paper's entropy table reports H of p0 and of the learned p_φ)."""
+    log-densities; the paper's entropy table reports H of p0 and of the learned p_φ). The KL is
+    ``None`` where it is infinite: a shift that leaves part of p0's support out."""
     with forked_rng(device), torch.no_grad():
         torch.manual_seed(seed)
         entropy = float(distribution.entropy(samples))
         kl = float(distribution.kl_from(initial, samples))
-    return {"entropy": entropy, "kl_p0": kl}
+    return {"entropy": entropy, "kl_p0": kl if math.isfinite(kl) else None}
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
@@ -111,10 +123,12 @@ def cross_evaluate(
     adversary_dir: str | Path | None,
     eval_overrides: dict[str, Any] | None = None,
     device: str = "cpu",
+    shifts: str | Sequence[str] | None = None,
 ) -> dict[str, Any]:
-    """Score the learner saved in ``learner_dir`` on p0 and on the adversary saved in
-    ``adversary_dir`` (same benchmark), both loaded onto ``device`` wherever they were trained;
-    ``eval_overrides`` replace the learner run's ``eval.*``."""
+    """Score the learner saved in ``learner_dir`` on p0, on the adversary saved in
+    ``adversary_dir`` (same benchmark) and on ``shifts`` of its benchmark's shift suite
+    (``"all"`` or names; :mod:`armeta_rl.tasks.shifts`), all loaded onto ``device`` wherever they
+    were trained; ``eval_overrides`` replace the learner run's ``eval.*``."""
     resolve_device(device)
     cfg, players = load_players(learner_dir, "learner", device)
     adversary = None
@@ -136,7 +150,9 @@ def cross_evaluate(
         adversary = adv_players.adversary
     cfg = OmegaConf.merge(cfg, {"eval": eval_overrides or {}})
     check_config(cfg)
-    report = evaluate_players(cfg, players, adversary)
+    chosen = None if shifts is None else suite_shifts(
+        players.space, OmegaConf.select(cfg, "benchmark.shift_suite"), cfg.benchmark.name, shifts)
+    report = evaluate_players(cfg, players, adversary, chosen)
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report

@@ -74,6 +74,10 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
     torch.set_num_threads(cfg.threads)
     players = build_players(cfg)
     noisy_support_collector(cfg, players)
+    if cfg.trainer.follower_rollouts > 1 and not players.leader.on_policy:
+        raise ConfigError("trainer.follower_rollouts", cfg.trainer.follower_rollouts,
+                          f"must be 1 on {cfg.benchmark.name}: its learner scores the follower's "
+                          "tasks on the step's own data, not on fresh rollouts")
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
                                device=players.device)
     if cfg.trainer.frozen_leader is not None and not (cfg.resume and checkpoint.checkpoints()):
@@ -103,6 +107,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool) -> dict | None
         max_loss=cfg.trainer.max_loss,
         after_iteration=frames,
         train_leader=cfg.trainer.frozen_leader is None,
+        follower_rollouts=cfg.trainer.follower_rollouts,
     )
     trainer.iteration = start
     if trainer.run(stop_at=cfg.trainer.stop_at) < cfg.trainer.iterations:
