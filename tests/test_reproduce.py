@@ -41,6 +41,7 @@ FIRST_BENCHMARK = {
     "noise": "sinusoid_uniform",
     "point_robot": "point_nav",
     "meta_rl_point": "point_nav",
+    "meta_rl_point_validation": "point_nav",
     "ant_pos": "ant_goal",
 }
 
