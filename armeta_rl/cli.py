@@ -396,17 +396,21 @@ def _remove_run_dir(run_dir: Path) -> None:
 
 
 def _eval_task(cfg: DictConfig) -> None:
+    from armeta_rl.errors import ConfigError
     from armeta_rl.trainers.evaluation import format_table
     from armeta_rl.trainers.report import cross_evaluate
     from armeta_rl.trainers.run_dir import write_text_atomically
 
+    if not isinstance(cfg.initial, bool):
+        raise ConfigError("initial", cfg.initial, "must be true or false")
     shifts = OmegaConf.to_container(cfg.shifts) if OmegaConf.is_list(cfg.shifts) else cfg.shifts
     suffix = ("" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}") or (
         "" if shifts is None else "_shifts")
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     check_writable(out, "out")
     overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    report = cross_evaluate(cfg.learner, cfg.adversary, overrides, cfg.device, shifts)
+    report = cross_evaluate(cfg.learner, cfg.adversary, overrides, cfg.device, shifts,
+                            cfg.initial)
     write_text_atomically(out, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     print(f"written: {out}")

@@ -20,7 +20,10 @@ from armeta_rl.config import CONFIG_FILE
 from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished
 
 INITIAL = "initial"
-NUMBER_COLUMNS = ("mean", "sem", "entropy", "kl_p0", "n_tasks")
+SHIFT_PREFIX = "shift/"
+NUMBER_COLUMNS = ("mean", "sem", "entropy", "kl_p0", "n_tasks", "rollouts", "rollout_sd", "seed")
+KEPT_OUT_OF_CSV = ("per_task",)
+"""Record fields the CSV leaves out: the per-task scores (in the runs' reports)."""
 
 
 @dataclass(frozen=True)
@@ -64,10 +67,21 @@ def over_seeds(values: Sequence[float]) -> SeedSummary:
     return SeedSummary(mean, std, std / math.sqrt(n), n)
 
 
+def cvar_alpha(key: str, prefix: str = "cvar_") -> float | None:
+    """α of a record's column ``cvar_<α>`` (with ``prefix="cvar_sem_"``: of ``cvar_sem_<α>``),
+    ``None`` for any other column."""
+    if not key.startswith(prefix):
+        return None
+    try:
+        return float(key[len(prefix):])
+    except ValueError:
+        return None
+
+
 def cvar_curve(record: dict[str, Any]) -> tuple[list[float], list[float]]:
     """CVaR_α of one record for α = 0 (the mean: the whole distribution is the tail) and every α
     it holds, in increasing α."""
-    alphas = sorted(float(key[5:]) for key in record if key.startswith("cvar_")
+    alphas = sorted(cvar_alpha(key) for key in record if cvar_alpha(key) is not None
                     and record[key] != "")
     return [0.0, *alphas], [record["mean"], *(record[f"cvar_{a}"] for a in alphas)]
 
@@ -97,7 +111,10 @@ def section_records(report: dict[str, Any], section: str, distribution: str,
     data = report[section]
     record = {"distribution": distribution, "noisy": noisy, "metric": report["metric"]}
     record.update({key: data.get(key) for key in NUMBER_COLUMNS})
+    record["task_seed"] = record.pop("seed")
     record.update({f"cvar_{float(a)}": v for a, v in data["cvar"].items()})
+    record.update({f"cvar_sem_{float(a)}": v for a, v in data.get("cvar_sem", {}).items()})
+    record["per_task"] = data.get("per_task")
     return [record]
 
 
@@ -126,10 +143,19 @@ def train_seconds(plan: Plan, results: Path, known: dict[str, float]) -> dict[st
 def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[str, Any]]:
     """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
     run's wall time from ``seconds``, :func:`train_seconds`), each named adversary from its
-    ``eval_vs_<name>.json``; with noisy support labels as extra records."""
+    ``eval_vs_<name>.json``, each shift (``shift/<name>``) from its ``eval_shifts.json``; with
+    noisy support labels as extra records."""
     records = []
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
-    sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals]
+    sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals
+                if job.adversary is not None]
+    shift_files = {(job.learner, Path(job.out).name) for job in plan.evals
+                   if job.adversary is None}
+    for run, file in shift_files:
+        path = results / run.subdir / file
+        if path.is_file():
+            sources += [(run, file, name, name) for name in json.loads(path.read_text())
+                        if name.startswith(SHIFT_PREFIX) and not name.endswith("_noisy")]
     for run, file, section, distribution in sources:
         path = results / run.subdir / file
         if not path.is_file():
@@ -149,11 +175,13 @@ def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:
     """The records as CSV, one column per key (CVaR columns in increasing α)."""
     keys: list[str] = []
     for record in records:
-        keys += [k for k in record if k not in keys]
-    cvars = sorted((k for k in keys if k.startswith("cvar_")), key=lambda k: float(k[5:]))
-    columns = [k for k in keys if not k.startswith("cvar_")] + cvars
+        keys += [k for k in record if k not in keys and k not in KEPT_OUT_OF_CSV]
+    cvars = sorted((k for k in keys if cvar_alpha(k) is not None), key=cvar_alpha)
+    sems = sorted((k for k in keys if cvar_alpha(k, "cvar_sem_") is not None),
+                  key=lambda k: cvar_alpha(k, "cvar_sem_"))
+    columns = [k for k in keys if k not in cvars and k not in sems] + cvars + sems
     with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
+        writer = csv.DictWriter(handle, fieldnames=columns, restval="", extrasaction="ignore")
         writer.writeheader()
         writer.writerows(records)
 

@@ -237,8 +237,8 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
                           sum(finished(results, a) for a in plan.attacks),
                           (*selected, *hydra_args)) or code
         evals = [e for e in plan.evals if not finished(results, e)]
-        ready = [e for e in evals
-                 if finished(results, e.learner) and finished(results, e.adversary)]
+        ready = [e for e in evals if finished(results, e.learner)
+                 and (e.adversary is None or finished(results, e.adversary))]
         if ready and launcher != "none":
             code = launch(evaluate, "armeta-eval", [eval_job(results, e) for e in ready],
                           results, f"{experiment} eval", len(plan.evals) - len(evals),

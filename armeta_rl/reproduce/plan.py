@@ -69,24 +69,38 @@ class TrainRun:
                 *self.overrides, *frozen]
 
 
+SHIFTS_JOB = "shifts"
+"""The name of the evaluation job that scores a run on its benchmark's shift suite."""
+
+
 @dataclass(frozen=True)
 class EvalJob:
     """One ``armeta-eval``: ``learner`` scored on the adversary of ``adversary`` (two runs of the
-    same benchmark and variant), written to ``<learner>/eval_vs_<name>.json``."""
+    same benchmark), written to ``<learner>/eval_vs_<name>.json``; or, with ``adversary`` None,
+    on ``shifts`` of its benchmark's shift suite (``"all"`` or names), written to
+    ``<learner>/eval_shifts.json``. Neither scores p0 again (the run's ``eval.json`` has it)."""
 
     name: str
     learner: TrainRun
-    adversary: TrainRun
+    adversary: TrainRun | None
+    shifts: str | tuple[str, ...] | None = None
 
     @property
     def out(self) -> str:
         """The report's path relative to the results directory."""
+        if self.adversary is None:
+            return f"{self.learner.subdir}/eval_{SHIFTS_JOB}.json"
         return f"{self.learner.subdir}/eval_vs_{self.name}.json"
 
     def command(self, results: Path) -> list[str]:
         """The job's overrides as ``armeta-eval`` takes them (absolute paths)."""
-        return [f"learner={results / self.learner.subdir}",
-                f"adversary={results / self.adversary.subdir}", f"out={results / self.out}"]
+        if self.adversary is None:
+            chosen = self.shifts if isinstance(self.shifts, str) else f"[{','.join(self.shifts)}]"
+            scored = [f"shifts={chosen}"]
+        else:
+            scored = [f"adversary={results / self.adversary.subdir}"]
+        return [f"learner={results / self.learner.subdir}", *scored, "initial=false",
+                f"out={results / self.out}"]
 
 
 @dataclass(frozen=True)
@@ -178,11 +192,13 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
                         for seed in all_seeds
                     )
     attacks = attack_runs(spec, runs)
-    jobs = eval_jobs(spec, runs, all_seeds) + attack_jobs(spec, runs, attacks)
+    jobs = (eval_jobs(spec, runs, all_seeds) + attack_jobs(spec, runs, attacks)
+            + shift_jobs(spec, runs))
     if seeds:
         runs = [run for run in runs if run.seed in seeds]
         attacks = [run for run in attacks if run.seed in seeds]
-        jobs = [job for job in jobs if job.learner.seed in seeds or job.adversary.seed in seeds]
+        jobs = [job for job in jobs if job.learner.seed in seeds
+                or (job.adversary is not None and job.adversary.seed in seeds)]
     return Plan(experiment, profile, spec, tuple(runs), tuple(jobs), tuple(attacks))
 
 
@@ -194,9 +210,10 @@ def attack_runs(spec: dict[str, Any], runs: list[TrainRun]) -> list[TrainRun]:
     methods = list(dict.fromkeys(run.method for run in runs))
     found = []
     for name, attack in attacks.items():
-        if not isinstance(attack, dict) or set(attack) != {"method", "target"}:
+        if not isinstance(attack, dict) or not (
+                {"method", "target"} <= set(attack) <= {"method", "target", "variant"}):
             raise ConfigError(f"attacks.{name}", attack, "allowed: {method: <AR method>, "
-                              "target: <a method of the experiment>}")
+                              "target: <a method of the experiment>[, variant: <its variant>]}")
         if name in spec.get("adversaries", {}):
             raise ConfigError(f"attacks.{name}", attack,
                               "an adversary of the experiment has that name already")
@@ -205,19 +222,22 @@ def attack_runs(spec: dict[str, Any], runs: list[TrainRun]) -> list[TrainRun]:
                               f"allowed: {', '.join(methods)}")
         found += [TrainRun(run.benchmark, attack["method"], run.variant, run.seed,
                            run.overrides, run.config, target=run)
-                  for run in runs if run.method == attack["target"]]
+                  for run in runs if run.method == attack["target"]
+                  and run.variant == attack.get("variant", run.variant)]
     return found
 
 
 def attack_jobs(spec: dict[str, Any], runs: list[TrainRun],
                 attacks: list[TrainRun]) -> list[EvalJob]:
     """Every run scored on the adversary of each attack (named as in ``spec["attacks"]``) at the
-    run's benchmark, variant and seed."""
+    run's benchmark and seed, against the target of the run's variant, or of the attack's
+    ``variant`` where it names one (every learner scored on one attack)."""
     by_key = {(a.method, a.target.method, a.benchmark, a.variant, a.seed): a for a in attacks}
     jobs = []
     for name, attack in spec.get("attacks", {}).items():
         for run in runs:
-            key = (attack["method"], attack["target"], run.benchmark, run.variant, run.seed)
+            variant = attack.get("variant", run.variant)
+            key = (attack["method"], attack["target"], run.benchmark, variant, run.seed)
             if key in by_key:
                 jobs.append(EvalJob(name, run, by_key[key]))
     return jobs
@@ -225,17 +245,32 @@ def attack_jobs(spec: dict[str, Any], runs: list[TrainRun],
 
 def eval_jobs(spec: dict[str, Any], runs: list[TrainRun], seeds: list[int]) -> list[EvalJob]:
     """For every run and every adversary of ``spec["adversaries"]`` (``{name: {method,
-    seed_shift}}``), the job scoring the run on that method's run of the same benchmark and
-    variant at the seed ``seed_shift`` places further in ``seeds`` (cyclically)."""
+    seed_shift[, variant]}}``), the job scoring the run on that method's run of the same benchmark
+    at the seed ``seed_shift`` places further in ``seeds`` (cyclically), of the run's own variant
+    or of the adversary's ``variant`` where it names one (every learner scored on one adversary)."""
     by_key = {(r.benchmark, r.method, r.variant, r.seed): r for r in runs}
     jobs = []
     for name, adversary in spec.get("adversaries", {}).items():
         for run in runs:
             shifted = seeds[(seeds.index(run.seed) + adversary.get("seed_shift", 0)) % len(seeds)]
-            key = (run.benchmark, adversary["method"], run.variant, shifted)
+            variant = adversary.get("variant", run.variant)
+            key = (run.benchmark, adversary["method"], variant, shifted)
             if key in by_key:
                 jobs.append(EvalJob(name, run, by_key[key]))
     return jobs
+
+
+def shift_jobs(spec: dict[str, Any], runs: list[TrainRun]) -> list[EvalJob]:
+    """With ``spec["shifts"]`` (``all`` or a list of names), every run scored on those shifts of
+    its benchmark's shift suite (:mod:`armeta_rl.tasks.shifts`)."""
+    chosen = spec.get("shifts")
+    if chosen is None:
+        return []
+    if not (chosen == "all" or (isinstance(chosen, list) and chosen
+                                and all(isinstance(c, str) for c in chosen))):
+        raise ConfigError("shifts", chosen, "allowed: all, or a list of shift names")
+    shifts = chosen if isinstance(chosen, str) else tuple(chosen)
+    return [EvalJob(SHIFTS_JOB, run, None, shifts) for run in runs]
 
 
 def finished(results: Path, run: TrainRun | EvalJob) -> bool:

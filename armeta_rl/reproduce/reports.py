@@ -13,10 +13,13 @@ from typing import Any
 from armeta_rl.reproduce import figures
 from armeta_rl.reproduce.aggregate import (
     INITIAL,
+    SHIFT_PREFIX,
     SeedSummary,
+    decimals,
     display,
     markdown_table,
     method_curve,
+    over_seeds,
     select,
     summary,
 )
@@ -31,12 +34,14 @@ def _benchmarks(plan: Plan) -> list[str]:
     return list(dict.fromkeys(run.benchmark for run in plan.runs))
 
 
-def _distributions(plan: Plan) -> dict[str, str]:
-    """``initial``, the experiment's adversaries and its attacks' adversaries, with their
-    labels."""
+def _distributions(plan: Plan, records: Sequence[dict[str, Any]] = ()) -> dict[str, str]:
+    """``initial``, the experiment's adversaries, its attacks' adversaries and the shifts the
+    records hold (``shift/<name>``, in the order first met), with their labels."""
     labels = plan.spec.get("labels", {})
     names = [INITIAL, *plan.spec.get("adversaries", {}), *plan.spec.get("attacks", {})]
-    return {name: labels.get(name, name) for name in names}
+    names += list(dict.fromkeys(r["distribution"] for r in records
+                                if r["distribution"].startswith(SHIFT_PREFIX)))
+    return {name: labels.get(name, name.replace(SHIFT_PREFIX, "shift: ")) for name in names}
 
 
 def _cvar_key(plan: Plan) -> str:
@@ -76,7 +81,7 @@ def table(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     higher = _higher_better(records)
     paper = plan.spec.get("paper", {})
     for benchmark in _benchmarks(plan):
-        for distribution, label in _distributions(plan).items():
+        for distribution, label in _distributions(plan, records).items():
             cells = []
             for column in ("mean", cvar):
                 values = [summary(records, column, benchmark=benchmark, method=m,
@@ -89,7 +94,7 @@ def table(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
                 rows.append(["", "paper", *(q[0] if q else "–" for q in quoted),
                              *(q[1] if q else "–" for q in quoted)])
     groups = [(f"{distribution}\n{name}", {"distribution": distribution, "noisy": False}, column)
-              for distribution in _distributions(plan)
+              for distribution in _distributions(plan, records)
               for name, column in (("avg", "mean"), (f"CVaR{alpha}", cvar))]
     figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
                  records[0]["metric"])
@@ -179,7 +184,7 @@ def bar_chart(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     with standard-error bars; table: mean ± s.e. over seeds)."""
     methods, cvar = _methods(plan), _cvar_key(plan)
     groups = [(f"{label}, {name}", {"distribution": distribution, "noisy": False}, column)
-              for distribution, label in _distributions(plan).items()
+              for distribution, label in _distributions(plan, records).items()
               for name, column in (("average", "mean"), (_cvar_label(plan), cvar))]
     figures.bars(records, _benchmarks(plan), methods, groups, results / f"{plan.experiment}.png",
                  "return")
@@ -241,6 +246,131 @@ def entropy(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             "p_φ (left) beside p0 (right) in each panel.")
 
 
+Learner = tuple[str, str]
+"""A learner column of a paired report: (method, variant)."""
+
+
+def _learners(plan: Plan) -> list[Learner]:
+    return list(dict.fromkeys((run.method, run.variant) for run in plan.runs))
+
+
+def _learner_label(plan: Plan, learner: Learner) -> str:
+    """``AR-MAML``, or the experiment's label of a learner (``learner_labels: {ar_maml-best:
+    …}``)."""
+    method, variant = learner
+    name = method if not variant else f"{method}-{variant}"
+    return plan.spec.get("learner_labels", {}).get(name, display(method) + (
+        f" [{variant}]" if variant else ""))
+
+
+def _level(records: list[dict[str, Any]], column: str, sem_column: str, **where: Any) -> str:
+    """``mean ± std`` over seeds of ``column``, with the root-mean-square over seeds of its
+    standard error over tasks in brackets."""
+    chosen = [r for r in select(records, **where) if r.get(column) is not None]
+    if not chosen:
+        return "–"
+    text = over_seeds([r[column] for r in chosen]).format()
+    sems = [r[sem_column] for r in chosen if r.get(sem_column) not in (None, "")]
+    if sems:
+        text += f" [{(sum(s * s for s in sems) / len(sems)) ** 0.5:.{_places(text)}f}]"
+    return text
+
+
+def _places(text: str) -> int:
+    number = text.split(" ")[0]
+    return len(number.split(".")[1]) if "." in number else 0
+
+
+def paired_seeds(records: list[dict[str, Any]], learner: Learner, reference: Learner,
+                 alpha: float, **where: Any) -> list[dict[str, Any]]:
+    """Per seed, ``learner`` minus ``reference`` on the same tasks (same task seed and count in
+    both records: :func:`~armeta_rl.trainers.evaluation.paired_difference`); seeds where either
+    has not finished, or whose records were not scored on the same tasks, are left out."""
+    from armeta_rl.trainers.evaluation import paired_difference
+
+    theirs = {r["seed"]: r for r in select(records, method=reference[0], variant=reference[1],
+                                           **where)}
+    pairs = []
+    for ours in select(records, method=learner[0], variant=learner[1], **where):
+        ref = theirs.get(ours["seed"])
+        if ref is None or not ours.get("per_task") or not ref.get("per_task") or (
+                ours["task_seed"], ours["n_tasks"]) != (ref["task_seed"], ref["n_tasks"]):
+            continue
+        diff = paired_difference(ours["per_task"], ref["per_task"], ours["metric"], [alpha])
+        pairs.append({"seed": ours["seed"], "mean": diff["mean"], "sem": diff["sem"],
+                      "cvar": diff["cvar"][str(alpha)], "cvar_sem": diff["cvar_sem"][str(alpha)]})
+    return pairs
+
+
+def _difference(pairs: list[dict[str, Any]], column: str, higher_better: bool) -> str:
+    """Paired differences over seeds: ``mean ± std [RMS task s.e.] (k/S better)``, in bold when
+    the mean lies beyond twice its standard error over seeds."""
+    if not pairs:
+        return "–"
+    values = [p[column] for p in pairs]
+    spread = over_seeds(values)
+    text = f"{spread.mean:+.{decimals(spread.mean)}f}"
+    if spread.n > 1:
+        text += f" ± {spread.std:.{decimals(spread.mean)}f}"
+    sems = [p[f"{column}_sem" if column == "cvar" else "sem"] for p in pairs]
+    sems = [s for s in sems if s is not None]
+    if sems:
+        text += f" [{(sum(s * s for s in sems) / len(sems)) ** 0.5:.{decimals(spread.mean)}f}]"
+    better = sum((v > 0) == higher_better and v != 0 for v in values)
+    text += f" ({better}/{len(values)})"
+    beyond = spread.n > 1 and abs(spread.mean) > 2 * spread.se
+    return f"**{text}**" if beyond else text
+
+
+def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
+    """Meta-RL reports (docs/meta-rl.md): every learner's average and CVaR_α on p0, the
+    adversaries and the shift suite (mean ± std over seeds [standard error over tasks]), then
+    each learner minus the reference learner (``paired: {against: <method>}``) on the same tasks
+    and random streams, per seed, summarized over seeds; figures of both."""
+    learners, cvar, alpha = _learners(plan), _cvar_key(plan), float(plan.spec.get("alpha", 0.5))
+    reference = (plan.spec.get("paired", {}).get("against", learners[0][0]), "")
+    distributions = _distributions(plan, records)
+    higher = _higher_better(records)
+    labels = [_learner_label(plan, learner) for learner in learners]
+    level_rows, diff_rows = [], []
+    for benchmark in _benchmarks(plan):
+        for distribution, label in distributions.items():
+            where = {"benchmark": benchmark, "distribution": distribution, "noisy": False}
+            level_rows.append([display(benchmark), label, *(
+                _level(records, column, sem, method=m, variant=v, **where)
+                for column, sem in (("mean", "sem"), (cvar, f"cvar_sem_{alpha}"))
+                for m, v in learners)])
+            others = [learner for learner in learners if learner != reference]
+            pairs = {learner: paired_seeds(records, learner, reference, alpha, **where)
+                     for learner in others}
+            diff_rows.append([display(benchmark), label, *(
+                _difference(pairs[learner], column, higher)
+                for column in ("mean", "cvar") for learner in others)])
+    cvar_label = _cvar_label(plan)
+    level_header = ["Benchmark", "Distribution", *(f"{name} avg" for name in labels),
+                    *(f"{name} {cvar_label}" for name in labels)]
+    others = [_learner_label(plan, learner) for learner in learners if learner != reference]
+    diff_header = ["Benchmark", "Distribution", *(f"{name} Δavg" for name in others),
+                   *(f"{name} Δ{cvar_label}" for name in others)]
+    key = [{**r, "method": _learner_label(plan, (r["method"], r["variant"]))} for r in records]
+    groups = [(f"{label}, {name}", {"distribution": distribution, "noisy": False}, column)
+              for distribution, label in distributions.items()
+              for name, column in (("average", "mean"), (cvar_label, cvar))]
+    figures.bars(key, _benchmarks(plan), labels, groups, results / f"{plan.experiment}.png",
+                 records[0]["metric"])
+    reference_label = _learner_label(plan, reference)
+    better = "higher" if higher else "lower"
+    return (markdown_table(level_header, level_rows)
+            + f"\n\n![{plan.experiment}]({plan.experiment}.png)\n\nBars: mean over seeds, "
+            "standard-error bars over seeds.\n\n"
+            f"**Paired differences against {reference_label}**, on the same tasks and random "
+            f"streams: each learner minus {reference_label} per seed ({better} is better for "
+            f"the learner), mean ± std over seeds, [root-mean-square over seeds of the paired "
+            f"standard error over tasks], (seeds where the learner is better / seeds). Bold: "
+            "the mean is more than twice its standard error over seeds from 0.\n\n"
+            + markdown_table(diff_header, diff_rows))
+
+
 LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {
     "table": table,
     "cvar_curves": cvar_curves,
@@ -248,5 +378,6 @@ LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {
     "noise": noise,
     "bars": bar_chart,
     "entropy": entropy,
+    "paired": paired,
 }
 """The experiment YAML's ``layout`` → the function writing its Markdown body and figures."""

@@ -32,10 +32,11 @@ SHIFT_PREFIX = "shift/"
 
 def evaluate_players(
     cfg: DictConfig, players: Players, adversary: TaskDistribution | None = None,
-    shifts: dict[str, TaskDistribution] | None = None,
+    shifts: dict[str, TaskDistribution] | None = None, initial: bool = True,
 ) -> dict[str, Any]:
-    """``eval.json``'s content: the leader on p0, on an adversarial distribution and on
-    ``shifts`` (named distributions, each its section ``shift/<name>``).
+    """``eval.json``'s content: the leader on p0 (unless ``initial`` is false), on an
+    adversarial distribution and on ``shifts`` (named distributions, each its section
+    ``shift/<name>``).
 
     ``adversary`` defaults to the run's own p_φ (AR methods); ERM-style runs have none unless one
     is given (``armeta-eval`` scores any learner on any saved adversary). Every section records
@@ -46,7 +47,7 @@ def evaluate_players(
     ev = cfg.eval
     noisy = noisy_support_collector(cfg, players)
     adversary = adversary if adversary is not None else players.adversary
-    distributions = {"initial": (players.initial, ev.seed)}
+    distributions = {"initial": (players.initial, ev.seed)} if initial else {}
     if adversary is not None:
         distributions["adversarial"] = (adversary, ev.seed + 1)
     for name, shift in (shifts or {}).items():
@@ -124,11 +125,13 @@ def cross_evaluate(
     eval_overrides: dict[str, Any] | None = None,
     device: str = "cpu",
     shifts: str | Sequence[str] | None = None,
+    initial: bool = True,
 ) -> dict[str, Any]:
     """Score the learner saved in ``learner_dir`` on p0, on the adversary saved in
     ``adversary_dir`` (same benchmark) and on ``shifts`` of its benchmark's shift suite
     (``"all"`` or names; :mod:`armeta_rl.tasks.shifts`), all loaded onto ``device`` wherever they
-    were trained; ``eval_overrides`` replace the learner run's ``eval.*``."""
+    were trained; ``eval_overrides`` replace the learner run's ``eval.*``; ``initial=False``
+    leaves p0 out."""
     resolve_device(device)
     cfg, players = load_players(learner_dir, "learner", device)
     adversary = None
@@ -152,7 +155,7 @@ def cross_evaluate(
     check_config(cfg)
     chosen = None if shifts is None else suite_shifts(
         players.space, OmegaConf.select(cfg, "benchmark.shift_suite"), cfg.benchmark.name, shifts)
-    report = evaluate_players(cfg, players, adversary, chosen)
+    report = evaluate_players(cfg, players, adversary, chosen, initial)
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report
