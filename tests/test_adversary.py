@@ -498,3 +498,63 @@ def test_plot_density_one_and_three_identifiers(tmp_path) -> None:
     cube = TaskSpace(["a", "b", "c"], [0, 0, 0], [1, 1, 1])
     figure = plot_density(BoxUniform(cube), BoxUniform(cube), tmp_path / "b.png")
     assert len([axis for axis in figure.axes if axis.images]) == 3  # the pairs below the diagonal
+
+
+# --- the adversary's signal options (docs/meta-rl.md) ---------------------------------------------
+
+def test_standardized_advantages_make_the_update_free_of_the_loss_scale() -> None:
+    """With ``standardize`` the surrogate's gradient at losses c·L + b equals that at L for any
+    c > 0 and b, λ included: one λ serves MSE and returns. Without it, the loss term scales
+    with c and λ's weight against it shrinks by c."""
+    adversary = make_adversary("spline", "uniform", perturb=0.1)
+    params, initial = adversary.sample_params(20), adversary.base.sample_params(64)
+    losses = toy_loss(params)
+
+    def gradient(values: torch.Tensor, standardize: bool) -> torch.Tensor:
+        surrogate, _ = adversary_surrogate(adversary, params, values, 0.3, initial,
+                                           standardize=standardize)
+        return torch.cat([g.flatten() for g in torch.autograd.grad(surrogate,
+                                                                   adversary.parameters())])
+
+    reference = gradient(losses, True)
+    assert torch.allclose(gradient(25.0 * losses - 3.0, True), reference, atol=1e-10)
+    lam_term = _lam_only(adversary, initial, 0.3)
+    loss_term = gradient(losses, False) - lam_term
+    assert loss_term.norm() > 1e-3
+    assert torch.allclose(gradient(25.0 * losses, False), 25.0 * loss_term + lam_term, atol=1e-8)
+
+
+def _lam_only(adversary: FlowAdversary, initial: torch.Tensor, lam: float) -> torch.Tensor:
+    """The λ term's gradient alone (the loss term vanishes for equal losses)."""
+    params = adversary.sample_params(4)
+    surrogate, _ = adversary_surrogate(adversary, params, torch.ones(4, dtype=torch.float64),
+                                       lam, initial)
+    return torch.cat([g.flatten() for g in torch.autograd.grad(surrogate,
+                                                               adversary.parameters())])
+
+
+def test_regret_signal_ascends_the_loss_minus_the_reference() -> None:
+    """``signal="regret"`` updates p_φ exactly as the loss signal would on L − L*(τ)."""
+    reference = lambda params: 2.0 * params[:, 0].to(torch.float64)  # noqa: E731
+    results = []
+    for signal, shift in (("regret", False), ("loss", True)):
+        adversary = make_adversary("spline", "uniform", perturb=0.1, seed=5)
+        principle = AdversarialPrinciple(
+            adversary, ArOptions(lam=0.2, signal=signal), total_updates=10,
+            reference_loss=reference if signal == "regret" else None)
+        torch.manual_seed(6)
+        tasks = principle.propose(16)
+        losses = toy_loss(tasks["params"])
+        if shift:
+            losses = losses - reference(tasks["params"])
+        torch.manual_seed(7)
+        stats = principle.update(tasks, losses)
+        results.append((stats["adversary/objective"],
+                        [p.detach().clone() for p in adversary.parameters()]))
+    assert results[0][0] == pytest.approx(results[1][0])
+    assert all(torch.equal(a, b) for a, b in zip(results[0][1], results[1][1], strict=True))
+
+
+def test_regret_without_a_reference_is_refused() -> None:
+    with pytest.raises(ConfigError, match="risk.ar.signal"):
+        AdversarialPrinciple(make_adversary("spline"), ArOptions(signal="regret"))

@@ -1,5 +1,6 @@
-"""Evaluation metrics: CVaR_α on hand-made vectors, the standard error of the mean, and the
-noisy-support (random perturbation) evaluation."""
+"""Evaluation metrics: CVaR_α on hand-made vectors, the standard errors of the mean and of CVaR
+(by hand and against the spread of repeated estimates), paired differences, R rollouts per task,
+and the noisy-support (random perturbation) evaluation."""
 
 import math
 
@@ -9,7 +10,15 @@ from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
 from armeta_rl.tasks import BoxUniform, TaskSpace
-from armeta_rl.trainers.evaluation import cvar, summarize
+from armeta_rl.tasks.protocol import repeat_tasks
+from armeta_rl.trainers.evaluation import (
+    cvar,
+    cvar_influence,
+    evaluate_on,
+    paired_difference,
+    standard_error,
+    summarize,
+)
 from armeta_rl.trainers.players import build_players
 from armeta_rl.trainers.report import evaluate_players
 
@@ -79,3 +88,69 @@ def test_noisy_support_scores_the_same_tasks_and_points_as_the_clean_evaluation(
     assert faint["initial_noisy"]["mean"] == pytest.approx(faint["initial"]["mean"], rel=1e-4)
     assert strong["initial"] == faint["initial"]
     assert strong["initial_noisy"]["mean"] != pytest.approx(strong["initial"]["mean"], rel=1e-2)
+
+
+def test_cvar_standard_error_by_hand():
+    # losses 1 … 10, α = 0.5: tail 6 … 10 (k = 5), threshold t = 5 (the worst value outside it),
+    # z = 5 + 2·(x − 5)₊ = 5, 5, 5, 5, 5, 7, 9, 11, 13, 15: mean 8 = CVaR, sample variance
+    # (5·9 + 1 + 1 + 9 + 25 + 49)/9 = 130/9, so the standard error is √(130/90) = √(13/9).
+    losses = torch.arange(1.0, 11.0)
+    z = cvar_influence(losses, 0.5)
+    assert z.tolist() == [5.0] * 5 + [7.0, 9.0, 11.0, 13.0, 15.0]
+    assert summarize(losses, "mse", [0.5])["cvar_sem"]["0.5"] == pytest.approx(math.sqrt(13 / 9))
+    # returns: the same numbers mirrored
+    assert summarize(losses, "return", [0.5])["cvar_sem"]["0.5"] == pytest.approx(
+        math.sqrt(13 / 9))
+    # a tail of all n values is the mean: z = x
+    assert torch.equal(cvar_influence(losses, 0.01), losses.double())
+
+
+@pytest.mark.parametrize("alpha", [0.1, 0.5, 0.7, 0.9])
+@pytest.mark.parametrize("higher_better", [False, True])
+def test_cvar_is_the_mean_of_its_influence_values(alpha, higher_better):
+    values = torch.distributions.Gamma(2.0, 0.5).sample((37,))
+    assert float(cvar_influence(values, alpha, higher_better).mean()) == pytest.approx(
+        cvar(values, alpha, higher_better), rel=1e-12)
+
+
+@pytest.mark.parametrize("n,alpha", [(100, 0.5), (100, 0.9), (500, 0.5)])
+def test_cvar_standard_error_is_the_spread_of_cvar_estimates_over_task_draws(n, alpha):
+    torch.manual_seed(0)
+    draws = torch.distributions.Gamma(2.0, 0.5).sample((3000, n)).double()
+    estimates = torch.tensor([cvar(row, alpha) for row in draws])
+    sems = torch.tensor([standard_error(cvar_influence(row, alpha)) for row in draws])
+    assert float(sems.mean()) == pytest.approx(float(estimates.std()), rel=0.08)
+
+
+def test_paired_difference_by_hand():
+    first, second = [1.0, 2.0, 3.0, 4.0], [0.0, 2.0, 1.0, 5.0]  # differences 1, 0, 2, −1
+    diff = paired_difference(first, second, "return", [0.5])
+    assert diff["mean"] == pytest.approx(0.5)
+    assert diff["sem"] == pytest.approx(math.sqrt(5 / 3) / 2)  # std of the differences / √4
+    assert diff["cvar"]["0.5"] == pytest.approx((1 + 2) / 2 - (0 + 1) / 2)  # lowest halves
+    za = cvar_influence(torch.tensor(first), 0.5, True)
+    zb = cvar_influence(torch.tensor(second), 0.5, True)
+    assert diff["cvar_sem"]["0.5"] == pytest.approx(standard_error(za - zb))
+    with pytest.raises(ValueError, match="same tasks"):
+        paired_difference(first, second[:3], "return", [0.5])
+
+
+def test_a_task_scores_the_mean_of_its_rollouts_collected_in_one_batch():
+    """With R rollouts, entry r·n + k of the one batch is task k's r-th rollout; the report's
+    task score is the mean over r, its noise rollout_sd the pooled within-task spread."""
+    cfg = compose_train("benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=8")
+    players = build_players(cfg)
+    leader, initial, collector = players.leader, players.initial, players.eval_collector
+    report = evaluate_on(leader, initial, collector, 6, [0.5], seed=3, rollouts=4)
+    torch.manual_seed(3)
+    tasks = initial.sample(6)
+    batch = repeat_tasks(tasks, 4)
+    assert torch.equal(batch["params"].reshape(4, 6, 2), tasks["params"].expand(4, 6, 2))
+    with torch.no_grad():
+        returns = -leader.evaluate(leader.collect(batch, collector)).double().reshape(4, 6)
+    assert report["per_task"] == pytest.approx(returns.mean(0).tolist(), rel=1e-5)
+    assert report["rollouts"] == 4 and report["n_tasks"] == 6
+    assert report["rollout_sd"] == pytest.approx(float(returns.var(0).mean().sqrt()))
+    assert report["rollout_sd"] > 0  # the rollouts of a task are independent draws
+    assert report["mean"] == pytest.approx(float(returns.mean()))

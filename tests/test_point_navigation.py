@@ -11,7 +11,11 @@ from torchrl.envs import RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, episode_returns, valid_mask
-from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
+from armeta_rl.envs.point_navigation import (
+    PAPER_SPARSE_REGIONS,
+    PointNavigationEnv,
+    reference_return,
+)
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
 
@@ -213,3 +217,78 @@ def test_episode_collector_acts_with_each_tasks_parameters() -> None:
     torch.testing.assert_close(final[1], torch.tensor([[0.0, -0.4]] * 2), atol=1e-4, rtol=0)
     expected_x = torch.tensor([0.1, 0.2, 0.3])
     torch.testing.assert_close(data["observation"][0, 0, 1:, 0], expected_x, atol=1e-4, rtol=0)
+
+
+TRUNCATED = (((-0.5, -0.25), (0.25, 0.5), 0.2), ((0.25, 0.5), (-0.5, -0.25), 0.2))
+
+
+@pytest.mark.parametrize("regions", [{}, {"sparse_regions": PAPER_SPARSE_REGIONS},
+                                     {"truncated_regions": TRUNCATED},
+                                     {"truncated_regions": TRUNCATED, "squared_distance": True}])
+def test_reference_return_is_the_full_speed_path_and_no_policy_beats_it(regions) -> None:
+    torch.manual_seed(0)
+    goals = torch.rand(64, 2) - 0.5
+    env = PointNavigationEnv((64, 1), max_steps=30, seed=0, **regions)
+    reference = reference_return(goals, 30, regions.get("sparse_regions", ()),
+                                 regions.get("truncated_regions", ()),
+                                 regions.get("squared_distance", False))
+
+    def episode_return(act) -> torch.Tensor:
+        td = reset_with_goals(env, goals[:, None])
+        total, running = torch.zeros(64), torch.ones(64, dtype=torch.bool)
+        for _ in range(30):
+            td = env.step(td.set("action", act(td["observation"])))
+            total += td["next", "reward"].view(64) * running
+            running &= ~td["next", "done"].view(64)
+            td = td["next"]
+        return total
+
+    greedy = episode_return(lambda position: (goals[:, None] - position).clamp(-0.1, 0.1))
+    torch.testing.assert_close(greedy, reference, rtol=1e-5, atol=1e-6)
+    for _ in range(5):  # noisy versions of the greedy path and random walks do worse
+        noisy = episode_return(lambda p: (goals[:, None] - p).clamp(-0.1, 0.1)
+                               + 0.05 * torch.randn(64, 1, 2))
+        walk = episode_return(lambda p: 0.1 * (2 * torch.rand(64, 1, 2) - 1))
+        assert (noisy <= reference + 1e-5).all() and (walk <= reference + 1e-5).all()
+
+
+def test_truncated_regions_feel_the_distance_only_within_the_radius() -> None:
+    env = PointNavigationEnv((2, 1), truncated_regions=TRUNCATED, seed=0)
+    reset_with_goals(env, torch.tensor([[[-0.3, 0.3]], [[-0.1, 0.1]]]))  # in a region, outside
+    td = TensorDict({"action": torch.tensor([[[-0.1, 0.1]], [[0.0, 0.0]]])}, [2, 1])
+    rewards = []
+    for _ in range(2):
+        td = env.step(td)
+        rewards.append(td["next", "reward"].view(2))
+        td = td["next"].set("action", torch.tensor([[[-0.1, 0.1]], [[0.0, 0.0]]]))
+    # region goal: at (−0.1, 0.1) it is 0.2·√2 > 0.2 away (reward −0.2, capped), at (−0.2, 0.2)
+    # 0.1·√2 < 0.2 (reward −0.1·√2); the goal outside the regions is felt at any distance
+    torch.testing.assert_close(rewards[0], torch.tensor([-0.2, -0.1 * 2**0.5]))
+    torch.testing.assert_close(rewards[1], torch.tensor([-0.1 * 2**0.5, -0.1 * 2**0.5]))
+    with pytest.raises(ConfigError, match="truncated_regions"):
+        PointNavigationEnv((1, 1), truncated_regions=[((0.0, 0.5), (0.0, 0.5), -1.0)])
+
+
+def test_a_scaled_region_changes_the_return_not_the_adaptation() -> None:
+    """MAML-TRPO normalizes each task's advantages, so scaling a task's rewards by 0.4 (the
+    paper's region) leaves its inner step, hence the adapted policy and its episodes, unchanged:
+    the same trajectories score 0.4 times the return. The scaled region is not harder, it only
+    looks easier to a loss that reads returns (docs/meta-rl.md)."""
+    from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
+
+    returns = []
+    for regions in ((), PAPER_SPARSE_REGIONS):
+        collector = PointNavigationCollector(episodes=4, max_steps=20, sparse_regions=regions)
+        torch.manual_seed(0)
+        leader = MAMLTRPOLeader(collector)
+        tasks = TensorDict({"params": torch.tensor([[0.3, -0.4], [0.45, -0.3]])}, [2])
+        torch.manual_seed(1)
+        with torch.no_grad():
+            batch = leader.collect(tasks)
+        returns.append((batch, episode_returns(batch.valid)))
+    (plain, plain_returns), (scaled, scaled_returns) = returns
+    torch.testing.assert_close(scaled.valid["action"], plain.valid["action"], rtol=1e-4,
+                               atol=1e-5)
+    torch.testing.assert_close(scaled.train_advantages, plain.train_advantages, rtol=1e-3,
+                               atol=1e-4)
+    torch.testing.assert_close(scaled_returns, 0.4 * plain_returns, rtol=1e-4, atol=1e-5)

@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
@@ -30,7 +31,7 @@ from armeta_rl.reproduce.aggregate import (
 )
 from armeta_rl.reproduce.cli import MANIFEST, SweepClock, check_runs, reproduce
 from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
-from armeta_rl.reproduce.reports import table
+from armeta_rl.reproduce.reports import paired, table
 
 ROOT = Path(__file__).resolve().parents[1]
 REPRODUCE = [sys.executable, "-c", "from armeta_rl.reproduce.cli import main; main()"]
@@ -272,6 +273,45 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
     assert cells[5] == "1.200 ± 0.283" and cells[9] == "**0.900 ± 0.141**"
     adversarial = next(line for line in text.splitlines() if "same seed) |" in line)
     assert "**1.000 ± 0.283**" in adversarial
+
+
+def _paired_report(per_task: list[float], section: str = "initial", seed: int = 1234) -> dict:
+    values = torch.tensor(per_task)
+    return {"metric": "return", section: {
+        "mean": float(values.mean()), "sem": 0.1, "cvar": {"0.5": float(values.min())},
+        "cvar_sem": {"0.5": 0.2}, "n_tasks": 2, "rollouts": 8, "seed": seed,
+        "per_task": per_task, "entropy": 1.0, "kl_p0": 0.0}}
+
+
+def test_paired_differences_over_seeds_by_hand(tmp_path):
+    """Per seed, AR-MAML minus MAML on the same tasks, then mean ± std over seeds, the RMS of the
+    per-seed paired standard errors over tasks and the seeds where AR-MAML is better."""
+    plan = make_plan("meta_rl_point", "paper")
+    scores = {("maml", 0): [-10.0, -12.0], ("ar_maml", 0): [-9.0, -12.0],
+              ("maml", 1): [-11.0, -13.0], ("ar_maml", 1): [-10.0, -11.0]}
+    for (method, seed), per_task in scores.items():
+        run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
+        run.mkdir(parents=True)
+        (run / "eval.json").write_text(json.dumps(_paired_report(per_task)))
+        shifted = [v - 1 for v in per_task]
+        (run / "eval_shifts.json").write_text(json.dumps(
+            _paired_report(shifted, "shift/rim", seed=7) | {"initial": {}}))
+    records = collect(plan, tmp_path, {})
+    assert {r["distribution"] for r in records} == {"initial", "shift/rim"}
+    text = paired(plan, records, tmp_path)
+    # differences per seed: (1, 0) → mean 0.5, sem 0.5; (1, 2) → mean 1.5, sem 0.5. Over seeds:
+    # 1.0 ± 0.707, RMS sem 0.5, 2/2 better; 1.0 is not beyond 2 · 0.5 (the se over seeds): plain.
+    initial = next(line for line in text.splitlines()
+                   if line.startswith("| point_nav | initial |") and "Δ" not in line
+                   and "+1.000" in line)
+    assert "+1.000 ± 0.707 [0.500] (2/2)" in initial
+    # CVaR0.5 of two tasks is the lower one: (−12) − (−12) = 0 and (−11) − (−13) = 2; the
+    # paired CVaR standard error is 1 at both seeds (influence values −9, −15 against −10, −14;
+    # −10, −12 against −11, −15); no difference at seed 0, so 1 of 2 seeds better
+    assert "+1.000 ± 1.414 [1.000] (1/2)" in initial
+    assert "| point_nav | shift: rim |" in text
+    level = next(line for line in text.splitlines() if line.startswith("| point_nav | initial |"))
+    assert "-11.5 ± 0.7 [0.1]" in level  # MAML's average: (−11, −12) over seeds, task s.e. 0.1
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:

@@ -108,3 +108,21 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
         trainer.run()
     assert checkpoint.restore("resume") == 4
     assert all(torch.isfinite(p).all() for p in players.leader.model.parameters())
+
+
+def test_the_followers_loss_averages_independent_rollouts():
+    """trainer.follower_rollouts = R: a task's loss for the follower is the mean of R independent
+    fresh rollouts at θ, so its variance over draws is 1/R of one rollout's."""
+    from tensordict import TensorDict
+
+    cfg = compose_train("benchmark=point_nav", "method=ar_maml", "trainer.meta_batch=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10")
+    players = build_players(cfg)
+    tasks = TensorDict({"params": torch.tensor([[0.3, -0.2]]).expand(400, 2)}, [400])
+    variances = []
+    for rollouts in (1, 4):
+        trainer = GameTrainer(players.leader, players.principle, iterations=1, meta_batch=2,
+                              progress=False, follower_rollouts=rollouts)
+        torch.manual_seed(rollouts)
+        variances.append(float(trainer.fresh_losses(tasks).double().var()))
+    assert 4 / 1.6 < variances[0] / variances[1] < 4 * 1.6

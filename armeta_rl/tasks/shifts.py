@@ -102,7 +102,7 @@ def suite_names() -> list[str]:
     """The suites in ``configs/shift_suites/``."""
     from armeta_rl.cli import config_files
 
-    return sorted(path.stem for path in (config_files() / "shifts").glob("*.yaml"))
+    return sorted(path.stem for path in (config_files() / "shift_suites").glob("*.yaml"))
 
 
 def suite_path(suite: str) -> Path:
