@@ -122,7 +122,9 @@ class AntGoalEnv(EnvBase):
         batch_size: ``[tasks, episodes]`` (any batch shape works).
         max_steps: time limit in env steps (200); reaching it sets ``"truncated"``.
         frame_skip: physics steps per env step (5, as gymnasium's Ant).
-        ctrl_cost_weight, contact_cost_weight, survive_reward: reward terms (module docstring).
+        ctrl_cost_weight: weight of the control cost (module docstring).
+        contact_cost_weight: weight of the contact cost (module docstring).
+        survive_reward: reward per step alive (module docstring).
         healthy_z_range: torso heights outside this closed interval terminate the episode.
         reset_noise_scale: initial qpos = model qpos0 + U(±scale), qvel = scale·N(0, 1).
         goal_range: default goals (never set by a reset) are U([-goal_range, goal_range]²).
