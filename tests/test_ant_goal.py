@@ -8,7 +8,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, raw_mjdata
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import RewardSum, StepCounter, TransformedEnv
@@ -55,11 +55,7 @@ def test_step_equals_direct_mujoco_computation():
     td = env.reset(goals_td(env, goals))
     model = load_ant_model(with_force_sensor=False)
     torso = model.body("torso").id
-    datas = []
-    for qpos, qvel in zip(env.sim.bind("qpos"), env.sim.bind("qvel")):
-        data = mujoco.MjData(model)
-        data.qpos[:], data.qvel[:] = qpos, qvel
-        datas.append(data)
+    datas = raw_mjdata(model, env.sim)
     flat_goals = goals.repeat_interleave(2, 0).double().numpy()
     max_force = 0.0
     for _ in range(30):
