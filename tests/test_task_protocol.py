@@ -47,6 +47,7 @@ from armeta_rl.envs import (
     PointNavigationEnv,
     Walker2dVelEnv,
 )
+from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.factory import build_collector
 from armeta_rl.tasks import TASK_KEY
@@ -54,6 +55,10 @@ from armeta_rl.tasks.protocol import read_identifiers
 
 BATCH = (2, 1)
 STEPS = 6
+
+
+MASS_SCALE = [{"name": "mass_scale", "kind": "body_mass_only_scale", "target": "all",
+               "low": 0.75, "high": 1.25}]
 
 
 @dataclass(frozen=True)
@@ -82,8 +87,14 @@ CASES = {
     # directions of the sign opposite to the defaults at seed 0 (+1, +1)
     "half_cheetah_dir": Case(HalfCheetahDirEnv, ((-1.0,), (-0.25,)), (0.3,) * 6, "observation"),
     "walker2d_vel": Case(Walker2dVelEnv, ((0.25,), (1.75,)), (0.3,) * 6, "observation"),
+    # MPTS's mass-scale families: (goal_velocity, mass_scale), the mass through the transform
+    "half_cheetah_mass_vel": Case(partial(physics_task_env, HalfCheetahVelEnv, MASS_SCALE),
+                                  ((0.25, 0.8), (1.75, 1.2)), (0.3,) * 6, "observation"),
+    "walker2d_mass_vel": Case(partial(physics_task_env, Walker2dVelEnv, MASS_SCALE),
+                              ((0.25, 0.8), (1.75, 1.2)), (0.3,) * 6, "observation"),
 }
-MUJOCO_FAMILIES = ["ant", "ant_dir", "half_cheetah_vel", "half_cheetah_dir", "walker2d_vel"]
+MUJOCO_FAMILIES = ["ant", "ant_dir", "half_cheetah_vel", "half_cheetah_dir", "walker2d_vel",
+                   "half_cheetah_mass_vel", "walker2d_mass_vel"]
 
 
 def task_td(env: EnvBase, params: torch.Tensor) -> TensorDict:
@@ -225,7 +236,9 @@ def check_transitions(name: str, data: TensorDictBase, given: torch.Tensor) -> N
 
 def velocity_reward(name: str, data: TensorDictBase, task: torch.Tensor) -> torch.Tensor:
     """The reward of the velocity and direction families, from each transition's start and next
-    observation (the torso's position), its action and its task ``[n]``."""
+    observation (the torso's position), its action and its task ``[n]`` (the goal velocity or the
+    direction; a mass scale changes the dynamics, not the reward)."""
+    name = name.replace("_mass_vel", "_vel")
     start, end = data["observation"].double(), data["next", "observation"].double()
     action_cost = data["action"].double().square().sum(-1)
     task = task.double()
@@ -282,6 +295,8 @@ BAD_INPUT = [
     ("half_cheetah_vel", {TASK_KEY: torch.full((*BATCH, 1), float("nan"))}, TASK_KEY, "finite"),
     ("half_cheetah_dir", {TASK_KEY: torch.full((*BATCH, 1), 1.5)}, TASK_KEY, "[-1, 1]"),
     ("walker2d_vel", {"task": torch.ones(*BATCH, 1)}, "task", "go under 'params'"),
+    ("half_cheetah_mass_vel", {TASK_KEY: torch.tensor([1.0, 1.5]).expand(*BATCH, 2)}, TASK_KEY,
+     "outside the task box (mass_scale in [0.75, 1.25])"),
 ]
 
 
