@@ -43,6 +43,7 @@ FIRST_BENCHMARK = {
     "point_robot": "point_nav",
     "meta_rl_point": "point_nav",
     "meta_rl_point_validation": "point_nav",
+    "meta_rl_cheetah": "half_cheetah_vel",
     "ant_pos": "ant_goal",
 }
 

@@ -28,6 +28,7 @@ BOXES = {
     "point_nav": TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5]),
     "sinusoid": TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi]),
     "pendulum": TaskSpace(["m", "l"], [0.4, 0.4], [1.6, 1.6]),
+    "half_cheetah_vel": TaskSpace(["goal_velocity"], [0.0], [2.0]),
 }
 
 
