@@ -29,11 +29,26 @@ BOXES = {
     "sinusoid": TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi]),
     "pendulum": TaskSpace(["m", "l"], [0.4, 0.4], [1.6, 1.6]),
     "half_cheetah_vel": TaskSpace(["goal_velocity"], [0.0], [2.0]),
+    "acrobot": TaskSpace(["m1", "m2"], [0.4, 0.4], [1.6, 1.6]),
 }
 
 
 def test_every_suite_has_its_box_here():
-    assert set(BOXES) <= set(suite_names())
+    assert set(BOXES) == set(suite_names())
+
+
+def test_every_benchmark_with_a_suite_takes_all_of_it():
+    from hydra import compose, initialize_config_dir
+
+    from armeta_rl.cli import config_dir, group_choices
+    from armeta_rl.factory import build_space
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        for benchmark in group_choices("benchmark"):
+            cfg = compose("train", overrides=[f"benchmark={benchmark}"])
+            suite = cfg.benchmark.get("shift_suite")
+            if suite is not None:
+                assert suite_shifts(build_space(cfg), suite, benchmark, "all"), benchmark
 
 
 @pytest.mark.parametrize("suite", sorted(BOXES))

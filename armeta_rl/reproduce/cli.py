@@ -129,12 +129,15 @@ class SweepClock:
 
 def check_runs(plan: Plan) -> None:
     """Compose and check the config of every distinct run (seeds aside) before launching, so a
-    bad override in an experiment's YAML fails with one line instead of in every job."""
+    bad override in an experiment's YAML fails with one line instead of in every job; with
+    ``shifts:`` in the YAML, each run's benchmark must have those shifts in its suite."""
     from hydra import compose, initialize_config_dir
     from hydra.errors import HydraException
 
     from armeta_rl.cli import config_dir
     from armeta_rl.config import check_config
+    from armeta_rl.factory import build_space
+    from armeta_rl.tasks.shifts import suite_shifts
 
     distinct = {(*run.command()[:2], *run.overrides): run.target is not None
                 for run in (*plan.runs, *plan.attacks)}
@@ -146,6 +149,9 @@ def check_runs(plan: Plan) -> None:
                 raise ConfigError("overrides", " ".join(overrides),
                                   str(error).splitlines()[0]) from None
             check_config(cfg)
+            if plan.spec.get("shifts") is not None and not attack:
+                suite_shifts(build_space(cfg), OmegaConf.select(cfg, "benchmark.shift_suite"),
+                             cfg.benchmark.name, plan.spec["shifts"])
             if attack and cfg.method.risk != "ar":
                 raise ConfigError("attacks", cfg.method.name,
                                   "an attack trains a flow adversary: allowed: the ar_* methods")
