@@ -61,6 +61,7 @@ def test_time_limit_truncates() -> None:
 
 
 def test_goals_survive_automatic_resets() -> None:
+    torch.manual_seed(0)  # the random actions: no walk of this seed reaches its goal early
     env = PointNavigationEnv((3, 2), max_steps=10, seed=0)
     goals = torch.tensor([[0.4, -0.3], [-0.2, 0.1], [0.0, 0.45]])[:, None].expand(3, 2, 2)
     start = reset_with_goals(env, goals)
