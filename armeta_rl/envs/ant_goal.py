@@ -94,6 +94,26 @@ def observation_size(model: mujoco.MjModel) -> int:
     return model.nq + model.nv + 6 * (model.nbody - 1) + 9 + 3
 
 
+def goal_reward(xy, goal, action, forces, ctrl_cost_weight: float, contact_cost_weight: float,
+                survive_reward: float):
+    """The reward of the module docstring for ``n`` simulations: torso ``xy`` and ``goal``
+    ``[n, 2]``, ``action`` ``[n, nu]``, clipped contact ``forces`` ``[n, nbody, 6]``. Written with
+    operators and methods that NumPy arrays and torch tensors share, so the CPU env (float64
+    NumPy) and the MuJoCo Warp env (float32 torch on its device) compute it with one function."""
+    return (-abs(xy - goal).sum(-1)
+            - ctrl_cost_weight * (action * action).sum(-1)
+            - contact_cost_weight * (forces * forces).sum((-2, -1))
+            + survive_reward)
+
+
+def healthy(state, height, healthy_z_range: Sequence[float]):
+    """Whether each simulation goes on: its state (qpos, qvel) ``[n, nq + nv]`` finite and its
+    torso ``height`` ``[n]`` inside the closed ``healthy_z_range`` (NumPy or torch, as
+    :func:`goal_reward`)."""
+    low, high = healthy_z_range
+    return (abs(state) < math.inf).all(-1) & (height >= low) & (height <= high)
+
+
 def _check_arguments(max_steps: int, frame_skip: int, healthy_z_range: Sequence[float],
                      reset_noise_scale: float, goal_range: float, threads: int | None) -> None:
     """One :class:`ConfigError` line for the first bad constructor argument of the env."""
@@ -169,15 +189,15 @@ class AntGoalEnv(EnvBase):
         self._cfrc_ext, self._xpos, self._xmat = (
             self.sim.bind(k) for k in ("cfrc_ext", "xpos", "xmat")
         )
-        self._forces = np.empty_like(self._cfrc_ext)
-        self._obs = np.empty((self.n_sims, observation_size(self.model)))
+        self._forces = self._cfrc_ext.clip(-1.0, 1.0)  # the clipped forces, refilled every step
+        self._obs = self._new_observation()
 
         self._make_specs()
         self._generator = torch.Generator()
         self._set_seed(seed)
         unit = torch.rand(*self.batch_size, 2, generator=self._generator, dtype=torch.float64)
-        self._goal = self.goal_range * (2 * unit - 1)
-        self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long)
+        self._set_goal(self.goal_range * (2 * unit - 1))
+        self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long, device=self.device)
         self.sim.reset()
 
     def _make_specs(self) -> None:
@@ -213,16 +233,36 @@ class AntGoalEnv(EnvBase):
         (:class:`armeta_rl.envs.ant_goal_warp.AntGoalWarpEnv` puts them on MuJoCo Warp)."""
         return Batch(self.model, self.n_sims, nthread=threads)
 
+    def _new_observation(self) -> np.ndarray:
+        """The observation buffer ``[n_sims, 119]``, of the simulation's array type."""
+        return np.empty((self.n_sims, observation_size(self.model)))
+
+    def _as_sim(self, tensor: torch.Tensor) -> np.ndarray:
+        """``tensor`` as the simulation's array type: float64 NumPy on the CPU (a view when it is
+        a float64 CPU tensor already)."""
+        return tensor.detach().to("cpu", torch.float64).numpy()
+
+    def _as_torch(self, array: np.ndarray) -> torch.Tensor:
+        """An array of the simulation's type as a torch tensor (a view)."""
+        return torch.from_numpy(array)
+
+    def _set_goal(self, goal: torch.Tensor) -> None:
+        """Keep the goals ``[*batch, 2]`` (float64 on the CPU, where the reset draws are made) and
+        their copy ``[n_sims, 2]`` in the simulation's array type, which the reward reads."""
+        self._goal = goal
+        self._sim_goal = self._as_sim(goal.reshape(self.n_sims, 2))
+
     def _set_seed(self, seed: int | None) -> None:
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
         self._generator.manual_seed(int(seed))
 
     def _observe(self) -> np.ndarray:
-        """Fill the observation buffer ``[n_sims, 119]`` and the clipped forces from the batch."""
+        """Fill the observation buffer ``[n_sims, 119]`` and the clipped forces from the batch
+        (NumPy or torch: the same slices and methods)."""
         nq, nv, n = self.model.nq, self.model.nv, self.n_sims
         obs = self._obs
-        np.clip(self._cfrc_ext, -1.0, 1.0, out=self._forces)
+        self._forces[...] = self._cfrc_ext.clip(-1.0, 1.0)
         obs[:, :nq] = self._qpos
         obs[:, nq : nq + nv] = self._qvel
         end = obs.shape[1] - 12
@@ -233,7 +273,8 @@ class AntGoalEnv(EnvBase):
 
     def _output(self, extra: dict[str, torch.Tensor]) -> TensorDict:
         shape, dtype = self.batch_size, torch.get_default_dtype()
-        observation = torch.from_numpy(self._obs).to(dtype).reshape(*shape, -1)
+        # a copy: the buffer is overwritten by the next step
+        observation = self._as_torch(self._obs).to(dtype, copy=True).reshape(*shape, -1)
         return TensorDict(
             {"observation": observation, TASK_KEY: self._goal.to(dtype), **extra},
             batch_size=shape,
@@ -251,8 +292,9 @@ class AntGoalEnv(EnvBase):
         goal = read_identifiers(tensordict, GOAL_NAMES, -math.inf, math.inf, shape)
         if goal is not None:
             goal = goal.to("cpu", torch.float64)
-            self._goal = torch.where(mask, goal, self._goal)
-        self._steps = torch.where(mask, torch.zeros_like(self._steps), self._steps)
+            self._set_goal(torch.where(mask, goal, self._goal))
+        steps = self._steps
+        self._steps = torch.where(mask.to(steps.device), torch.zeros_like(steps), steps)
         ids = np.flatnonzero(mask.reshape(-1).numpy())
         if ids.size:
             self._reset_sims(ids)
@@ -271,35 +313,28 @@ class AntGoalEnv(EnvBase):
         ids = None if n == self.n_sims else ids.astype(np.int32)
         self.sim.reset(ids, stage=_NONE)
         rows = slice(None) if ids is None else ids
-        self._qpos[rows] = self.model.qpos0 + qpos_noise.numpy()
-        self._qvel[rows] = qvel_noise.numpy()
+        self._qpos[rows] = self._as_sim(torch.from_numpy(self.model.qpos0) + qpos_noise)
+        self._qvel[rows] = self._as_sim(qvel_noise)
         self.sim.forward(ids, stage=_ACC)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = self.batch_size
-        action = tensordict.get("action").detach().to("cpu", torch.float64)
-        action = action.reshape(self.n_sims, self.model.nu).numpy()
+        action = self._as_sim(tensordict.get("action").reshape(self.n_sims, self.model.nu))
         self._ctrl[:] = action
         self.sim.step(nstep=self.frame_skip, stage=_ACC)
         self._observe()
         xy = self._xpos[:, self._torso, :2]
-        goal = self._goal.reshape(self.n_sims, 2).numpy()
-        reward = (
-            -np.abs(xy - goal).sum(-1)
-            - self.ctrl_cost_weight * np.square(action).sum(-1)
-            - self.contact_cost_weight * np.square(self._forces).sum((-2, -1))
-            + self.survive_reward
-        )
+        reward = goal_reward(xy, self._sim_goal, action, self._forces, self.ctrl_cost_weight,
+                             self.contact_cost_weight, self.survive_reward)
         state = self._obs[:, : self.model.nq + self.model.nv]
-        height = self._qpos[:, 2]
-        low, high = self.healthy_z_range
-        healthy = np.isfinite(state).all(-1) & (height >= low) & (height <= high)
-        terminated = torch.from_numpy(~healthy).reshape(*shape, 1)
+        going_on = healthy(state, self._qpos[:, 2], self.healthy_z_range)
+        terminated = self._as_torch(~going_on).reshape(*shape, 1).to(self.device)
         self._steps = self._steps + 1
         truncated = self._steps >= self.max_steps
+        reward = self._as_torch(reward).to(torch.get_default_dtype())
         return self._output(
             {
-                "reward": torch.from_numpy(reward).to(torch.get_default_dtype()).reshape(*shape, 1),
+                "reward": reward.reshape(*shape, 1),
                 "done": terminated | truncated,
                 "terminated": terminated,
                 "truncated": truncated,
