@@ -30,8 +30,11 @@ class SysIdCollector:
     For tasks ``[K]`` with identifiers ``"params"`` (``TASK_KEY``) ``[K, d]`` ((m, l) for the
     pendulum by default, any of (m, l, g) with ``identifiers``; (m1, m2) for the acrobot), one
     batched env ``[K, episodes]`` is reset with those identifiers
-    and a uniformly random policy acts for ``n_transitions / episodes`` steps in a single
-    ``env.rollout`` (finished acrobot episodes are reset and collection goes on). Each task's
+    and a uniformly random policy acts for ``n_transitions / episodes`` steps (finished acrobot
+    episodes are reset and collection goes on). The steps are
+    :meth:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.transitions`: ``env.rollout``'s
+    transitions bit for bit, without TorchRL's per-step TensorDicts, which cost a hundred times
+    the physics of these envs. Each task's
     ``n_transitions`` transitions are split at random (torch's global RNG) into ``n_support``
     support and ``n_transitions - n_support`` query points::
 
@@ -49,8 +52,8 @@ class SysIdCollector:
     delta/none 0.0415, delta/scale 0.0431, next/none 0.0435, next/scale 0.0455; acrobot
     delta/none 0.00110, next/none 0.00114, delta/scale 0.00147, next/scale 0.0142.
 
-    ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
-    any batch, so collection time grows with the steps per episode (see
+    ``episodes=20`` (20 episodes of 10 steps per task): a step costs about the same for any
+    batch, so collection time grows with the steps per episode (see
     ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
     initial states: the median |θ̇| of the pendulum data is 2.5 with one 200-step episode, 2.4
     with 10 x 20 steps and 1.8 with 20 x 10 (90% quantile 6.0 / 6.2 / 5.5; the ±8 clip is reached
@@ -155,9 +158,8 @@ class SysIdCollector:
         env.set_seed(int(torch.randint(0, 2**62, ())))
         batch = (n_tasks, self.episodes)
         params = params.to(self.device)[:, None].expand(*batch, -1)
-        reset = env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
-        return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
-                           auto_reset=False, break_when_any_done=False)
+        env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
+        return env.transitions(self.n_transitions // self.episodes)
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query transitions for every task: TensorDict ``[K]`` with
