@@ -51,6 +51,15 @@ from armeta_rl.envs.ant_goal_warp import (  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 STEPS, WORLDS = 200, 2
 HAS_CUDA = warp.is_cuda_available()
+HAS_CPU = "cpu" in [str(device) for device in warp.get_devices()]
+DEVICES = [
+    pytest.param("cpu", marks=pytest.mark.skipif(
+        not HAS_CPU, reason="warp has no CPU device here (its LLVM backend, warp-clang, is "
+                            "missing)")),
+    pytest.param("cuda", marks=pytest.mark.skipif(
+        not HAS_CUDA, reason="no CUDA device: MuJoCo Warp on the GPU is checked where there is "
+                             "one")),
+]
 
 
 def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
@@ -93,8 +102,7 @@ def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
     return {key: np.array(value) for key, value in out.items()}
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
-    not HAS_CUDA, reason="no CUDA device: MuJoCo Warp on the GPU is checked where there is one"))])
+@pytest.mark.parametrize("device", DEVICES)
 def test_warp_equals_cpu_mujoco_with_frame_invariant_friction(device):
     errors = _teacher_forced(mujoco.mjtCone.mjCONE_ELLIPTIC, device)
     assert errors["ncon"].max() >= 2  # the check covers contact dynamics
@@ -104,8 +112,9 @@ def test_warp_equals_cpu_mujoco_with_frame_invariant_friction(device):
     assert errors["forces"].max() <= 1e-2  # the observation's clip(cfrc_ext, -1, 1)
 
 
-def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
-    errors = _teacher_forced(mujoco.mjtCone.mjCONE_PYRAMIDAL, "cpu")
+@pytest.mark.parametrize("device", DEVICES)
+def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts(device):
+    errors = _teacher_forced(mujoco.mjtCone.mjCONE_PYRAMIDAL, device)
     air = errors["ncon"] == 0
     # no contact in either engine at the step's start, its end, or the next step's end
     free = air & np.roll(air, 1, axis=0) & np.roll(air, -1, axis=0)
@@ -117,25 +126,23 @@ def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
     assert np.isfinite(errors["qvel"]).all() and errors["qpos"].max() <= 5e-3
 
 
-def test_warp_env_resets_like_the_cpu_env_and_rolls_out():
+@pytest.mark.parametrize("device", DEVICES)
+def test_warp_env_resets_like_the_cpu_env_and_rolls_out(device):
     """Same seed, same reset noise and goals: the first observations agree to float32 precision;
     the env satisfies TorchRL's spec check and terminates like the CPU env's rule says."""
     goals = TensorDict({TASK_KEY: torch.tensor([[[1.0, -2.0]], [[0.5, 3.0]]])}, [2, 1])
     cpu = AntGoalEnv((2, 1), max_steps=5, seed=3)
-    env = AntGoalWarpEnv((2, 1), max_steps=5, seed=3, warp_device="cpu")
-    start, reference = env.reset(goals.clone()), cpu.reset(goals.clone())
-    torch.testing.assert_close(start["observation"], reference["observation"], atol=1e-6, rtol=0)
-    assert torch.equal(start[TASK_KEY], reference[TASK_KEY])
+    env = AntGoalWarpEnv((2, 1), max_steps=5, seed=3, warp_device=device)
+    start, reference = env.reset(goals.clone().to(env.device)), cpu.reset(goals.clone())
+    torch.testing.assert_close(start["observation"].cpu(), reference["observation"], atol=1e-6,
+                               rtol=0)
+    assert torch.equal(start[TASK_KEY].cpu(), reference[TASK_KEY])
     check_env_specs(env)
     rollout = env.rollout(5, auto_reset=True)
     height = rollout["next", "observation"][..., 2]
     healthy = (height >= 0.2) & (height <= 1.0)
     assert torch.equal(rollout["next", "terminated"].squeeze(-1), ~healthy)
     assert rollout["next", "truncated"][..., -1, :].all()  # max_steps = 5
-
-
-DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
-    not HAS_CUDA, reason="no CUDA device: MuJoCo Warp on the GPU is checked where there is one"))]
 
 
 @pytest.mark.parametrize("device", DEVICES)

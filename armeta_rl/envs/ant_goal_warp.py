@@ -8,8 +8,8 @@ step there too: nothing goes through the host between steps.
 ``bind`` returns torch views of the warp arrays themselves (``warp.to_torch``: same memory, on the
 warp device), so the env writes the controls and reads the state, the contact forces and the torso
 pose where the physics keeps them, and computes the observation, reward and termination with the
-CPU env's own functions (:func:`~armeta_rl.envs.ant_goal.goal_reward`,
-:func:`~armeta_rl.envs.ant_goal.healthy`) in torch on that device. The env's torch device is the
+CPU env's own code (written for NumPy arrays and torch tensors alike,
+:class:`~armeta_rl.envs.ant_goal.AntTaskEnv`) in torch on that device. The env's torch device is the
 warp device's, so the policy of an episode collector acts there and the trajectories stay there
 (:class:`~armeta_rl.collectors.episodes.EpisodeCollector`). ``step`` runs ``nstep`` ``mjw.step``
 then ``mjw.forward`` at the new state, whose sensor stage (the torso accelerometer of
@@ -218,15 +218,22 @@ class AntGoalWarpEnv(AntGoalEnv):
     def _make_batch(self, threads: int) -> WarpBatch:
         return WarpBatch(self.model, self.n_sims, **self._warp)
 
+    @property
+    def sim_device(self) -> torch.device:
+        return self.sim.torch_device
+
     def _new_observation(self) -> torch.Tensor:
-        return torch.empty(self.n_sims, observation_size(self.model), device=self.sim.torch_device)
+        return torch.empty(self.n_sims, observation_size(self.model), device=self.sim_device)
 
     def _as_sim(self, tensor: torch.Tensor) -> torch.Tensor:
         """``tensor`` as the simulation's arrays: float32 on the warp device."""
-        return tensor.detach().to(self.sim.torch_device, torch.float32)
+        return tensor.detach().to(self.sim_device, torch.float32)
 
     def _as_torch(self, array: torch.Tensor) -> torch.Tensor:
         return array
+
+    def _snapshot(self, array: torch.Tensor) -> torch.Tensor:
+        return array.clone()
 
 
 def ant_goal_warp(warp_device: str = "cuda", **kwargs) -> Callable[..., AntGoalWarpEnv]:
