@@ -462,7 +462,8 @@ def run(args: argparse.Namespace) -> None:
     # compiling into one cache could race).
     background = [
         part("tests-devices", [*me, "tests", "--name", "test_devices", *res,
-                               "tests/test_devices.py"], args.tests_limit),
+                               "tests/test_devices.py"], args.tests_limit,
+             WARP_CACHE_PATH=tempfile.mkdtemp(prefix="warp_devices_")),
         part("tests-warp", [*me, "tests", "--name", "test_ant_goal_warp", *res,
                             "tests/test_ant_goal_warp.py"], args.tests_limit,
              WARP_CACHE_PATH=tempfile.mkdtemp(prefix="warp_tests_")),
