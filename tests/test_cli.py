@@ -8,8 +8,9 @@ from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.trainers.training import run_training
 
-TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
-EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
+TRAIN = [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())"]
+EVAL = [sys.executable, "-c",
+        "import sys; from armeta_rl.cli import evaluate; sys.exit(evaluate())"]
 
 
 @pytest.mark.parametrize(

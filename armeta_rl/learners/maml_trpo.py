@@ -18,19 +18,18 @@ The per-task loss reported to the game is −(mean return of the adapted policy)
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
-from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.fields import Options, above, at_least, each, inside, key, section
-from armeta_rl.learners.base import TaskWeights, sizes, weighted_sum
+from armeta_rl.fields import Section, above, at_least, each, inside, key, register
+from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml import sgd_step
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
 from armeta_rl.rl.policy import GaussianMLP, loc_scale, log_prob
@@ -76,8 +75,9 @@ class SurrogateGraph(NamedTuple):
     outputs: tuple[Tensor, Tensor]
 
 
+@register("learner.maml_trpo")
 @dataclass(frozen=True)
-class MamlTrpoOptions(Options):
+class MamlTrpoOptions(Section):
     """``learner.maml_trpo``: MAML's form on episode benchmarks (point_nav, ant_goal), MAML-TRPO
     with pytorch-maml-rl's settings: its keys, their types, ranges and defaults. The policy's
     input and output sizes are the env's observation and action.
@@ -99,8 +99,6 @@ class MamlTrpoOptions(Options):
             step's Jacobian is estimated from the subsample too (it is most of their cost). The
             surrogate, its gradient and the line search always use every episode.
     """
-
-    section = "learner.maml_trpo"
 
     # Gaussian MLP, tanh, state-independent log-std (init 0)
     hidden_sizes: list[int] = each(at_least(1), default=[64, 64])
@@ -403,16 +401,8 @@ class MAMLTRPOLeader:
         self.net.load_state_dict(state["policy"])
 
 
-OLD_SIZE_KEYS = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
-"""Where configs saved before sizes came from the collector state the policy's sizes."""
-
-
-def build_maml_trpo(
-    cfg: DictConfig, collector: TaskCollector, device: torch.device
-) -> MAMLTRPOLeader:
-    """MAML-TRPO from ``learner.maml_trpo``, its policy sized by the collector's env, on
-    ``device`` (sizes a config saved before then states are checked against the env's)."""
-    sizes(cfg, collector, OLD_SIZE_KEYS)
-    opts = {k: v for k, v in section(cfg, "learner.maml_trpo").items()
-            if f"learner.maml_trpo.{k}" not in OLD_SIZE_KEYS}
-    return MAMLTRPOLeader(collector, options=MamlTrpoOptions(**opts), device=device)
+def build_maml_trpo(options: MamlTrpoOptions, collector: TaskCollector, device: torch.device,
+                    model: Mapping[str, Any]) -> MAMLTRPOLeader:
+    """MAML-TRPO with ``options``, its policy sized by the collector's env, on ``device`` (a
+    Gaussian MLP policy: no choices in ``model``)."""
+    return MAMLTRPOLeader(collector, options=options, device=device)

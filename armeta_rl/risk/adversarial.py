@@ -23,14 +23,15 @@ from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
 from armeta_rl.adversary.objective import BASELINES, adversary_surrogate, surrogate_gradient
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError, TrainingDiverged
-from armeta_rl.fields import Options, above, at_least, key, one_of
+from armeta_rl.fields import Section, above, at_least, key, one_of, register
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
 
 
+@register("risk.ar")
 @dataclass(frozen=True)
-class ArOptions(Options):
+class ArOptions(Section):
     """``risk.ar``: the keys of :class:`AdversarialPrinciple` and of its flow adversary, their
     types, ranges and defaults.
 
@@ -51,8 +52,6 @@ class ArOptions(Options):
             :meth:`AdversarialPrinciple.update`): ``False``, ``True`` (inductor) or a backend
             name; see :mod:`armeta_rl.compiling`.
     """
-
-    section = "risk.ar"
 
     # spline (exact, box-preserving) or planar (the paper's 2 layers)
     flow: str = one_of(*FLOW_KINDS, default=DEFAULT_FLOW)
