@@ -150,18 +150,6 @@ def job_overrides(args: Sequence[str], groups: tuple[str, ...] = GROUPS) -> list
     return [list(job) for job in itertools.product(*per_arg)]
 
 
-def _type_words(node: Any) -> str:
-    """What a value of the config node ``node`` must be, in words."""
-    from omegaconf import BooleanNode, FloatNode, IntegerNode, ListConfig, StringNode
-
-    if isinstance(node, ListConfig):
-        element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
-            node._metadata.element_type)
-        return f"a list of {element}" if element else "a list"
-    return {BooleanNode: "a boolean (true or false)", IntegerNode: "an integer",
-            FloatNode: "a number", StringNode: "a string"}.get(type(node), "a group of keys")
-
-
 def _node(cfg: DictConfig, key: str) -> Any:
     parent, _, leaf = key.rpartition(".")
     container = OmegaConf.select(cfg, parent) if parent else cfg
@@ -210,7 +198,9 @@ def _composition_message(job: list[str], config_name: str, error: Exception) -> 
         choices = [a for a in others if a.split("=")[0] in GROUPS]
         if not _has_key(cfg, key):
             return _unknown_key_message(cfg, key, value, choices)
-        return f"config key '{key}' = {value}: must be {_type_words(_node(cfg, key))}"
+        from armeta_rl.config import type_words
+
+        return f"config key '{key}' = {value}: must be {type_words(_node(cfg, key))}"
     return " ".join(text.split())
 
 

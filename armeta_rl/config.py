@@ -20,7 +20,7 @@ from typing import Any
 import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
+from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
@@ -212,22 +212,31 @@ def validate(cfg: DictConfig) -> TrainConfig:
         raise config_error(error) from None
 
 
-_TYPE_WORDS = {"Integer": "an integer", "Float": "a number", "Boolean": "a boolean (true or false)",
-               "String": "a string"}
+def type_words(node: Any) -> str:
+    """What a value of the config node ``node`` must be, in words (``an integer``, ``a list of
+    numbers``, ...)."""
+    from omegaconf import BooleanNode, FloatNode, IntegerNode, ListConfig, StringNode
+
+    if isinstance(node, ListConfig):
+        element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
+            node._metadata.element_type)
+        return f"a list of {element}" if element else "a list"
+    return {BooleanNode: "a boolean (true or false)", IntegerNode: "an integer",
+            FloatNode: "a number", StringNode: "a string"}.get(type(node), "a group of keys")
 
 
-def config_error(error: OmegaConfBaseException, value: Any = None) -> ConfigError:
-    """OmegaConf's error (a value of the wrong type, a missing key) as one
-    :class:`ConfigError` line; ``value`` is the value as given, where known."""
-    cause = error.__cause__ if isinstance(error.__cause__, ConfigError) else None
-    if cause is not None:
-        return cause
-    first = str(error).splitlines()[0]
-    kind = first.rsplit(" ", 1)[-1]
-    allowed = f"must be {_TYPE_WORDS[kind]}" if kind in _TYPE_WORDS else first
-    if value is None:
-        value = getattr(error, "value", None)
-    return ConfigError(str(error.full_key), value, allowed)
+def config_error(error: OmegaConfBaseException) -> ConfigError:
+    """OmegaConf's error (a value of the wrong type, a key the schema lacks) as one
+    :class:`ConfigError` line naming the key."""
+    node = getattr(error, "child_node", None)
+    if isinstance(error, MissingMandatoryValue):
+        allowed = "must be set"
+    elif node is None:
+        allowed = "no such key" if isinstance(error, ConfigKeyError) else (
+            str(error).splitlines()[0])
+    else:
+        allowed = f"must be {type_words(node)}"
+    return ConfigError(str(error.full_key), getattr(error, "value", None), allowed)
 
 
 def schema() -> DictConfig:

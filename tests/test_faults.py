@@ -17,6 +17,7 @@ import sys
 import time
 
 import pytest
+import torch
 from conftest import SMALL_RUN, compose_train
 from hydra import compose, initialize_config_dir
 
@@ -25,6 +26,7 @@ from armeta_rl.cli import Refused, _eval_task, _report_errors, config_dir, resum
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
+from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.report import EVAL_FILE, cross_evaluate
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOCK_FILE
 from armeta_rl.trainers.training import run_training
@@ -291,6 +293,32 @@ def test_the_divergence_bound_stops_the_run_and_names_the_checkpoint(tmp_path, m
     monkeypatch.setattr(game.GameTrainer, "train_iteration", blows_up_at_3)
     with pytest.raises(TrainingDiverged, match="iteration 3.*checkpoint-000000000002 is kept"):
         run_training(compose_train(*RUN), run_dir, progress=False)
+
+
+def test_a_diverged_adversary_step_stops_the_run_at_its_last_good_checkpoint(
+    tmp_path, monkeypatch
+):
+    """The follower's step at iteration 3 leaves φ non-finite: the run stops with one line naming
+    the checkpoint of iteration 2, whose φ is finite, and resuming from it is possible."""
+    from armeta_rl.risk import adversarial
+
+    step = adversarial.follower_step
+
+    def explodes_at_3(follower, tasks, losses):
+        if follower.scheduler.last_epoch == 2:
+            follower.optimizer.param_groups[0]["lr"] = 1e300
+        return step(follower, tasks, losses)
+
+    run_dir = tmp_path / "run"
+    with monkeypatch.context() as patch:
+        patch.setattr(adversarial, "follower_step", explodes_at_3)
+        with pytest.raises(TrainingDiverged, match="non-finite parameters.*"
+                                                   "checkpoint-000000000002 is kept"):
+            run_training(compose_train(*RUN), run_dir, progress=False)
+    _, players = load_players(run_dir, "resume")
+    assert all(torch.isfinite(p).all() for p in players.principle.parameters())
+    run_training(compose_train(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+    assert (run_dir / EVAL_FILE).is_file()
 
 
 def run_cli(monkeypatch, capsys, tool, *args):

@@ -51,9 +51,12 @@ class Leader(Protocol):
     on_policy: bool
     collector: TaskCollector
 
-    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None) -> Any:
+    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> Any:
         """The data of ``tasks`` ``[K]`` at the current θ, from ``collector`` (e.g. the larger
-        evaluation collector) or the leader's own; the loop passes them on unchanged."""
+        evaluation collector) or the leader's own; the loop passes them on unchanged.
+        ``create_graph``: the data will be differentiated for :meth:`step`'s meta-gradient, so
+        any part computed from θ (MAML-TRPO's adapted policies) keeps its graph."""
         ...
 
     def step(self, data: Any, weights: TaskWeights) -> tuple[TensorDict, dict[str, float]]:
@@ -90,9 +93,10 @@ class OneNetworkLeader:
     collector: TaskCollector
     on_policy = False
 
-    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None) -> TensorDict:
+    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> TensorDict:
         """Support and query data ``[K]`` of ``tasks`` from ``collector`` or the leader's own; they
-        do not depend on θ."""
+        do not depend on θ (so ``create_graph`` changes nothing)."""
         return (self.collector if collector is None else collector).collect(tasks)
 
     def descend(self, losses: Tensor, weights: TaskWeights) -> None:

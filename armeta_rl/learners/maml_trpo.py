@@ -225,15 +225,15 @@ class MAMLTRPOLeader:
 
     # -- Leader protocol ----------------------------------------------------------------------
 
-    def collect(self, tasks: TensorDictBase, collector: TaskCollector | None = None) -> MetaBatch:
+    def collect(self, tasks: TensorDictBase, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> MetaBatch:
         """Roll out π_θ, adapt every task (one batched inner step), roll out the adapted policies,
         with ``collector`` or the leader's own.
 
-        Under grad mode the adapted parameters keep their graph to θ (for the meta-gradient of
-        :meth:`step`); under ``torch.no_grad()`` (the follower's and the evaluation's data, which
-        are only scored) they do not.
+        With ``create_graph`` the adapted parameters keep their graph to θ, for the meta-gradient
+        of :meth:`step`; the follower's and the evaluation's data, which are only scored, need
+        none.
         """
-        create_graph = torch.is_grad_enabled()
         collector = self.collector if collector is None else collector
         train = collector.collect(tasks, None, policy=self.net)
         train_advantages = self.advantages(train)
@@ -321,7 +321,9 @@ class MAMLTRPOLeader:
 
         Natural-gradient direction by conjugate gradient on the second-order KL Hessian, scaled to
         the trust region, then backtracking until the surrogate improves with Σ_k w_k KL_k ≤ δ.
-        Returns the surrogate and KL of the accepted step (θ unchanged if none qualifies).
+        Returns ``trpo_kl`` (Σ_k w_k KL_k of the accepted step), ``trpo_improvement`` (decrease of
+        the weighted surrogate) and ``trpo_line_search_steps`` (backtracking steps taken; −1 when
+        no step qualified and θ is unchanged).
         """
         w = weights.to(batch.valid["reward"].dtype)
         params = list(self.net.parameters())
@@ -352,10 +354,9 @@ class MAMLTRPOLeader:
             for p, value in zip(params, unflatten(new_theta, params)):
                 p.copy_(value)
         return {
-            "trpo/line_search_steps": float(-1 if accepted is None else accepted),
-            "trpo/surrogate_before": surrogate.item(),
-            "trpo/surrogate_after": loss.item(),
-            "trpo/kl": kl.item(),
+            "trpo_kl": kl.item(),
+            "trpo_improvement": surrogate.item() - loss.item(),
+            "trpo_line_search_steps": float(-1 if accepted is None else accepted),
         }
 
     def step(
@@ -365,19 +366,14 @@ class MAMLTRPOLeader:
         on Σ_k w_k L^out_k with ``w = weights(losses)``.
 
         Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"`` and
-        ``"return_post"``, and the step's TRPO diagnostics: ``"trpo_kl"`` (Σ_k w_k KL_k of the
-        accepted step), ``"trpo_improvement"`` (decrease of the weighted surrogate) and
-        ``"trpo_line_search_steps"`` (backtracking steps taken; −1 when no step was accepted).
+        ``"return_post"``, and the step's TRPO diagnostics (:meth:`trpo_update`). ``batch`` must
+        keep its graph to θ (``collect(tasks, create_graph=True)``) for the second-order
+        meta-gradient.
         """
         return_pre = episode_returns(batch.train).mean(-1)
         losses = self.evaluate(batch)
         return_post = -losses
-        update = self.trpo_update(batch, weights(losses))
-        diagnostics = {
-            "trpo_kl": update["trpo/kl"],
-            "trpo_improvement": update["trpo/surrogate_before"] - update["trpo/surrogate_after"],
-            "trpo_line_search_steps": update["trpo/line_search_steps"],
-        }
+        diagnostics = self.trpo_update(batch, weights(losses))
         per_task = TensorDict(
             {"loss": losses, "return_pre": return_pre, "return_post": return_post},
             batch_size=[losses.shape[0]],
