@@ -198,7 +198,7 @@ def _composition_message(job: list[str], config_name: str, error: Exception) -> 
         choices = [a for a in others if a.split("=")[0] in GROUPS]
         if not _has_key(cfg, key):
             return _unknown_key_message(cfg, key, value, choices)
-        from armeta_rl.config import type_words
+        from armeta_rl.fields import type_words
 
         return f"config key '{key}' = {value}: must be {type_words(_node(cfg, key))}"
     return " ".join(text.split())
@@ -273,7 +273,7 @@ def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
 def _merged(saved: DictConfig, changes: dict[str, Any]) -> DictConfig:
     from omegaconf.errors import OmegaConfBaseException
 
-    from armeta_rl.config import config_error
+    from armeta_rl.fields import config_error
 
     try:
         return OmegaConf.merge(saved, changes)
@@ -383,6 +383,13 @@ def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str]) ->
     return 0
 
 
+def _command(main: Callable[[list[str]], None], prog: str, argv: list[str] | None) -> int:
+    """``main``'s exit code on ``argv``; with ``argv`` ``None``, on ``sys.argv[1:]``, exiting."""
+    if argv is not None:
+        return _exit_code(main, prog, list(argv))
+    sys.exit(_exit_code(main, prog, sys.argv[1:]))
+
+
 def _print_help(prog: str, config_name: str, groups: tuple[str, ...], usage: str) -> None:
     """``--help``: the usage, the groups a command line chooses from and the composed config."""
     from hydra import initialize_config_dir
@@ -399,14 +406,15 @@ def _print_help(prog: str, config_name: str, groups: tuple[str, ...], usage: str
 
 def train(argv: list[str] | None = None) -> int:
     """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``); returns the
-    exit code (``argv``: the command line's arguments, default ``sys.argv[1:]``).
+    exit code of the command line ``argv``. Without ``argv`` it is the program: it runs
+    ``sys.argv[1:]`` and exits with that code.
 
     Every job's config is composed and validated before Hydra starts. A single run's directory
     is checked and locked then too (Hydra writes ``.hydra/`` and its log there); a run refused
     before it wrote a checkpoint removes the directory it created. ``-m`` jobs lock their own
     directories.
     """
-    return _exit_code(_train, "armeta-train", list(sys.argv[1:] if argv is None else argv))
+    return _command(_train, "armeta-train", argv)
 
 
 def _train(args: list[str]) -> None:
@@ -501,8 +509,9 @@ def check_writable(path: Path, key: str) -> None:
 
 def evaluate(argv: list[str] | None = None) -> int:
     """``armeta-eval``: score a saved learner on p0 and on a saved adversary; returns the exit
-    code (``argv``: the command line's arguments, default ``sys.argv[1:]``)."""
-    return _exit_code(_evaluate, "armeta-eval", list(sys.argv[1:] if argv is None else argv))
+    code of the command line ``argv``. Without ``argv`` it is the program: it runs
+    ``sys.argv[1:]`` and exits with that code."""
+    return _command(_evaluate, "armeta-eval", argv)
 
 
 def _evaluate(args: list[str]) -> None:

@@ -20,11 +20,11 @@ from typing import Any
 import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
-from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
+from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
-from armeta_rl.fields import Section, above, at_least, each, inside, key, one_of
+from armeta_rl.fields import Section, above, at_least, config_error, each, inside, key, one_of
 
 CONFIG_FILE = "config.yaml"
 SEED_RANGE = (-(2**63), 2**64 - 1)
@@ -210,33 +210,6 @@ def validate(cfg: DictConfig) -> TrainConfig:
         return OmegaConf.to_object(cfg)
     except OmegaConfBaseException as error:
         raise config_error(error) from None
-
-
-def type_words(node: Any) -> str:
-    """What a value of the config node ``node`` must be, in words (``an integer``, ``a list of
-    numbers``, ...)."""
-    from omegaconf import BooleanNode, FloatNode, IntegerNode, ListConfig, StringNode
-
-    if isinstance(node, ListConfig):
-        element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
-            node._metadata.element_type)
-        return f"a list of {element}" if element else "a list"
-    return {BooleanNode: "a boolean (true or false)", IntegerNode: "an integer",
-            FloatNode: "a number", StringNode: "a string"}.get(type(node), "a group of keys")
-
-
-def config_error(error: OmegaConfBaseException) -> ConfigError:
-    """OmegaConf's error (a value of the wrong type, a key the schema lacks) as one
-    :class:`ConfigError` line naming the key."""
-    node = getattr(error, "child_node", None)
-    if isinstance(error, MissingMandatoryValue):
-        allowed = "must be set"
-    elif node is None:
-        allowed = "no such key" if isinstance(error, ConfigKeyError) else (
-            str(error).splitlines()[0])
-    else:
-        allowed = f"must be {type_words(node)}"
-    return ConfigError(str(error.full_key), getattr(error, "value", None), allowed)
 
 
 def schema() -> DictConfig:

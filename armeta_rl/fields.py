@@ -23,6 +23,7 @@ from typing import Any, ClassVar
 
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
+from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from armeta_rl.errors import ConfigError
 
@@ -78,6 +79,10 @@ class Section:
     section: ClassVar[str]
 
     def __post_init__(self) -> None:
+        try:  # the types, as Hydra checks a composed config's (an object made from Python)
+            OmegaConf.structured(self)
+        except OmegaConfBaseException:
+            self._refuse_type()
         for spec in dataclasses.fields(self):  # type: ignore[arg-type]
             value = getattr(self, spec.name)
             if isinstance(value, str) and (value == MISSING or value.startswith("${")):
@@ -87,6 +92,15 @@ class Section:
                 self.refuse(spec.name, "must be a finite number")
             if value is not None and test is not None and not test(value):
                 self.refuse(spec.name, spec.metadata["allowed"])
+
+    def _refuse_type(self) -> None:
+        """Refuse the first field whose value its annotation does not take."""
+        schema = OmegaConf.structured(type(self))
+        for spec in dataclasses.fields(self):  # type: ignore[arg-type]
+            try:
+                OmegaConf.merge(schema, {spec.name: getattr(self, spec.name)})
+            except OmegaConfBaseException:
+                self.refuse(spec.name, f"must be {type_words(schema._get_node(spec.name))}")
 
     def refuse(self, name: str, allowed: str) -> None:
         """Raise the :class:`ConfigError` of this section's key ``name``."""
@@ -111,3 +125,30 @@ def register(section: str) -> Callable[[type], type]:
         return cls
 
     return store
+
+
+def type_words(node: Any) -> str:
+    """What a value of the config node ``node`` must be, in words (``an integer``, ``a list of
+    numbers``, ...)."""
+    from omegaconf import BooleanNode, FloatNode, IntegerNode, ListConfig, StringNode
+
+    if isinstance(node, ListConfig):
+        element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
+            node._metadata.element_type)
+        return f"a list of {element}" if element else "a list"
+    return {BooleanNode: "a boolean (true or false)", IntegerNode: "an integer",
+            FloatNode: "a number", StringNode: "a string"}.get(type(node), "a group of keys")
+
+
+def config_error(error: OmegaConfBaseException) -> ConfigError:
+    """OmegaConf's error (a value of the wrong type, a key the schema lacks) as one
+    :class:`ConfigError` line naming the key."""
+    node = getattr(error, "child_node", None)
+    if isinstance(error, MissingMandatoryValue):
+        allowed = "must be set"
+    elif node is None:
+        allowed = "no such key" if isinstance(error, ConfigKeyError) else (
+            str(error).splitlines()[0])
+    else:
+        allowed = f"must be {type_words(node)}"
+    return ConfigError(str(error.full_key), getattr(error, "value", None), allowed)

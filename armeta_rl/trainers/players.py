@@ -14,7 +14,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import EpisodeCollector
-from armeta_rl.config import TrainConfig, config_error, load_run_config, validate
+from armeta_rl.config import TrainConfig, load_run_config, validate
 from armeta_rl.devices import CPU, resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
@@ -24,6 +24,7 @@ from armeta_rl.factory import (
     build_principle,
     build_space,
 )
+from armeta_rl.fields import config_error
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
