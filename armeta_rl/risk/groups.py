@@ -63,9 +63,7 @@ class _GroupOptions(Section):
 class TrOptions(_GroupOptions):
     """``risk.tr``: the keys of :class:`WorstCasePrinciple`, their types, ranges and defaults."""
 
-    # Chosen on a validation seed and validation tasks (seed 100, eval.seed 4321; TR-MAML and
-    # TR-CNP alike): docs/protocol.md, section 3 (TR-MAML's validation MSE: 0.618 at 1e-5,
-    # 1.114 at the untuned 0.001).
+    # chosen on a validation seed and validation tasks (docs/notes/history.md)
     step_size: float = above(0, default=1.0e-5)
 
 
@@ -74,8 +72,7 @@ class TrOptions(_GroupOptions):
 class DroOptions(_GroupOptions):
     """``risk.dro``: the keys of :class:`GroupDROPrinciple`, their types, ranges and defaults."""
 
-    # Chosen as tr's: docs/protocol.md, section 3 (DRO-MAML's validation MSE: 0.623 at
-    # 1e-4, 1.495 at 0.01).
+    # chosen as tr's (docs/notes/history.md)
     step_size: float = above(0, default=1.0e-4)
 
 
