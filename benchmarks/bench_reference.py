@@ -34,9 +34,14 @@ the table shows every round, the median ratio and its range, the peak RSS of eac
 machine and its load. One torch thread everywhere (``OMP_NUM_THREADS=1``); pytorch-maml-rl
 samples in one worker process (``--num-workers 1``) beside its learner, as its README runs it.
 
+With ``--compiled`` a third worker takes turns on the regression and system-identification
+workloads: ours with the leader's loss and the adversary's flow compiled (``torch.compile``,
+``learner.maml.compile=true risk.ar.compile=true``), its compile part of its warm-up.
+
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_reference.py --authors PATH --maml-rl PATH
 --reference-python PATH/bin/python [--workloads sinusoid pendulum acrobot point_robot]
-[--rounds 5]``; it prints the tables and writes them to its section of docs/benchmarks.md.
+[--rounds 5] [--compiled]``; it prints the tables and writes them to its section of
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -197,8 +202,13 @@ def maml_rl_worker(path: Path, workload: dict) -> None:
     train.main(args)
 
 
-def ours_worker(workload: dict) -> None:
-    """Our trainer on ``workload``'s benchmark (its defaults: eager)."""
+COMPILED = ("learner.maml.compile=true", "risk.ar.compile=true")
+"""Our compiled form (``--compiled``, regression and system identification): the leader's loss
+and the adversary's flow through ``torch.compile`` (docs/speed-options.md)."""
+
+
+def ours_worker(workload: dict, overrides: list[str]) -> None:
+    """Our trainer on ``workload``'s benchmark with its defaults (eager) and ``overrides``."""
     import torch
     from gpu_check import trainer_for
 
@@ -207,8 +217,7 @@ def ours_worker(workload: dict) -> None:
     torch.set_num_threads(1)
     keep_freed_memory()  # as armeta-train does
     benchmark, method = workload["ours"]
-    trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}",
-                              *workload.get("overrides", [])])
+    trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}", *overrides])
     gate = Gate(warmup=2)
     while True:
         gate()
@@ -260,48 +269,61 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
     workload = WORKLOADS[name]
     me = str(Path(__file__).resolve())
     path = args.authors if workload["reference"] == "authors" else args.maml_rl
-    reference = Worker([args.reference_python, me, "worker", workload["reference"], name,
-                        "--path", str(path)], logs / f"{name}_reference.log")
-    ours = Worker([sys.executable, me, "worker", "ours", name], logs / f"{name}_ours.log")
+    workers = {"reference": Worker([args.reference_python, me, "worker", workload["reference"],
+                                    name, "--path", str(path)], logs / f"{name}_reference.log"),
+               "ours": Worker([sys.executable, me, "worker", "ours", name],
+                              logs / f"{name}_ours.log")}
+    if args.compiled and workload["reference"] == "authors":
+        workers["compiled"] = Worker([sys.executable, me, "worker", "ours", name, "--overrides",
+                                      *COMPILED], logs / f"{name}_compiled.log")
     try:
-        for worker in (reference, ours):
-            worker.answer()  # ready: set up and warmed up
+        for worker in workers.values():
+            worker.answer(timeout=1800)  # ready: set up and warmed up (compiled)
         turn = args.turn or workload["turn"]
         rounds = []
         for index in range(args.rounds):
-            order = (reference, ours) if index % 2 == 0 else (ours, reference)
-            answers = {worker: worker.turn(turn) for worker in order}
-            ref, our = answers[reference], answers[ours]
-            rounds.append({"reference_ms": 1000 * statistics.median(ref["times"]),
-                           "ours_ms": 1000 * statistics.median(our["times"]),
-                           "reference_rss": ref["peak_rss_mib"], "ours_rss": our["peak_rss_mib"],
+            # each side goes first in turn, so that no side always follows the same one
+            names = list(workers)
+            order = names[index % len(names):] + names[:index % len(names)]
+            answers = {side: workers[side].turn(turn) for side in order}
+            rounds.append({**{f"{side}_ms": 1000 * statistics.median(answer["times"])
+                              for side, answer in answers.items()},
+                           **{f"{side}_rss": answer["peak_rss_mib"]
+                              for side, answer in answers.items()},
                            "load": os.getloadavg()[0]})
-            print(f"{name} round {index + 1}: reference {rounds[-1]['reference_ms']:.1f} ms, "
-                  f"ours {rounds[-1]['ours_ms']:.1f} ms", flush=True)
+            print(f"{name} round {index + 1}: " + ", ".join(
+                f"{side} {rounds[-1][f'{side}_ms']:.1f} ms" for side in workers), flush=True)
     finally:
-        reference.stop()
-        ours.stop()
-    return {"name": name, "turn": turn, "rounds": rounds}
+        for worker in workers.values():
+            worker.stop()
+    return {"name": name, "turn": turn, "rounds": rounds, "sides": list(workers)}
 
 
 def table(result: dict) -> str:
     from timing import markdown_table
 
     workload = WORKLOADS[result["name"]]
-    rounds = result["rounds"]
-    ratios = [r["reference_ms"] / r["ours_ms"] for r in rounds]
-    rows = [(i + 1, f"{r['reference_ms']:.1f}", f"{r['ours_ms']:.1f}", f"{ratio:.1f}×",
-             f"{r['load']:.1f}") for i, (r, ratio) in enumerate(zip(rounds, ratios))]
+    rounds, ours = result["rounds"], [side for side in result["sides"] if side != "reference"]
+    ratios = {side: [r["reference_ms"] / r[f"{side}_ms"] for r in rounds] for side in ours}
+    rows = [(i + 1, f"{r['reference_ms']:.1f}",
+             *[cell for side in ours for cell in (f"{r[f'{side}_ms']:.1f}",
+                                                  f"{ratios[side][i]:.1f}×")],
+             f"{r['load']:.1f}") for i, r in enumerate(rounds)]
     benchmark, method = workload["ours"]
     reference = ("authors' AR-MAML" if workload["reference"] == "authors"
                  else "pytorch-maml-rl")
+    summary = "; ".join(
+        f"{'ours' if side == 'ours' else 'ours compiled'} **{statistics.median(ratio):.1f}×** "
+        f"(range {min(ratio):.1f}–{max(ratio):.1f}×)" for side, ratio in ratios.items())
+    rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in result["sides"])
     head = (f"**{result['name']}**: {reference} against `{benchmark}` `{method}`, "
-            f"{result['turn']} iterations a turn; ratio (reference ms / ours ms) median "
-            f"**{statistics.median(ratios):.1f}×**, range {min(ratios):.1f}–{max(ratios):.1f}×; "
-            f"peak RSS reference {rounds[-1]['reference_rss']:.0f} MiB, ours "
-            f"{rounds[-1]['ours_rss']:.0f} MiB.")
-    return head + "\n\n" + markdown_table(
-        ("round", "reference ms", "ours ms", "ratio", "load (1 min)"), rows)
+            f"{result['turn']} iterations a turn; ratio reference ms / ours ms, median over the "
+            f"rounds: {summary}; peak RSS: {rss}.")
+    header = ("round", "reference ms",
+              *[cell for side in ours for cell in (
+                  f"{'ours' if side == 'ours' else 'compiled'} ms",
+                  f"{'ratio' if side == 'ours' else 'compiled ratio'}")], "load (1 min)")
+    return head + "\n\n" + markdown_table(header, rows)
 
 
 def main() -> None:
@@ -311,6 +333,7 @@ def main() -> None:
     worker.add_argument("side", choices=["ours", "authors", "pytorch-maml-rl"])
     worker.add_argument("workload", choices=list(WORKLOADS))
     worker.add_argument("--path", type=Path)
+    worker.add_argument("--overrides", nargs="*", default=[])
     parser.add_argument("--authors", type=Path, help="a clone of lvyiqin/AR-MAML")
     parser.add_argument("--maml-rl", type=Path, help="a clone of tristandeleu/pytorch-maml-rl")
     parser.add_argument("--reference-python", default=sys.executable,
@@ -319,12 +342,15 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--turn", type=int, default=None,
                         help="iterations per turn (default: per workload)")
+    parser.add_argument("--compiled", action="store_true",
+                        help="also take turns with our compiled form (regression and system "
+                             "identification; its compile is part of the warm-up)")
     args = parser.parse_args()
     if args.command == "worker":
         own_stdout()
         workload = WORKLOADS[args.workload]
         if args.side == "ours":
-            ours_worker(workload)
+            ours_worker(workload, args.overrides)
         elif args.side == "authors":
             authors_worker(args.path, workload)
         else:
