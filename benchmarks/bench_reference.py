@@ -26,13 +26,16 @@ interpreter with ``--reference-python`` (a venv with torch, ``numpy<2``, ``gym==
 pyyaml, tqdm). Our side runs ``armeta-train``'s trainer on the corresponding ``*_paper`` benchmark
 (point robot: ``point_nav``, MAML-TRPO with exact Hessian-vector products, as pytorch-maml-rl).
 
-Turn-taking: the two workers are started and warmed up (the authors' first iteration includes
-their evaluation on 500 tasks, so it is not timed), then each round runs one turn of ``--turn``
-iterations in the reference and one in ours (the order alternating from round to round), so that
-a shared machine's slow spells fall on both. Each round gives the ratio of the turn medians;
-the table shows every round, the median ratio and its range, the peak RSS of each worker, the
-machine and its load. One torch thread everywhere (``OMP_NUM_THREADS=1``); pytorch-maml-rl
-samples in one worker process (``--num-workers 1``) beside its learner, as its README runs it.
+Turn-taking: the two workers are started and warmed up (the authors' first iteration includes their
+evaluation on 500 tasks, so it is not timed), then each round runs one turn of ``--turn``
+iterations in the reference and one in ours (the order alternating from round to round), so that a
+shared machine's slow spells fall on both. Each round gives the ratio of the turn medians; the
+table shows every round, the median ratio and its range, the peak RSS of each worker, the machine
+and its load. Each iteration is timed twice: wall time, and CPU time (user and system, of the
+worker and of its live child processes): on a shared, overloaded machine the wall times of two
+programs stretch unevenly, while the CPU time each spends on its own work stays comparable. One
+torch thread everywhere (``OMP_NUM_THREADS=1``); pytorch-maml-rl samples in one worker process
+(``--num-workers 1``) beside its learner, as its README runs it.
 
 With ``--compiled`` a third worker takes turns on the regression and system-identification
 workloads: ours with the leader's loss and the adversary's flow compiled (``torch.compile``,
@@ -48,6 +51,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import resource
 import select
@@ -106,36 +110,57 @@ def peak_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
+def cpu_seconds() -> float:
+    """CPU time of this process and of its live child processes (pytorch-maml-rl samples in
+    one), user and system: what the work cost, whatever else shares the machine."""
+    total = time.process_time()
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in Path("/proc/self/task").iterdir():
+        children = (task / "children").read_text().split()
+        for pid in children:
+            try:
+                fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+            except FileNotFoundError:
+                continue
+            total += (int(fields[11]) + int(fields[12])) / tick  # utime, stime
+    return total
+
+
 class Gate:
-    """Called at the start of every meta-iteration of a reference's own loop: records the time,
-    and after a turn's iterations reports them to the driver and waits for the next command
-    (``run N`` or ``quit``). The time spent waiting is not counted."""
+    """Called at the start of every meta-iteration of a reference's own loop: records the wall
+    and CPU time (:func:`cpu_seconds`), and after a turn's iterations reports them to the driver
+    and waits for the next command (``run N`` or ``quit``). The time spent waiting is not
+    counted."""
 
     def __init__(self, warmup: int) -> None:
         self.warmup, self.seen = warmup, 0
-        self.last: float | None = None
+        self.last = (0.0, 0.0)
         self.times: list[float] = []
+        self.cpu: list[float] = []
         self.wanted = 0
 
     def __call__(self) -> None:
-        now = time.perf_counter()
+        now = (time.perf_counter(), cpu_seconds())
         self.seen += 1
         timing = self.seen > self.warmup + 1
         if timing:
-            self.times.append(now - self.last)
+            self.times.append(now[0] - self.last[0])
+            self.cpu.append(now[1] - self.last[1])
         if self.seen == self.warmup + 1:
             reply({"ready": True})
             self.wait()
         elif timing and len(self.times) >= self.wanted:
-            reply({"times": self.times, "peak_rss_mib": peak_rss_mib()})
-            self.times = []
+            reply({"times": self.times, "cpu": self.cpu, "peak_rss_mib": peak_rss_mib()})
+            self.times, self.cpu = [], []
             self.wait()
-        self.last = time.perf_counter()
+        self.last = (time.perf_counter(), cpu_seconds())
 
     def wait(self) -> None:
         command = sys.stdin.readline().split()
         if not command or command[0] == "quit":
-            os._exit(0)  # the references' loops (and sampler processes) have no clean stop
+            for child in multiprocessing.active_children():  # pytorch-maml-rl's samplers
+                child.terminate()
+            os._exit(0)  # the references' loops have no clean stop
         self.wanted = int(command[1])
 
 
@@ -288,6 +313,8 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
             answers = {side: workers[side].turn(turn) for side in order}
             rounds.append({**{f"{side}_ms": 1000 * statistics.median(answer["times"])
                               for side, answer in answers.items()},
+                           **{f"{side}_cpu_ms": 1000 * statistics.median(answer["cpu"])
+                              for side, answer in answers.items()},
                            **{f"{side}_rss": answer["peak_rss_mib"]
                               for side, answer in answers.items()},
                            "load": os.getloadavg()[0]})
@@ -305,16 +332,23 @@ def table(result: dict) -> str:
     workload = WORKLOADS[result["name"]]
     rounds, ours = result["rounds"], [side for side in result["sides"] if side != "reference"]
     ratios = {side: [r["reference_ms"] / r[f"{side}_ms"] for r in rounds] for side in ours}
+    cpu_ratios = {side: [r["reference_cpu_ms"] / r[f"{side}_cpu_ms"] for r in rounds]
+                  for side in ours}
     rows = [(i + 1, f"{r['reference_ms']:.1f}",
              *[cell for side in ours for cell in (f"{r[f'{side}_ms']:.1f}",
                                                   f"{ratios[side][i]:.1f}×")],
+             f"{r['reference_cpu_ms']:.1f}",
+             *[cell for side in ours for cell in (f"{r[f'{side}_cpu_ms']:.1f}",
+                                                  f"{cpu_ratios[side][i]:.1f}×")],
              f"{r['load']:.1f}") for i, r in enumerate(rounds)]
     benchmark, method = workload["ours"]
     reference = ("authors' AR-MAML" if workload["reference"] == "authors"
                  else "pytorch-maml-rl")
     summary = "; ".join(
         f"{'ours' if side == 'ours' else 'ours compiled'} **{statistics.median(ratio):.1f}×** "
-        f"(range {min(ratio):.1f}–{max(ratio):.1f}×)" for side, ratio in ratios.items())
+        f"(range {min(ratio):.1f}–{max(ratio):.1f}×; CPU time "
+        f"{statistics.median(cpu_ratios[side]):.1f}×, {min(cpu_ratios[side]):.1f}–"
+        f"{max(cpu_ratios[side]):.1f}×)" for side, ratio in ratios.items())
     rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in result["sides"])
     head = (f"**{result['name']}**: {reference} against `{benchmark}` `{method}`, "
             f"{result['turn']} iterations a turn; ratio reference ms / ours ms, median over the "
@@ -322,7 +356,12 @@ def table(result: dict) -> str:
     header = ("round", "reference ms",
               *[cell for side in ours for cell in (
                   f"{'ours' if side == 'ours' else 'compiled'} ms",
-                  f"{'ratio' if side == 'ours' else 'compiled ratio'}")], "load (1 min)")
+                  f"{'ratio' if side == 'ours' else 'compiled ratio'}")],
+              "reference CPU ms",
+              *[cell for side in ours for cell in (
+                  f"{'ours' if side == 'ours' else 'compiled'} CPU ms",
+                  f"{'CPU ratio' if side == 'ours' else 'compiled CPU ratio'}")],
+              "load (1 min)")
     return head + "\n\n" + markdown_table(header, rows)
 
 
