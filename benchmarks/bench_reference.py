@@ -405,9 +405,10 @@ def main() -> None:
         parser.error(f"--rounds must be at least 1, got {args.rounds}")
     logs = Path(tempfile.mkdtemp(prefix="bench_reference_"))
     results = [compare(name, args, logs) for name in args.workloads]
+    print(f"workers' logs: {logs}")
     body = ("Meta-iterations of the reference implementations and of ours, in turns (module "
             "docstring of `benchmarks/bench_reference.py`), one torch thread each; per round the "
-            "median iteration of each side's turn. Workers' logs: " + str(logs) + ".\n\n"
+            "median iteration of each side's turn.\n\n"
             + "\n\n".join(table(result) for result in results))
     print(body)
     from timing import write_section
