@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import mujoco
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -51,6 +52,18 @@ def players_of(cfg: DictConfig):
     from armeta_rl.trainers.players import build_players
 
     return build_players(validate(cfg))
+
+
+def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:
+    """One MjData of ``model`` per simulation of the ``mujoco.batch.Batch`` ``sim``, at that
+    simulation's state (qpos, qvel): the raw references the batched MuJoCo envs are checked
+    against."""
+    datas = []
+    for qpos, qvel in zip(sim.bind("qpos"), sim.bind("qvel")):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        datas.append(data)
+    return datas
 
 
 @pytest.fixture
