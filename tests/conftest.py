@@ -38,6 +38,18 @@ def compose_train(*overrides: str) -> DictConfig:
         return compose("train", overrides=list(overrides))
 
 
+def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:
+    """One MjData of ``model`` per simulation of the ``mujoco.batch.Batch`` ``sim``, at that
+    simulation's state (qpos, qvel): the raw references the batched MuJoCo envs are checked
+    against."""
+    datas = []
+    for qpos, qvel in zip(sim.bind("qpos"), sim.bind("qvel")):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        datas.append(data)
+    return datas
+
+
 def collector_of(cfg: DictConfig, key: str = "collector"):
     """The collector ``benchmark.<key>`` of the composed ``cfg``, on the CPU."""
     from armeta_rl.factory import build_collector, build_space
@@ -52,18 +64,6 @@ def players_of(cfg: DictConfig):
     from armeta_rl.trainers.players import build_players
 
     return build_players(validate(cfg))
-
-
-def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:
-    """One MjData of ``model`` per simulation of the ``mujoco.batch.Batch`` ``sim``, at that
-    simulation's state (qpos, qvel): the raw references the batched MuJoCo envs are checked
-    against."""
-    datas = []
-    for qpos, qvel in zip(sim.bind("qpos"), sim.bind("qvel")):
-        data = mujoco.MjData(model)
-        data.qpos[:], data.qvel[:] = qpos, qvel
-        datas.append(data)
-    return datas
 
 
 @pytest.fixture
