@@ -6,9 +6,10 @@ import math
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
+from armeta_rl.config import validate
 from armeta_rl.tasks import BoxUniform, TaskSpace
 from armeta_rl.tasks.protocol import repeat_tasks
 from armeta_rl.trainers.evaluation import (
@@ -19,7 +20,6 @@ from armeta_rl.trainers.evaluation import (
     standard_error,
     summarize,
 )
-from armeta_rl.trainers.players import build_players
 from armeta_rl.trainers.report import evaluate_players
 
 
@@ -81,7 +81,7 @@ def test_noisy_support_adds_gaussian_noise_to_the_support_labels_only():
 def test_noisy_support_scores_the_same_tasks_and_points_as_the_clean_evaluation():
     def report(sigma: float) -> dict:
         cfg = compose_train(*SMALL_RUN, "method=maml", f"eval.support_noise={sigma}")
-        return evaluate_players(cfg, build_players(cfg))
+        return evaluate_players(validate(cfg), players_of(cfg))
 
     faint, strong = report(1e-6), report(3.0)
     assert faint["support_noise"] == 1e-6 and faint["initial_noisy"]["n_tasks"] == 20
@@ -140,7 +140,7 @@ def test_a_task_scores_the_mean_of_its_rollouts_collected_in_one_batch():
     task score is the mean over r, its noise rollout_sd the pooled within-task spread."""
     cfg = compose_train("benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=8")
-    players = build_players(cfg)
+    players = players_of(cfg)
     leader, initial, collector = players.leader, players.initial, players.eval_collector
     report = evaluate_on(leader, initial, collector, 6, [0.5], seed=3, rollouts=4)
     torch.manual_seed(3)

@@ -38,17 +38,18 @@ def test_every_suite_has_its_box_here():
 
 
 def test_every_benchmark_with_a_suite_takes_all_of_it():
-    from hydra import compose, initialize_config_dir
-
-    from armeta_rl.cli import config_dir, group_choices
+    from armeta_rl.cli import group_choices
+    from armeta_rl.config import validate
     from armeta_rl.factory import build_space
 
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        for benchmark in group_choices("benchmark"):
-            cfg = compose("train", overrides=[f"benchmark={benchmark}"])
-            suite = cfg.benchmark.get("shift_suite")
-            if suite is not None:
-                assert suite_shifts(build_space(cfg), suite, benchmark, "all"), benchmark
+    with_suite = 0
+    for benchmark in group_choices("benchmark"):
+        config = validate(compose_train(f"benchmark={benchmark}")).benchmark
+        if config.shift_suite is not None:
+            with_suite += 1
+            assert suite_shifts(build_space(config.space), config.shift_suite, benchmark,
+                                "all"), benchmark
+    assert with_suite >= len(BOXES)
 
 
 @pytest.mark.parametrize("suite", sorted(BOXES))
