@@ -296,13 +296,16 @@ def test_a_scaled_region_changes_the_return_not_the_adaptation() -> None:
     torch.testing.assert_close(scaled_returns, 0.4 * plain_returns, rtol=1e-4, atol=1e-5)
 
 
-def _rollouts(batch: tuple[int, ...], goals: torch.Tensor, policy, steps: int) -> list:
+def _rollouts(batch: tuple[int, ...], goals: torch.Tensor, policy, steps: int,
+              regions: dict | None = None) -> list:
     """``env.rollout`` and ``env.transitions`` from the same seeds and reset, each with the env's
-    position and step count after it and the next draw of torch's global RNG."""
+    position and step count after it and the next draw of torch's global RNG; ``regions``: the
+    env's reward regions (default the paper's scaled ones)."""
     results = []
     for fast in (False, True):
         torch.manual_seed(2)
-        env = PointNavigationEnv(batch, max_steps=7, sparse_regions=PAPER_SPARSE_REGIONS, seed=4)
+        env = PointNavigationEnv(batch, max_steps=7, seed=4,
+                                 **(regions or {"sparse_regions": PAPER_SPARSE_REGIONS}))
         start = env.reset(TensorDict({"params": goals}, batch))
         with set_exploration_type(ExplorationType.RANDOM):
             rollout = env.transitions(steps, policy) if fast else env.rollout(
@@ -341,3 +344,19 @@ def test_transitions_equal_env_rollout_when_goals_are_reached():
     assert fast[0]["next", "terminated"].all()
     for key in fast[0].keys(True, True):
         assert torch.equal(fast[0][key], slow[0][key]), key
+
+
+def test_transitions_equal_env_rollout_with_truncated_regions():
+    """The sparse robot's capped rewards (``point_nav_sparse``) on the fast path too, bit for bit,
+    with goals inside and outside the truncated regions."""
+    batch = (4, 5)
+    goals = torch.rand(*batch, 2, generator=torch.Generator().manual_seed(1)) - 0.5
+    goals[:2] = torch.tensor([-0.4, 0.4])  # in the top-left truncated region
+    regions = {"truncated_regions": TRUNCATED}
+    slow, fast = _rollouts(batch, goals, make_actor(GaussianMLP()), 20, regions)
+    capped = fast[0]["next", "reward"][:2] == -0.2
+    assert capped.any() and not capped.all()
+    for key in fast[0].keys(True, True):
+        assert torch.equal(fast[0][key], slow[0][key]), key
+    for a, b in zip(fast[1:], slow[1:]):
+        assert torch.equal(a, b)
