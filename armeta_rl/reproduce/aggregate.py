@@ -149,8 +149,8 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
     sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals
                 if job.adversary is not None]
-    shift_files = {(job.learner, Path(job.out).name) for job in plan.evals
-                   if job.adversary is None}
+    shift_files = dict.fromkeys((job.learner, Path(job.out).name) for job in plan.evals
+                                if job.adversary is None)  # in the plan's order, as a set is not
     for run, file in shift_files:
         path = results / run.subdir / file
         if path.is_file():
