@@ -27,6 +27,7 @@ from armeta_rl.learners.anil import AnilOptions, build_anil
 from armeta_rl.learners.base import Leader
 from armeta_rl.learners.cnp import CnpOptions, build_cnp
 from armeta_rl.learners.maml import MamlOptions, build_maml
+from armeta_rl.learners.maml_ppo import MamlPpoOptions, build_maml_ppo
 from armeta_rl.learners.maml_trpo import MamlTrpoOptions, build_maml_trpo
 from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.risk.base import RiskPrinciple
@@ -99,11 +100,12 @@ class Learner:
     """A registered meta-learner: its builder on regression and system-identification data
     (``build``), its options (``options``: a dataclass of :mod:`armeta_rl.config` fields, the type,
     range and default value of every key of its ``learner.<name>`` section), and its meta-RL form
-    on episode data (``rl``; ``None``: it has none). The composed config's ``learner:`` section and
+    on episode data (``rl``; ``None``: it has none). A learner of episodes only (MAML-PPO) has
+    neither ``build`` nor ``options``. The composed config's ``learner:`` section and
     its schema are derived from the options (:func:`learner_sections`)."""
 
-    build: Builder
-    options: type
+    build: Builder | None
+    options: type | None
     rl: RLForm | None = None
 
 
@@ -112,6 +114,7 @@ LEARNERS: dict[str, Learner] = {
                                                        MamlTrpoOptions)),
     "cnp": Learner(build_cnp, CnpOptions),
     "anil": Learner(build_anil, AnilOptions),
+    "maml_ppo": Learner(None, None, rl=RLForm("maml_ppo", build_maml_ppo, MamlPpoOptions)),
 }
 """Every meta-learner ``method.learner`` may name; adding one is a module and an entry here
 (docs/adding-a-learner.md)."""
@@ -121,7 +124,8 @@ def learner_sections() -> dict[str, type]:
     """The options of every ``learner.<name>`` section: each learner's, and its meta-RL form's."""
     sections = {}
     for name, learner in LEARNERS.items():
-        sections[name] = learner.options
+        if learner.options is not None:
+            sections[name] = learner.options
         if learner.rl is not None:
             sections[learner.rl.section] = learner.rl.options
     return sections
@@ -185,6 +189,9 @@ def build_leader(cfg: DictConfig, collector: TaskCollector, device: torch.device
     if name not in LEARNERS:
         raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
     if not isinstance(collector, EpisodeCollector):
+        if LEARNERS[name].build is None:
+            raise ConfigError("method.learner", name, f"learns from episodes: benchmark "
+                              f"{cfg.benchmark.name} has none (point_nav, ant_goal have)")
         return LEARNERS[name].build(cfg, collector, device)
     rl = LEARNERS[name].rl
     if rl is None:

@@ -34,5 +34,5 @@ def test_the_learner_registry_imports_whichever_module_comes_first(module: str) 
     options with armeta_rl.fields: entered from any of them, every learner is registered."""
     statement = (f"import {module}\nimport armeta_rl.config as config\n"
                  "assert sorted(config.learner_sections()) == "
-                 "['anil', 'cnp', 'maml', 'maml_trpo']")
+                 "['anil', 'cnp', 'maml', 'maml_ppo', 'maml_trpo']")
     imported_after(statement)
