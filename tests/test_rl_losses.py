@@ -9,14 +9,13 @@ import json
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, players_of
 from tensordict import TensorDict
 from torch.func import functional_call
 from torchrl.objectives import A2CLoss, ClipPPOLoss
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import build_collector, build_leader
 from armeta_rl.learners.maml_ppo import MAMLPPOLeader, MamlPpoOptions
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, MetaBatch
 from armeta_rl.rl.baseline import episode_mean
@@ -170,7 +169,7 @@ def test_a_maml_ppo_step_lowers_its_objective_and_reports_the_adapted_returns():
 def test_maml_ppo_is_a_learner_of_episodes_only():
     cfg = compose_train(*SMALL_RUN, "method.learner=maml_ppo")
     with pytest.raises(ConfigError, match="'method.learner' = 'maml_ppo': learns from episodes"):
-        build_leader(cfg, build_collector(cfg))
+        players_of(cfg)
 
 
 PPO_RUN = (*SMALL_RUN, "benchmark=point_nav_plain", "method=ar_maml", "method.learner=maml_ppo",

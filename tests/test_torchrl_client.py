@@ -29,7 +29,7 @@ from torchrl.envs import PendulumEnv as TorchRLPendulum
 from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.adversary import FlowAdversary, TaskSampler
-from armeta_rl.envs import AcrobotEnv, PendulumEnv, PointNavigationEnv
+from armeta_rl.envs import AcrobotEnv, HalfCheetahVelEnv, PendulumEnv, PointNavigationEnv
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.tasks import (
     TASK_KEY,
@@ -175,6 +175,8 @@ def test_a_fixed_shift_runs_the_same_tasks_every_episode():
                            TaskTransform()),
     lambda: SerialEnv(2, lambda: TransformedEnv(PointNavigationEnv(batch_size=(2,)),
                                                 Compose(TaskTransform(), StepCounter(5)))),
+    lambda: TransformedEnv(HalfCheetahVelEnv(batch_size=(4,)),
+                           Compose(TaskTransform(), StepCounter(5))),
 ])
 def test_required_identifiers_refuse_a_misspelled_key_behind_transforms_and_batched_envs(env):
     """Behind a transform TorchRL forwards only state-spec keys, so "goal" never reaches the env:
@@ -182,8 +184,9 @@ def test_required_identifiers_refuse_a_misspelled_key_behind_transforms_and_batc
     env = env()
     with pytest.raises(IdentifierError, match="'params' = missing: task identifiers are required"):
         env.reset(TensorDict({"goal": torch.zeros(*env.batch_size, 2)}, env.batch_size))
-    start = env.reset(TensorDict({TASK_KEY: torch.full((4, 2), 0.25)}, [4]).reshape(
-        env.batch_size))
+    width = env.state_spec[TASK_KEY].shape[-1]
+    start = env.reset(TensorDict({TASK_KEY: torch.full((*env.batch_size, width), 0.25)},
+                                 env.batch_size))
     assert (start[TASK_KEY] == 0.25).all()
     rollout = env.rollout(12, break_when_any_done=False, auto_reset=False, tensordict=start)
     assert (rollout[TASK_KEY] == 0.25).all()  # automatic partial resets keep each entry's task

@@ -20,20 +20,19 @@ trust region plays in MAML-TRPO. Both losses run batched over tasks by
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
 from typing import Any
 
 import torch
-from omegaconf import DictConfig
-from tensordict import TensorDict
+from tensordict import TensorDict, TensorDictBase
 from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.fields import Options, above, at_least, each, inside, key, section
+from armeta_rl.fields import Section, above, at_least, each, inside, key, register
 from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, MetaBatch, as_task_params
 from armeta_rl.rl.losses import (
@@ -45,8 +44,9 @@ from armeta_rl.rl.losses import (
 from armeta_rl.rl.policy import make_actor
 
 
+@register("learner.maml_ppo")
 @dataclass(frozen=True)
-class MamlPpoOptions(Options):
+class MamlPpoOptions(Section):
     """``learner.maml_ppo``: MAML-PPO on episode benchmarks (point_nav, ant_goal). The policy,
     the inner step and the advantages are MAML-TRPO's (:class:`MamlTrpoOptions`, same defaults);
     the outer step is PPO's.
@@ -62,8 +62,6 @@ class MamlPpoOptions(Options):
         epochs: outer Adam steps per meta-iteration on the same episodes.
         clip_epsilon: PPO's clipping range ε of the probability ratio.
     """
-
-    section = "learner.maml_ppo"
 
     hidden_sizes: list[int] = each(at_least(1), default=[64, 64])
     inner_lr: float = above(0, default=0.1)
@@ -110,6 +108,12 @@ class MAMLPPOLeader(MAMLTRPOLeader):
         self.epochs = int(options.epochs)
         self.optimizer = torch.optim.Adam(self.net.parameters(), lr=options.lr)
 
+    def collect(self, tasks: TensorDictBase, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> MetaBatch:
+        """MAML-TRPO's collection, keeping no graph: every epoch of :meth:`step` retakes the
+        inner step from the θ it starts from."""
+        return super().collect(tasks, collector, create_graph=False)
+
     def outer_loss(self, batch: MetaBatch) -> torch.Tensor:
         """Per-task outer loss ``[K]`` at the current θ: the inner step retaken from θ on the
         pre-adaptation episodes, then the outer loss module on the adapted policies'
@@ -154,9 +158,8 @@ class MAMLPPOLeader(MAMLTRPOLeader):
         self.optimizer.load_state_dict(state["optimizer"])
 
 
-def build_maml_ppo(
-    cfg: DictConfig, collector: TaskCollector, device: torch.device
-) -> MAMLPPOLeader:
-    """MAML-PPO from ``learner.maml_ppo``, its policy sized by the collector's env, on
-    ``device``."""
-    return MAMLPPOLeader(collector, MamlPpoOptions(**section(cfg, "learner.maml_ppo")), device)
+def build_maml_ppo(options: MamlPpoOptions, collector: TaskCollector, device: torch.device,
+                   model: Mapping[str, Any]) -> MAMLPPOLeader:
+    """MAML-PPO with ``options``, its policy sized by the collector's env, on ``device`` (a
+    Gaussian MLP policy: no choices in ``model``)."""
+    return MAMLPPOLeader(collector, options, device)
