@@ -20,6 +20,7 @@ from torchrl.envs import (
     DoubleToFloat,
     EnvCreator,
     ExcludeTransform,
+    RewardScaling,
     RewardSum,
     SerialEnv,
     StepCounter,
@@ -29,8 +30,10 @@ from torchrl.envs import PendulumEnv as TorchRLPendulum
 from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.adversary import FlowAdversary, TaskSampler
+from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.envs import AcrobotEnv, HalfCheetahVelEnv, PendulumEnv, PointNavigationEnv
 from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import (
     TASK_KEY,
     BoxUniform,
@@ -262,3 +265,25 @@ def test_mujoco_compiler_warnings_are_python_warnings_shown_once():
     assert "settotalmass" not in result.stdout
     shown = [line for line in result.stderr.splitlines() if "MujocoWarning" in line]
     assert len(shown) == 1 and "settotalmass" in shown[0]
+
+
+def plain_navigation(batch_size, max_steps) -> PointNavigationEnv:
+    return PointNavigationEnv(batch_size=batch_size, max_steps=max_steps, seed=0)
+
+
+def doubled_navigation(batch_size, max_steps) -> TransformedEnv:
+    return TransformedEnv(plain_navigation(batch_size, max_steps), RewardScaling(0.0, 2.0))
+
+
+def test_an_episode_collector_steps_a_transformed_env_through_its_transforms():
+    """The point robot's fast transitions serve the bare env only: behind a transform (doubling
+    the rewards) the collector steps env.rollout, so the rewards are exactly twice the bare env's
+    (TransformedEnv forwards ``transitions`` to the env inside, which skipped the transform)."""
+    tasks = TensorDict({TASK_KEY: torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
+    rewards = []
+    for make_env in (plain_navigation, doubled_navigation):
+        torch.manual_seed(0)
+        policy = GaussianMLP(2, 2, (8, 8))
+        rewards.append(EpisodeCollector(make_env, episodes=3, max_steps=8)
+                       .collect(tasks, policy=policy)["reward"])
+    assert torch.equal(rewards[1], 2 * rewards[0])

@@ -6,8 +6,9 @@ env (point navigation, Ant goal, any env taking its identifiers under
 ``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
 ``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
 steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
-An env that offers ``transitions(steps, policy)`` (point navigation) is stepped with it instead:
-``env.rollout``'s rollout bit for bit, without TorchRL's per-step env machinery.
+An env whose class offers ``transitions(steps, policy)`` (point navigation) is stepped with it
+instead: ``env.rollout``'s rollout bit for bit, without TorchRL's per-step env machinery. The same
+env behind transforms or in a batched env is stepped by ``env.rollout``, transforms and all.
 
 Devices: the policy acts on the env's device (a torch-native env runs wherever it was built; a
 MuJoCo env on the CPU), and the trajectories are returned on the collector's ``device``, where the
@@ -153,7 +154,9 @@ class EpisodeCollector:
             policy = copy.deepcopy(policy).to(env_device)
             policy_params = None if policy_params is None else policy_params.to(env_device)
         actor = make_actor(policy, policy_params)
-        fast = getattr(env, "transitions", None)
+        # the env's own method only: TransformedEnv and batched envs forward unknown attributes
+        # to the env(s) inside, whose transitions would skip the transforms (or fail)
+        fast = env.transitions if callable(getattr(type(env), "transitions", None)) else None
         with set_exploration_type(ExplorationType.RANDOM):
             rollout = fast(self.max_steps, actor) if fast is not None else env.rollout(
                 self.max_steps, actor, tensordict=start, auto_reset=False, break_when_any_done=False
