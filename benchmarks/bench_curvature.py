@@ -3,8 +3,9 @@ reverse-over-reverse differentiation (the library's
 :func:`~armeta_rl.rl.trpo.meta_kl_hessian_vector_product`) and by forward mode, in CPU time.
 
 At θ = θ_old the Hessian of the weighted KL is exactly Σ_k J_kᵀ J_out,kᵀ F J_out,k J_k (the
-Gauss–Newton form; the first-order terms vanish at the minimum, Martens 2014, "New insights and
-perspectives on the natural gradient method", Sec. 9.2), with J_k = I − α∇²L^in_k the inner step's
+generalized Gauss–Newton form, Schraudolph 2002; Martens 2014, "New insights and perspectives on
+the natural gradient method": it is the Hessian wherever the KL's gradient in the outputs
+vanishes, as it does at its minimum), with J_k = I − α∇²L^in_k the inner step's
 Jacobian (symmetric), J_out,k that of the adapted policy's (loc, scale) and F the Gaussian KL's
 curvature in (loc, scale): w_k·m/(E·n_e)·(1/σ², 2/σ²) per step (m the step's mask, n_e the
 episode's length). The library applies J_k and J_out,k by differentiating retained backward graphs
