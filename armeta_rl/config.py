@@ -31,7 +31,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from armeta_rl.devices import DEVICE_FORMS, is_device_name, resolve_device
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import LEARNERS, learner_sections, risk_sections
+from armeta_rl.factory import LEARNERS, PRINCIPLES, learner_sections, risk_sections
 from armeta_rl.fields import (  # noqa: F401 (_conforms: the schema tests check types with it)
     _MISSING,
     _check_node,
@@ -104,7 +104,7 @@ RiskSchema.__doc__ = """``risk:``: one section per risk principle of
 class MethodSchema:
     name: str = key()
     learner: str = key()  # a name of armeta_rl.factory.LEARNERS: checked by check_config
-    risk: str = one_of("erm", "ar", "dr", "tr", "dro")
+    risk: str = one_of(*PRINCIPLES)
 
 
 @dataclass

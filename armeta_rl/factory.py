@@ -32,6 +32,8 @@ from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
 from armeta_rl.risk.groups import DroOptions, GroupDROPrinciple, TrOptions, WorstCasePrinciple
+from armeta_rl.risk.mpts import MptsOptions, MPTSPrinciple
+from armeta_rl.risk.pdts import PdtsOptions, PDTSPrinciple
 from armeta_rl.risk.tail import DrOptions, TailRiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
 
@@ -150,6 +152,14 @@ def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPr
     return GroupDROPrinciple(initial, DroOptions(**section(cfg, "risk.dro")))
 
 
+def _mpts(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
+    return MPTSPrinciple(initial, MptsOptions(**section(cfg, "risk.mpts")))
+
+
+def _pdts(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
+    return PDTSPrinciple(initial, PdtsOptions(**section(cfg, "risk.pdts")))
+
+
 @dataclass(frozen=True)
 class Principle:
     """A registered risk principle: its builder and its options (the type, range and default
@@ -167,6 +177,8 @@ PRINCIPLES: dict[str, Principle] = {
     "dr": Principle(_dr, DrOptions),
     "tr": Principle(_tr, TrOptions),
     "dro": Principle(_dro, DroOptions),
+    "mpts": Principle(_mpts, MptsOptions),
+    "pdts": Principle(_pdts, PdtsOptions),
 }
 """Every risk principle ``method.risk`` may name."""
 
