@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 
+import mujoco
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
@@ -34,6 +35,18 @@ def compose_train(*overrides: str) -> DictConfig:
     """The ``armeta-train`` config for ``overrides``."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         return compose("train", overrides=list(overrides))
+
+
+def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:
+    """One MjData of ``model`` per simulation of the ``mujoco.batch.Batch`` ``sim``, at that
+    simulation's state (qpos, qvel): the raw references the batched MuJoCo envs are checked
+    against."""
+    datas = []
+    for qpos, qvel in zip(sim.bind("qpos"), sim.bind("qvel")):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        datas.append(data)
+    return datas
 
 
 @pytest.fixture
