@@ -183,6 +183,22 @@ def task_params(tasks: TensorDictBase | Tensor) -> Tensor:
     return tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
 
 
+def checked_losses(losses: Tensor, tasks: int, who: str) -> Tensor:
+    """``losses`` as a detached tensor, if it holds one finite loss for each of ``tasks`` tasks.
+
+    Raises:
+        ValueError: losses that are not one per task.
+        TrainingDiverged: a non-finite loss (``who`` names the principle or sampler).
+    """
+    losses = torch.as_tensor(losses).detach()
+    if losses.shape != (tasks,):
+        raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
+                         f"shape ({tasks},)")
+    if not torch.isfinite(losses).all():
+        raise TrainingDiverged(f"{who}: non-finite task losses {losses.tolist()}")
+    return losses
+
+
 def check_batch_size(name: str, n: Any) -> int:
     """``n`` if it is an integer ≥ 1, else a :class:`ConfigError` naming ``name``."""
     if isinstance(n, bool) or not (isinstance(n, int) and n >= 1):
@@ -270,12 +286,7 @@ class PredictivePrinciple(nn.Module):
                 and the stored posterior are left as they were.
         """
         params = task_params(tasks)
-        losses = torch.as_tensor(losses).detach()
-        if losses.shape != (len(params),):
-            raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
-                             f"shape ({len(params)},)")
-        if not torch.isfinite(losses).all():
-            raise TrainingDiverged(f"{self.section}: non-finite task losses {losses.tolist()}")
+        losses = checked_losses(losses, len(params), self.section)
         unit = self.unit(params)
         labels = self.labels(losses.to(unit))
         prior = (self.posterior_loc.clone(), self.posterior_scale.clone())

@@ -14,13 +14,11 @@ does the same).
 
 from __future__ import annotations
 
-import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
-from armeta_rl.errors import TrainingDiverged
 from armeta_rl.risk.base import RiskPrinciple
-from armeta_rl.risk.predictive import check_batch_size, task_params
+from armeta_rl.risk.predictive import check_batch_size, checked_losses, task_params
 
 
 class PrincipleSampler:
@@ -54,13 +52,7 @@ class PrincipleSampler:
             TrainingDiverged: non-finite losses.
         """
         params = task_params(tasks)
-        losses = torch.as_tensor(losses).detach()
-        if losses.shape != (len(params),):
-            raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
-                             f"shape ({len(params)},)")
-        if not torch.isfinite(losses).all():
-            raise TrainingDiverged(f"task sampler update got non-finite losses: "
-                                   f"{losses.tolist()}")
+        losses = checked_losses(losses, len(params), "task sampler update")
         self.calls += 1
         every = self.principle.update_every
         if not every or self.calls % every:
