@@ -11,6 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from armeta_rl.cli import config_dir
+from armeta_rl.config import validate
 
 torch.set_num_threads(1)
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -47,6 +48,22 @@ def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:
         data.qpos[:], data.qvel[:] = qpos, qvel
         datas.append(data)
     return datas
+
+
+def collector_of(cfg: DictConfig, key: str = "collector"):
+    """The collector ``benchmark.<key>`` of the composed ``cfg``, on the CPU."""
+    from armeta_rl.factory import build_collector, build_space
+
+    benchmark = validate(cfg).benchmark
+    return build_collector(getattr(benchmark, key), f"benchmark.{key}",
+                           build_space(benchmark.space))
+
+
+def players_of(cfg: DictConfig):
+    """The players of the composed ``cfg`` (:func:`armeta_rl.trainers.players.build_players`)."""
+    from armeta_rl.trainers.players import build_players
+
+    return build_players(validate(cfg))
 
 
 @pytest.fixture

@@ -17,7 +17,7 @@ from torchrl.envs.utils import RandomPolicy, check_env_specs, step_mdp
 
 from armeta_rl.collectors.episodes import valid_mask
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
-from armeta_rl.config import check_config
+from armeta_rl.config import validate
 from armeta_rl.envs.ant_dir import AntDirEnv
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.errors import ConfigError
@@ -287,7 +287,7 @@ def test_a_split_that_does_not_divide_the_task_counts_fails_before_training(over
     cfg = compose_train("benchmark=ant_goal_parallel", override)
     key, count = override.split("=")
     with pytest.raises(ConfigError, match=rf"benchmark\.collector\.workers.*{key} = {count}"):
-        check_config(cfg)
+        validate(cfg)
 
 
 def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):

@@ -9,7 +9,6 @@ import sys
 import pytest
 import torch
 from conftest import SMALL_RUN, compose_train
-from omegaconf import OmegaConf
 from torchrl.checkpoint import GlobalRNGState
 
 from armeta_rl.devices import resolve_device
@@ -103,17 +102,13 @@ def test_explicit_cpu_equals_the_default_bit_for_bit(tmp_path, benchmark, method
     assert _devices(players) == {torch.device("cpu")}
 
 
-def test_a_checkpoint_loads_onto_the_configured_device_also_for_runs_saved_before_the_key(
-        tmp_path):
-    """A run directory whose config.yaml predates ``device`` loads on the CPU, its checkpoint's
-    tensors there, and scores exactly as the run reported at its end."""
+def test_a_checkpoint_loads_onto_the_device_asked_for_and_scores_as_the_run_reported(tmp_path):
+    """A saved run loads on the CPU, its checkpoint's tensors there, and scores exactly as the
+    run reported at its end."""
     run = tmp_path / "run"
     report = run_training(compose_train(*SMALL_RUN, "method=ar_maml"), run)
-    saved = OmegaConf.load(run / "config.yaml")
-    del saved["device"]
-    OmegaConf.save(saved, run / "config.yaml")
-    cfg, players = load_players(run, "learner", "cpu")
-    assert cfg.device == "cpu" and players.device == torch.device("cpu")
+    config, players = load_players(run, "learner", "cpu")
+    assert config.device == "cpu" and players.device == torch.device("cpu")
     assert _devices(players) == {torch.device("cpu")}
     rescored = cross_evaluate(run, run, device="cpu")
     assert rescored["initial"] == report["initial"]
@@ -154,13 +149,15 @@ def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path):
                                               ("sinusoid_uniform", "ar_cnp"),
                                               ("pendulum_uniform", "dro_maml"),
                                               ("point_nav_plain", "ar_maml"),
-                                              ("ant_goal_smoke", "maml")])
+                                              ("ant_goal_smoke", "maml"),
+                                              ("ant_goal_warp", "maml")])
 def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, method):
     """Two iterations on CUDA put every player there; the run is scored on the CPU from its CUDA
-    checkpoint; it resumes on CUDA to the end; a second seeded CUDA run reproduces it."""
+    checkpoint; it resumes on CUDA to the end; a second seeded CUDA run reproduces it. Ant with
+    MuJoCo Warp (ant_goal_warp) steps, acts and learns on the GPU end to end."""
     small = (*SMALL_RUN, f"benchmark={benchmark}", f"method={method}", "trainer.meta_batch=2",
              "eval.n_tasks=4", "trainer.iterations=4", "trainer.checkpoint_every=2")
-    if benchmark in ("point_nav_plain", "ant_goal_smoke"):
+    if benchmark in ("point_nav_plain", "ant_goal_smoke", "ant_goal_warp"):
         small += ("benchmark.collector.episodes=2", "benchmark.collector.max_steps=5")
     run = tmp_path / "run"
     assert run_training(compose_train(*small, "device=cuda", "trainer.stop_at=2"), run) is None

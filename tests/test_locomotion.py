@@ -13,14 +13,13 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train, raw_mjdata
+from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
 from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import build_collector
 from armeta_rl.trainers.training import run_training
 
 ENVS = {"half_cheetah_vel": HalfCheetahVelEnv, "half_cheetah_dir": HalfCheetahDirEnv,
@@ -161,7 +160,7 @@ def test_half_cheetah_vel_benchmark_trains(tmp_path):
                         "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "benchmark.collector.make_env.threads=1")
-    env = build_collector(cfg).env(2)
+    env = collector_of(cfg).env(2)
     assert isinstance(env, HalfCheetahVelEnv) and env.batch_size == (2, 2)
     assert (env.ctrl_cost_weight, env.frame_skip, env.max_steps) == (0.05, 5, 10)
     report = run_training(cfg, tmp_path)

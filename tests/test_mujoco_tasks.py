@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, collector_of, compose_train
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
@@ -23,7 +23,6 @@ from armeta_rl.envs.mujoco_tasks import (
     make_gym_task_env,
 )
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.factory import build_collector
 from armeta_rl.trainers.training import run_training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -282,7 +281,7 @@ def test_ant_goal_physics_benchmark_builds_its_env_and_trains(tmp_path):
                         "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "benchmark.collector.make_env.threads=1")
-    env = build_collector(cfg).env(2)
+    env = collector_of(cfg).env(2)
     params = torch.tensor([[1.0, -2.0, 1.75, 0.5], [0.0, 2.5, 0.5, 1.25]])
     td = env.reset(TensorDict({"params": params[:, None].expand(2, 2, 4)}, [2, 2]))
     assert (td["params"] == params[:, None]).all()
@@ -303,7 +302,7 @@ def test_ant_goal_physics_benchmark_refuses_a_box_or_target_that_does_not_fit(ov
     cfg = compose_train("benchmark=ant_goal_physics", "benchmark.collector.episodes=1",
                         "benchmark.collector.make_env.threads=1", override)
     with pytest.raises(ConfigError, match=match):
-        build_collector(cfg).env(1)
+        collector_of(cfg).env(1)
 
 
 @pytest.mark.parametrize("benchmark", ["half_cheetah_mass_vel", "walker2d_mass_vel"])
@@ -313,7 +312,7 @@ def test_mass_vel_families_equal_hand_scaled_masses_on_raw_mjdata(benchmark):
     inertias) are multiplied by its task's mass scale, on its own MjData; its reward follows its
     task's goal velocity; specs hold at several batch shapes."""
     cfg = compose_train(f"benchmark={benchmark}", "benchmark.collector.make_env.threads=1")
-    collector = build_collector(cfg)
+    collector = collector_of(cfg)
     for shape in [(1, 1), (3, 2), (4,)]:
         check_env_specs(collector.worker_env(batch_size=shape, max_steps=4, seed=0))
     env = collector.worker_env(batch_size=(3, 2), max_steps=20, seed=0)

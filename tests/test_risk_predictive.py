@@ -10,10 +10,11 @@ from copy import deepcopy
 
 import pytest
 import torch
-from conftest import compose_train
+from conftest import compose_train, players_of
 
+from armeta_rl.cli import train
 from armeta_rl.errors import ConfigError, TrainingDiverged
-from armeta_rl.factory import build_initial, build_principle, build_space
+from armeta_rl.risk import mpts, pdts
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.mpts import (
     MptsOptions,
@@ -371,9 +372,55 @@ def test_options_refuse_bad_values(options, key, value):
 def test_builder_reads_the_section(kind):
     cfg = compose_train(f"method={kind}_maml", f"risk.{kind}.candidate_ratio=3.0",
                         f"risk.{kind}.hidden=7")
-    principle = build_principle(cfg, build_space(cfg), build_initial(cfg, build_space(cfg)))
+    principle = players_of(cfg).principle
     assert principle.candidate_ratio == 3.0 and principle.pool_size(25) == 75
     assert principle.model.decoder[0].out_features == 7
+
+
+@pytest.mark.parametrize("override,words", [
+    ("risk.mpts.gama_std=5", "did you mean 'risk.mpts.gamma_std'?"),
+    ("risk.pdts.candidate_ratio=0.5", "must be >= 1 (the candidate pool holds at least the batch)"),
+    ("risk.mpts.gamma_std=inf", "must be a finite number"),
+    ("risk.pdts.kl_weight=nan", "must be a finite number"),
+])
+def test_bad_options_get_one_line_and_exit_code_2(tmp_path, capsys, override, words):
+    """An unknown key, a pool smaller than the batch or a non-finite value, through the CLI."""
+    kind, key = override.split(".")[1], override.split("=")[0]
+    run_dir = tmp_path / "run"
+    code = train([f"method={kind}_maml", override, f"hydra.run.dir={run_dir}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and f"'{key}'" in err[0] and words in err[0], err
+    assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("kind", ["mpts", "pdts"])
+def test_a_non_finite_predicted_risk_stops_the_run_at_its_last_checkpoint(
+    tmp_path, monkeypatch, capsys, kind
+):
+    """The model's predictions for iteration 4's candidates are non-finite: the run stops with
+    one line (exit code 1) naming iteration 3's checkpoint, which the run resumes from."""
+    from conftest import SMALL_RUN
+
+    module, name = (mpts, "predictive_moments") if kind == "mpts" else (
+        pdts, "posterior_sample_risks")
+    score, calls = getattr(module, name), []
+
+    def non_finite_at_4(*args, **kwargs):
+        calls.append(1)
+        out = score(*args, **kwargs)
+        return (tuple(torch.full_like(o, math.inf) for o in out) if isinstance(out, tuple)
+                else torch.full_like(out, math.nan)) if len(calls) == 4 else out
+
+    run_dir = tmp_path / "run"
+    args = [*SMALL_RUN, f"method={kind}_maml", "trainer.meta_batch=4", "eval.n_tasks=4"]
+    with monkeypatch.context() as patch:
+        patch.setattr(module, name, non_finite_at_4)
+        code = train([*args, f"hydra.run.dir={run_dir}"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1, err
+    assert f"risk.{kind}: the risk model predicted a non-finite risk" in err[0]
+    assert "checkpoint-000000000003 is kept" in err[0]
+    assert train([f"resume={run_dir}"]) == 0 and (run_dir / "eval.json").is_file()
 
 
 # --- outside the trainer -------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import compose_train
+from conftest import collector_of, compose_train
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import (
@@ -49,7 +49,6 @@ from armeta_rl.envs import (
 )
 from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.factory import build_collector
 from armeta_rl.tasks import TASK_KEY
 from armeta_rl.tasks.protocol import read_identifiers
 
@@ -346,7 +345,7 @@ def test_transformed_reset_forwards_the_task_key_and_the_env_refuses_others():
 )
 def test_a_box_the_env_cannot_take_is_refused_before_training(overrides, key, allowed):
     with pytest.raises(ConfigError) as error:
-        build_collector(compose_train(*overrides))
+        collector_of(compose_train(*overrides))
     assert error.value.key == key and allowed in str(error.value)
 
 

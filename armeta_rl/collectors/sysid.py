@@ -30,8 +30,11 @@ class SysIdCollector:
     For tasks ``[K]`` with identifiers ``"params"`` (``TASK_KEY``) ``[K, d]`` ((m, l) for the
     pendulum by default, any of (m, l, g) with ``identifiers``; (m1, m2) for the acrobot), one
     batched env ``[K, episodes]`` is reset with those identifiers
-    and a uniformly random policy acts for ``n_transitions / episodes`` steps in a single
-    ``env.rollout`` (finished acrobot episodes are reset and collection goes on). Each task's
+    and a uniformly random policy acts for ``n_transitions / episodes`` steps (finished acrobot
+    episodes are reset and collection goes on). The steps are
+    :meth:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.transitions`: ``env.rollout``'s
+    transitions bit for bit, without TorchRL's per-step TensorDicts, which cost a hundred times
+    the physics of these envs. Each task's
     ``n_transitions`` transitions are split at random (torch's global RNG) into ``n_support``
     support and ``n_transitions - n_support`` query points::
 
@@ -43,18 +46,13 @@ class SysIdCollector:
     torque by its bound, so all inputs lie in [-1, 1]; ``"none"`` keeps physical units. Losses
     are computed on ``y`` as returned.
 
-    Defaults ``target="delta"``, ``normalize="none"`` learned best in a measured comparison
-    (MAML, 3×128 ReLU MLP, inner lr 0.01, 300 meta-iterations of 16 tasks from U([0.4, 1.6]²),
-    10 episodes of 20 steps, next-observation MSE on 100 fresh tasks, one seed): pendulum
-    delta/none 0.0415, delta/scale 0.0431, next/none 0.0435, next/scale 0.0455; acrobot
-    delta/none 0.00110, next/none 0.00114, delta/scale 0.00147, next/scale 0.0142.
+    The defaults ``target="delta"``, ``normalize="none"`` learned best of the four pairs on both
+    envs (docs/notes/history.md).
 
-    ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
-    any batch, so collection time grows with the steps per episode (see
-    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
-    initial states: the median |θ̇| of the pendulum data is 2.5 with one 200-step episode, 2.4
-    with 10 x 20 steps and 1.8 with 20 x 10 (90% quantile 6.0 / 6.2 / 5.5; the ±8 clip is reached
-    in all three); the acrobot's median |θ̇2| is 0.95 / 0.35 / 0.28.
+    ``episodes=20`` (20 episodes of 10 steps per task): a step costs about the same for any
+    batch, so collection time grows with the steps per episode (see
+    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the initial states
+    (the velocities they cover: docs/notes/history.md).
 
     The environment's initial-state seed is drawn from torch's global RNG at every call, so
     ``torch.manual_seed`` fixes the whole collection.
@@ -155,9 +153,8 @@ class SysIdCollector:
         env.set_seed(int(torch.randint(0, 2**62, ())))
         batch = (n_tasks, self.episodes)
         params = params.to(self.device)[:, None].expand(*batch, -1)
-        reset = env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
-        return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
-                           auto_reset=False, break_when_any_done=False)
+        env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
+        return env.transitions(self.n_transitions // self.episodes)
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query transitions for every task: TensorDict ``[K]`` with

@@ -202,7 +202,9 @@ class Walker2dVelEnv(PlanarRunnerEnv):
         ctrl_cost_weight: 0.05 (MPTS's ``0.5 * 1e-1``).
         alive_bonus: reward added every step (1, MPTS's).
         reset_noise_scale: initial qpos = qpos0 + U(±scale), qvel = U(±scale) (0.005).
-        threads, seed, device: as :class:`HalfCheetahTaskEnv`.
+        threads: as :class:`HalfCheetahTaskEnv`.
+        seed: as :class:`HalfCheetahTaskEnv`.
+        device: as :class:`HalfCheetahTaskEnv`.
     """
 
     xml = "walker2d_v5.xml"

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from armeta_rl.fields import at_least, inside
+from armeta_rl.fields import at_least, inside, register
 from armeta_rl.risk.predictive import (
     PredictiveOptions,
     PredictivePrinciple,
@@ -35,6 +35,7 @@ from armeta_rl.risk.predictive import (
 from armeta_rl.tasks.distributions import TaskDistribution
 
 
+@register("risk.mpts")
 @dataclass(frozen=True)
 class MptsOptions(PredictiveOptions):
     """``risk.mpts``: the keys of :class:`MPTSPrinciple`, their types, ranges and defaults (the
@@ -50,8 +51,6 @@ class MptsOptions(PredictiveOptions):
         random_fraction: the fraction of the batch drawn at random from the candidates instead of
             by score (the meta-RL code's mixing: 0.5; its sinusoid code: none).
     """
-
-    section = "risk.mpts"
 
     candidate_ratio: float = candidate_ratio(default=2.0)
     gamma_mean: float = at_least(0, default=1.0)

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from armeta_rl.fields import at_least, one_of
+from armeta_rl.fields import at_least, one_of, register
 from armeta_rl.risk.predictive import (
     PredictiveOptions,
     PredictivePrinciple,
@@ -39,6 +39,7 @@ from armeta_rl.tasks.distributions import TaskDistribution
 DISTANCES = ("identifier", "unit")
 
 
+@register("risk.pdts")
 @dataclass(frozen=True)
 class PdtsOptions(PredictiveOptions):
     """``risk.pdts``: the keys of :class:`PDTSPrinciple`, their types, ranges and defaults (the
@@ -53,8 +54,6 @@ class PdtsOptions(PredictiveOptions):
             (``identifier``, the papers') or their images in the unit box (``unit``: every
             identifier weighs the same whatever its range).
     """
-
-    section = "risk.pdts"
 
     candidate_ratio: float = candidate_ratio(default=32.0)
     diversity: float = at_least(0, default=1.0)

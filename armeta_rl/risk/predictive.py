@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from torch.distributions import Normal, kl_divergence
 
 from armeta_rl.errors import ConfigError, TrainingDiverged
-from armeta_rl.fields import Options, above, at_least, key
+from armeta_rl.fields import Section, above, at_least, key
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.risk.tail import exact_ceil
 from armeta_rl.tasks.distributions import TaskDistribution
@@ -48,7 +48,7 @@ predictions stay finite."""
 
 
 @dataclass(frozen=True)
-class PredictiveOptions(Options):
+class PredictiveOptions(Section):
     """The keys MPTS's and PDTS's sections share: the pseudo-batch and the risk model's online
     training. Each principle's options give ``candidate_ratio`` its own default.
 
