@@ -101,14 +101,16 @@ def main() -> None:
                       f"{f['end']:.0f}", f"{growth:+.0f}", f"{f['peak']:.0f}",
                       f"{1000 * f['seconds_per_iteration']:.0f}"))
         print(table[-1], flush=True)
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    body = ("Resident set (MiB) of a training run in its own process, after a tenth of its "
-            "meta-iterations, at half and at the end; growth = end − tenth; peak = the process's "
-            f"peak RSS (load average at the end {load}):\n\n"
-            + markdown_table(("run", "method", "iterations", "RSS at 1/10", "RSS at 1/2",
-                              "RSS at end", "growth", "peak RSS", "ms per iteration"), table))
+        # written after every row: the last rows (the Ant) take long
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        body = ("Resident set (MiB) of a training run in its own process, after a tenth of its "
+                "meta-iterations, at half and at the end; growth = end − tenth; peak = the "
+                f"process's peak RSS (load average after the last row {load}):\n\n"
+                + markdown_table(("run", "method", "iterations", "RSS at 1/10", "RSS at 1/2",
+                                  "RSS at end", "growth", "peak RSS", "ms per iteration"),
+                                 table))
+        write_section("bench_memory", "Memory over a run (bench_memory.py)", body)
     print(body)
-    write_section("bench_memory", "Memory over a run (bench_memory.py)", body)
 
 
 if __name__ == "__main__":

@@ -15,16 +15,16 @@ Device-side assumptions (``benchmarks/gpu_check.sh`` sets them up and calls ``ru
   ``results.jsonl`` (one JSON object per measured row), ``summary.txt`` and a copy of
   ``docs/benchmarks.md`` after the check wrote its GPU section there.
 
-``run`` starts the two test files (``tests/test_devices.py`` and the MuJoCo Warp tests) in the
-background, then times, one part after the other: a meta-iteration of the benchmark families
-(``DEFAULT_BENCHMARKS``; ``--benchmarks`` for others) on the CPU (one thread) and on CUDA, eager
-(and, with ``--compiled``, compiled where the code offers it: ``learner.maml.compile``,
-``risk.ar.compile``), then the Ant with MuJoCo Warp in one process that writes each figure as
-soon as it has it: a tiny env first (it compiles the warp kernels), the env steps/s of a
-collection of 40 tasks × 20 episodes × 200 steps with the policy acting on the env's device, and
-MAML-TRPO meta-iterations at that size on CUDA. Every part runs in its own process under its own
-time limit, never stops the others, and all of them together stay within ``--budget`` seconds
-(default 230): a part that would start with too little time left is skipped and says so.
+``run`` runs the two test files (the MuJoCo Warp tests, then ``tests/test_devices.py``) in the
+background, one after the other, then times, one part after the other: a meta-iteration of the
+benchmark families (``DEFAULT_BENCHMARKS``; ``--benchmarks`` for others) on the CPU (one thread)
+and on CUDA, eager (and, with ``--compiled``, compiled where the code offers it:
+``learner.maml.compile``, ``risk.ar.compile``), then the Ant with MuJoCo Warp in one process that
+writes each figure as soon as it has it: a tiny env first (it compiles the warp kernels), the env
+steps/s of a collection of 40 tasks × 20 episodes × 200 steps with the policy acting on the env's
+device, and MAML-TRPO meta-iterations at that size on CUDA. Every part runs in its own process
+under its own time limit, never stops the others, and all of them together stay within ``--budget``
+seconds (default 230): a part that would start with too little time left is skipped and says so.
 Without CUDA the CUDA rows and parts are skipped with that reason, and the rest runs.
 
 Each timing row reports the peak RSS of its process (``ru_maxrss``) and, on CUDA, the peak of
@@ -459,18 +459,24 @@ def run(args: argparse.Namespace) -> None:
         return parts[-1]
 
     part("preflight", [*me, "preflight", *res], 60).run(clock)
-    # The tests run beside the timings, each with its own MuJoCo Warp kernel cache (two processes
-    # compiling into one cache could race).
+    # The tests run beside the timings, one file after the other, sharing one MuJoCo Warp kernel
+    # cache (the warp tests compile the kernels, test_devices' ant_goal_warp run reuses them); the
+    # Ant part keeps its own (two processes compiling into one cache could race).
+    cache = tempfile.mkdtemp(prefix="warp_tests_")
     background = [
-        part("tests-devices", [*me, "tests", "--name", "test_devices", *res,
-                               "tests/test_devices.py"], args.tests_limit,
-             WARP_CACHE_PATH=tempfile.mkdtemp(prefix="warp_devices_")),
         part("tests-warp", [*me, "tests", "--name", "test_ant_goal_warp", *res,
                             "tests/test_ant_goal_warp.py"], args.tests_limit,
-             WARP_CACHE_PATH=tempfile.mkdtemp(prefix="warp_tests_")),
+             WARP_CACHE_PATH=cache),
+        part("tests-devices", [*me, "tests", "--name", "test_devices", *res,
+                               "tests/test_devices.py"], args.tests_limit,
+             WARP_CACHE_PATH=cache),
     ]
-    waiters = [threading.Thread(target=test_part.wait) for test_part in background
-               if test_part.start(clock)]
+
+    def in_order() -> None:
+        for test_part in background:
+            test_part.run(clock)
+
+    waiters = [threading.Thread(target=in_order)]
     for waiter in waiters:
         waiter.start()
     families = [f for f in FAMILIES if f[0] in (args.benchmarks or DEFAULT_BENCHMARKS)]

@@ -142,13 +142,17 @@ def test_identifiers_survive_partial_resets_in_rollout():
                                    rollout["next", "state"][:, :, t])
 
 
-def _policy(env_cls: type) -> object:
+def _policy(env_cls: type) -> TensorDictModule:
     """A deterministic policy of the observation with the action spec's shape: a torque in
     [-2, 2] for the pendulum, an action index in {0, 1, 2} for the acrobot."""
     weights = torch.randn(env_cls.observation_dim, generator=torch.Generator().manual_seed(3))
     if env_cls is PendulumEnv:
-        return lambda observation: 2 * (observation @ weights).tanh().unsqueeze(-1)
-    return lambda observation: ((observation @ weights).sign() + 1).long()
+        def act(observation):
+            return 2 * (observation @ weights).tanh().unsqueeze(-1)
+    else:
+        def act(observation):
+            return ((observation @ weights).sign() + 1).long()
+    return TensorDictModule(act, ["observation"], ["action"])
 
 
 def _both_rollouts(env_cls: type, params: torch.Tensor, steps: int, policy=None,
@@ -166,9 +170,7 @@ def _both_rollouts(env_cls: type, params: torch.Tensor, steps: int, policy=None,
         if fast:
             rollout = env.transitions(steps, policy)
         else:
-            actor = None if policy is None else TensorDictModule(policy, ["observation"],
-                                                                 ["action"])
-            rollout = env.rollout(steps, actor, tensordict=start, auto_reset=False,
+            rollout = env.rollout(steps, policy, tensordict=start, auto_reset=False,
                                   break_when_any_done=False)
         results.append([rollout, env._state, torch.rand(2)])
     return results

@@ -266,15 +266,17 @@ class IdentifiedSystemEnv(EnvBase):
         return self._output(state.T, observation.T, reward, terminated)
 
     def transitions(self, steps: int,
-                    policy: Callable[[Tensor], Tensor] | None = None) -> TensorDict:
+                    policy: Callable[[TensorDictBase], TensorDictBase] | None = None
+                    ) -> TensorDict:
         """``env.rollout(steps, policy, auto_reset=False, break_when_any_done=False)`` from the
         env's current state (after a reset), without TorchRL's per-step TensorDicts and checks,
         which cost a hundred times the physics of these small envs.
 
         Equal to ``env.rollout`` transition for transition, bit for bit
-        (``tests/test_sysid_envs.py``): the same actions (``policy`` maps observations
-        ``[*batch, observation_dim]`` to actions; ``None``: the uniformly random actions of
-        :meth:`rand_action`, the same draws from torch's global RNG, taken at once), terminated
+        (``tests/test_sysid_envs.py``): the same actions (``policy`` reads ``"observation"`` from
+        a TensorDict and writes ``"action"``, as a TorchRL policy module does; ``None``: the
+        uniformly random actions of :meth:`rand_action`, the same draws from torch's global RNG,
+        taken at once), terminated
         entries reset between steps as TorchRL's automatic partial reset resets them (new initial
         states from the env's generator; never after the last step), and the same maths: only the
         equations of motion (:meth:`_dynamics`) run step by step; the observations, rewards and
@@ -291,7 +293,8 @@ class IdentifiedSystemEnv(EnvBase):
         for t in range(n_steps):
             if random is None:
                 observation = self._observe_rows(state).T.reshape(*batch, self.observation_dim)
-                action = policy(observation)
+                action = policy(TensorDict({"observation": observation}, batch,
+                                           device=self.device)).get("action")
             else:
                 action = random[t]
             new_state = self._dynamics(state, action)
