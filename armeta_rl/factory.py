@@ -34,8 +34,10 @@ from armeta_rl.learners.maml_trpo import build_maml_trpo
 from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
-from armeta_rl.risk.groups import DroOptions, GroupDROPrinciple, TrOptions, WorstCasePrinciple
-from armeta_rl.risk.tail import DrOptions, TailRiskPrinciple
+from armeta_rl.risk.groups import GroupDROPrinciple, WorstCasePrinciple
+from armeta_rl.risk.mpts import MPTSPrinciple
+from armeta_rl.risk.pdts import PDTSPrinciple
+from armeta_rl.risk.tail import TailRiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
 
 
@@ -118,27 +120,26 @@ def _ar(options: ArOptions, space: TaskSpace, initial: TaskDistribution, iterati
     return AdversarialPrinciple(adversary, options, total_updates=total_updates)
 
 
-def _dr(options: DrOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
-        ) -> RiskPrinciple:
-    return TailRiskPrinciple(initial, options)
+def _on_p0(principle: Callable[[TaskDistribution, Any], RiskPrinciple]) -> PrincipleBuilder:
+    """The builder of a principle made from p0 and its options alone (DR, TR, DRO, MPTS,
+    PDTS)."""
 
+    def build(options: Any, space: TaskSpace, initial: TaskDistribution, iterations: int
+              ) -> RiskPrinciple:
+        return principle(initial, options)
 
-def _tr(options: TrOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
-        ) -> RiskPrinciple:
-    return WorstCasePrinciple(initial, options)
-
-
-def _dro(options: DroOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
-         ) -> RiskPrinciple:
-    return GroupDROPrinciple(initial, options)
+    return build
 
 
 PrincipleBuilder = Callable[[Any, TaskSpace, TaskDistribution, int], RiskPrinciple]
 """Builds a risk principle from its options (``None`` where it has no section, as ERM), the
 identifier box, p0 and the run's number of iterations."""
 
-PRINCIPLES: dict[str, PrincipleBuilder] = {"erm": _erm, "ar": _ar, "dr": _dr, "tr": _tr,
-                                           "dro": _dro}
+PRINCIPLES: dict[str, PrincipleBuilder] = {
+    "erm": _erm, "ar": _ar, "dr": _on_p0(TailRiskPrinciple), "tr": _on_p0(WorstCasePrinciple),
+    "dro": _on_p0(GroupDROPrinciple), "mpts": _on_p0(MPTSPrinciple),
+    "pdts": _on_p0(PDTSPrinciple),
+}
 """Every risk principle ``method.risk`` may name."""
 
 
