@@ -11,9 +11,9 @@ docs/configuration.md.
 from __future__ import annotations
 
 import difflib
+import functools
 import itertools
 import json
-import os
 import sys
 from collections.abc import Callable
 from contextlib import ExitStack
@@ -204,17 +204,23 @@ def check_values(args: list[str], prog: str) -> None:
                 _fail(prog, f"{error}{where}")
 
 
-RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device", "trainer.keep_freed_memory")
-"""The keys a resumed run may change (``hydra.*`` aside): train longer, stop earlier, continue on
-another device (its checkpoint loads there), with or without glibc keeping freed memory (which
-changes no value)."""
+RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
+"""The keys a resumed run may change that change what it computes: train longer, stop earlier,
+continue on another device (its checkpoint loads there)."""
+NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "trainer.progress",
+                  "trainer.log_every", "trainer.density_every", "trainer.keep_freed_memory",
+                  "trainer.stop_signals", "threads")
+"""The keys a resumed run may change that change no result (``eval.json`` and every logged
+value stay those of the uninterrupted run): where and how often it logs and draws, the progress
+bar, the allocator, the stop signals, and torch's thread count (which the seeded benchmark
+families were measured not to change: tests/test_faults.py)."""
 
 
 def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
     config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised and
-    ``device`` and ``trainer.keep_freed_memory`` changed if given. Any other override, or fewer
-    iterations, is refused (one line, exit code 2)."""
+    ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given. Any other override, or
+    fewer iterations, is refused (one line, exit code 2)."""
     from armeta_rl.config import check_config, load_run_config
 
     saved = _checked(prog, load_run_config, run_dir, "resume")
@@ -225,13 +231,19 @@ def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
         if name == "resume" or _is_hydra_key(name):
             continue
         value = arg.split("=", 1)[1] if "=" in arg else ""
-        if override.is_add() or override.is_delete() or name not in RESUMABLE:
+        if override.is_add() or override.is_delete() or name not in (*RESUMABLE,
+                                                                       *NO_RESULT_KEYS):
             _fail(prog, f"config key '{name.lstrip('+~')}' = {value}: cannot change on resume "
-                        f"(only {', '.join(RESUMABLE)} can); train a new run to change it")
+                        f"(only {', '.join((*RESUMABLE, *NO_RESULT_KEYS))} can); train a new "
+                        "run to change it")
+        if name == "logger":  # a group: its file's keys
+            chosen = OmegaConf.load(config_files() / "logger" / f"{value}.yaml")
+            changes["logger"] = {"project": None, **OmegaConf.to_container(chosen)}
+            continue
         *groups, leaf = name.split(".")
         node = changes
         for group in groups:
-            node = node[group]
+            node = node.setdefault(group, {})
         node[leaf] = override.value()
     new = changes["trainer"].get("iterations", saved.trainer.iterations)
     if isinstance(new, int) and not isinstance(new, bool) and new < saved.trainer.iterations:
@@ -240,6 +252,17 @@ def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
     cfg = OmegaConf.merge(saved, changes)
     _checked(prog, check_config, cfg)
     return cfg
+
+
+def changed_on_resume(saved: DictConfig, cfg: DictConfig) -> list[str]:
+    """``key=value`` of every key of :data:`NO_RESULT_KEYS` whose value ``cfg`` changes."""
+    changed = []
+    for name in NO_RESULT_KEYS:
+        old, new = (OmegaConf.select(c, name) for c in (saved, cfg))
+        if old != new and not isinstance(new, DictConfig):
+            shown = new if not isinstance(new, (list, tuple)) else list(new)
+            changed.append(f"{name}={shown}")
+    return changed
 
 
 def _checked(prog: str, check: Callable[..., Any], *args: Any) -> Any:
@@ -287,12 +310,21 @@ def _in_run_list_sweep() -> bool:
 
 def _report_errors(prog: str, task: Callable[[DictConfig], None], cfg: DictConfig) -> None:
     """Run ``task`` on ``cfg``; a user error exits with its one line (:func:`_guarded`)."""
-    from armeta_rl.errors import CollectionFailed, ConfigError, RunDirectoryError, TrainingDiverged
+    from armeta_rl.errors import (
+        CollectionFailed,
+        ConfigError,
+        RunDirectoryError,
+        RunStopped,
+        TrainingDiverged,
+    )
 
     try:
         task(cfg)
     except ConfigError as error:
         _fail(prog, str(error))
+    except RunStopped as error:  # not an error: one line, and a code a requeue acts on
+        print(f"{prog}: {error}", file=sys.stderr)
+        sys.exit(error.code)
     except (TrainingDiverged, CollectionFailed) as error:
         _fail(prog, f"training stopped: {error}", code=1)
     except RunDirectoryError as error:
@@ -302,19 +334,33 @@ def _report_errors(prog: str, task: Callable[[DictConfig], None], cfg: DictConfi
 
 
 def _train_task(cfg: DictConfig) -> None:
+    """Train (or resume) one run, stopping cleanly on ``trainer.stop_signals`` and SIGINT
+    (:mod:`armeta_rl.preemption`): the signal becomes the process's stop request, which the game
+    loop reads."""
     from hydra.core.hydra_config import HydraConfig
 
     from armeta_rl.allocator import keep_freed_memory
+    from armeta_rl.config import load_run_config
+    from armeta_rl.errors import RunStopped
+    from armeta_rl.preemption import PROCESS, listening
     from armeta_rl.trainers.training import run_training
 
     if cfg.resume:
+        saved = load_run_config(cfg.resume, "resume")
         cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task), "armeta-train")
         run_dir = Path(cfg.resume)
+        taken = changed_on_resume(saved, cfg)
+        if taken:
+            print(f"resuming {run_dir} with {', '.join(taken)} (they change no result)")
     else:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if PROCESS.requested:  # a later job of a sweep worker that was asked to stop
+        raise RunStopped(f"not started: this process received {PROCESS.name}; the same command "
+                         "starts it", PROCESS.exit_code)
     if cfg.trainer.keep_freed_memory:
         keep_freed_memory()
-    run_training(cfg, run_dir)
+    with listening(cfg.trainer.stop_signals) as stop:
+        run_training(cfg, run_dir, stop=stop)
 
 
 _NO_RUN_FLAGS = ("--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i",
@@ -332,6 +378,26 @@ def planned_run_dir(args: list[str]) -> Path:
         return Path(OmegaConf.select(cfg, "hydra.run.dir"))
 
 
+def _interruptible(prog: str) -> Callable[[Callable[[], None]], Callable[[], None]]:
+    """A command that Ctrl-C ends with one line and exit code 130 where no run is stopping
+    cleanly (:mod:`armeta_rl.preemption` handles it while a run trains)."""
+
+    def wrap(command: Callable[[], None]) -> Callable[[], None]:
+        @functools.wraps(command)
+        def run() -> None:
+            from armeta_rl.preemption import EXIT_INTERRUPTED
+
+            try:
+                command()
+            except KeyboardInterrupt:
+                _fail(prog, "interrupted (SIGINT)", code=EXIT_INTERRUPTED)
+
+        return run
+
+    return wrap
+
+
+@_interruptible("armeta-train")
 def train() -> None:
     """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``).
 
@@ -343,6 +409,10 @@ def train() -> None:
 
     prog = "armeta-train"
     args = sys.argv[1:]
+    for arg in args:
+        name, _, value = arg.partition("=")
+        if name in ("hydra.run.dir", "hydra.sweep.dir") and not value.strip():
+            _fail(prog, f"config key '{name}' = '': must name a directory")
     check_overrides(args, prog, "train", GROUPS)
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     multirun = any(a in ("-m", "--multirun") for a in args)
@@ -396,10 +466,14 @@ def _remove_run_dir(run_dir: Path) -> None:
 
 
 def _eval_task(cfg: DictConfig) -> None:
+    from armeta_rl.config import load_run_config
     from armeta_rl.trainers.evaluation import format_table
     from armeta_rl.trainers.report import cross_evaluate
     from armeta_rl.trainers.run_dir import write_text_atomically
 
+    load_run_config(cfg.learner, "learner")  # the run directories first, each named as itself,
+    if cfg.adversary is not None:            # then the report's path derived from them
+        load_run_config(cfg.adversary, "adversary")
     suffix = "" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}"
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     check_writable(out, "out")
@@ -411,20 +485,23 @@ def _eval_task(cfg: DictConfig) -> None:
 
 
 def check_writable(path: Path, key: str) -> None:
-    """Refuse an output file that cannot be written, before the work that fills it."""
+    """Refuse an output file that cannot be written, before the work that fills it: its folder
+    is tried by creating and removing a hidden file there (the report is written atomically,
+    through such a sibling)."""
     from armeta_rl.errors import ConfigError
+    from armeta_rl.trainers.run_dir import unwritable
 
     if path.is_dir():
         raise ConfigError(key, str(path), "is a directory, not a file")
     parent = path.parent
     if not parent.is_dir():
         raise ConfigError(key, str(path), f"cannot be written: {parent} is not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK) or (
-        path.exists() and not os.access(path, os.W_OK)
-    ):
-        raise ConfigError(key, str(path), "cannot be written: permission denied")
+    problem = unwritable(parent)
+    if problem is not None:
+        raise ConfigError(key, str(path), f"cannot be written in {parent} ({problem})")
 
 
+@_interruptible("armeta-eval")
 def evaluate() -> None:
     """``armeta-eval``: score a saved learner on p0 and on a saved adversary."""
     args = sys.argv[1:]

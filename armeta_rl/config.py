@@ -45,6 +45,7 @@ from armeta_rl.fields import (  # noqa: F401 (_conforms: the schema tests check 
     key,
     one_of,
 )
+from armeta_rl.preemption import STOP_SIGNALS
 
 CONFIG_FILE = "config.yaml"
 SEED_RANGE = (-(2**63), 2**64 - 1)
@@ -83,6 +84,9 @@ class TrainerSchema:
     max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
     density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
     frozen_leader: str | None = key(old_runs=None)  # checked by armeta_rl.trainers.players
+    stop_signals: list[str] = key(f"every element must be one of {', '.join(STOP_SIGNALS)}",
+                                  lambda v: all(name in STOP_SIGNALS for name in v),
+                                  old_runs=["SIGTERM", "SIGUSR1"])
 
 
 @dataclass
@@ -134,7 +138,7 @@ class BenchmarkSchema:
     initial: InitialSchema = key()
     collector: dict[str, Any] = key()  # the collector's arguments: checked by the collector
     eval_collector: dict[str, Any] = key()
-    model: dict[str, Any] = key()  # the model's choices (head): checked by make_mlp
+    model: dict[str, Any] | None = key()  # the model's choices (head), if any: make_mlp checks
 
 
 @dataclass
@@ -261,9 +265,27 @@ def check_task_split(cfg: DictConfig) -> None:
             )
 
 
+def required_keys(schema: type = TrainSchema, prefix: str = "") -> list[str]:
+    """The keys every composed config has (dotted): the schema's fields that are neither
+    optional nor added after runs were saved (``old_runs``), but for the ``learner:`` and
+    ``risk:`` sections, whose builders default what a section lacks."""
+    keys = []
+    hints = typing.get_type_hints(schema)
+    for spec in dataclasses.fields(schema):
+        name, hint = f"{prefix}{spec.name}", hints[spec.name]
+        if _optional(hint) is not None or spec.metadata["old_runs"] is not _MISSING or (
+                name in ("learner", "risk")):
+            continue
+        keys.append(name)
+        if dataclasses.is_dataclass(hint):
+            keys += required_keys(hint, f"{name}.")
+    return keys
+
+
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
     """The resolved config saved in ``run_dir`` (with the keys added since, at their ``old_runs``
-    values); ``key`` names the option that pointed there."""
+    values); ``key`` names the option that pointed there. A file that does not parse, or lacks a
+    key every run's config has (an empty or truncated file), is refused (:class:`ConfigError`)."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
@@ -276,7 +298,13 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
         ) from None
     if not isinstance(cfg, DictConfig):
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
-    return with_old_run_defaults(without_removed_keys(cfg))
+    cfg = with_old_run_defaults(without_removed_keys(cfg))
+    missing = next((name for name in required_keys()
+                    if OmegaConf.select(cfg, name, default=_MISSING) is _MISSING), None)
+    if missing is not None:
+        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is incomplete (no '{missing}'; "
+                          "empty or cut short): restore it, or train the run again")
+    return cfg
 
 
 LearnerSchema = dataclasses.make_dataclass(

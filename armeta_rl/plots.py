@@ -107,6 +107,13 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
     return figure
 
 
+def _drawable(top: float) -> bool:
+    """Whether a colour scale can end at ``top``, the largest density on the grid: not where
+    the density underflows to zero (or overflows) at every grid point, e.g. a distribution whose
+    mass lies between the points; the map is then drawn blank on a unit scale."""
+    return 0.0 < top < math.inf
+
+
 def _new_figure(size: tuple[float, float]) -> Figure:
     figure = Figure(figsize=size, layout="constrained")
     FigureCanvasAgg(figure)
@@ -131,7 +138,7 @@ def _heat_maps(distribution: TaskDistribution, initial: TaskDistribution, n: int
     densities = [density_on_grid(shown, n).numpy() for shown in (distribution, initial)]
     extent = (space.low[0], space.high[0], space.low[1], space.high[1])
     top = max(float(density.max()) for density in densities)
-    norm = LogNorm(vmin=top * 1e-4, vmax=top, clip=True)
+    norm = LogNorm(vmin=top * 1e-4, vmax=top, clip=True) if _drawable(top) else Normalize(0, 1)
     figure = _new_figure((11, 4.5))
     axes = figure.subplots(1, 2)
     for axis, density, label in zip(axes, densities, ("adversarial p_φ", "initial p0"),
@@ -149,7 +156,8 @@ def _marginals(distribution: TaskDistribution, initial: TaskDistribution, n: int
     space, d = distribution.space, distribution.space.dim
     axes_points, one, two = pairwise_marginals(distribution, n)
     _, one_initial, _ = pairwise_marginals(initial, n)
-    norm = Normalize(vmin=0.0, vmax=float(two.max()))  # linear: marginals are smooth
+    top = float(two.max())
+    norm = Normalize(vmin=0.0, vmax=top if _drawable(top) else 1.0)  # linear: smooth marginals
     figure = _new_figure((2.6 * d + 1, 2.4 * d))
     grid = figure.subplots(d, d, squeeze=False)
     for i in range(d):

@@ -9,7 +9,7 @@ Over seeds, ``std`` is the sample standard deviation (n − 1; the paper's "± �
 from __future__ import annotations
 
 import csv
-import json
+import io
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -17,7 +17,9 @@ from pathlib import Path
 from typing import Any
 
 from armeta_rl.config import CONFIG_FILE
-from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished
+from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished, report_sections
+from armeta_rl.trainers.evaluation import ReportInvalid, read_report
+from armeta_rl.trainers.run_dir import write_text_atomically
 
 INITIAL = "initial"
 NUMBER_COLUMNS = ("mean", "sem", "entropy", "kl_p0", "n_tasks")
@@ -126,15 +128,16 @@ def train_seconds(plan: Plan, results: Path, known: dict[str, float]) -> dict[st
 def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[str, Any]]:
     """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
     run's wall time from ``seconds``, :func:`train_seconds`), each named adversary from its
-    ``eval_vs_<name>.json``; with noisy support labels as extra records."""
+    ``eval_vs_<name>.json``; with noisy support labels as extra records. A report that fails its
+    schema is not finished (:func:`~armeta_rl.reproduce.plan.finished`) and is left out."""
     records = []
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
     sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals]
     for run, file, section, distribution in sources:
-        path = results / run.subdir / file
-        if not path.is_file():
+        try:
+            report = read_report(results / run.subdir / file, report_sections(file))
+        except ReportInvalid:
             continue
-        report = json.loads(path.read_text())
         run_time = seconds.get(run.subdir) if file == EVAL_FILE else None
         for noisy in (False, True):
             name = f"{section}_noisy" if noisy else section
@@ -146,16 +149,18 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
 
 
 def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:
-    """The records as CSV, one column per key (CVaR columns in increasing α)."""
+    """The records as CSV, one column per key (CVaR columns in increasing α), written
+    atomically."""
     keys: list[str] = []
     for record in records:
         keys += [k for k in record if k not in keys]
     cvars = sorted((k for k in keys if k.startswith("cvar_")), key=lambda k: float(k[5:]))
     columns = [k for k in keys if not k.startswith("cvar_")] + cvars
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, restval="")
-        writer.writeheader()
-        writer.writerows(records)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns, restval="")
+    writer.writeheader()
+    writer.writerows(records)
+    write_text_atomically(path, text.getvalue())
 
 
 def select(records: Iterable[dict[str, Any]], **where: Any) -> list[dict[str, Any]]:

@@ -7,6 +7,8 @@ more identifiers) into ``<run>/density/iter_<iteration>.png`` and, with a wandb 
 the image ``adversary/density`` at that step. :meth:`DensityFrames.finish` draws the last
 iteration if it is not a multiple of ``every`` and writes ``<run>/density.gif`` from all frames in
 the directory (a resumed run's animation includes the frames written before the interruption).
+Frames and the GIF are written atomically; a frame that cannot be read (a file damaged outside
+the run) is left out of the GIF with a warning, and the last iteration's is drawn again.
 
 Drawing evaluates the exact density on a grid: it draws no random numbers, so a run with frames
 is bit-identical to one without.
@@ -14,12 +16,17 @@ is bit-identical to one without.
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
+from matplotlib.image import imread
 from torchrl.record.loggers import Logger, WandbLogger
 
 from armeta_rl.plots import plot_density, write_animation
 from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.trainers.run_dir import write_atomically
+
+log = logging.getLogger(__name__)
 
 FRAMES_DIR = "density"
 ANIMATION_FILE = "density.gif"
@@ -57,8 +64,9 @@ class DensityFrames:
         """Draw p_φ as it is now as the frame of ``iteration``; returns the PNG's path."""
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         path = self.frame_path(iteration)
-        plot_density(self.adversary, self.initial, path, self.points_per_axis,
-                     title=f"p_φ at meta-iteration {iteration}")
+        write_atomically(path, lambda staged: plot_density(
+            self.adversary, self.initial, staged, self.points_per_axis,
+            title=f"p_φ at meta-iteration {iteration}"))
         if isinstance(self.logger, WandbLogger):
             import wandb
 
@@ -68,8 +76,23 @@ class DensityFrames:
     def finish(self, iteration: int) -> Path:
         """Draw the final ``iteration`` if it has no frame yet, then write the GIF of every frame
         in the directory, in iteration order; returns the GIF's path."""
-        if not self.frame_path(iteration).exists():
+        if not readable(self.frame_path(iteration)):
             self.draw(iteration)
-        frames = sorted(self.frames_dir.glob("iter_*.png"), key=lambda f: int(f.stem[5:]))
-        write_animation(frames, self.animation)
+        frames = []
+        for frame in sorted(self.frames_dir.glob("iter_*.png"), key=lambda f: int(f.stem[5:])):
+            if readable(frame):
+                frames.append(frame)
+            else:
+                log.warning("density frame %s cannot be read: left out of %s", frame,
+                            self.animation.name)
+        write_atomically(self.animation, lambda staged: write_animation(frames, staged))
         return self.animation
+
+
+def readable(frame: Path) -> bool:
+    """Whether ``frame`` is a PNG that can be read back (e.g. not a 0-byte file)."""
+    try:
+        imread(frame)
+    except (OSError, SyntaxError, ValueError):
+        return False
+    return True
