@@ -1,8 +1,9 @@
 """Console entry points ``armeta-train`` and ``armeta-eval`` (Hydra).
 
-Bad input ends with one line naming the config key, the value and what is allowed, and exit
-code 2. Overrides (group choices such as ``benchmark=`` and the keys of the others) and the values
-of every job (against the schema in :mod:`armeta_rl.config`) are checked before Hydra starts; a
+Bad input ends with one line naming the config key, the value and what is allowed (and the
+likely key, for a misspelt one), and exit code 2. The config of every job on the command line is
+composed (Hydra checks the types and refuses unknown keys) and validated
+(:func:`armeta_rl.config.validate`: the ranges and the rules between keys) before Hydra starts; a
 single run's directory is checked and locked then too, so a refused command writes nothing. A
 run stopped by a diverged loss or a failed write ends with one line and exit code 1. See
 docs/configuration.md.
@@ -11,29 +12,30 @@ docs/configuration.md.
 from __future__ import annotations
 
 import difflib
-import functools
-import itertools
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, NoReturn
 
-import hydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 GROUPS = ("benchmark", "method", "logger")
+"""The config groups a command line chooses from (``benchmark=point_nav``)."""
 _ABSENT = object()
+_NO_RUN_FLAGS = ("--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i",
+                 "--shell-completion", "-sc", "--resolve")
+_UNCHECKED_FLAGS = ("--help", "-h", "--hydra-help", "--shell-completion", "-sc")
+"""Flags whose command composes nothing to check (its words are not overrides)."""
 
 
 def config_dir() -> Path:
-    """The Hydra config directory, ready to compose from: ``train.yaml`` composes
-    ``learner_options`` and ``risk_options`` and resolves ``${method_name:...}``, which
-    :mod:`armeta_rl.config` stores in Hydra's ConfigStore and registers with OmegaConf when
-    imported. That import loads the learners (torch), so it is made here, where configs are
-    composed, and not by ``import armeta_rl`` or by importing this module."""
-    import armeta_rl.config  # noqa: F401
+    """The Hydra config directory, ready to compose from: importing :mod:`armeta_rl.factory`
+    registers every learner's and risk principle's options and :mod:`armeta_rl.config`'s root
+    schema in Hydra's ConfigStore. That import loads the learners (torch), so it is made here,
+    where configs are composed, and not by ``import armeta_rl`` or by importing this module."""
+    import armeta_rl.factory  # noqa: F401
 
     return config_files()
 
@@ -42,6 +44,14 @@ def config_files() -> Path:
     """Where the config files are: packaged in a wheel, or the repository's ``configs/``."""
     packaged = Path(__file__).parent / "configs"
     return packaged if packaged.is_dir() else Path(__file__).resolve().parents[1] / "configs"
+
+
+class Refused(ValueError):
+    """A command refused with one line (``message``) and an exit code."""
+
+    def __init__(self, message: str, code: int = 2) -> None:
+        super().__init__(message)
+        self.code = code
 
 
 def _fail(prog: str, message: str, code: int = 2) -> NoReturn:
@@ -96,67 +106,15 @@ def _unknown_key_message(cfg: DictConfig, key: str, value: str, choices: list[st
     return message + f"; to add a new key write +{key}={value}"
 
 
-def check_overrides(
-    args: list[str], prog: str, config_name: str, groups: tuple[str, ...] = ()
-) -> None:
-    """Reject with one line, before Hydra starts, an override Hydra cannot parse, an unknown choice
-    of a config group in ``groups`` (``benchmark=``, ``method=``, ``logger=``; also inside ``-m``
-    sweeps), and an override of a key the composed config does not have (a typo such as
-    ``trainer.iteratons=5``).
-
-    The config is composed for every combination of the group choices on the command line, so a
-    key is accepted when the benchmark or method that defines it is chosen. Adding (``+key=``),
-    deleting (``~key``) and ``hydra.*`` overrides are left to Hydra.
-    """
-    from hydra import compose, initialize_config_dir
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-    from hydra.errors import HydraException
-
-    parser = OverridesParser.create()
-    chosen: dict[str, list[str]] = {}
-    changes = []
-    for arg in args:
-        if arg.startswith("-") or "=" not in arg:
-            continue
-        try:
-            (override,) = parser.parse_overrides([arg])
-        except HydraException as error:
-            reason = str(error).splitlines()[0]
-            _fail(prog, f"cannot read the override {arg!r}: {reason}")
-        key = override.key_or_group
-        if override.is_delete() or key.split(".")[0].split("/")[0] == "hydra":
-            continue
-        if key in groups:
-            values = override.sweep_string_iterator() if override.is_sweep_override() else [
-                override.value()
-            ]
-            chosen[key] = [str(choice) for choice in values]
-            allowed = group_choices(key)
-            for choice in chosen[key]:
-                if choice not in allowed:
-                    _fail(prog, f"config key '{key}' = {choice!r}: allowed: {', '.join(allowed)}")
-        elif not override.is_add():
-            changes.append((key, arg.split("=", 1)[1]))
-    if not changes:
-        return
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        for combination in itertools.product(*chosen.values()):
-            choices = [f"{group}={choice}" for group, choice in zip(chosen, combination)]
-            cfg = compose(config_name, overrides=choices)
-            for key, value in changes:
-                if not _has_key(cfg, key):
-                    _fail(prog, _unknown_key_message(cfg, key, value, choices))
-
-
-def _parse(arg: str, prog: str) -> Any:
-    """The Hydra override ``arg`` parses to, or one line and exit code 2."""
+def _parse(arg: str) -> Any:
+    """The Hydra override ``arg`` parses to (:class:`Refused` if it cannot be read)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import HydraException
 
     try:
         (override,) = OverridesParser.create().parse_overrides([arg])
     except HydraException as error:
-        _fail(prog, f"cannot read the override {arg!r}: {str(error).splitlines()[0]}")
+        raise Refused(f"cannot read the override {arg!r}: {str(error).splitlines()[0]}") from None
     return override
 
 
@@ -164,44 +122,112 @@ def _is_hydra_key(key: str) -> bool:
     return key.split(".")[0].split("/")[0] == "hydra"
 
 
-def job_overrides(args: list[str], prog: str) -> list[list[str]]:
+def job_overrides(args: Sequence[str], groups: tuple[str, ...] = GROUPS) -> list[list[str]]:
     """The config overrides (not ``hydra.*``) of every job the command line starts: one list for
-    each combination of the values of ``-m`` sweeps such as ``trainer.iterations=5,0``."""
+    each combination of the values of ``-m`` sweeps such as ``trainer.iterations=5,0``. An
+    unknown choice of a group in ``groups`` (``benchmark=``, also inside a sweep) is refused."""
+    import itertools
+
     per_arg = []
     for arg in args:
         if arg.startswith("-") or "=" not in arg:
             continue
-        override = _parse(arg, prog)
-        if _is_hydra_key(override.key_or_group):
+        override = _parse(arg)
+        key = override.key_or_group
+        if _is_hydra_key(key):
             continue
-        if override.is_sweep_override():
-            name = arg.split("=", 1)[0]
-            per_arg.append([f"{name}={value}" for value in override.sweep_string_iterator()])
-        else:
-            per_arg.append([arg])
+        values = ([str(v) for v in override.sweep_string_iterator()]
+                  if override.is_sweep_override() else [arg.split("=", 1)[1]])
+        if key in groups:
+            allowed = group_choices(key)
+            for choice in values:
+                if choice not in allowed:
+                    raise Refused(f"config key '{key}' = {choice!r}: allowed: "
+                                   f"{', '.join(allowed)}")
+        name = arg.split("=", 1)[0]
+        per_arg.append([f"{name}={value}" for value in values] if len(values) > 1 else [arg])
     return [list(job) for job in itertools.product(*per_arg)]
 
 
-def check_values(args: list[str], prog: str) -> None:
-    """Compose the ``armeta-train`` config of every job on the command line (each combination of
-    a ``-m`` sweep) and check it against the schema, so that no job trains before every job's
-    values are known to be good. One line and exit code 2 for the first bad one."""
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
+def _node(cfg: DictConfig, key: str) -> Any:
+    parent, _, leaf = key.rpartition(".")
+    container = OmegaConf.select(cfg, parent) if parent else cfg
+    return container._get_node(leaf) if isinstance(container, DictConfig) else None
 
-    from armeta_rl.config import check_config
+
+def compose_job(job: list[str], config_name: str = "train") -> DictConfig:
+    """Compose ``config_name`` with the overrides ``job`` (inside Hydra's initialized config
+    dir). A key the config lacks, a value of the wrong type (for a boolean, anything but true or
+    false: OmegaConf would read ``off`` or ``1`` as one) is refused as one line
+    (:class:`Refused`)."""
+    from hydra import compose
+    from hydra.errors import ConfigCompositionException, HydraException
+
+    try:
+        cfg = compose(config_name, overrides=job)
+    except ConfigCompositionException as error:
+        raise Refused(_composition_message(job, config_name, error)) from None
+    except HydraException as error:
+        raise Refused(" ".join(str(error).split())) from None
+    for arg in job:
+        override = _parse(arg)
+        node = _node(cfg, override.key_or_group)
+        value = override.value()
+        if type(node).__name__ == "BooleanNode" and not isinstance(value, (bool, type(None))):
+            raise Refused(f"config key '{override.key_or_group}' = {value!r}: "
+                           "must be a boolean (true or false)")
+    return cfg
+
+
+def _composition_message(job: list[str], config_name: str, error: Exception) -> str:
+    """One line for the override of ``job`` that Hydra could not compose: a missing key (with
+    what is there and the likely one) or a value of the wrong type."""
+    from hydra import compose
+
+    text = str(error)
+    for arg in job:
+        key, value = arg.lstrip("+~").split("=", 1) if "=" in arg else (arg, "")
+        if f"'{key}'" not in text and f"override {arg}" not in text:
+            continue
+        others = [a for a in job if a != arg]
+        try:
+            cfg = compose(config_name, overrides=others)
+        except Exception:  # another override fails too: reported on its own
+            break
+        choices = [a for a in others if a.split("=")[0] in GROUPS]
+        if not _has_key(cfg, key):
+            return _unknown_key_message(cfg, key, value, choices)
+        from armeta_rl.fields import type_words
+
+        return f"config key '{key}' = {value}: must be {type_words(_node(cfg, key))}"
+    return " ".join(text.split())
+
+
+def check_jobs(args: Sequence[str]) -> list[Any]:
+    """Compose and validate the ``armeta-train`` config of every job on the command line (each
+    combination of a ``-m`` sweep), so that no job trains before every job's values are known to
+    be good; returns their :class:`~armeta_rl.config.TrainConfig`. :class:`Refused` for the
+    first bad one."""
+    from hydra import initialize_config_dir
+
+    from armeta_rl.config import validate
     from armeta_rl.errors import ConfigError
+    from armeta_rl.factory import check_method
 
-    jobs = job_overrides(args, prog)
+    jobs = job_overrides(args)
+    configs = []
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         for job in jobs:
             where = f" (job {' '.join(job)})" if len(jobs) > 1 else ""
             try:
-                check_config(compose("train", overrides=job))
-            except HydraException as error:
-                _fail(prog, " ".join(str(error).split()) + where)
+                config = validate(compose_job(job))
+                check_method(config.method)
+            except Refused as refused:
+                raise Refused(f"{refused}{where}") from None
             except ConfigError as error:
-                _fail(prog, f"{error}{where}")
+                raise Refused(f"{error}{where}") from None
+            configs.append(config)
+    return configs
 
 
 RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
@@ -216,26 +242,25 @@ bar, the allocator, the stop signals, and torch's thread count (which the seeded
 families were measured not to change: tests/test_faults.py)."""
 
 
-def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
+def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
     config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised and
     ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given. Any other override, or
-    fewer iterations, is refused (one line, exit code 2)."""
-    from armeta_rl.config import check_config, load_run_config
+    fewer iterations, is refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
+    from armeta_rl.config import load_run_config, validate
 
-    saved = _checked(prog, load_run_config, run_dir, "resume")
+    saved = load_run_config(run_dir, "resume")
     changes: dict[str, Any] = {"resume": run_dir, "trainer": {"stop_at": None}}
     for arg in overrides:
-        override = _parse(arg, prog)
+        override = _parse(arg)
         name = override.key_or_group
         if name == "resume" or _is_hydra_key(name):
             continue
         value = arg.split("=", 1)[1] if "=" in arg else ""
-        if override.is_add() or override.is_delete() or name not in (*RESUMABLE,
-                                                                       *NO_RESULT_KEYS):
-            _fail(prog, f"config key '{name.lstrip('+~')}' = {value}: cannot change on resume "
-                        f"(only {', '.join((*RESUMABLE, *NO_RESULT_KEYS))} can); train a new "
-                        "run to change it")
+        allowed = (*RESUMABLE, *NO_RESULT_KEYS)
+        if override.is_add() or override.is_delete() or name not in allowed:
+            raise Refused(f"config key '{name.lstrip('+~')}' = {value}: cannot change on resume "
+                          f"(only {', '.join(allowed)} can); train a new run to change it")
         if name == "logger":  # a group: its file's keys
             chosen = OmegaConf.load(config_files() / "logger" / f"{value}.yaml")
             changes["logger"] = {"project": None, **OmegaConf.to_container(chosen)}
@@ -247,10 +272,11 @@ def resume_config(run_dir: str, overrides: list[str], prog: str) -> DictConfig:
         node[leaf] = override.value()
     new = changes["trainer"].get("iterations", saved.trainer.iterations)
     if isinstance(new, int) and not isinstance(new, bool) and new < saved.trainer.iterations:
-        _fail(prog, f"config key 'trainer.iterations' = {new}: must be >= "
-                    f"{saved.trainer.iterations} on resume (a run can train longer, not shorter)")
-    cfg = OmegaConf.merge(saved, changes)
-    _checked(prog, check_config, cfg)
+        raise Refused(f"config key 'trainer.iterations' = {new}: must be >= "
+                       f"{saved.trainer.iterations} on resume (a run can train longer, not "
+                       "shorter)")
+    cfg = _merged(saved, changes)
+    validate(cfg)
     return cfg
 
 
@@ -260,22 +286,23 @@ def changed_on_resume(saved: DictConfig, cfg: DictConfig) -> list[str]:
     for name in NO_RESULT_KEYS:
         old, new = (OmegaConf.select(c, name) for c in (saved, cfg))
         if old != new and not isinstance(new, DictConfig):
-            shown = new if not isinstance(new, (list, tuple)) else list(new)
+            shown = new if not isinstance(new, (list, tuple, ListConfig)) else list(new)
             changed.append(f"{name}={shown}")
     return changed
 
 
-def _checked(prog: str, check: Callable[..., Any], *args: Any) -> Any:
-    """``check(*args)``, with a :class:`ConfigError` as one line and exit code 2."""
-    from armeta_rl.errors import ConfigError
+def _merged(saved: DictConfig, changes: dict[str, Any]) -> DictConfig:
+    from omegaconf.errors import OmegaConfBaseException
+
+    from armeta_rl.fields import config_error
 
     try:
-        return check(*args)
-    except ConfigError as error:
-        _fail(prog, str(error))
+        return OmegaConf.merge(saved, changes)
+    except OmegaConfBaseException as error:
+        raise config_error(error) from None
 
 
-def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
+def _report_errors(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
     """Run ``task`` turning the package's user errors into one line and an exit code: 2 for a
     bad value, 1 for a run that diverged or a disk that failed it. A job of a ``run_list`` sweep
     (``armeta-reproduce``) raises :class:`~armeta_rl.errors.JobFailed` with that code instead of
@@ -284,14 +311,41 @@ def _guarded(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictCon
     def wrapped(cfg: DictConfig) -> None:
         from armeta_rl.errors import JobFailed
 
-        try:
-            _report_errors(prog, task, cfg)
-        except SystemExit as stop:
-            if stop.code and _in_run_list_sweep():
-                raise JobFailed(stop.code if isinstance(stop.code, int) else 1) from None
-            raise
+        code, message = _run_task(task, cfg)
+        if code == 0:
+            return
+        print(f"{prog}: {message}", file=sys.stderr)
+        if _in_run_list_sweep():
+            raise JobFailed(code)
+        sys.exit(code)
 
     return wrapped
+
+
+def _run_task(task: Callable[[DictConfig], None], cfg: DictConfig) -> tuple[int, str]:
+    """``task(cfg)``; the exit code and line of a user error or a stopped run (0 and ``""`` if
+    none)."""
+    from armeta_rl.errors import (
+        CollectionFailed,
+        ConfigError,
+        RunDirectoryError,
+        RunStopped,
+        TrainingDiverged,
+    )
+
+    try:
+        task(cfg)
+    except (ConfigError, Refused) as error:
+        return getattr(error, "code", 2), f"error: {error}"
+    except RunStopped as error:  # not an error: a code a requeue acts on
+        return error.code, str(error)
+    except (TrainingDiverged, CollectionFailed) as error:
+        return 1, f"error: training stopped: {error}"
+    except RunDirectoryError as error:
+        return 1, f"error: {error}"
+    except OSError as error:
+        return 1, "error: " + f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
+    return 0, ""
 
 
 def _in_run_list_sweep() -> bool:
@@ -308,31 +362,6 @@ def _in_run_list_sweep() -> bool:
             and hydra_cfg.sweeper.get("_target_") == RunListSweeperConf._target_)
 
 
-def _report_errors(prog: str, task: Callable[[DictConfig], None], cfg: DictConfig) -> None:
-    """Run ``task`` on ``cfg``; a user error exits with its one line (:func:`_guarded`)."""
-    from armeta_rl.errors import (
-        CollectionFailed,
-        ConfigError,
-        RunDirectoryError,
-        RunStopped,
-        TrainingDiverged,
-    )
-
-    try:
-        task(cfg)
-    except ConfigError as error:
-        _fail(prog, str(error))
-    except RunStopped as error:  # not an error: one line, and a code a requeue acts on
-        print(f"{prog}: {error}", file=sys.stderr)
-        sys.exit(error.code)
-    except (TrainingDiverged, CollectionFailed) as error:
-        _fail(prog, f"training stopped: {error}", code=1)
-    except RunDirectoryError as error:
-        _fail(prog, str(error), code=1)
-    except OSError as error:
-        _fail(prog, f"{error.strerror or error}: {error.filename or ''}".rstrip(": "), code=1)
-
-
 def _train_task(cfg: DictConfig) -> None:
     """Train (or resume) one run, stopping cleanly on ``trainer.stop_signals`` and SIGINT
     (:mod:`armeta_rl.preemption`): the signal becomes the process's stop request, which the game
@@ -347,7 +376,7 @@ def _train_task(cfg: DictConfig) -> None:
 
     if cfg.resume:
         saved = load_run_config(cfg.resume, "resume")
-        cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task), "armeta-train")
+        cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task))
         run_dir = Path(cfg.resume)
         taken = changed_on_resume(saved, cfg)
         if taken:
@@ -363,8 +392,13 @@ def _train_task(cfg: DictConfig) -> None:
         run_training(cfg, run_dir, stop=stop)
 
 
-_NO_RUN_FLAGS = ("--cfg", "-c", "--help", "-h", "--hydra-help", "--info", "-i",
-                 "--shell-completion", "-sc", "--resolve")
+def _run_hydra(argv: list[str], config_name: str, task: Callable[[DictConfig], None]) -> None:
+    """Hydra's command line (``hydra.main``) on ``argv`` rather than ``sys.argv``."""
+    from hydra._internal.utils import _run_hydra, get_args_parser
+
+    parser = get_args_parser()
+    _run_hydra(args=parser.parse_args(argv), args_parser=parser, task_function=task,
+               config_path=str(config_dir()), config_name=config_name)
 
 
 def planned_run_dir(args: list[str]) -> Path:
@@ -378,69 +412,99 @@ def planned_run_dir(args: list[str]) -> Path:
         return Path(OmegaConf.select(cfg, "hydra.run.dir"))
 
 
-def _interruptible(prog: str) -> Callable[[Callable[[], None]], Callable[[], None]]:
-    """A command that Ctrl-C ends with one line and exit code 130 where no run is stopping
-    cleanly (:mod:`armeta_rl.preemption` handles it while a run trains)."""
+def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str]) -> int:
+    """``main(argv)``'s exit code: 0, the code of its ``SystemExit``, or 2 (1) with one line
+    for a refused command (a failed run)."""
+    from armeta_rl.errors import ConfigError
+    from armeta_rl.preemption import EXIT_INTERRUPTED
 
-    def wrap(command: Callable[[], None]) -> Callable[[], None]:
-        @functools.wraps(command)
-        def run() -> None:
-            from armeta_rl.preemption import EXIT_INTERRUPTED
-
-            try:
-                command()
-            except KeyboardInterrupt:
-                _fail(prog, "interrupted (SIGINT)", code=EXIT_INTERRUPTED)
-
-        return run
-
-    return wrap
+    try:
+        main(argv)
+    except (Refused, ConfigError) as error:
+        print(f"{prog}: error: {error}", file=sys.stderr)
+        return getattr(error, "code", 2)
+    except KeyboardInterrupt:  # Ctrl-C where no run stops cleanly (armeta_rl.preemption)
+        print(f"{prog}: interrupted (SIGINT)", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except SystemExit as stop:
+        return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+    return 0
 
 
-@_interruptible("armeta-train")
-def train() -> None:
-    """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``).
+def _command(main: Callable[[list[str]], None], prog: str, argv: list[str] | None) -> int:
+    """``main``'s exit code on ``argv``; with ``argv`` ``None``, on ``sys.argv[1:]``, exiting."""
+    if argv is not None:
+        return _exit_code(main, prog, list(argv))
+    sys.exit(_exit_code(main, prog, sys.argv[1:]))
 
-    A single run's directory is checked and locked before Hydra starts (Hydra writes ``.hydra/``
-    and its log there); a run refused before it wrote a checkpoint removes the directory it
-    created. ``-m`` jobs lock their own directories.
+
+def _print_help(prog: str, config_name: str, groups: tuple[str, ...], usage: str) -> None:
+    """``--help``: the usage, the groups a command line chooses from and the composed config."""
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg = compose_job([], config_name)
+    lines = [f"{prog}: {usage}", "", "Configuration groups (group=option):"]
+    lines += [f"  {group}: {', '.join(group_choices(group))}" for group in groups] or ["  none"]
+    lines += ["", "Config (override any key: key=value; add one: +key=value):", "",
+              OmegaConf.to_yaml(cfg).rstrip(), "",
+              "Hydra's own flags (-m, --cfg job, -sc install=bash, ...): --hydra-help"]
+    print("\n".join(lines))
+
+
+def train(argv: list[str] | None = None) -> int:
+    """``armeta-train``: train a method on a benchmark (see ``configs/train.yaml``); returns the
+    exit code of the command line ``argv``. Without ``argv`` it is the program: it runs
+    ``sys.argv[1:]`` and exits with that code.
+
+    Every job's config is composed and validated before Hydra starts. A single run's directory
+    is checked and locked then too (Hydra writes ``.hydra/`` and its log there); a run refused
+    before it wrote a checkpoint removes the directory it created. ``-m`` jobs lock their own
+    directories.
     """
+    return _command(_train, "armeta-train", argv)
+
+
+def _train(args: list[str]) -> None:
     from armeta_rl.trainers.run_dir import check_run_dir, run_lock
 
     prog = "armeta-train"
-    args = sys.argv[1:]
+    if any(a in ("--help", "-h") for a in args):
+        _print_help(prog, "train", GROUPS, "train a method on a benchmark "
+                    "(armeta-train [group=option ...] [key=value ...] [-m])")
+        return
+    task = _report_errors(prog, _train_task)
+    if any(a in _UNCHECKED_FLAGS for a in args):
+        _run_hydra(args, "train", task)
+        return
     for arg in args:
         name, _, value = arg.partition("=")
         if name in ("hydra.run.dir", "hydra.sweep.dir") and not value.strip():
-            _fail(prog, f"config key '{name}' = '': must name a directory")
-    check_overrides(args, prog, "train", GROUPS)
+            raise Refused(f"config key '{name}' = '': must name a directory")
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     multirun = any(a in ("-m", "--multirun") for a in args)
     if resume:
         if multirun:
-            _fail(prog, f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
-        resume_config(resume, [a for a in args if not a.startswith("-")], prog)
+            raise Refused(f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
+        resume_config(resume, [a for a in args if not a.startswith("-")])
         if not any(a.startswith("hydra.run.dir=") for a in args):
             args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     else:
-        check_values(args, prog)
-    main = hydra.main(version_base=None, config_path=str(config_dir()), config_name="train")
+        check_jobs(args)
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
-        sys.argv = [sys.argv[0], *args]
-        main(_guarded(prog, _train_task))()
+        _run_hydra(args, "train", task)
         return
     run_dir = Path(resume) if resume else planned_run_dir(args)
     key = "resume" if resume else "hydra.run.dir"
-    _checked(prog, check_run_dir, run_dir, key)
+    check_run_dir(run_dir, key)
     given = [a for a in args if a.startswith("hydra.run.dir=")]
     if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
         args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
-    sys.argv = [sys.argv[0], *args]
     created = _first_missing(run_dir)
     with ExitStack() as stack:
-        _checked(prog, stack.enter_context, run_lock(run_dir, key))
+        stack.enter_context(run_lock(run_dir, key))
         try:
-            main(_guarded(prog, _train_task))()
+            _run_hydra(args, "train", task)
         except SystemExit as exit_:
             if exit_.code == 2 and created and not (run_dir / "checkpoints").exists():
                 _remove_run_dir(created)
@@ -501,17 +565,31 @@ def check_writable(path: Path, key: str) -> None:
         raise ConfigError(key, str(path), f"cannot be written in {parent} ({problem})")
 
 
-@_interruptible("armeta-eval")
-def evaluate() -> None:
-    """``armeta-eval``: score a saved learner on p0 and on a saved adversary."""
-    args = sys.argv[1:]
+def evaluate(argv: list[str] | None = None) -> int:
+    """``armeta-eval``: score a saved learner on p0 and on a saved adversary; returns the exit
+    code of the command line ``argv``. Without ``argv`` it is the program: it runs
+    ``sys.argv[1:]`` and exits with that code."""
+    return _command(_evaluate, "armeta-eval", argv)
+
+
+def _evaluate(args: list[str]) -> None:
+    prog = "armeta-eval"
+    if any(a in ("--help", "-h") for a in args):
+        _print_help(prog, "eval", (), "score a saved learner on p0 and on a saved adversary "
+                    "(armeta-eval learner=<run dir> [adversary=<run dir>] [eval.n_tasks=...] "
+                    "[out=<file>])")
+        return
+    task = _report_errors(prog, _eval_task)
+    if any(a in _UNCHECKED_FLAGS for a in args):
+        _run_hydra(args, "eval", task)
+        return
     multirun = "-m" in args or "--multirun" in args  # a sweep's jobs carry their own learner=
     if not multirun and not any(a.startswith("learner=") for a in args):
-        _fail(
-            "armeta-eval",
-            "config key 'learner' is missing: give the run directory to score, "
-            "e.g. armeta-eval learner=runs/... adversary=runs/...",
-        )
-    check_overrides(args, "armeta-eval", "eval")
-    main = hydra.main(version_base=None, config_path=str(config_dir()), config_name="eval")
-    main(_guarded("armeta-eval", _eval_task))()
+        raise Refused("config key 'learner' is missing: give the run directory to score, "
+                       "e.g. armeta-eval learner=runs/... adversary=runs/...")
+    from hydra import initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        for job in job_overrides(args, groups=()):
+            compose_job(job, "eval")
+    _run_hydra(args, "eval", task)

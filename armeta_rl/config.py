@@ -1,50 +1,30 @@
-"""Run configs: the typed schema of every known config key (its type and allowed range, declared
-once), its check, and loading the resolved config a run directory keeps.
+"""The ``armeta-train`` config: its root sections as dataclasses (each key's default and range),
+their check, and loading the config a run directory keeps.
 
-The schema is a tree of dataclasses, :class:`TrainSchema` at its root, mirroring
-``configs/train.yaml``. A field's annotation is the key's type (``bool``, ``int``, ``float``,
-``str``, ``list[...]``, ``X | None``, a nested schema, or ``Any`` / ``dict[str, Any]`` for parts
-a benchmark or method fills freely, such as collector arguments); its metadata
-(:func:`armeta_rl.fields.key`) is the range and its wording. The YAML files keep the values,
-but for a learner's and a risk principle's options: their defaults are the fields' (each
-learner's or principle's module's :class:`~armeta_rl.fields.Options`, registered in
-:data:`armeta_rl.factory.LEARNERS` and :data:`armeta_rl.factory.PRINCIPLES`), from which
-:data:`LearnerSchema`, :data:`RiskSchema` and the composed ``learner:`` and ``risk:`` sections
-are derived.
-:func:`check_config` checks a composed config against the schema, strictly:
-``first_order: off`` is a string, not a boolean, and is refused. Keys present only with some
-benchmarks or methods (``benchmark.collector.workers``) are checked when present. See
+:class:`TrainConfig` is the structured config ``configs/train.yaml`` composes first; the
+learners' and risk principles' sections (``learner.maml``, ``risk.ar``) are their modules' own
+dataclasses, registered in Hydra's ConfigStore by :func:`armeta_rl.fields.register` and listed in
+the defaults of ``configs/train.yaml``. This module imports none of them. Hydra checks every
+value's type and refuses unknown keys as it composes; :func:`validate` makes the dataclasses,
+which checks every range and the rules between keys, and is called once, by the CLI (and by
+:func:`~armeta_rl.trainers.training.run_training` for Python callers). See
 docs/configuration.md.
 """
 
 from __future__ import annotations
 
-import dataclasses
-import typing
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import yaml
 from hydra.core.config_store import ConfigStore
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
-from armeta_rl.devices import DEVICE_FORMS, is_device_name, resolve_device
+from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import LEARNERS, learner_sections, risk_sections
-from armeta_rl.fields import (  # noqa: F401 (_conforms: the schema tests check types with it)
-    _MISSING,
-    _check_node,
-    _conforms,
-    _optional,
-    above,
-    at_least,
-    defaults,
-    each,
-    inside,
-    key,
-    one_of,
-)
+from armeta_rl.fields import Section, above, at_least, config_error, each, inside, key, one_of
 from armeta_rl.preemption import STOP_SIGNALS
 
 CONFIG_FILE = "config.yaml"
@@ -63,265 +43,240 @@ def method_name(risk: str, learner: str) -> str:
 OmegaConf.register_new_resolver("method_name", method_name, replace=True)
 
 
-def seeds(top: int = SEED_RANGE[1]) -> Any:
+def seeds(top: int = SEED_RANGE[1], default: int = 0) -> Any:
     low = SEED_RANGE[0]
-    return key(
-        f"must be in [-2^63, {'2^64 - 1' if top == SEED_RANGE[1] else '2^64 - 2'}] "
-        "(torch's seed range)",
-        lambda v: low <= v <= top,
-    )
+    words = "2^64 - 1" if top == SEED_RANGE[1] else "2^64 - 2"
+    return key(f"must be in [-2^63, {words}] (torch's seed range)", lambda v: low <= v <= top,
+               default)
 
 
 @dataclass
-class TrainerSchema:
-    iterations: int = at_least(1)
-    meta_batch: int = at_least(1)
-    log_every: int = at_least(1)
-    checkpoint_every: int = at_least(1)
-    stop_at: int | None = at_least(1)
-    progress: bool = key()
-    keep_freed_memory: bool = key(old_runs=True)
-    max_loss: float | None = key("must be > 0", lambda v: v > 0, old_runs=None)
-    density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0, old_runs=0)
-    frozen_leader: str | None = key(old_runs=None)  # checked by armeta_rl.trainers.players
+class TrainerConfig(Section):
+    """``trainer``: the game loop's length, logging, checkpoints and guards."""
+
+    section = "trainer"
+
+    iterations: int = at_least(1, 4000)  # the default run (ar_maml, sinusoid) < 5 min on 2 cores
+    meta_batch: int = at_least(1, 25)
+    log_every: int = at_least(1, 50)
+    checkpoint_every: int = at_least(1, 500)
+    stop_at: int | None = at_least(1)  # stop (with a checkpoint) after this iteration; resume later
+    # divergence guard: a task loss beyond ±max_loss stops the run (exit 1); null: only
+    # non-finite losses stop it
+    max_loss: float | None = key("must be > 0", lambda v: v > 0, 1.0e6)
+    # draw p_φ every N iterations (AR methods) into <run>/density/iter_N.png (and wandb),
+    # density.gif at the end; 0: off
+    density_every: int = key("must be >= 0 (0: no density frames)", lambda v: v >= 0,
+                             "${trainer.checkpoint_every}")
+    progress: bool = key(default=True)
+    # glibc keeps freed blocks for reuse instead of returning them to the kernel (faster, same
+    # values; docs/speed-options.md)
+    keep_freed_memory: bool = key(default=True)
+    # a finished run directory (same benchmark and learner): its learner is loaded and never
+    # trained; only the adversary (AR methods) learns against it (checked by
+    # armeta_rl.trainers.players; docs/protocol.md)
+    frozen_leader: str | None = key()
+    # on these signals (and SIGINT) a run finishes its iteration, writes a checkpoint and exits
+    # 75 (SIGINT: 130) for resume= to continue (armeta_rl/preemption.py; docs/configuration.md)
     stop_signals: list[str] = key(f"every element must be one of {', '.join(STOP_SIGNALS)}",
                                   lambda v: all(name in STOP_SIGNALS for name in v),
-                                  old_runs=["SIGTERM", "SIGUSR1"])
+                                  ["SIGTERM", "SIGUSR1"])
 
 
 @dataclass
-class EvalSchema:
-    n_tasks: int = at_least(1)
-    alphas: list[float] = each(inside(0, 1), nonempty=True)
-    seed: int = seeds(SEED_RANGE[1] - 1)  # the adversarial distribution is scored at seed + 1
-    support_noise: float = at_least(0)
+class EvalConfig(Section):
+    """``eval``: the evaluation after training (every method sees the same tasks)."""
 
+    section = "eval"
 
-RiskSchema = dataclasses.make_dataclass(
-    "RiskSchema", [(name, options, key()) for name, options in risk_sections().items()]
-)
-RiskSchema.__doc__ = """``risk:``: one section per risk principle of
-:data:`armeta_rl.factory.PRINCIPLES` that has options, its options."""
-
-
-@dataclass
-class MethodSchema:
-    name: str = key()
-    learner: str = key()  # a name of armeta_rl.factory.LEARNERS: checked by check_config
-    risk: str = one_of("erm", "ar", "dr", "tr", "dro")
+    n_tasks: int = at_least(1, 500)
+    alphas: list[float] = each(inside(0, 1), nonempty=True, default=[0.5, 0.7, 0.9])
+    seed: int = seeds(SEED_RANGE[1] - 1, 1234)  # the adversarial distribution is scored at seed+1
+    # > 0 also reports scores with N(0, σ²) noise on the support labels (regression and sys-id,
+    # in the labels' units; RL has no labels)
+    support_noise: float = at_least(0, 0.0)
 
 
 @dataclass
-class LoggerSchema:
-    kind: str = one_of("csv", "wandb", "none")
+class MethodConfig(Section):
+    """``method``: risk principle × learner (``configs/method/``, or ``method.learner=anil
+    method.risk=dr``, a run named ``dr_anil``). The names are checked against the registries
+    (:func:`armeta_rl.factory.check_method`)."""
+
+    section = "method"
+
+    learner: str = key(default="maml")
+    risk: str = key(default="ar")
+    name: str = key(default="${method_name:${method.risk},${method.learner}}")
+
+
+@dataclass
+class LoggerConfig(Section):
+    section = "logger"
+
+    kind: str = one_of("csv", "wandb", "none", default="csv")
     project: str | None = key()
 
 
 @dataclass
-class SpaceSchema:
-    names: list[str] = key("needs at least one identifier", lambda v: len(v) > 0)
-    low: list[float] = key()
-    high: list[float] = key()
+class SpaceConfig(Section):
+    """``benchmark.space``: the identifier box."""
+
+    section = "benchmark.space"
+
+    names: list[str] = key("needs at least one identifier", lambda v: len(v) > 0, MISSING)
+    low: list[float] = key(default=MISSING)
+    high: list[float] = key(default=MISSING)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if MISSING in (self.names, self.low, self.high):
+            return
+        for name, low, high in zip(self.names, self.low, self.high):
+            if not low < high:
+                self.refuse("low", f"must be < benchmark.space.high for every identifier "
+                                   f"({name}: {low} >= {high})")
 
 
 @dataclass
-class InitialSchema:
-    kind: str = one_of("uniform", "normal")
+class InitialConfig(Section):
+    """``benchmark.initial``: p0."""
+
+    section = "benchmark.initial"
+
+    kind: str = one_of("uniform", "normal", default="uniform")
     loc: list[float] | None = key()
     scale: list[float] | None = each(above(0))
 
 
 @dataclass
-class BenchmarkSchema:
-    name: str = key()
-    space: SpaceSchema = key()
-    initial: InitialSchema = key()
-    collector: dict[str, Any] = key()  # the collector's arguments: checked by the collector
-    eval_collector: dict[str, Any] = key()
-    model: dict[str, Any] | None = key()  # the model's choices (head), if any: make_mlp checks
+class BenchmarkConfig(Section):
+    """``benchmark``: set by ``configs/benchmark/``."""
+
+    section = "benchmark"
+
+    name: str = key(default="")
+    space: SpaceConfig = field(default_factory=SpaceConfig)
+    initial: InitialConfig = field(default_factory=InitialConfig)
+    # the collectors' Hydra nodes (_target_ and arguments), checked by the collectors
+    collector: dict[str, Any] = key(default={})
+    eval_collector: dict[str, Any] = key(default={})
+    model: dict[str, Any] = key(default={})  # the model's choices (head): checked by make_mlp
 
 
 @dataclass
-class TrainSchema:
-    """The root of the ``armeta-train`` config (``configs/train.yaml``)."""
+class TrainConfig(Section):
+    """The root of the ``armeta-train`` config."""
+
+    section = ""
 
     seed: int = seeds()
-    device: str = key(f"allowed: {DEVICE_FORMS}", is_device_name, old_runs="cpu")
-    threads: int = at_least(1)
-    resume: str | None = key()
-    trainer: TrainerSchema = key()
-    eval: EvalSchema = key()
-    learner: LearnerSchema = key()
-    risk: RiskSchema = key()
-    method: MethodSchema = key()
-    logger: LoggerSchema = key()
-    benchmark: BenchmarkSchema = key()
+    # cpu, cuda or cuda:N: where leaders, task distributions, torch-native envs and evaluation
+    # compute (MuJoCo steps on the CPU; docs/scale.md); checked against this machine
+    device: str = key(default="cpu")
+    threads: int = at_least(1, 1)  # torch intra-op threads; batched small ops are fastest on one
+    resume: str | None = key()  # a run directory to continue from its latest checkpoint
+    trainer: TrainerConfig = field(default_factory=TrainerConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    method: MethodConfig = field(default_factory=MethodConfig)
+    logger: LoggerConfig = field(default_factory=LoggerConfig)
+    benchmark: BenchmarkConfig = field(default_factory=BenchmarkConfig)
+    # learner.<name>, risk.<name>: each a registered section (armeta_rl.fields.register)
+    learner: dict[str, Any] = key(default={})
+    risk: dict[str, Any] = key(default={})
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        resolve_device(self.device)
+        self.check_task_split()
+
+    def check_task_split(self) -> None:
+        """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs
+        every task count it collects to divide evenly: checked for the meta-batch and
+        ``eval.n_tasks``, so a bad split fails before training rather than at the evaluation."""
+        workers = self.benchmark.collector.get("workers")
+        if workers is None:
+            return
+        if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+            raise ConfigError("benchmark.collector.workers", workers, "must be an integer >= 1")
+        for name, count in (("trainer.meta_batch", self.trainer.meta_batch),
+                            ("eval.n_tasks", self.eval.n_tasks)):
+            if count % workers:
+                raise ConfigError("benchmark.collector.workers", workers,
+                                  f"must divide {name} = {count}")
 
 
-def schema_keys(schema: type = TrainSchema, prefix: str = "") -> dict[str, dataclasses.Field]:
-    """Every key the schema declares (dotted) and its field, leaves and groups alike."""
-    keys = {}
-    hints = typing.get_type_hints(schema)
-    for spec in dataclasses.fields(schema):
-        name = f"{prefix}{spec.name}"
-        keys[name] = spec
-        nested = _optional(hints[spec.name]) or hints[spec.name]
-        if dataclasses.is_dataclass(nested):
-            keys.update(schema_keys(nested, f"{name}."))
-    return keys
+ConfigStore.instance().store(group="schema", name="train", node=TrainConfig, package="_global_")
 
 
-REMOVED_KEYS: dict[str, Any] = {
-    "benchmark.collector.compile": False,
-    "benchmark.eval_collector.compile": False,
-}
-"""Keys that configs saved by earlier versions may hold, with the value under which a saved run
-behaves as today's code runs it (the compiled system-identification env step was removed:
-docs/speed-options.md)."""
+def validate(cfg: DictConfig) -> TrainConfig:
+    """``cfg`` (a composed or loaded config) as its dataclasses: every range and the rules
+    between keys checked (:class:`~armeta_rl.errors.ConfigError` for the first bad value)."""
+    try:
+        return OmegaConf.to_object(cfg)
+    except OmegaConfBaseException as error:
+        raise config_error(error) from None
 
 
-def without_removed_keys(cfg: DictConfig) -> DictConfig:
-    """``cfg`` (a run directory's saved config) without the keys of :data:`REMOVED_KEYS`; a key
-    saved at another value than today's behaviour is refused (:class:`ConfigError`)."""
-    present = {}
-    for name, today in REMOVED_KEYS.items():
-        value = OmegaConf.select(cfg, name, default=_MISSING)
-        if value is _MISSING:
-            continue
-        if value != today:
-            raise ConfigError(name, value, f"was removed; a saved run needs it at {today!r}")
-        present[name] = value
-    if not present:
-        return cfg
-    cfg = cfg.copy()
-    with open_dict(cfg):
-        for name in present:
-            parent, _, leaf = name.rpartition(".")
-            OmegaConf.select(cfg, parent).pop(leaf)
+def schema() -> DictConfig:
+    """The typed config every run's is merged into: :class:`TrainConfig` with every registered
+    ``learner.<name>`` and ``risk.<name>`` section at its defaults."""
+    store = ConfigStore.instance()
+    cfg = OmegaConf.structured(TrainConfig)
+    for group in ("learner", "risk"):
+        for entry in store.list(f"schema/{group}"):
+            name = entry.removesuffix(".yaml")
+            cfg[group][name] = store.load(f"schema/{group}/{entry}").node
     return cfg
-
-
-def with_old_run_defaults(cfg: DictConfig) -> DictConfig:
-    """``cfg`` (a run directory's saved config) with the keys added since it was saved, at the
-    values that keep such a run behaving as it did (their ``old_runs``)."""
-    added = {}
-    for name, spec in schema_keys().items():
-        if spec.metadata["old_runs"] is not _MISSING and OmegaConf.select(
-            cfg, name, default=_MISSING
-        ) is _MISSING:
-            added[name] = spec.metadata["old_runs"]
-    if not added:
-        return cfg
-    cfg = cfg.copy()
-    with open_dict(cfg):
-        for name, value in added.items():
-            OmegaConf.update(cfg, name, value, force_add=True)
-    return cfg
-
-
-def check_config(cfg: DictConfig) -> None:
-    """Raise :class:`ConfigError` for the first value in ``cfg`` that the schema rejects (its
-    type, then its range), then for the device (present on this machine) and the rules between
-    keys (identifier box, task split)."""
-    _check_node(TrainSchema, OmegaConf.to_container(cfg, resolve=True), "")
-    device = OmegaConf.select(cfg, "device")
-    if device is not None:
-        resolve_device(device)
-    space = OmegaConf.select(cfg, "benchmark.space")
-    if space is not None:
-        for name, low, high in zip(space.names, space.low, space.high):
-            if not low < high:
-                raise ConfigError(
-                    "benchmark.space.low",
-                    list(space.low),
-                    f"must be < benchmark.space.high for every identifier "
-                    f"({name}: {low} >= {high})",
-                )
-    check_task_split(cfg)
-    check_learner(cfg)
-
-
-def check_learner(cfg: DictConfig) -> None:
-    """``method.learner`` names a registered learner (:data:`armeta_rl.factory.LEARNERS`)."""
-    name = OmegaConf.select(cfg, "method.learner")
-    if name is not None and name not in LEARNERS:
-        raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
-
-
-def check_task_split(cfg: DictConfig) -> None:
-    """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs every
-    task count it collects to divide evenly: checked here for the meta-batch and ``eval.n_tasks``,
-    so a bad split fails before training rather than at the evaluation after it."""
-    workers = OmegaConf.select(cfg, "benchmark.collector.workers", default=None)
-    if workers is None:
-        return
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ConfigError("benchmark.collector.workers", workers, "must be an integer >= 1")
-    for name in ("trainer.meta_batch", "eval.n_tasks"):
-        count = OmegaConf.select(cfg, name)
-        if count % workers:
-            raise ConfigError(
-                "benchmark.collector.workers", workers, f"must divide {name} = {count}"
-            )
-
-
-def required_keys(schema: type = TrainSchema, prefix: str = "") -> list[str]:
-    """The keys every composed config has (dotted): the schema's fields that are neither
-    optional nor added after runs were saved (``old_runs``), but for the ``learner:`` and
-    ``risk:`` sections, whose builders default what a section lacks."""
-    keys = []
-    hints = typing.get_type_hints(schema)
-    for spec in dataclasses.fields(schema):
-        name, hint = f"{prefix}{spec.name}", hints[spec.name]
-        if _optional(hint) is not None or spec.metadata["old_runs"] is not _MISSING or (
-                name in ("learner", "risk")):
-            continue
-        keys.append(name)
-        if dataclasses.is_dataclass(hint):
-            keys += required_keys(hint, f"{name}.")
-    return keys
 
 
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
-    """The resolved config saved in ``run_dir`` (with the keys added since, at their ``old_runs``
-    values); ``key`` names the option that pointed there. A file that does not parse, or lacks a
-    key every run's config has (an empty or truncated file), is refused (:class:`ConfigError`)."""
+    """The resolved config saved in ``run_dir``, typed (:func:`schema`); ``key`` names the option
+    that pointed there. A file that does not parse, or lacks a section every run's config has
+    (:data:`SAVED_SECTIONS`: an empty or truncated file), is refused: merged into the schema it
+    would silently take defaults."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
     try:
-        cfg = OmegaConf.load(path)
+        saved = OmegaConf.load(path)
     except (yaml.YAMLError, UnicodeDecodeError) as error:
         reason = " ".join(str(error).split())
         raise ConfigError(
             key, str(run_dir), f"its {CONFIG_FILE} cannot be read: {reason}"
         ) from None
-    if not isinstance(cfg, DictConfig):
+    if not isinstance(saved, DictConfig):
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
-    cfg = with_old_run_defaults(without_removed_keys(cfg))
-    missing = next((name for name in required_keys()
-                    if OmegaConf.select(cfg, name, default=_MISSING) is _MISSING), None)
+    missing = next((name for name in saved_sections(saved)
+                    if OmegaConf.select(saved, name, default=_ABSENT) is _ABSENT), None)
     if missing is not None:
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is incomplete (no '{missing}'; "
                           "empty or cut short): restore it, or train the run again")
-    return cfg
+    try:
+        return OmegaConf.merge(schema(), saved)
+    except OmegaConfBaseException as error:
+        line = config_error(error)
+        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} does not fit this version: "
+                                             f"{line}") from None
 
 
-LearnerSchema = dataclasses.make_dataclass(
-    "LearnerSchema", [(name, options, key()) for name, options in learner_sections().items()]
-)
-LearnerSchema.__doc__ = """``learner:``: one section per learner of
-:data:`armeta_rl.factory.LEARNERS` and per meta-RL form, its options."""
+_ABSENT = object()
+SAVED_SECTIONS = ("seed", "trainer", "trainer.iterations", "eval", "eval.n_tasks", "method",
+                  "method.learner", "method.risk", "logger", "benchmark", "benchmark.name",
+                  "benchmark.space", "benchmark.initial", "benchmark.collector",
+                  "benchmark.eval_collector", "learner", "risk")
+"""The keys every saved run config holds."""
 
-# configs/train.yaml composes `learner_options`: the `learner:` section, every learner's options at
-# their defaults, so a learner's values are declared once, in its options. (A root config, not a
-# config group: `learner=x` stays a value, refused by the schema as before.)
-ConfigStore.instance().store(
-    name="learner_options",
-    node={"learner": {name: defaults(options) for name, options in learner_sections().items()}},
-)
-# ... and `risk_options`, the `risk:` section: every risk principle's options at their defaults.
-ConfigStore.instance().store(
-    name="risk_options",
-    node={"risk": {name: defaults(options) for name, options in risk_sections().items()}},
-)
+
+def saved_sections(saved: DictConfig) -> list[str]:
+    """The keys a run's saved config must hold: :data:`SAVED_SECTIONS` and the sections of its
+    own learner and risk principle (``learner.maml``, ``risk.ar``; those registered, the file's
+    last ones: a truncated file loses them, and merged into the schema they would take their
+    defaults)."""
+    store = ConfigStore.instance()
+    own = []
+    for group in ("learner", "risk"):
+        name = OmegaConf.select(saved, f"method.{group}", default=None)
+        if isinstance(name, str) and f"{name}.yaml" in store.list(f"schema/{group}"):
+            own.append(f"{group}.{name}")
+    return [*SAVED_SECTIONS, *own]

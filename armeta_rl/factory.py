@@ -1,33 +1,35 @@
-"""Builds a run's players from a composed Hydra config.
+"""Builds a run's players from its typed config sections.
 
 Leaders and risk principles are looked up by the names a method config gives
-(``method.learner``, ``method.risk``) in :data:`LEARNERS` and :data:`PRINCIPLES`; each builder reads
-its own section (``learner.<name>``, ``risk.<name>``) into the options its module declares, and
-the model's sizes from the collector. A learner's builder and options live in its module, so adding
-one is that module and one entry in :data:`LEARNERS`. Every builder takes the run's ``device``
+(``method.learner``, ``method.risk``) in :data:`LEARNERS` and :data:`PRINCIPLES`; each builder
+receives its own options (the ``learner.<name>`` or ``risk.<name>`` section its module declares
+and registers), and takes the model's sizes from the collector. A learner's builder and options
+live in its module, so adding one is that module, one entry in :data:`LEARNERS` and its line in
+``configs/train.yaml``. Every builder takes the run's ``torch.device``
 (:func:`armeta_rl.devices.resolve_device`) as an argument and builds its player there.
+Importing this module registers every learner's and principle's section in Hydra's ConfigStore.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.collectors.base import TaskCollector
+from armeta_rl.config import InitialConfig, MethodConfig, SpaceConfig
 from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
-from armeta_rl.fields import section
-from armeta_rl.learners.anil import AnilOptions, build_anil
+from armeta_rl.learners.anil import build_anil
 from armeta_rl.learners.base import Leader
-from armeta_rl.learners.cnp import CnpOptions, build_cnp
-from armeta_rl.learners.maml import MamlOptions, build_maml
-from armeta_rl.learners.maml_trpo import MamlTrpoOptions, build_maml_trpo
+from armeta_rl.learners.cnp import build_cnp
+from armeta_rl.learners.maml import build_maml
+from armeta_rl.learners.maml_trpo import build_maml_trpo
 from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
@@ -36,38 +38,27 @@ from armeta_rl.risk.tail import DrOptions, TailRiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
 
 
-def build_space(cfg: DictConfig) -> TaskSpace:
+def build_space(space: SpaceConfig) -> TaskSpace:
     """The benchmark's identifier box."""
-    space = cfg.benchmark.space
     return TaskSpace(list(space.names), list(space.low), list(space.high))
 
 
-def build_initial(
-    cfg: DictConfig, space: TaskSpace, device: torch.device = CPU
-) -> TaskDistribution:
+def build_initial(initial: InitialConfig, space: TaskSpace, device: torch.device = CPU
+                  ) -> TaskDistribution:
     """The benchmark's initial task distribution p0, on ``device``."""
-    initial = section(cfg, "benchmark.initial")
-    return make_initial(
-        space, initial.get("kind", "uniform"), initial.get("loc"), initial.get("scale")
-    ).to(device)
+    return make_initial(space, initial.kind, initial.loc, initial.scale).to(device)
 
 
-def build_collector(
-    cfg: DictConfig, key: str = "benchmark.collector", device: torch.device = CPU
-) -> TaskCollector:
-    """Instantiate the collector described at ``key`` (a Hydra ``_target_`` node) with its data on
-    ``device`` (every collector takes a ``device`` argument); a collector with a ``check_space``
-    method is handed the benchmark's box, so a box its env cannot take
+def build_collector(node: Mapping[str, Any], key: str, space: TaskSpace,
+                    device: torch.device = CPU) -> TaskCollector:
+    """Instantiate the collector of the Hydra ``_target_`` node ``node`` (the config's ``key``)
+    with its data on ``device`` (every collector takes a ``device`` argument); a collector with a
+    ``check_space`` method is handed the benchmark's box, so a box its env cannot take
     (other identifier names or width, values outside the env's range) fails before training."""
-    node = OmegaConf.select(cfg, key)
-    if node is None or "_target_" not in node:
-        raise ConfigError(
-            key,
-            None if node is None else OmegaConf.to_container(node),
-            "needs a collector with a '_target_'",
-        )
+    if "_target_" not in node:
+        raise ConfigError(key, dict(node), "needs a collector with a '_target_'")
     try:
-        collector = instantiate(node, device=str(device))
+        collector = instantiate(node, device=device)
     except InstantiationException as error:
         # A collector's own ConfigError, not Hydra's wrapper around it, is what the CLI reports.
         if isinstance(error.__cause__, ConfigError):
@@ -75,132 +66,114 @@ def build_collector(
         raise
     check_space = getattr(collector, "check_space", None)
     if check_space is not None:
-        check_space(build_space(cfg))
+        check_space(space)
     return collector
 
 
-Builder = Callable[[DictConfig, TaskCollector, torch.device], Leader]
-"""Builds a learner from a composed config, with its model's sizes from the collector
-(:func:`armeta_rl.learners.base.sizes`), on the run's device."""
+Builder = Callable[[Any, TaskCollector, torch.device, Mapping[str, Any]], Leader]
+"""Builds a learner from its options, with its model's sizes from the collector and the
+benchmark's model choices (``benchmark.model``: a head), on the run's device."""
 
 
 @dataclass(frozen=True)
 class RLForm:
-    """A learner's meta-RL form on episode data: its own config section ``learner.<section>``,
-    its builder and its options."""
+    """A learner's meta-RL form on episode data: its own config section ``learner.<section>``
+    and its builder."""
 
     section: str
     build: Builder
-    options: type
 
 
 @dataclass(frozen=True)
 class Learner:
     """A registered meta-learner: its builder on regression and system-identification data
-    (``build``), its options (``options``: a dataclass of :mod:`armeta_rl.config` fields, the type,
-    range and default value of every key of its ``learner.<name>`` section), and its meta-RL form
-    on episode data (``rl``; ``None``: it has none). The composed config's ``learner:`` section and
-    its schema are derived from the options (:func:`learner_sections`)."""
+    (``build``, handed the options of its ``learner.<name>`` section), and its meta-RL form on
+    episode data (``rl``; ``None``: it has none)."""
 
     build: Builder
-    options: type
     rl: RLForm | None = None
 
 
 LEARNERS: dict[str, Learner] = {
-    "maml": Learner(build_maml, MamlOptions, rl=RLForm("maml_trpo", build_maml_trpo,
-                                                       MamlTrpoOptions)),
-    "cnp": Learner(build_cnp, CnpOptions),
-    "anil": Learner(build_anil, AnilOptions),
+    "maml": Learner(build_maml, rl=RLForm("maml_trpo", build_maml_trpo)),
+    "cnp": Learner(build_cnp),
+    "anil": Learner(build_anil),
 }
 """Every meta-learner ``method.learner`` may name; adding one is a module and an entry here
 (docs/adding-a-learner.md)."""
 
 
-def learner_sections() -> dict[str, type]:
-    """The options of every ``learner.<name>`` section: each learner's, and its meta-RL form's."""
-    sections = {}
-    for name, learner in LEARNERS.items():
-        sections[name] = learner.options
-        if learner.rl is not None:
-            sections[learner.rl.section] = learner.rl.options
-    return sections
-
-
-def _erm(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
+def _erm(options: None, space: TaskSpace, initial: TaskDistribution, iterations: int
+         ) -> RiskPrinciple:
     return ERMPrinciple(initial)
 
 
-def _ar(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    options = ArOptions(**section(cfg, "risk.ar"))
+def _ar(options: ArOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
+        ) -> RiskPrinciple:
     adversary = FlowAdversary(space, initial, options.flow, **options.flow_kwargs)
-    total_updates = max(1, cfg.trainer.iterations // options.update_every)
+    total_updates = max(1, iterations // options.update_every)
     return AdversarialPrinciple(adversary, options, total_updates=total_updates)
 
 
-def _dr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    return TailRiskPrinciple(initial, DrOptions(**section(cfg, "risk.dr")))
+def _dr(options: DrOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
+        ) -> RiskPrinciple:
+    return TailRiskPrinciple(initial, options)
 
 
-def _tr(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    return WorstCasePrinciple(initial, TrOptions(**section(cfg, "risk.tr")))
+def _tr(options: TrOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
+        ) -> RiskPrinciple:
+    return WorstCasePrinciple(initial, options)
 
 
-def _dro(cfg: DictConfig, space: TaskSpace, initial: TaskDistribution) -> RiskPrinciple:
-    return GroupDROPrinciple(initial, DroOptions(**section(cfg, "risk.dro")))
+def _dro(options: DroOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
+         ) -> RiskPrinciple:
+    return GroupDROPrinciple(initial, options)
 
 
-@dataclass(frozen=True)
-class Principle:
-    """A registered risk principle: its builder and its options (the type, range and default
-    value of every key of its ``risk.<name>`` section; ``None``: it has no section, as ERM). The
-    composed config's ``risk:`` section and its schema are derived from the options
-    (:func:`risk_sections`)."""
+PrincipleBuilder = Callable[[Any, TaskSpace, TaskDistribution, int], RiskPrinciple]
+"""Builds a risk principle from its options (``None`` where it has no section, as ERM), the
+identifier box, p0 and the run's number of iterations."""
 
-    build: Callable[[DictConfig, TaskSpace, TaskDistribution], RiskPrinciple]
-    options: type | None = None
-
-
-PRINCIPLES: dict[str, Principle] = {
-    "erm": Principle(_erm),
-    "ar": Principle(_ar, ArOptions),
-    "dr": Principle(_dr, DrOptions),
-    "tr": Principle(_tr, TrOptions),
-    "dro": Principle(_dro, DroOptions),
-}
+PRINCIPLES: dict[str, PrincipleBuilder] = {"erm": _erm, "ar": _ar, "dr": _dr, "tr": _tr,
+                                           "dro": _dro}
 """Every risk principle ``method.risk`` may name."""
 
 
-def risk_sections() -> dict[str, type]:
-    """The options of every ``risk.<name>`` section."""
-    return {name: entry.options for name, entry in PRINCIPLES.items() if entry.options is not None}
+def check_method(method: MethodConfig) -> None:
+    """``method.learner`` and ``method.risk`` name a registered learner and risk principle."""
+    if method.learner not in LEARNERS:
+        raise ConfigError("method.learner", method.learner, f"allowed: {', '.join(LEARNERS)}")
+    if method.risk not in PRINCIPLES:
+        raise ConfigError("method.risk", method.risk, f"allowed: {', '.join(PRINCIPLES)}")
 
 
-def build_leader(cfg: DictConfig, collector: TaskCollector, device: torch.device = CPU) -> Leader:
-    """The learner named by ``method.learner``, in its meta-RL form when the collector gathers
-    episodes (MAML is MAML-TRPO there; CNP has no meta-RL form), on ``device``."""
+def build_leader(method: MethodConfig, sections: Mapping[str, Any], collector: TaskCollector,
+                 model: Mapping[str, Any], device: torch.device = CPU) -> Leader:
+    """The learner ``method.learner`` with its options from ``sections`` (the config's
+    ``learner:``), in its meta-RL form when the collector gathers episodes (MAML is MAML-TRPO
+    there; CNP has no meta-RL form), on ``device``."""
     from armeta_rl.collectors.episodes import EpisodeCollector
 
-    name = cfg.method.learner
-    if name not in LEARNERS:
-        raise ConfigError("method.learner", name, f"allowed: {', '.join(LEARNERS)}")
-    if not isinstance(collector, EpisodeCollector):
-        return LEARNERS[name].build(cfg, collector, device)
-    rl = LEARNERS[name].rl
-    if rl is None:
-        with_rl = [learner for learner, entry in LEARNERS.items() if entry.rl is not None]
-        raise ConfigError("method", cfg.method.name,
-                          f"benchmark {cfg.benchmark.name} gathers episodes: it supports methods "
-                          f"whose learner is one of: {', '.join(with_rl)}")
-    return rl.build(cfg, collector, device)
+    check_method(method)
+    learner = LEARNERS[method.learner]
+    if isinstance(collector, EpisodeCollector):
+        if learner.rl is None:
+            with_rl = [name for name, entry in LEARNERS.items() if entry.rl is not None]
+            raise ConfigError("method", method.name,
+                              f"the benchmark gathers episodes: it supports methods whose "
+                              f"learner is one of: {', '.join(with_rl)}")
+        build, section = learner.rl.build, learner.rl.section
+    else:
+        build, section = learner.build, method.learner
+    return build(sections[section], collector, device, model)
 
 
-def build_principle(
-    cfg: DictConfig, space: TaskSpace, initial: TaskDistribution, device: torch.device = CPU
-) -> RiskPrinciple:
-    """The risk principle named by ``method.risk``, on ``device`` (its task distributions, e.g.
-    the flow adversary, and its state such as group weights)."""
-    name = cfg.method.risk
-    if name not in PRINCIPLES:
-        raise ConfigError("method.risk", name, f"allowed: {', '.join(PRINCIPLES)}")
-    return PRINCIPLES[name].build(cfg, space, initial).to(device)
+def build_principle(method: MethodConfig, sections: Mapping[str, Any], space: TaskSpace,
+                    initial: TaskDistribution, iterations: int, device: torch.device = CPU
+                    ) -> RiskPrinciple:
+    """The risk principle ``method.risk`` with its options from ``sections`` (the config's
+    ``risk:``), on ``device`` (its task distributions, e.g. the flow adversary, and its state
+    such as group weights); ``iterations`` plans the adversary's learning-rate schedule."""
+    check_method(method)
+    options = sections.get(method.risk)
+    return PRINCIPLES[method.risk](options, space, initial, iterations).to(device)

@@ -1,56 +1,49 @@
-"""Config fields: a key's type (the field's annotation), allowed range, the wording of the error
-line for a value out of it, and default value, declared once with :func:`key` and its shorthands
-(:func:`at_least`, :func:`above`, :func:`inside`, :func:`one_of`, :func:`each`); the strict check
-of plain values against a dataclass of such fields; and :class:`Options`, a learner's or a risk
-principle's options.
+"""Config sections as dataclasses: each key one field, with its default and, where it has one,
+its allowed range; Hydra checks the types, :class:`Section` the ranges.
 
-:mod:`armeta_rl.config`'s schema and every learner's and risk principle's options are made of
-these fields. This module imports no learner or principle, so their modules can declare their
-options here while :mod:`armeta_rl.config` derives the ``learner:`` and ``risk:`` schemas from the
-registered ones.
+A learner's, a risk principle's or the run's own section (``learner.maml``, ``risk.ar``,
+``trainer``) is a dataclass of fields made with :func:`key` or a shorthand (:func:`at_least`,
+:func:`above`, :func:`inside`, :func:`one_of`, :func:`each`). A module registers its section with
+:func:`register`, which stores it in Hydra's ConfigStore as a structured config of its group
+(``schema/learner/maml``, placed at ``learner.maml``); ``configs/train.yaml`` lists it in its
+defaults.
+Composing a config then checks every value's type and refuses unknown keys (Hydra), and making
+the dataclass (``OmegaConf.to_object``, or a constructor call from Python) checks every range
+(:meth:`Section.__post_init__`). Errors name the key, the value and what is allowed
+(:class:`~armeta_rl.errors.ConfigError`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-import types
-import typing
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Union
+from dataclasses import field
+from typing import Any, ClassVar
 
-from omegaconf import DictConfig, OmegaConf
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from armeta_rl.errors import ConfigError
 
-_MISSING = object()
 
-
-def key(
-    allowed: str = "",
-    test: Callable[[Any], bool] | None = None,
-    old_runs: Any = _MISSING,
-    default: Any = None,
-) -> Any:
-    """A schema field: ``test`` (on a value of the right type) and ``allowed``, the end of the
-    error line when it fails (``must be >= 1``, ``allowed: a, b``); ``old_runs`` is the value a
-    run directory saved before the key existed gets when it is loaded (only for keys added after
-    runs were saved); ``default`` is the key's value in a composed config, for the keys whose
-    values are declared here rather than in ``configs/`` (a learner's or a risk principle's
-    options, :func:`defaults`)."""
-    metadata = {"allowed": allowed, "test": test, "old_runs": old_runs}
+def key(allowed: str = "", test: Callable[[Any], bool] | None = None, default: Any = None) -> Any:
+    """A field with ``default`` whose values must pass ``test`` (``None`` passes: it means
+    unset); ``allowed`` ends the error line when one does not (``must be >= 1``, ``allowed: a,
+    b``)."""
+    metadata = {"allowed": allowed, "test": test}
     if isinstance(default, (list, dict)):
         return field(default_factory=lambda: type(default)(default), metadata=metadata)
     return field(default=default, metadata=metadata)
 
 
 def at_least(low: float, default: Any = None) -> Any:
-    return key(f"must be >= {low:g}", lambda v: v >= low, default=default)
+    return key(f"must be >= {low:g}", lambda v: v >= low, default)
 
 
 def above(low: float, default: Any = None) -> Any:
-    return key(f"must be > {low:g}", lambda v: v > low, default=default)
+    return key(f"must be > {low:g}", lambda v: v > low, default)
 
 
 def inside(low: float, high: float, closed: str = "()", default: Any = None) -> Any:
@@ -58,11 +51,11 @@ def inside(low: float, high: float, closed: str = "()", default: Any = None) -> 
     lo = (lambda v: v >= low) if closed[0] == "[" else (lambda v: v > low)
     hi = (lambda v: v <= high) if closed[1] == "]" else (lambda v: v < high)
     return key(f"must be in {closed[0]}{low:g}, {high:g}{closed[1]}", lambda v: lo(v) and hi(v),
-               default=default)
+               default)
 
 
 def one_of(*choices: str, default: Any = None) -> Any:
-    return key(f"allowed: {', '.join(choices)}", lambda v: v in choices, default=default)
+    return key(f"allowed: {', '.join(choices)}", lambda v: v in choices, default)
 
 
 def each(check: Any, nonempty: bool = False, default: Any = None) -> Any:
@@ -72,103 +65,90 @@ def each(check: Any, nonempty: bool = False, default: Any = None) -> Any:
     allowed = f"must be a non-empty list, every element {words}" if nonempty else (
         f"every element must be {words}")
     return key(allowed, lambda v: (len(v) > 0 or not nonempty) and all(test(a) for a in v),
-               default=default)
+               default)
 
 
-def defaults(options: type) -> dict[str, Any]:
-    """The default value of every key of an options dataclass (a learner's ``learner.<name>``
-    or a risk principle's ``risk.<name>`` section), as a composed config holds them."""
-    return dataclasses.asdict(options())
-
-
-@dataclass(frozen=True)
-class Options:
-    """A learner's or a risk principle's options: the keys of its config section ``section``
-    (``"learner.maml"``, ``"risk.dr"``), one field each, made with this module's helpers (type,
-    range and default value, declared once). The constructor takes them
-    (``MAMLLeader(model, collector, MamlOptions(inner_lr=0.05))``) and its builder makes them
-    from the section (``MamlOptions(**section(cfg, "learner.maml"))``). They are checked when
-    made, so a bad value from Python is refused with the line the CLI prints
-    (``config key 'learner.maml.inner_lr' = 0: must be > 0``)."""
+class Section:
+    """A config section: the dataclass of the keys under ``section`` (``"learner.maml"``,
+    ``"trainer"``). Making one checks each value against its field's range, so a bad value from
+    Python is refused with the line the CLI prints (``config key 'learner.maml.inner_lr' = 0:
+    must be > 0``); a subclass with rules between its keys extends :meth:`__post_init__`. A
+    learner's or a risk principle's constructor takes its section
+    (``MAMLLeader(model, collector, MamlOptions(inner_lr=0.05))``)."""
 
     section: ClassVar[str]
 
     def __post_init__(self) -> None:
-        values = {spec.name: getattr(self, spec.name) for spec in dataclasses.fields(self)}
-        _check_node(type(self), _plain(values), f"{self.section}.")
+        try:  # the types, as Hydra checks a composed config's (an object made from Python)
+            OmegaConf.structured(self)
+        except OmegaConfBaseException:
+            self._refuse_type()
+        for spec in dataclasses.fields(self):  # type: ignore[arg-type]
+            value = getattr(self, spec.name)
+            if isinstance(value, str) and (value == MISSING or value.startswith("${")):
+                continue  # a default to be filled or resolved when composed
+            test = spec.metadata.get("test")
+            if isinstance(value, float) and not math.isfinite(value):
+                self.refuse(spec.name, "must be a finite number")
+            if value is not None and test is not None and not test(value):
+                self.refuse(spec.name, spec.metadata["allowed"])
+
+    def _refuse_type(self) -> None:
+        """Refuse the first field whose value its annotation does not take."""
+        schema = OmegaConf.structured(type(self))
+        for spec in dataclasses.fields(self):  # type: ignore[arg-type]
+            try:
+                OmegaConf.merge(schema, {spec.name: getattr(self, spec.name)})
+            except OmegaConfBaseException:
+                self.refuse(spec.name, f"must be {type_words(schema._get_node(spec.name))}")
+
+    def refuse(self, name: str, allowed: str) -> None:
+        """Raise the :class:`ConfigError` of this section's key ``name``."""
+        where = f"{self.section}.{name}" if self.section else name
+        raise ConfigError(where, getattr(self, name), allowed)
 
 
-def _type_words(hint: Any) -> str:
-    """What a value of type ``hint`` is, in words: ``an integer``, ``a list of numbers``, ..."""
-    if _optional(hint) is not None:
-        return f"{_type_words(_optional(hint))} or null"
-    origin = typing.get_origin(hint)
-    if origin is list:
-        inner = _type_words(typing.get_args(hint)[0]).split(" ", 1)[1]
-        return f"a list of {inner}s"
-    if origin is dict or dataclasses.is_dataclass(hint):
-        return "a group of keys"
-    return {bool: "a boolean (true or false)", int: "an integer", float: "a finite number",
-            str: "a string"}[hint]
+def register(section: str) -> Callable[[type], type]:
+    """Class decorator: name a :class:`Section` dataclass's section and store it in Hydra's
+    ConfigStore as the structured config ``schema/<group>/<name>`` placed at ``<group>.<name>``
+    (``"learner.maml"``: ``schema/learner/maml``), which ``configs/train.yaml`` composes. (Under
+    ``schema/``: a group named ``learner`` would make ``armeta-eval learner=<dir>`` a choice of
+    it.)"""
+
+    def store(cls: type) -> type:
+        cls.section = section
+        group, _, name = section.rpartition(".")
+        node = OmegaConf.structured(cls)
+        OmegaConf.set_readonly(node, False)  # a frozen dataclass's values, overridden as composed
+        ConfigStore.instance().store(group=f"schema/{group}", name=name, node=node,
+                                     package=section)
+        return cls
+
+    return store
 
 
-def _optional(hint: Any) -> Any:
-    """``X`` for ``X | None``, else ``None``."""
-    if typing.get_origin(hint) in (Union, types.UnionType):
-        args = [a for a in typing.get_args(hint) if a is not type(None)]
-        return args[0]
-    return None
+def type_words(node: Any) -> str:
+    """What a value of the config node ``node`` must be, in words (``an integer``, ``a list of
+    numbers``, ...)."""
+    from omegaconf import BooleanNode, FloatNode, IntegerNode, ListConfig, StringNode
+
+    if isinstance(node, ListConfig):
+        element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
+            node._metadata.element_type)
+        return f"a list of {element}" if element else "a list"
+    return {BooleanNode: "a boolean (true or false)", IntegerNode: "an integer",
+            FloatNode: "a number", StringNode: "a string"}.get(type(node), "a group of keys")
 
 
-def _conforms(value: Any, hint: Any) -> bool:
-    """Whether ``value`` (plain Python) has type ``hint``, strictly (no string is a boolean)."""
-    if hint is Any:
-        return True
-    if _optional(hint) is not None:
-        return value is None or _conforms(value, _optional(hint))
-    origin = typing.get_origin(hint)
-    if origin is list:
-        return isinstance(value, list) and all(
-            _conforms(v, typing.get_args(hint)[0]) for v in value
-        )
-    if origin is dict or dataclasses.is_dataclass(hint):
-        return isinstance(value, dict)
-    if hint is float:
-        return (isinstance(value, (int, float)) and not isinstance(value, bool)
-                and math.isfinite(value))
-    if hint is int:
-        return isinstance(value, int) and not isinstance(value, bool)
-    return isinstance(value, hint)
-
-
-def _check_node(schema: type, node: dict, prefix: str) -> None:
-    hints = typing.get_type_hints(schema)
-    for spec in dataclasses.fields(schema):
-        if spec.name not in node:
-            continue
-        name, value, hint = f"{prefix}{spec.name}", node[spec.name], hints[spec.name]
-        if not _conforms(value, hint):
-            choices = spec.metadata["allowed"] if spec.metadata["allowed"].startswith(
-                "allowed:") else ""
-            raise ConfigError(name, value, f"must be {_type_words(hint)}" + (
-                f"; {choices}" if choices else ""))
-        if value is None:
-            continue
-        nested = _optional(hint) or hint
-        if dataclasses.is_dataclass(nested):
-            _check_node(nested, value, f"{name}.")
-        test = spec.metadata["test"]
-        if test is not None and not test(value):
-            raise ConfigError(name, value, spec.metadata["allowed"])
-
-
-def _plain(values: dict[str, Any]) -> dict[str, Any]:
-    """``values`` as a config holds them: a tuple (``hidden=(64, 64)``) is a list."""
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in values.items()}
-
-
-def section(cfg: DictConfig, key: str) -> dict[str, Any]:
-    """The keys under ``key`` of a composed config as a plain, resolved dict (``{}`` when absent):
-    what a builder hands on as arguments (``section(cfg, "learner.anil")``)."""
-    node = OmegaConf.select(cfg, key)
-    return {} if node is None else OmegaConf.to_container(node, resolve=True)
+def config_error(error: OmegaConfBaseException) -> ConfigError:
+    """OmegaConf's error (a value of the wrong type, a key the schema lacks) as one
+    :class:`ConfigError` line naming the key."""
+    node = getattr(error, "child_node", None)
+    if isinstance(error, MissingMandatoryValue):
+        allowed = "must be set"
+    elif node is None:
+        allowed = "no such key" if isinstance(error, ConfigKeyError) else (
+            str(error).splitlines()[0])
+    else:
+        allowed = f"must be {type_words(node)}"
+    return ConfigError(str(error.full_key), getattr(error, "value", None), allowed)

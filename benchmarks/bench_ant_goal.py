@@ -137,7 +137,8 @@ def meta_iteration_seconds(
     def erm_weights(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1 / tasks)
 
-    elapsed = seconds(lambda: leader.step(leader.collect(task_batch), erm_weights), repeats)
+    elapsed = seconds(
+        lambda: leader.step(leader.collect(task_batch, create_graph=True), erm_weights), repeats)
     collector.close()
     return elapsed
 

@@ -62,7 +62,8 @@ def timed_step(leader: MAMLTRPOLeader, tasks: TensorDict, seed: int) -> float:
     count = tasks.batch_size[0]
     torch.manual_seed(seed)
     start = time.perf_counter()
-    leader.step(leader.collect(tasks), lambda losses: torch.full_like(losses, 1 / count))
+    leader.step(leader.collect(tasks, create_graph=True),
+                lambda losses: torch.full_like(losses, 1 / count))
     return time.perf_counter() - start
 
 

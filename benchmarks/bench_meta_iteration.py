@@ -38,6 +38,7 @@ from timing import markdown_table, reference_product_ms, wall_times, write_secti
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
+from armeta_rl.config import validate
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.players import build_players
 
@@ -79,7 +80,7 @@ def trainer_for(method: str, *overrides: str) -> GameTrainer:
     """A trainer for ``method`` on the default benchmark with config ``overrides``."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = compose("train", overrides=[f"method={method}", *overrides])
-    players = build_players(cfg)
+    players = build_players(validate(cfg))
     return GameTrainer(
         players.leader,
         players.principle,

@@ -76,11 +76,12 @@ def main() -> None:
     for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5),
                                 ("HVP on 2 episodes/task", 2)):
         leader = MAMLTRPOLeader(collector, options=MamlTrpoOptions(hvp_episodes=hvp_episodes))
-        t = seconds(lambda leader=leader: leader.step(leader.collect(tasks), erm), args.repeats)
+        t = seconds(lambda leader=leader: leader.step(leader.collect(tasks, create_graph=True),
+                                                      erm), args.repeats)
         rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
 
     leader = MAMLTRPOLeader(collector)
-    batch = leader.collect(tasks)
+    batch = leader.collect(tasks, create_graph=True)
     weights = erm(torch.zeros(k))
     hvp = leader.kl_hessian_product(batch, weights, leader.surrogate_gradient(batch, weights)[2])
     vector = torch.randn(sum(p.numel() for p in leader.net.parameters()))

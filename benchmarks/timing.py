@@ -109,11 +109,14 @@ def section(title: str, command: str, body: str) -> str:
             f"({machine}).\n\n{body.strip()}\n")
 
 
-def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE) -> None:
+def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE,
+                  command: str | None = None) -> None:
     """Write script ``name``'s section of ``page`` (docs/benchmarks.md by default), leaving the
-    other scripts' sections untouched; the command is this process's own command line."""
-    command = "OMP_NUM_THREADS=1 python " + " ".join(
-        [f"benchmarks/{Path(sys.argv[0]).name}", *map(shlex.quote, sys.argv[1:])])
+    other scripts' sections untouched; the command is ``command``, by default this process's own
+    command line."""
+    if command is None:
+        command = "OMP_NUM_THREADS=1 python " + " ".join(
+            [f"benchmarks/{Path(sys.argv[0]).name}", *map(shlex.quote, sys.argv[1:])])
     text = page.read_text() if page.exists() else ""
     page.write_text(replace_section(text, name, section(title, command, body)))
     print(f"wrote the {name} section of {page}")

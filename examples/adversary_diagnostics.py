@@ -49,7 +49,6 @@ from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.config import load_run_config
 from armeta_rl.errors import ConfigError
-from armeta_rl.fields import section
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.adversarial import ArOptions
 from armeta_rl.tasks.distributions import BoxUniform, TaskDistribution, TruncatedNormal
@@ -143,7 +142,7 @@ def objective_maximizer(means: Tensor, weights: Tensor, lam: float) -> dict[str,
     return {"density": density.tolist(), "loss_mean": float((density * means).sum()), "kl": kl}
 
 
-def adversary_gradient(cfg: DictConfig, leader: Leader, collector: TaskCollector,
+def adversary_gradient(options: ArOptions, leader: Leader, collector: TaskCollector,
                        initial: TaskDistribution, lam: float, batches: int, tasks: int,
                        seed: int) -> dict[str, float]:
     """The score-function estimate of ∇_φ J at φ0 (paper Eq. (17), :func:`adversary_surrogate`
@@ -153,7 +152,6 @@ def adversary_gradient(cfg: DictConfig, leader: Leader, collector: TaskCollector
     estimate (the root of the mean squared distance to the mean) and the median per-batch
     norm, against the run's clipping norm ``risk.ar.grad_clip``."""
     torch.manual_seed(seed)
-    options = ArOptions(**section(cfg, "risk.ar"))
     adversary = FlowAdversary(initial.space, initial, options.flow, **options.flow_kwargs)
     phi = list(adversary.parameters())
     drawn = adversary.sample(batches * tasks)
@@ -227,7 +225,8 @@ def diagnose(run: str, args: argparse.Namespace) -> dict[str, Any]:
     """All the diagnostics of ``run`` as one JSON-ready dict."""
     check_run(load_run_config(run, "run"), "run")
     cfg, players = load_players(run, "run", device="cpu")
-    lam = float(ArOptions(**section(cfg, "risk.ar")).lam)
+    options: ArOptions = cfg.risk["ar"]
+    lam = float(options.lam)
     leader, collector, initial = players.leader, players.eval_collector, players.initial
     grid = box_grid(initial, args.grid)
     losses = task_losses(leader, collector, initial, grid.repeat_interleave(args.episodes, 0),
@@ -250,7 +249,7 @@ def diagnose(run: str, args: argparse.Namespace) -> dict[str, Any]:
                  "loss_sd": variances.sqrt().tolist()},
         "distributions": weighed,
         "gradient": {"batches": args.batches, "tasks": args.tasks,
-                     **adversary_gradient(cfg, leader, collector, initial, lam, args.batches,
+                     **adversary_gradient(options, leader, collector, initial, lam, args.batches,
                                           args.tasks, args.seed)},
     }
     if args.minmax:

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import os
 
+import mujoco
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from armeta_rl.cli import config_dir
+from armeta_rl.config import validate
 
 torch.set_num_threads(1)
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -34,6 +36,34 @@ def compose_train(*overrides: str) -> DictConfig:
     """The ``armeta-train`` config for ``overrides``."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         return compose("train", overrides=list(overrides))
+
+
+def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:
+    """One MjData of ``model`` per simulation of the ``mujoco.batch.Batch`` ``sim``, at that
+    simulation's state (qpos, qvel): the raw references the batched MuJoCo envs are checked
+    against."""
+    datas = []
+    for qpos, qvel in zip(sim.bind("qpos"), sim.bind("qvel")):
+        data = mujoco.MjData(model)
+        data.qpos[:], data.qvel[:] = qpos, qvel
+        datas.append(data)
+    return datas
+
+
+def collector_of(cfg: DictConfig, key: str = "collector"):
+    """The collector ``benchmark.<key>`` of the composed ``cfg``, on the CPU."""
+    from armeta_rl.factory import build_collector, build_space
+
+    benchmark = validate(cfg).benchmark
+    return build_collector(getattr(benchmark, key), f"benchmark.{key}",
+                           build_space(benchmark.space))
+
+
+def players_of(cfg: DictConfig):
+    """The players of the composed ``cfg`` (:func:`armeta_rl.trainers.players.build_players`)."""
+    from armeta_rl.trainers.players import build_players
+
+    return build_players(validate(cfg))
 
 
 @pytest.fixture

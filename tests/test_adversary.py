@@ -386,37 +386,16 @@ def test_nan_loss_raises_without_changing_parameters() -> None:
         assert torch.equal(a, b)
 
 
-def test_exploding_step_is_rolled_back() -> None:
-    principle = make_principle("planar", lr=1e300)
-    state = {key: value.clone() for key, value in principle.adversary.state_dict().items()}
-    tasks = principle.propose(8)
-    with pytest.raises(TrainingDiverged):
-        principle.update(tasks, toy_loss(tasks["params"]))
-    for key, value in principle.adversary.state_dict().items():
-        assert torch.equal(value, state[key])
-    assert principle.scheduler.last_epoch == 0
-    assert not principle.optimizer.state
-
-
-def test_diverging_step_after_updates_restores_adam_and_schedule() -> None:
+@pytest.mark.parametrize("updates_before", [0, 3])
+def test_an_exploding_step_raises(updates_before) -> None:
+    """A step that leaves φ or its log-densities non-finite stops the run (the trainer keeps its
+    last checkpoint: tests/test_faults.py), also after Adam has state."""
     principle = make_principle("planar", lr=0.01, total_updates=50)
-    run_updates(principle, 3)
-    before = copy.deepcopy(principle.state_dict())
+    run_updates(principle, updates_before)
     principle.optimizer.param_groups[0]["lr"] = 1e300
     tasks = principle.propose(8)
-    with pytest.raises(TrainingDiverged):
+    with pytest.raises(TrainingDiverged, match="non-finite parameters or log-densities"):
         principle.update(tasks, toy_loss(tasks["params"]))
-    after = principle.state_dict()
-    for key, value in before.items():
-        if key != "_extra_state":
-            assert torch.equal(after[key], value)
-    saved, restored = before["_extra_state"]["optimizer"], after["_extra_state"]["optimizer"]
-    assert saved["param_groups"] == restored["param_groups"]  # the scheduled rate is back
-    assert saved["state"].keys() == restored["state"].keys()
-    for index, state in saved["state"].items():
-        for name, value in state.items():  # moments and step counts
-            assert torch.equal(restored["state"][index][name], value)
-    assert after["_extra_state"]["scheduler"] == before["_extra_state"]["scheduler"]
 
 
 def test_propose_after_update_is_a_draw_from_the_updated_flow() -> None:
@@ -435,7 +414,7 @@ def test_propose_after_update_is_a_draw_from_the_updated_flow() -> None:
     assert torch.allclose(drawn["log_prob"].to(torch.float64), new_log_prob, atol=1e-5)
     assert (new_log_prob - old_log_prob).abs().max() > 1e-3  # the update moved p_φ there
     torch.set_rng_state(rng)  # the update draws p0 samples for its λ term, then propose draws
-    principle.initial.sample_params(principle.initial_samples)
+    principle.initial.sample_params(principle.follower.initial_samples)
     again = principle.propose(16)
     assert torch.equal(again["params"], drawn["params"])
     with torch.no_grad():  # φ changed by hand: the next draw follows it

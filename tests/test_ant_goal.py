@@ -1,5 +1,6 @@
 """AntGoalEnv: TorchRL contract, physics and reward against MuJoCo and gymnasium, goals across
-resets, seeding, the multi-process split, and training with the tasks split over processes."""
+resets, seeding, the multi-process split, and training with the tasks split over processes;
+AntDirEnv (the same Ant, another task) against a hand computation."""
 
 from functools import partial
 
@@ -8,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, raw_mjdata
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import RewardSum, StepCounter, TransformedEnv
@@ -16,7 +17,8 @@ from torchrl.envs.utils import RandomPolicy, check_env_specs, step_mdp
 
 from armeta_rl.collectors.episodes import valid_mask
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
-from armeta_rl.config import check_config
+from armeta_rl.config import validate
+from armeta_rl.envs.ant_dir import AntDirEnv
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
@@ -55,11 +57,7 @@ def test_step_equals_direct_mujoco_computation():
     td = env.reset(goals_td(env, goals))
     model = load_ant_model(with_force_sensor=False)
     torso = model.body("torso").id
-    datas = []
-    for qpos, qvel in zip(env.sim.bind("qpos"), env.sim.bind("qvel")):
-        data = mujoco.MjData(model)
-        data.qpos[:], data.qvel[:] = qpos, qvel
-        datas.append(data)
+    datas = raw_mjdata(model, env.sim)
     flat_goals = goals.repeat_interleave(2, 0).double().numpy()
     max_force = 0.0
     for _ in range(30):
@@ -91,6 +89,45 @@ def test_step_equals_direct_mujoco_computation():
             max_force = max(max_force, np.abs(data.cfrc_ext).max())
         td = step_mdp(td)
     assert max_force > 1.0  # contact forces are real (the Ant lands), not zeros
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 2), (4,)])
+def test_ant_dir_check_env_specs(shape):
+    check_env_specs(AntDirEnv(shape, max_steps=4, seed=0))
+
+
+def test_ant_dir_every_simulation_equals_a_hand_computation_with_its_own_direction():
+    """Each simulation of a [3 tasks, 2 episodes] AntDirEnv steps as mj_step × 5 on its own
+    MjData, and its reward is the references' Ant-Dir reward for its own task's angle: velocity
+    along (cos θ, sin θ) − 0.5‖a‖² − 0.0005‖clip(cfrc_ext, −1, 1)‖² + 1, terminating outside
+    z ∈ [0, 1]."""
+    torch.manual_seed(0)
+    env = AntDirEnv((3, 2), seed=1)
+    angles = torch.tensor([0.0, 2.0, -2.5])
+    td = env.reset(TensorDict({"params": angles[:, None, None].expand(3, 2, 1)}, [3, 2]))
+    model = load_ant_model(with_force_sensor=False)
+    datas = raw_mjdata(model, env.sim)
+    directions = np.stack([np.cos(angles.double()), np.sin(angles.double())], -1).repeat(2, 0)
+    for _ in range(15):
+        action = 1.2 * (2 * torch.rand(3, 2, 8) - 1)
+        td["action"] = action
+        td = env.step(td)
+        for i, data in enumerate(datas):
+            a = action.reshape(6, 8)[i].double().numpy()
+            xy_before = data.qpos[:2].copy()
+            data.ctrl[:] = a
+            mujoco.mj_step(model, data, nstep=5)
+            mujoco.mj_forward(model, data)
+            mujoco.mj_rnePostConstraint(model, data)
+            velocity = (data.qpos[:2] - xy_before) / 0.05
+            expected = (directions[i] @ velocity - 0.5 * np.square(a).sum()
+                        - 5e-4 * np.square(np.clip(data.cfrc_ext, -1, 1)).sum() + 1.0)
+            assert td["next", "reward"].reshape(6)[i].item() == pytest.approx(
+                expected, rel=1e-5, abs=1e-4)
+            assert td["next", "terminated"].reshape(6)[i].item() == (
+                not 0.0 <= data.qpos[2] <= 1.0)
+        td = step_mdp(td)
+    assert (td["params"] == angles[:, None, None]).all()
 
 
 def test_dynamics_equal_gymnasium_ant_v5():
@@ -250,7 +287,7 @@ def test_a_split_that_does_not_divide_the_task_counts_fails_before_training(over
     cfg = compose_train("benchmark=ant_goal_parallel", override)
     key, count = override.split("=")
     with pytest.raises(ConfigError, match=rf"benchmark\.collector\.workers.*{key} = {count}"):
-        check_config(cfg)
+        validate(cfg)
 
 
 def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):

@@ -8,10 +8,10 @@ import sys
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.trainers.players import build_players, load_players
+from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
 
@@ -51,7 +51,7 @@ def test_the_learner_stays_and_the_adversary_learns_against_it(target, attacked)
     report = json.loads((attacked / "eval.json").read_text())
     scored = json.loads((target / "eval.json").read_text())
     assert report["initial"] == scored["initial"]  # the same learner on the same p0 tasks
-    initial_phi = build_players(attack(target)).principle.parameters()
+    initial_phi = players_of(attack(target)).principle.parameters()
     assert not all(torch.equal(a, b) for a, b in zip(players.principle.parameters(), initial_phi))
     logged = (attacked / "logs" / "scalars" / "adversary" / "objective.csv").read_text()
     assert len(logged.splitlines()) == 6

@@ -12,10 +12,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import compose_train
+from conftest import collector_of, compose_train
 from omegaconf import OmegaConf
 
-from armeta_rl.factory import build_collector
 from armeta_rl.tasks import TASK_KEY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -61,7 +60,7 @@ def test_gravity_family_data_follow_each_tasks_gravity():
     """Every transition of the collected data is the pendulum step with its task's (m, l, g):
     Δθ̇ = clip(θ̇ + (3g / (2l) sin θ + 3 / (m l²) u) dt, ±8) − θ̇ (x = cos θ, sin θ, θ̇, u)."""
     torch.manual_seed(0)
-    collector = build_collector(compose_train("benchmark=pendulum_gravity"))
+    collector = collector_of(compose_train("benchmark=pendulum_gravity"))
     params = torch.tensor([[0.5, 1.5, 5.0], [1.5, 0.5, 15.0], [1.0, 1.0, 10.0]])
     data = collector.collect({TASK_KEY: params})
     x = torch.cat([data["support", "x"], data["query", "x"]], 1).double()

@@ -8,8 +8,9 @@ from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.trainers.training import run_training
 
-TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
-EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
+TRAIN = [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())"]
+EVAL = [sys.executable, "-c",
+        "import sys; from armeta_rl.cli import evaluate; sys.exit(evaluate())"]
 
 
 @pytest.mark.parametrize(
@@ -138,3 +139,51 @@ def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch):
     # the density frames of iterations 0, 3 and 6, and the final density.png, as wandb images
     images = list((runs[0] / "files" / "media" / "images" / "adversary").glob("density_*.png"))
     assert len(images) == 4
+
+
+def test_a_run_prints_its_directory_writes_a_job_log_and_releases_its_lock(tmp_path):
+    run_dir = tmp_path / "run"
+    result = subprocess.run([*TRAIN, *SMALL_RUN, "trainer.iterations=4", "trainer.log_every=2",
+                             f"hydra.run.dir={run_dir}"], capture_output=True, text=True,
+                            timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert f"run directory: {run_dir}" in result.stdout.splitlines()
+    log = (run_dir / "armeta-train.log").read_text()
+    assert f"run directory: {run_dir}" in log
+    assert "iteration 2: train/leader_loss=" in log and "iteration 4: " in log
+    assert "adversarial" in log and "cvar_0.5" in log  # the evaluation table
+    assert not (run_dir / "run.lock").exists()
+
+
+def test_the_lock_file_is_removed_when_the_lock_is_released(tmp_path):
+    from armeta_rl.trainers.run_dir import LOCK_FILE, run_lock
+
+    with run_lock(tmp_path, "hydra.run.dir"):
+        assert (tmp_path / LOCK_FILE).read_text().strip().isdigit()
+        with run_lock(tmp_path, "hydra.run.dir"):  # this process holds it: a no-op
+            pass
+        assert (tmp_path / LOCK_FILE).exists()
+    assert not (tmp_path / LOCK_FILE).exists()
+
+
+def test_help_lists_the_groups_a_command_line_chooses_from_and_exits_0(capsys):
+    from armeta_rl.cli import evaluate, train
+
+    assert train(["--help"]) == 0
+    text = capsys.readouterr().out
+    groups = text.split("Configuration groups (group=option):\n")[1].split("\n\n")[0]
+    assert [line.split(":")[0].strip() for line in groups.splitlines()] == [
+        "benchmark", "method", "logger"]
+    assert "sinusoid_uniform" in groups and "trainer:" in text
+    assert evaluate(["--help"]) == 0
+    assert "learner: ???" in capsys.readouterr().out
+
+
+def test_reproduce_help_and_shell_completion_exit_0():
+    helped = subprocess.run([sys.executable, "-c", "from armeta_rl.reproduce.cli import main; "
+                             "main()", "--help"], capture_output=True, text=True, timeout=120)
+    assert helped.returncode == 0 and "experiments: " in helped.stdout
+    completion = subprocess.run([*TRAIN, "-sc", "install=bash"], capture_output=True, text=True,
+                                timeout=120)
+    assert completion.returncode == 0, completion.stderr
+    assert "hydra_bash_completion" in completion.stdout

@@ -9,7 +9,6 @@ import sys
 import pytest
 import torch
 from conftest import SMALL_RUN, compose_train
-from omegaconf import OmegaConf
 from torchrl.checkpoint import GlobalRNGState
 
 from armeta_rl.devices import resolve_device
@@ -103,17 +102,13 @@ def test_explicit_cpu_equals_the_default_bit_for_bit(tmp_path, benchmark, method
     assert _devices(players) == {torch.device("cpu")}
 
 
-def test_a_checkpoint_loads_onto_the_configured_device_also_for_runs_saved_before_the_key(
-        tmp_path):
-    """A run directory whose config.yaml predates ``device`` loads on the CPU, its checkpoint's
-    tensors there, and scores exactly as the run reported at its end."""
+def test_a_checkpoint_loads_onto_the_device_asked_for_and_scores_as_the_run_reported(tmp_path):
+    """A saved run loads on the CPU, its checkpoint's tensors there, and scores exactly as the
+    run reported at its end."""
     run = tmp_path / "run"
     report = run_training(compose_train(*SMALL_RUN, "method=ar_maml"), run)
-    saved = OmegaConf.load(run / "config.yaml")
-    del saved["device"]
-    OmegaConf.save(saved, run / "config.yaml")
-    cfg, players = load_players(run, "learner", "cpu")
-    assert cfg.device == "cpu" and players.device == torch.device("cpu")
+    config, players = load_players(run, "learner", "cpu")
+    assert config.device == "cpu" and players.device == torch.device("cpu")
     assert _devices(players) == {torch.device("cpu")}
     rescored = cross_evaluate(run, run, device="cpu")
     assert rescored["initial"] == report["initial"]

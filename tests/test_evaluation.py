@@ -5,12 +5,12 @@ import math
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
+from armeta_rl.config import validate
 from armeta_rl.tasks import BoxUniform, TaskSpace
 from armeta_rl.trainers.evaluation import cvar, summarize
-from armeta_rl.trainers.players import build_players
 from armeta_rl.trainers.report import evaluate_players
 
 
@@ -71,7 +71,7 @@ def test_noisy_support_adds_gaussian_noise_to_the_support_labels_only():
 def test_noisy_support_scores_the_same_tasks_and_points_as_the_clean_evaluation():
     def report(sigma: float) -> dict:
         cfg = compose_train(*SMALL_RUN, "method=maml", f"eval.support_noise={sigma}")
-        return evaluate_players(cfg, build_players(cfg))
+        return evaluate_players(validate(cfg), players_of(cfg))
 
     faint, strong = report(1e-6), report(3.0)
     assert faint["support_noise"] == 1e-6 and faint["initial_noisy"]["n_tasks"] == 20

@@ -1,5 +1,5 @@
-"""Importing the package and the CLI's module loads no heavy dependency, and the modules that
-declare, register and check the learners' options import in any order."""
+"""Importing the package and the CLI's module loads no heavy dependency, the config imports no
+learner, and the modules that declare and register the learners' options import in any order."""
 
 from __future__ import annotations
 
@@ -26,13 +26,21 @@ def test_the_package_and_the_cli_module_import_no_heavy_dependency(statement: st
     assert imported_after(statement).isdisjoint(HEAVY)
 
 
+def test_the_config_imports_no_learner_or_risk_principle() -> None:
+    """The root schema sits below the learners: they register their sections with it."""
+    imported_after("import sys, armeta_rl.config\n"
+                   "assert not [m for m in sys.modules if m.startswith(('armeta_rl.learners', "
+                   "'armeta_rl.risk', 'armeta_rl.factory'))]")
+
+
 @pytest.mark.parametrize(
     "module", ["armeta_rl.factory", "armeta_rl.learners.cnp", "armeta_rl.risk.tail"]
 )
-def test_the_learner_registry_imports_whichever_module_comes_first(module: str) -> None:
-    """config derives its learner schema from factory's registry, whose learners declare their
-    options with armeta_rl.fields: entered from any of them, every learner is registered."""
-    statement = (f"import {module}\nimport armeta_rl.config as config\n"
-                 "assert sorted(config.learner_sections()) == "
-                 "['anil', 'cnp', 'maml', 'maml_trpo']")
+def test_the_registry_registers_every_section_whichever_module_comes_first(module: str) -> None:
+    """Entered from any module, importing the registry registers every learner's and risk
+    principle's section in Hydra's ConfigStore."""
+    statement = (f"import {module}\nimport armeta_rl.factory\n"
+                 "from armeta_rl.config import schema\n"
+                 "assert sorted(schema().learner) == ['anil', 'cnp', 'maml', 'maml_trpo']\n"
+                 "assert sorted(schema().risk) == ['ar', 'dr', 'dro', 'tr']")
     imported_after(statement)

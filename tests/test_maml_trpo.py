@@ -327,7 +327,7 @@ def test_leader_kl_hessian_product_is_the_second_order_hessian_on_its_episodes(
     collector = PointNavigationCollector(episodes=4, max_steps=10, seed=0)
     leader = MAMLTRPOLeader(
         collector, options=MamlTrpoOptions(hidden_sizes=(8, 8), hvp_episodes=hvp_episodes))
-    batch = leader.collect(BoxUniform(SPACE).sample(3))
+    batch = leader.collect(BoxUniform(SPACE).sample(3), create_graph=True)
     weights = torch.tensor([0.5, 0.3, 0.2])
     graph = leader.surrogate_gradient(batch, weights)[2]
     product = leader.kl_hessian_product(batch, weights, graph)
@@ -371,19 +371,19 @@ def test_trpo_update_improves_the_weighted_surrogate_within_the_kl_bound() -> No
     collector = PointNavigationCollector(episodes=4, max_steps=20, seed=0)
     leader = MAMLTRPOLeader(collector, options=MamlTrpoOptions(max_kl=1e-3))
     tasks = BoxUniform(SPACE).sample(3)
-    batch = leader.collect(tasks)
+    batch = leader.collect(tasks, create_graph=True)
     weights = torch.tensor([0.7, 0.2, 0.1])
     with torch.no_grad():
         old = loc_scale(leader.net, batch.adapted, batch.valid["observation"])
     info = leader.trpo_update(batch, weights)
-    assert info["trpo/line_search_steps"] >= 0
+    assert info["trpo_line_search_steps"] >= 0
 
     adapted = leader.adapt(leader.theta(), batch.train, batch.train_advantages, create_graph=False)
     with torch.no_grad():
         loss, kl, _ = leader.outer_terms(adapted, batch.valid, batch.valid_advantages, old)
     assert 0 < (weights * kl).sum() <= 1e-3
-    assert (weights * loss).sum() < info["trpo/surrogate_before"]
-    torch.testing.assert_close((weights * kl).sum().item(), info["trpo/kl"], rtol=1e-4, atol=1e-9)
+    assert info["trpo_improvement"] > 0
+    torch.testing.assert_close((weights * kl).sum().item(), info["trpo_kl"], rtol=1e-4, atol=1e-9)
 
 
 def test_step_reports_per_task_returns_and_evaluate_keeps_theta() -> None:
@@ -397,7 +397,7 @@ def test_step_reports_per_task_returns_and_evaluate_keeps_theta() -> None:
         seen.append(losses)
         return torch.full_like(losses, 0.25)
 
-    batch = leader.collect(tasks)
+    batch = leader.collect(tasks, create_graph=True)
     out, scalars = leader.step(batch, erm)
     assert out.batch_size == (4,)
     torch.testing.assert_close(out["loss"], -out["return_post"])
@@ -432,7 +432,7 @@ def test_short_seeded_run_improves_post_adaptation_return() -> None:
 
     before = mean_return()
     for _ in range(6):
-        leader.step(leader.collect(sampler.sample(5)), erm)
+        leader.step(leader.collect(sampler.sample(5), create_graph=True), erm)
     after = mean_return()
     assert after > before + 0.25 * before.abs()
 

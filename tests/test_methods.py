@@ -10,6 +10,7 @@ from conftest import SMALL_RUN, compose_train
 from omegaconf import OmegaConf
 
 from armeta_rl.cli import group_choices
+from armeta_rl.config import schema, validate
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
     build_collector,
@@ -17,10 +18,7 @@ from armeta_rl.factory import (
     build_leader,
     build_principle,
     build_space,
-    learner_sections,
-    risk_sections,
 )
-from armeta_rl.fields import defaults
 from armeta_rl.trainers.training import run_training
 
 METHODS = [
@@ -43,7 +41,7 @@ def test_every_method_trains_a_few_iterations_through_the_cli(tmp_path, benchmar
     command = [
         sys.executable,
         "-c",
-        "from armeta_rl.cli import train; train()",
+        "import sys; from armeta_rl.cli import train; sys.exit(train())",
         "-m",
         f"method={','.join(METHODS)}",
         f"benchmark={benchmark}",
@@ -93,21 +91,17 @@ def test_cnp_has_no_rl_form():
 
 
 @pytest.mark.parametrize(
-    "benchmark,method,stated",
-    [
-        ("acrobot_uniform", "maml", "benchmark.model.in_features"),
-        ("sinusoid_uniform", "cnp", "benchmark.model.out_features"),
-        ("point_nav_plain", "maml", "learner.maml_trpo.obs_dim"),
-    ],
+    "benchmark,method", [("acrobot_uniform", "maml"), ("sinusoid_uniform", "cnp"),
+                         ("point_nav_plain", "maml")],
 )
-def test_model_sizes_come_from_the_collector(benchmark, method, stated):
-    """The model's input and output sizes are the data's; a config saved when the YAML stated
-    them (old run directories) loads when they agree and is refused with the key when not."""
-    cfg = compose_train(*SMALL_RUN, f"benchmark={benchmark}", f"method={method}")
-    collector = build_collector(cfg)
+def test_model_sizes_come_from_the_collector(benchmark, method):
+    """The model's input and output sizes are the data's."""
+    config = validate(compose_train(*SMALL_RUN, f"benchmark={benchmark}", f"method={method}"))
+    space = build_space(config.benchmark.space)
+    collector = build_collector(config.benchmark.collector, "benchmark.collector", space)
     sizes = collector.in_features, collector.out_features
-    tasks = build_initial(cfg, build_space(cfg)).sample(2)
-    leader = build_leader(cfg, collector)
+    tasks = build_initial(config.benchmark.initial, space).sample(2)
+    leader = build_leader(config.method, config.learner, collector, config.benchmark.model)
     if benchmark == "point_nav_plain":
         episodes = collector.collect(tasks, policy=leader.net)
         assert sizes == (episodes["observation"].shape[-1], episodes["action"].shape[-1])
@@ -115,38 +109,41 @@ def test_model_sizes_come_from_the_collector(benchmark, method, stated):
         data = collector.collect(tasks)
         assert sizes == (data["support", "x"].shape[-1], data["support", "y"].shape[-1])
         assert leader.evaluate(data).shape == (2,)
-    size = sizes[0] if stated.endswith(("in_features", "obs_dim")) else sizes[1]
-    OmegaConf.update(cfg, stated, size, force_add=True)
-    build_leader(cfg, collector)
-    OmegaConf.update(cfg, stated, size + 1)
-    with pytest.raises(ConfigError, match=f"'{stated}' = {size + 1}: is defined by the collector"):
-        build_leader(cfg, collector)
 
 
-@pytest.mark.parametrize(("name", "options"), learner_sections().items())
-def test_learner_options_refuse_a_bad_value_under_their_own_section(name, options):
-    """Options built from Python are checked when made, naming the key of their own section."""
-    first = dataclasses.fields(options)[0].name
-    with pytest.raises(ConfigError, match=f"'learner.{name}.{first}' = 'bogus'"):
-        options(**{first: "bogus"})
+def registered(group: str) -> dict[str, type]:
+    """The options dataclass of every registered ``<group>.<name>`` section."""
+    typed = schema()
+    return {name: OmegaConf.get_type(typed[group][name]) for name in typed[group]}
 
 
-@pytest.mark.parametrize(("name", "options"), risk_sections().items())
-def test_risk_options_refuse_a_bad_value_under_their_own_section(name, options):
-    """A risk principle's options, like a learner's, are checked when made."""
-    first = dataclasses.fields(options)[0].name
-    with pytest.raises(ConfigError, match=f"'risk.{name}.{first}' = 'bogus'"):
-        options(**{first: "bogus"})
+def out_of_range(field: dataclasses.Field) -> object:
+    """A value of ``field``'s type that its range refuses."""
+    return {"list[int]": [-1], "str": "bogus"}.get(str(field.type), -1)
 
 
-@pytest.mark.parametrize(("name", "options"), risk_sections().items())
+@pytest.mark.parametrize(("group", "name", "options"), [
+    (group, name, options) for group in ("learner", "risk")
+    for name, options in registered(group).items()])
+def test_options_refuse_a_bad_value_under_their_own_section(group, name, options):
+    """A learner's or a risk principle's options built from Python are checked when made,
+    naming the key of their own section."""
+    for field in dataclasses.fields(options):
+        if field.metadata.get("test") is not None:
+            with pytest.raises(ConfigError, match=f"'{group}.{name}.{field.name}' = "):
+                options(**{field.name: out_of_range(field)})
+
+
+@pytest.mark.parametrize(("name", "options"), registered("risk").items())
 def test_a_principle_built_from_python_has_the_values_of_the_default_run(name, options):
     """The composed ``risk.<name>`` section of the default run is its options' defaults, and the
     builder hands them to the principle: a principle made from Python with ``options()`` (TR's
     and DRO's tuned step sizes included) is the one ``armeta-train method=<name>_maml`` trains."""
-    cfg = compose_train(f"method={name}_maml")
-    assert OmegaConf.to_container(cfg.risk[name]) == defaults(options)
-    built = build_principle(cfg, build_space(cfg), build_initial(cfg, build_space(cfg)))
+    config = validate(compose_train(f"method={name}_maml"))
+    assert config.risk[name] == options()
+    space = build_space(config.benchmark.space)
+    built = build_principle(config.method, config.risk, space,
+                            build_initial(config.benchmark.initial, space), 100)
     kept = {spec.name for spec in dataclasses.fields(options)} & set(vars(built))
     assert kept
     for field in kept:

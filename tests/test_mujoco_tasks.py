@@ -9,20 +9,20 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, collector_of, compose_train
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import RandomPolicy, check_env_specs
 
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
+from armeta_rl.envs.batched_mujoco import load_gym_model
 from armeta_rl.envs.mujoco_tasks import (
     PhysicsTaskTransform,
     load_task_family,
     make_gym_task_env,
 )
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.factory import build_collector
 from armeta_rl.trainers.training import run_training
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -281,7 +281,7 @@ def test_ant_goal_physics_benchmark_builds_its_env_and_trains(tmp_path):
                         "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "benchmark.collector.make_env.threads=1")
-    env = build_collector(cfg).env(2)
+    env = collector_of(cfg).env(2)
     params = torch.tensor([[1.0, -2.0, 1.75, 0.5], [0.0, 2.5, 0.5, 1.25]])
     td = env.reset(TensorDict({"params": params[:, None].expand(2, 2, 4)}, [2, 2]))
     assert (td["params"] == params[:, None]).all()
@@ -302,4 +302,56 @@ def test_ant_goal_physics_benchmark_refuses_a_box_or_target_that_does_not_fit(ov
     cfg = compose_train("benchmark=ant_goal_physics", "benchmark.collector.episodes=1",
                         "benchmark.collector.make_env.threads=1", override)
     with pytest.raises(ConfigError, match=match):
-        build_collector(cfg).env(1)
+        collector_of(cfg).env(1)
+
+
+@pytest.mark.parametrize("benchmark", ["half_cheetah_mass_vel", "walker2d_mass_vel"])
+def test_mass_vel_families_equal_hand_scaled_masses_on_raw_mjdata(benchmark):
+    """MPTS's MassVel families, built by their benchmark YAMLs: every simulation of a
+    [3 tasks, 2 episodes] batch steps as the gymnasium model whose body masses alone (not the
+    inertias) are multiplied by its task's mass scale, on its own MjData; its reward follows its
+    task's goal velocity; specs hold at several batch shapes."""
+    cfg = compose_train(f"benchmark={benchmark}", "benchmark.collector.make_env.threads=1")
+    collector = collector_of(cfg)
+    for shape in [(1, 1), (3, 2), (4,)]:
+        check_env_specs(collector.worker_env(batch_size=shape, max_steps=4, seed=0))
+    env = collector.worker_env(batch_size=(3, 2), max_steps=20, seed=0)
+    params = torch.tensor([[0.5, 0.75], [1.0, 1.0], [2.0, 1.25]])
+    td = env.reset(TensorDict({"params": params[:, None].expand(3, 2, 2)}, [3, 2]))
+    base = env.base_env
+    start = base.sim.bind("qpos").copy(), base.sim.bind("qvel").copy()
+    torch.manual_seed(0)
+    rollout = env.rollout(6, RandomPolicy(env.action_spec), tensordict=td, auto_reset=False)
+    actions = rollout["action"].double().reshape(6, 6, -1).numpy()
+    compiled = load_gym_model(base.xml)
+    for i, (velocity, scale) in enumerate(params.repeat_interleave(2, 0).tolist()):
+        model = load_gym_model(base.xml)
+        model.body_mass[:] *= scale
+        data = mujoco.MjData(model)
+        mujoco.mj_setConst(model, data)
+        np.testing.assert_array_equal(model.body_inertia, compiled.body_inertia)
+        data.qpos[:], data.qvel[:] = start[0][i], start[1][i]
+        for t in range(6):
+            x_before = data.qpos[0]
+            data.ctrl[:] = actions[i, t]
+            mujoco.mj_step(model, data, nstep=base.frame_skip)
+            observed = rollout["next", "observation"].reshape(6, 6, -1)[i, t].double().numpy()
+            np.testing.assert_allclose(observed[:8], data.qpos[1:], rtol=1e-6, atol=1e-6)
+            reward = rollout["next", "reward"].reshape(6, 6)[i, t].item()
+            forward = (data.qpos[0] - x_before) / base.dt
+            expected = (-abs(forward - velocity) - 0.05 * np.square(actions[i, t]).sum()
+                        + (1.0 if benchmark == "walker2d_mass_vel" else 0.0))
+            assert reward == pytest.approx(expected, rel=1e-6, abs=1e-5)
+    assert (rollout["params"] == params[:, None, None]).all()
+    masses = base.sim.expanded("body_mass")
+    scales = np.repeat([0.75, 1.0, 1.25], 2)[:, None]
+    np.testing.assert_array_equal(masses, compiled.body_mass * scales)
+
+
+def test_half_cheetah_mass_vel_benchmark_trains(tmp_path):
+    cfg = compose_train(*SMALL_RUN, "benchmark=half_cheetah_mass_vel", "method=ar_maml",
+                        "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
+                        "benchmark.collector.make_env.threads=1")
+    report = run_training(cfg, tmp_path)
+    assert report["metric"] == "return" and "adversarial" in report

@@ -18,7 +18,7 @@ from omegaconf import OmegaConf
 
 import armeta_rl.reproduce.plan as plan_module
 from armeta_rl.cli import config_dir
-from armeta_rl.config import check_config
+from armeta_rl.config import validate
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.aggregate import (
     collect,
@@ -189,8 +189,8 @@ def test_a_failing_job_does_not_stop_the_other_jobs_of_its_sweep(tmp_path, capsy
          str(tmp_path / blocked.subdir / "run.lock")], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline() == "held\n"
-        code = launch(train, "armeta-train", [train_job(tmp_path, r) for r in (blocked, other)],
-                      tmp_path, "noise train", 0, ())
+        code = launch(train, [train_job(tmp_path, r) for r in (blocked, other)], tmp_path,
+                      "noise train", 0, ())
     finally:
         holder.kill()
         holder.wait()
@@ -456,7 +456,7 @@ def test_the_ant_experiment_plans_for_bigger_hardware_and_others_refuse_it(profi
         cfg = compose("train", overrides=list(plan.runs[0].command()))
     assert cfg.benchmark.name == config
     if profile == "paper_ray":
-        check_config(cfg)
+        validate(cfg)
     with pytest.raises(ConfigError, match=f"'{profile}.benchmarks' = 'sinusoid_uniform'"):
         make_plan("table1", profile)
 

@@ -8,15 +8,13 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, collector_of, compose_train, players_of
 from tensordict import TensorDict
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.factory import build_collector
 from armeta_rl.learners.maml import MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import TiedAngleHead, make_mlp
 from armeta_rl.trainers.evaluation import evaluate_on
-from armeta_rl.trainers.players import build_players
 from armeta_rl.trainers.training import run_training
 
 PARAMS = [[0.45, 1.5], [1.0, 1.0], [1.55, 0.6]]
@@ -24,7 +22,7 @@ PARAMS = [[0.45, 1.5], [1.0, 1.0], [1.55, 0.6]]
 
 def paper_collection(benchmark: str) -> tuple[np.ndarray, np.ndarray]:
     """``(x, y)`` ``[tasks, 200, ·]`` of the tasks ``PARAMS`` from the benchmark's collector."""
-    collector = build_collector(compose_train(f"benchmark={benchmark}"))
+    collector = collector_of(compose_train(f"benchmark={benchmark}"))
     torch.manual_seed(0)
     data = collector.collect(TensorDict({"params": torch.tensor(PARAMS)}, [len(PARAMS)]))
     x = torch.cat([data["support", "x"], data["query", "x"]], 1).double().numpy()
@@ -101,14 +99,14 @@ def test_tied_angle_head_is_refused_where_it_cannot_apply():
         MAMLLeader(make_mlp(4, 3, head="tied_angle"), None, MamlOptions(adaptation="low_rank"))
     for overrides in (("benchmark.collector.target=delta",), ("method=cnp",)):
         with pytest.raises(ConfigError, match="benchmark.model.head"):
-            build_players(compose_train("benchmark=pendulum_normal_paper", *overrides))
+            players_of(compose_train("benchmark=pendulum_normal_paper", *overrides))
 
 
 def test_a_short_maml_run_on_the_paper_protocol_lowers_the_query_mse(tmp_path):
     cfg = compose_train(*SMALL_RUN, "benchmark=acrobot_uniform_paper", "method=maml",
                         "trainer.iterations=30", "trainer.checkpoint_every=30",
                         "trainer.meta_batch=8")
-    untrained = build_players(cfg)
+    untrained = players_of(cfg)
     assert isinstance(untrained.leader.model, TiedAngleHead)
     before = evaluate_on(untrained.leader, untrained.initial, untrained.eval_collector,
                          cfg.eval.n_tasks, [0.5], cfg.eval.seed)["mean"]

@@ -4,10 +4,9 @@ evaluation collects data with the training collector's options."""
 import json
 
 import pytest
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.trainers.evaluation import evaluate_on
-from armeta_rl.trainers.players import build_players
 from armeta_rl.trainers.training import run_training
 
 
@@ -23,7 +22,7 @@ def test_short_ar_maml_run_lowers_query_mse(tmp_path, benchmark):
         "trainer.checkpoint_every=40",
         "trainer.meta_batch=8",
     )
-    untrained = build_players(cfg)
+    untrained = players_of(cfg)
     before = evaluate_on(
         untrained.leader,
         untrained.initial,
@@ -46,6 +45,6 @@ def test_short_ar_maml_run_lowers_query_mse(tmp_path, benchmark):
     ],
 )
 def test_evaluation_collects_data_the_way_training_does(benchmark, override, attribute, value):
-    players = build_players(compose_train(f"benchmark={benchmark}", override))
+    players = players_of(compose_train(f"benchmark={benchmark}", override))
     assert getattr(players.leader.collector, attribute) == value
     assert getattr(players.eval_collector, attribute) == value

@@ -8,8 +8,8 @@ Two kinds of checks, each against a reference that does not go through the machi
   identifiers (so identifiers that were dropped on the way would be caught);
 * across automatic resets (``StepCounter`` truncation in ``env.rollout`` and in
   ``torchrl.collectors.Collector``), every transition is recomputed from its start and action with
-  the identifiers that were *given* (analytic reward for the point robot and the Ant, a fresh
-  bare env reset to the same state for the sys-id envs).
+  the identifiers that were *given* (analytic reward for the point robot and the MuJoCo task
+  families, a fresh bare env reset to the same state for the sys-id envs).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import compose_train
+from conftest import collector_of, compose_train
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import (
@@ -37,14 +37,27 @@ from torchrl.envs import (
     TransformedEnv,
 )
 
-from armeta_rl.envs import AcrobotEnv, AntGoalEnv, PendulumEnv, PointNavigationEnv
+from armeta_rl.envs import (
+    AcrobotEnv,
+    AntDirEnv,
+    AntGoalEnv,
+    HalfCheetahDirEnv,
+    HalfCheetahVelEnv,
+    PendulumEnv,
+    PointNavigationEnv,
+    Walker2dVelEnv,
+)
+from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.factory import build_collector
 from armeta_rl.tasks import TASK_KEY
 from armeta_rl.tasks.protocol import read_identifiers
 
 BATCH = (2, 1)
 STEPS = 6
+
+
+MASS_SCALE = [{"name": "mass_scale", "kind": "body_mass_only_scale", "target": "all",
+               "low": 0.75, "high": 1.25}]
 
 
 @dataclass(frozen=True)
@@ -68,7 +81,19 @@ CASES = {
                       "observation"),
     "ant": Case(partial(AntGoalEnv, threads=1), ((2.0, 1.0), (-1.0, -2.5)), (0.3,) * 8,
                 "observation"),
+    "ant_dir": Case(AntDirEnv, ((2.0,), (-1.5,)), (0.3,) * 8, "observation"),
+    "half_cheetah_vel": Case(HalfCheetahVelEnv, ((0.25,), (1.75,)), (0.3,) * 6, "observation"),
+    # directions of the sign opposite to the defaults at seed 0 (+1, +1)
+    "half_cheetah_dir": Case(HalfCheetahDirEnv, ((-1.0,), (-0.25,)), (0.3,) * 6, "observation"),
+    "walker2d_vel": Case(Walker2dVelEnv, ((0.25,), (1.75,)), (0.3,) * 6, "observation"),
+    # MPTS's mass-scale families: (goal_velocity, mass_scale), the mass through the transform
+    "half_cheetah_mass_vel": Case(partial(physics_task_env, HalfCheetahVelEnv, MASS_SCALE),
+                                  ((0.25, 0.8), (1.75, 1.2)), (0.3,) * 6, "observation"),
+    "walker2d_mass_vel": Case(partial(physics_task_env, Walker2dVelEnv, MASS_SCALE),
+                              ((0.25, 0.8), (1.75, 1.2)), (0.3,) * 6, "observation"),
 }
+MUJOCO_FAMILIES = ["ant", "ant_dir", "half_cheetah_vel", "half_cheetah_dir", "walker2d_vel",
+                   "half_cheetah_mass_vel", "walker2d_mass_vel"]
 
 
 def task_td(env: EnvBase, params: torch.Tensor) -> TensorDict:
@@ -162,7 +187,7 @@ def make_step_counted(name: str) -> TransformedEnv:
 
 
 @pytest.mark.parametrize("batched", ["serial", "parallel"])
-@pytest.mark.parametrize("name", ["pendulum", "acrobot", "point_nav", "ant"])
+@pytest.mark.parametrize("name", ["pendulum", "acrobot", "point_nav", "ant", "half_cheetah_vel"])
 def test_batched_transformed_envs_keep_and_use_identifiers(name, batched):
     """Two workers, each a transformed env, given different identifiers through one reset."""
     case = CASES[name]
@@ -182,7 +207,8 @@ def test_batched_transformed_envs_keep_and_use_identifiers(name, batched):
 def check_transitions(name: str, data: TensorDictBase, given: torch.Tensor) -> None:
     """Every transition of ``data`` (any batch shape) recomputed with the identifiers ``given``
     (one row per transition, broadcast to ``data``'s batch): the reported identifiers equal them
-    and the next state (sys-id) or the reward (point robot, Ant) follows from them."""
+    and the next state (sys-id) or the reward (point robot, MuJoCo families, from the start and
+    next observations) follows from them."""
     data = data.reshape(-1)
     given = given.expand(*data.shape, -1) if given.dim() == 1 else given.reshape(len(data), -1)
     torch.testing.assert_close(data[TASK_KEY], given.to(data[TASK_KEY].dtype), rtol=0, atol=0)
@@ -196,15 +222,39 @@ def check_transitions(name: str, data: TensorDictBase, given: torch.Tensor) -> N
     elif name == "point_nav":
         distance = (data["next", "observation"] - given).norm(dim=-1, keepdim=True)
         torch.testing.assert_close(data["next", "reward"], -distance)
-    else:
+    elif name == "ant":
         obs = data["next", "observation"]
         reward = (-(obs[..., 116:118] - given).abs().sum(-1)
                   - 5e-3 * data["action"].square().sum(-1)
                   - 5e-4 * obs[..., 29:107].square().sum(-1) + 0.05)
         torch.testing.assert_close(data["next", "reward"].squeeze(-1), reward)
+    else:
+        torch.testing.assert_close(data["next", "reward"].squeeze(-1),
+                                   velocity_reward(name, data, given[:, 0]), rtol=0, atol=2e-4)
 
 
-@pytest.mark.parametrize("name", ["pendulum", "acrobot", "point_nav", "ant"])
+def velocity_reward(name: str, data: TensorDictBase, task: torch.Tensor) -> torch.Tensor:
+    """The reward of the velocity and direction families, from each transition's start and next
+    observation (the torso's position), its action and its task ``[n]`` (the goal velocity or the
+    direction; a mass scale changes the dynamics, not the reward)."""
+    name = name.replace("_mass_vel", "_vel")
+    start, end = data["observation"].double(), data["next", "observation"].double()
+    action_cost = data["action"].double().square().sum(-1)
+    task = task.double()
+    if name == "ant_dir":
+        velocity = (end[:, 116:118] - start[:, 116:118]) / 0.05
+        along = velocity[:, 0] * task.cos() + velocity[:, 1] * task.sin()
+        return (along - 0.5 * action_cost - 5e-4 * end[:, 29:107].square().sum(-1)
+                + 1.0).float()
+    dt = 0.008 if name == "walker2d_vel" else 0.05
+    velocity = (end[:, 17] - start[:, 17]) / dt  # the torso's x, after qpos[1:] and qvel
+    if name == "half_cheetah_dir":
+        return (torch.where(task >= 0, 1.0, -1.0) * velocity - 0.05 * action_cost).float()
+    bonus = 1.0 if name == "walker2d_vel" else 0.0
+    return (-(velocity - task).abs() - 0.05 * action_cost + bonus).float()
+
+
+@pytest.mark.parametrize("name", ["pendulum", "acrobot", "point_nav", *MUJOCO_FAMILIES])
 def test_identifiers_survive_automatic_resets_in_rollout_and_collector(name):
     """Episodes truncated every 3 steps by a StepCounter are reset automatically (by
     ``env.rollout`` and by TorchRL's ``Collector``); random actions throughout."""
@@ -238,6 +288,14 @@ BAD_INPUT = [
     ("point_nav", {TASK_KEY: torch.zeros(*BATCH, 1)}, TASK_KEY, "(goal_x, goal_y)"),
     ("ant", {"goal": torch.zeros(*BATCH, 2)}, "goal", "go under 'params'"),
     ("ant", {TASK_KEY: torch.full((*BATCH, 2), float("inf"))}, TASK_KEY, "finite"),
+    ("ant_dir", {TASK_KEY: torch.zeros(*BATCH, 2)}, TASK_KEY, "(direction_angle)"),
+    ("half_cheetah_vel", {"goal_velocity": torch.ones(*BATCH, 1)}, "goal_velocity",
+     "go under 'params'"),
+    ("half_cheetah_vel", {TASK_KEY: torch.full((*BATCH, 1), float("nan"))}, TASK_KEY, "finite"),
+    ("half_cheetah_dir", {TASK_KEY: torch.full((*BATCH, 1), 1.5)}, TASK_KEY, "[-1, 1]"),
+    ("walker2d_vel", {"task": torch.ones(*BATCH, 1)}, "task", "go under 'params'"),
+    ("half_cheetah_mass_vel", {TASK_KEY: torch.tensor([1.0, 1.5]).expand(*BATCH, 2)}, TASK_KEY,
+     "outside the task box (mass_scale in [0.75, 1.25])"),
 ]
 
 
@@ -280,11 +338,14 @@ def test_transformed_reset_forwards_the_task_key_and_the_env_refuses_others():
          "benchmark.collector.identifiers", "distinct names among m1, m2"),
         (("benchmark=point_nav_plain", "benchmark.space.high=[0.5,0.8]"),
          "benchmark.space", "[-0.5, 0.5]"),
+        (("benchmark=half_cheetah_vel", "benchmark.space={names:[v,m],low:[0,0.5],high:[2,1.5]}",
+          "benchmark.collector.make_env.threads=1"),
+         "benchmark.space", "[..., 1]: 1 value (goal_velocity)"),
     ],
 )
 def test_a_box_the_env_cannot_take_is_refused_before_training(overrides, key, allowed):
     with pytest.raises(ConfigError) as error:
-        build_collector(compose_train(*overrides))
+        collector_of(compose_train(*overrides))
     assert error.value.key == key and allowed in str(error.value)
 
 

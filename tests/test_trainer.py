@@ -6,12 +6,11 @@ import sys
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.players import build_players
 from armeta_rl.trainers.training import run_training
 
 
@@ -37,7 +36,7 @@ def test_training_lowers_the_query_loss(tmp_path):
     cfg = compose_train(
         *SMALL_RUN, "trainer.iterations=150", "trainer.checkpoint_every=150", "method=maml"
     )
-    players = build_players(cfg)
+    players = players_of(cfg)
     before = run_training_eval(players, cfg)
     run_training(cfg, tmp_path)
     after = json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"]
@@ -92,7 +91,7 @@ class PoisonedCollector:
 
 def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
     cfg = compose_train(*SMALL_RUN, "method=maml")
-    players = build_players(cfg)
+    players = players_of(cfg)
     players.leader.collector = PoisonedCollector(players.leader.collector, bad_call=6)
     checkpoint = RunCheckpoint(tmp_path, players.leader, players.principle)
     trainer = GameTrainer(

@@ -1,4 +1,5 @@
-"""The follower's objective and its score-function surrogate (paper Eqs. (6) and (17)).
+"""The follower's objective, its score-function surrogate and its ascent step (paper Eqs. (6),
+(17) and (14)).
 
 The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. (6)). Its gradient is
 
@@ -21,13 +22,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.errors import ConfigError
+from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.tasks.distributions import entropy_estimate, kl_estimate
 from armeta_rl.tasks.protocol import TASK_KEY
 
@@ -122,3 +124,63 @@ def surrogate_gradient(
     surrogate.backward()
     max_norm = math.inf if grad_clip is None else grad_clip
     return torch.nn.utils.clip_grad_norm_(phi, max_norm, foreach=True)
+
+
+@dataclass
+class Follower:
+    """The follower of the game: p_φ, the optimizer that ascends J in φ (``maximize=True``) and
+    its learning-rate schedule (``None``: a constant rate), and the settings of the estimate of
+    Eq. (17): λ, the baseline, the p0 sample size M and the clipping norm (``None``: none).
+    ``log_prob`` computes ln p_φ (default ``adversary.log_prob``; e.g. a compiled version)."""
+
+    adversary: FlowAdversary
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.LRScheduler | None = None
+    lam: float = 0.0
+    baseline: str = "mean"
+    initial_samples: int = 256
+    grad_clip: float | None = 1.0
+    log_prob: Callable[[Tensor], Tensor] | None = None
+
+
+def follower_step(follower: Follower, tasks: TensorDictBase | Tensor, losses: Tensor
+                  ) -> dict[str, float]:
+    """φ_{t+1} = φ_t + η_t ∇_φ J(θ_{t+1}, φ_t): the follower's ascent step (paper Eq. (14),
+    second line), with the score-function estimate of Eq. (17) from the losses ``[K]`` of
+    ``tasks`` at θ_{t+1}; φ, the optimizer's state and the schedule step in place.
+
+    Returns the surrogate's statistics at φ_t (``objective``, ``loss_mean``, ``entropy``,
+    ``kl_p0``), ``lr`` (the rate used) and ``grad_norm`` (before clipping). It draws the M p0
+    samples of the λ term and no other random numbers.
+
+    Raises:
+        TrainingDiverged: the losses, the surrogate or its gradient are not finite (φ not
+            stepped), or the new φ or its log-density at ``tasks`` are not finite (φ stepped:
+            the run's last checkpoint is the state to go back to).
+    """
+    params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
+    losses = losses.detach().to(torch.float64)
+    if not torch.isfinite(losses).all():
+        raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
+    adversary, optimizer = follower.adversary, follower.optimizer
+    log_prob = follower.log_prob or adversary.log_prob
+    phi = [p for group in optimizer.param_groups for p in group["params"]]
+    initial = adversary.base.sample_params(follower.initial_samples)
+    surrogate, stats = adversary_surrogate(adversary, params, losses, follower.lam, initial,
+                                           follower.baseline, log_prob)
+    grad_norm = surrogate_gradient(surrogate, optimizer, phi, follower.grad_clip)
+    if not (torch.isfinite(surrogate) and torch.isfinite(grad_norm)):
+        optimizer.zero_grad(set_to_none=True)
+        raise TrainingDiverged(f"adversary surrogate or gradient is not finite (surrogate "
+                               f"{float(surrogate)}, norm {float(grad_norm)})")
+    lr = optimizer.param_groups[0]["lr"]
+    optimizer.step()
+    if follower.scheduler is not None:
+        follower.scheduler.step()
+    optimizer.zero_grad(set_to_none=True)
+    largest = torch.nn.utils.get_total_norm(phi, norm_type=math.inf, foreach=True)
+    with torch.no_grad():
+        new_log_prob = log_prob(params)
+    if not (torch.isfinite(largest) and torch.isfinite(new_log_prob).all()):
+        raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
+    return {**stats, "lr": float(lr), "grad_norm": float(grad_norm)}

@@ -3,9 +3,9 @@
 :class:`TaskSampler` is the follower of the paper's game without the rest of our trainer: a loop
 (TorchRL PPO, say) asks it for ``n`` tasks, runs them, and hands back one loss per task; the
 sampler takes one ascent step of J(φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. (6)) with
-the score-function surrogate of Eq. (17)
-(:func:`~armeta_rl.adversary.objective.adversary_surrogate`), Adam and, optionally, the cosine
-learning-rate schedule of :class:`~armeta_rl.risk.adversarial.AdversarialPrinciple`. It keeps no
+the score-function surrogate of Eq. (17), Adam and, optionally, the cosine learning-rate
+schedule: the follower step of :class:`~armeta_rl.risk.adversarial.AdversarialPrinciple`
+(:func:`~armeta_rl.adversary.objective.follower_step`). It keeps no
 state between calls beyond φ, Adam's moments and the schedule: the tasks a loss belongs to are
 passed back with it.
 """
@@ -18,8 +18,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import BASELINES, adversary_surrogate, surrogate_gradient
-from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.adversary.objective import BASELINES, Follower, follower_step
+from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TASK_KEY
 
 
@@ -63,14 +63,14 @@ class TaskSampler:
                                                      and initial_samples >= 1):
             raise ConfigError("initial_samples", initial_samples, "must be an integer >= 1")
         self.adversary = adversary
-        self.lam, self.grad_clip = float(lam), grad_clip
-        self.baseline, self.initial_samples = baseline, initial_samples
-        self.optimizer = torch.optim.Adam(adversary.parameters(), lr=lr, maximize=True,
-                                          fused=True)
-        self.scheduler = (
+        optimizer = torch.optim.Adam(adversary.parameters(), lr=lr, maximize=True, fused=True)
+        scheduler = (
             None if total_updates is None
-            else torch.optim.lr_scheduler.CosineAnnealingLR(self.optimizer, T_max=total_updates)
+            else torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates)
         )
+        self.follower = Follower(adversary, optimizer, scheduler, lam=float(lam),
+                                 baseline=baseline, initial_samples=initial_samples,
+                                 grad_clip=grad_clip)
 
     def sample(self, n: int) -> TensorDict:
         """``n`` tasks ``{"params": [n, d], "log_prob": [n]}`` drawn from p_φ."""
@@ -89,28 +89,12 @@ class TaskSampler:
 
         Raises:
             ValueError: losses that are not one per task.
-            TrainingDiverged: non-finite losses or gradient; φ and Adam are left as they were.
+            TrainingDiverged: non-finite losses, gradient or new φ
+                (:func:`~armeta_rl.adversary.objective.follower_step`).
         """
         params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
         losses = torch.as_tensor(losses).detach().to(params.device, torch.float64)
         if losses.shape != (len(params),):
             raise ValueError(f"'losses' has shape {tuple(losses.shape)}: one loss per task, "
                              f"shape ({len(params)},)")
-        if not torch.isfinite(losses).all():
-            raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
-        phi = [p for group in self.optimizer.param_groups for p in group["params"]]
-        initial = self.adversary.base.sample_params(self.initial_samples)
-        surrogate, stats = adversary_surrogate(
-            self.adversary, params, losses, self.lam, initial, self.baseline
-        )
-        grad_norm = surrogate_gradient(surrogate, self.optimizer, phi, self.grad_clip)
-        if not (torch.isfinite(surrogate) and torch.isfinite(grad_norm)):
-            self.optimizer.zero_grad(set_to_none=True)
-            raise TrainingDiverged(f"adversary surrogate or gradient is not finite "
-                                   f"(surrogate {float(surrogate)}, norm {float(grad_norm)})")
-        lr = self.optimizer.param_groups[0]["lr"]
-        self.optimizer.step()
-        if self.scheduler is not None:
-            self.scheduler.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        return {**stats, "lr": float(lr), "grad_norm": float(grad_norm)}
+        return follower_step(self.follower, params, losses)

@@ -43,18 +43,13 @@ class SysIdCollector:
     torque by its bound, so all inputs lie in [-1, 1]; ``"none"`` keeps physical units. Losses
     are computed on ``y`` as returned.
 
-    Defaults ``target="delta"``, ``normalize="none"`` learned best in a measured comparison
-    (MAML, 3×128 ReLU MLP, inner lr 0.01, 300 meta-iterations of 16 tasks from U([0.4, 1.6]²),
-    10 episodes of 20 steps, next-observation MSE on 100 fresh tasks, one seed): pendulum
-    delta/none 0.0415, delta/scale 0.0431, next/none 0.0435, next/scale 0.0455; acrobot
-    delta/none 0.00110, next/none 0.00114, delta/scale 0.00147, next/scale 0.0142.
+    The defaults ``target="delta"``, ``normalize="none"`` learned best of the four pairs on both
+    envs (docs/notes/history.md).
 
     ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
     any batch, so collection time grows with the steps per episode (see
-    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the
-    initial states: the median |θ̇| of the pendulum data is 2.5 with one 200-step episode, 2.4
-    with 10 x 20 steps and 1.8 with 20 x 10 (90% quantile 6.0 / 6.2 / 5.5; the ±8 clip is reached
-    in all three); the acrobot's median |θ̇2| is 0.95 / 0.35 / 0.28.
+    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the initial states
+    (the velocities they cover: docs/notes/history.md).
 
     The environment's initial-state seed is drawn from torch's global RNG at every call, so
     ``torch.manual_seed`` fixes the whole collection.

@@ -2,14 +2,26 @@
 set under ``"params"`` (:data:`armeta_rl.tasks.TASK_KEY`) in the reset TensorDict and kept across
 automatic resets.
 
-All four are imported eagerly: ``torchrl.envs`` already imports MuJoCo, so the Ant env adds no
+All are imported eagerly: ``torchrl.envs`` already imports MuJoCo, so the MuJoCo envs add no
 measurable start-up time.
 """
 
 from armeta_rl.envs.acrobot import AcrobotEnv
+from armeta_rl.envs.ant_dir import AntDirEnv
 from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
+from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
 from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 
-__all__ = ["AcrobotEnv", "AntGoalEnv", "IdentifiedSystemEnv", "PendulumEnv", "PointNavigationEnv"]
+__all__ = [
+    "AcrobotEnv",
+    "AntDirEnv",
+    "AntGoalEnv",
+    "HalfCheetahDirEnv",
+    "HalfCheetahVelEnv",
+    "IdentifiedSystemEnv",
+    "PendulumEnv",
+    "PointNavigationEnv",
+    "Walker2dVelEnv",
+]

@@ -30,49 +30,43 @@ they still describe the last Runge-Kutta stage rather than the new state (gymnas
 changelog); here they are recomputed at the new state. The dynamics (qpos, qvel) are those of
 ``mj_step`` exactly.
 
-Throughput: all ``tasks × episodes`` simulations live in one :class:`mujoco.batch.Batch`, which
-steps them natively (``frame_skip`` substeps and the forward pass at the new state in one call, no
-Python per simulation). ``mj_rnePostConstraint`` runs inside that call because the model gets one
-accelerometer sensor on the torso, which makes MuJoCo's sensor stage compute ``cfrc_ext``; the
-sensor changes nothing else. Training splits the tasks over worker processes (TorchRL
-``ParallelEnv``), each owning a slice of tasks with its own batch, through
-:class:`armeta_rl.collectors.parallel_episodes.TaskSplitEpisodeCollector`
-(``benchmark.collector.workers``).
+Throughput and the task protocol are those of every batched MuJoCo env
+(:mod:`armeta_rl.envs.batched_mujoco`): all ``tasks × episodes`` simulations step natively in one
+:class:`mujoco.batch.Batch`. ``mj_rnePostConstraint`` runs inside its step call because the model
+gets one accelerometer sensor on the torso, which makes MuJoCo's sensor stage compute
+``cfrc_ext``; the sensor changes nothing else.
 
 Goals are passed as ``"params"`` (:data:`~armeta_rl.tasks.TASK_KEY`, ``[*batch, 2]``: goal_x,
-goal_y) in the reset TensorDict and kept in the env's state across automatic (partial) resets; a
-reset without ``"params"`` keeps the current goals, and goals never set are drawn uniformly from
-``[-goal_range, goal_range]²`` with the env's seeded generator. Goals under another key
-(``"goal"``), of another width or not finite raise :class:`~armeta_rl.errors.IdentifierError`.
-``"params"`` is emitted with every observation so trajectories carry their task; it is also
-declared in the state spec so that resets through TorchRL transforms (``TransformedEnv`` forwards
-only reset and state keys) still deliver it.
+goal_y) in the reset TensorDict and kept across automatic (partial) resets; goals never set are
+drawn uniformly from ``[-goal_range, goal_range]²`` with the env's seeded generator. Goals under
+another key (``"goal"``), of another width or not finite raise
+:class:`~armeta_rl.errors.IdentifierError`.
+
+:class:`AntTaskEnv` is the Ant every Ant task shares (model, observation, contact forces,
+termination); :class:`AntGoalEnv` adds the goal, :class:`~armeta_rl.envs.ant_dir.AntDirEnv` a
+direction.
 """
 
 from __future__ import annotations
 
-import math
 import os
 from collections.abc import Sequence
 
-import gymnasium
 import mujoco
 import numpy as np
 import torch
-from mujoco.batch import Batch
-from tensordict import TensorDict, TensorDictBase
-from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
-from armeta_rl.errors import ConfigError
-from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.envs.batched_mujoco import (
+    GYM_ASSETS,
+    STAGE_ACC,
+    BatchedMujocoEnv,
+    check_arguments,
+    common_checks,
+)
 
-ANT_XML = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets", "ant.xml")
+ANT_XML = os.path.join(GYM_ASSETS, "ant.xml")
 TORSO = "torso"
 GOAL_NAMES = ("goal_x", "goal_y")
-KEY = "benchmark.collector"
-_ACC = mujoco.mjtStage.mjSTAGE_ACC.value
-_NONE = mujoco.mjtStage.mjSTAGE_NONE.value
 
 
 def load_ant_model(with_force_sensor: bool = True) -> mujoco.MjModel:
@@ -94,35 +88,106 @@ def observation_size(model: mujoco.MjModel) -> int:
     return model.nq + model.nv + 6 * (model.nbody - 1) + 9 + 3
 
 
-def _check_arguments(max_steps: int, frame_skip: int, healthy_z_range: Sequence[float],
-                     reset_noise_scale: float, goal_range: float, threads: int | None) -> None:
-    """One :class:`ConfigError` line for the first bad constructor argument of the env."""
-    checks = {
-        f"{KEY}.max_steps": (max_steps, int(max_steps) >= 1, "must be >= 1"),
-        f"{KEY}.frame_skip": (frame_skip, int(frame_skip) >= 1, "must be >= 1"),
-        f"{KEY}.healthy_z_range": (
-            healthy_z_range,
-            len(healthy_z_range) == 2 and healthy_z_range[0] < healthy_z_range[1],
-            "[low, high] with low < high",
-        ),
-        f"{KEY}.reset_noise_scale": (reset_noise_scale, reset_noise_scale >= 0, "must be >= 0"),
-        f"{KEY}.goal_range": (goal_range, goal_range > 0, "must be > 0"),
-        f"{KEY}.threads": (threads, threads is None or int(threads) >= 1,
-                           "must be null (one per core) or an integer >= 1"),
-    }
-    for key, (value, ok, allowed) in checks.items():
-        if not ok:
-            raise ConfigError(key, value, allowed)
+class AntTaskEnv(BatchedMujocoEnv):
+    """The MuJoCo Ant of every Ant task, batched over ``[tasks, episodes]``: gymnasium's model
+    with a torso accelerometer (:func:`load_ant_model`), the 119-value observation, the terms of
+    the reward every Ant task shares (control and contact costs, survival reward) and termination
+    outside ``healthy_z_range`` (module docstring). A subclass adds the task: its identifiers and
+    the task term of its reward.
+
+    Args:
+        batch_size, max_steps, frame_skip, reset_noise_scale, threads, seed, device: as
+            :class:`~armeta_rl.envs.batched_mujoco.BatchedMujocoEnv`.
+        ctrl_cost_weight, contact_cost_weight, survive_reward: the shared reward terms
+            (:meth:`ant_reward`).
+        healthy_z_range: torso heights outside this closed interval terminate the episode.
+        checks: further argument checks of the subclass (``{name: (value, ok, allowed)}``).
+    """
+
+    stage = STAGE_ACC  # mj_forward and, through the torso sensor, mj_rnePostConstraint
+
+    def __init__(
+        self,
+        batch_size: Sequence[int],
+        max_steps: int,
+        frame_skip: int,
+        ctrl_cost_weight: float,
+        contact_cost_weight: float,
+        survive_reward: float,
+        healthy_z_range: Sequence[float],
+        reset_noise_scale: float,
+        threads: int | None,
+        seed: int | None,
+        device: torch.device | str,
+        checks: dict[str, tuple[object, bool, str]] | None = None,
+    ) -> None:
+        check_arguments({
+            **common_checks(max_steps, frame_skip, reset_noise_scale, threads),
+            "healthy_z_range": (
+                healthy_z_range,
+                len(healthy_z_range) == 2 and healthy_z_range[0] < healthy_z_range[1],
+                "[low, high] with low < high",
+            ),
+            **(checks or {}),
+        })
+        self.ctrl_cost_weight = float(ctrl_cost_weight)
+        self.contact_cost_weight = float(contact_cost_weight)
+        self.survive_reward = float(survive_reward)
+        self.healthy_z_range = (float(healthy_z_range[0]), float(healthy_z_range[1]))
+        model = load_ant_model()
+        self._torso = model.body(TORSO).id
+        super().__init__(model, batch_size, max_steps, frame_skip, reset_noise_scale, threads,
+                         seed, device)
+
+    def observation_size(self) -> int:
+        return observation_size(self.model)
+
+    def _bind_outputs(self) -> None:
+        self._cfrc_ext, self._xpos, self._xmat = (
+            self.sim.bind(k) for k in ("cfrc_ext", "xpos", "xmat")
+        )
+        self._forces = np.empty_like(self._cfrc_ext)
+
+    def _observe(self) -> np.ndarray:
+        """Fill the observation buffer ``[n_sims, 119]`` and the clipped forces from the batch."""
+        nq, nv, n = self.model.nq, self.model.nv, self.n_sims
+        obs = self._obs
+        np.clip(self._cfrc_ext, -1.0, 1.0, out=self._forces)
+        obs[:, :nq] = self._qpos
+        obs[:, nq : nq + nv] = self._qvel
+        end = obs.shape[1] - 12
+        obs[:, nq + nv : end] = self._forces[:, 1:].reshape(n, -1)
+        obs[:, end : end + 9] = self._xmat[:, self._torso]
+        obs[:, end + 9 :] = self._xpos[:, self._torso]
+        return obs
+
+    def ant_reward(self, task_term: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """``task_term − ctrl_cost_weight·‖a‖² − contact_cost_weight·‖F‖² + survive_reward``
+        ``[n_sims]``, with ``F`` the clipped contact forces after the step."""
+        return (
+            task_term
+            - self.ctrl_cost_weight * np.square(action).sum(-1)
+            - self.contact_cost_weight * np.square(self._forces).sum((-2, -1))
+            + self.survive_reward
+        )
+
+    def _healthy(self) -> np.ndarray:
+        state = self._obs[:, : self.model.nq + self.model.nv]
+        height = self._qpos[:, 2]
+        low, high = self.healthy_z_range
+        return np.isfinite(state).all(-1) & (height >= low) & (height <= high)
 
 
-class AntGoalEnv(EnvBase):
+class AntGoalEnv(AntTaskEnv):
     """MuJoCo Ant goal-position env with batch size ``[tasks, episodes]``; see the module docstring.
 
     Args:
         batch_size: ``[tasks, episodes]`` (any batch shape works).
         max_steps: time limit in env steps (200); reaching it sets ``"truncated"``.
         frame_skip: physics steps per env step (5, as gymnasium's Ant).
-        ctrl_cost_weight, contact_cost_weight, survive_reward: reward terms (module docstring).
+        ctrl_cost_weight: weight of the control cost (module docstring).
+        contact_cost_weight: weight of the contact cost (module docstring).
+        survive_reward: reward per step alive (module docstring).
         healthy_z_range: torso heights outside this closed interval terminate the episode.
         reset_noise_scale: initial qpos = model qpos0 + U(±scale), qvel = scale·N(0, 1).
         goal_range: default goals (never set by a reset) are U([-goal_range, goal_range]²).
@@ -132,7 +197,7 @@ class AntGoalEnv(EnvBase):
         device: torch device of the outputs (the physics runs on the CPU).
     """
 
-    _has_frame_skip = True  # physics substeps run in ``_step``; no FrameSkipTransform wrapper
+    identifier_names = GOAL_NAMES
 
     def __init__(
         self,
@@ -149,159 +214,17 @@ class AntGoalEnv(EnvBase):
         seed: int | None = None,
         device: torch.device | str = "cpu",
     ) -> None:
-        _check_arguments(max_steps, frame_skip, healthy_z_range, reset_noise_scale, goal_range,
-                         threads)
-        super().__init__(device=device, batch_size=torch.Size(batch_size))
-        self.max_steps, self.frame_skip = int(max_steps), int(frame_skip)
-        self.ctrl_cost_weight = float(ctrl_cost_weight)
-        self.contact_cost_weight = float(contact_cost_weight)
-        self.survive_reward = float(survive_reward)
-        self.healthy_z_range = (float(healthy_z_range[0]), float(healthy_z_range[1]))
-        self.reset_noise_scale = float(reset_noise_scale)
         self.goal_range = float(goal_range)
+        super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, contact_cost_weight,
+                         survive_reward, healthy_z_range, reset_noise_scale, threads, seed, device,
+                         checks={"goal_range": (goal_range, goal_range > 0, "must be > 0")})
 
-        self.model = load_ant_model()
-        self.n_sims = math.prod(self.batch_size)
-        threads = (os.cpu_count() or 1) if threads is None else int(threads)
-        self.sim = self._make_batch(threads)
-        self._torso = self.model.body(TORSO).id
-        self._qpos, self._qvel, self._ctrl = (self.sim.bind(k) for k in ("qpos", "qvel", "ctrl"))
-        self._cfrc_ext, self._xpos, self._xmat = (
-            self.sim.bind(k) for k in ("cfrc_ext", "xpos", "xmat")
-        )
-        self._forces = np.empty_like(self._cfrc_ext)
-        self._obs = np.empty((self.n_sims, observation_size(self.model)))
-
-        self._make_specs()
-        self._generator = torch.Generator()
-        self._set_seed(seed)
+    def _default_identifiers(self) -> torch.Tensor:
         unit = torch.rand(*self.batch_size, 2, generator=self._generator, dtype=torch.float64)
-        self._goal = self.goal_range * (2 * unit - 1)
-        self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long)
-        self.sim.reset()
+        return self.goal_range * (2 * unit - 1)
 
-    def _make_specs(self) -> None:
-        """The TorchRL specs: observation and goal, the goal as state, the actuators' box,
-        reward and done flags, all of batch shape ``batch_size``."""
-        shape, dtype = self.batch_size, torch.get_default_dtype()
-        low, high = self.model.actuator_ctrlrange.T
-        self.observation_spec = Composite(
-            {"observation": Unbounded(shape=(*shape, self._obs.shape[1]), dtype=dtype),
-             TASK_KEY: Unbounded(shape=(*shape, 2), dtype=dtype)},
-            shape=shape,
-        )
-        # The goal is also a state entry, so that TransformedEnv (which passes only reset and
-        # state keys to the base env's reset) forwards it; the env's own copy stays authoritative.
-        self.state_spec = Composite({TASK_KEY: Unbounded(shape=(*shape, 2), dtype=dtype)},
-                                    shape=shape)
-        self.action_spec = Bounded(
-            torch.as_tensor(low, dtype=dtype).expand(*shape, self.model.nu),
-            torch.as_tensor(high, dtype=dtype).expand(*shape, self.model.nu),
-            shape=(*shape, self.model.nu),
-            dtype=dtype,
-        )
-        self.reward_spec = Unbounded(shape=(*shape, 1), dtype=dtype)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
-            terminated=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
-            truncated=Categorical(2, shape=(*shape, 1), dtype=torch.bool),
-            shape=shape,
-        )
-
-    def _make_batch(self, threads: int) -> Batch:
-        """The ``n_sims`` simulations of the model, stepped natively on ``threads`` threads
-        (:class:`armeta_rl.envs.ant_goal_warp.AntGoalWarpEnv` puts them on MuJoCo Warp)."""
-        return Batch(self.model, self.n_sims, nthread=threads)
-
-    def _set_seed(self, seed: int | None) -> None:
-        if seed is None:
-            seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self._generator.manual_seed(int(seed))
-
-    def _observe(self) -> np.ndarray:
-        """Fill the observation buffer ``[n_sims, 119]`` and the clipped forces from the batch."""
-        nq, nv, n = self.model.nq, self.model.nv, self.n_sims
-        obs = self._obs
-        np.clip(self._cfrc_ext, -1.0, 1.0, out=self._forces)
-        obs[:, :nq] = self._qpos
-        obs[:, nq : nq + nv] = self._qvel
-        end = obs.shape[1] - 12
-        obs[:, nq + nv : end] = self._forces[:, 1:].reshape(n, -1)
-        obs[:, end : end + 9] = self._xmat[:, self._torso]
-        obs[:, end + 9 :] = self._xpos[:, self._torso]
-        return obs
-
-    def _output(self, extra: dict[str, torch.Tensor]) -> TensorDict:
-        shape, dtype = self.batch_size, torch.get_default_dtype()
-        observation = torch.from_numpy(self._obs).to(dtype).reshape(*shape, -1)
-        return TensorDict(
-            {"observation": observation, TASK_KEY: self._goal.to(dtype), **extra},
-            batch_size=shape,
-            device=self.device,
-        )
-
-    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        shape = self.batch_size
-        reset = None if tensordict is None else tensordict.get("_reset", None)
-        mask = (
-            torch.ones(*shape, 1, dtype=torch.bool)
-            if reset is None
-            else reset.reshape(*shape, 1).cpu()
-        )
-        goal = read_identifiers(tensordict, GOAL_NAMES, -math.inf, math.inf, shape)
-        if goal is not None:
-            goal = goal.to("cpu", torch.float64)
-            self._goal = torch.where(mask, goal, self._goal)
-        self._steps = torch.where(mask, torch.zeros_like(self._steps), self._steps)
-        ids = np.flatnonzero(mask.reshape(-1).numpy())
-        if ids.size:
-            self._reset_sims(ids)
-        self._observe()
-        false = torch.zeros(*shape, 1, dtype=torch.bool)
-        return self._output(
-            {"done": false, "terminated": false.clone(), "truncated": false.clone()}
-        )
-
-    def _reset_sims(self, ids: np.ndarray) -> None:
-        """gymnasium's Ant reset: qpos0 + U(±s), s·N(0, 1) velocities, then a forward pass."""
-        scale, n = self.reset_noise_scale, ids.size
-        gen, nq, nv = self._generator, self.model.nq, self.model.nv
-        qpos_noise = scale * (2 * torch.rand(n, nq, generator=gen, dtype=torch.float64) - 1)
-        qvel_noise = scale * torch.randn(n, nv, generator=gen, dtype=torch.float64)
-        ids = None if n == self.n_sims else ids.astype(np.int32)
-        self.sim.reset(ids, stage=_NONE)
-        rows = slice(None) if ids is None else ids
-        self._qpos[rows] = self.model.qpos0 + qpos_noise.numpy()
-        self._qvel[rows] = qvel_noise.numpy()
-        self.sim.forward(ids, stage=_ACC)
-
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        shape = self.batch_size
-        action = tensordict.get("action").detach().to("cpu", torch.float64)
-        action = action.reshape(self.n_sims, self.model.nu).numpy()
-        self._ctrl[:] = action
-        self.sim.step(nstep=self.frame_skip, stage=_ACC)
-        self._observe()
+    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
+                task: np.ndarray) -> np.ndarray:
+        """The AntPos reward of the module docstring."""
         xy = self._xpos[:, self._torso, :2]
-        goal = self._goal.reshape(self.n_sims, 2).numpy()
-        reward = (
-            -np.abs(xy - goal).sum(-1)
-            - self.ctrl_cost_weight * np.square(action).sum(-1)
-            - self.contact_cost_weight * np.square(self._forces).sum((-2, -1))
-            + self.survive_reward
-        )
-        state = self._obs[:, : self.model.nq + self.model.nv]
-        height = self._qpos[:, 2]
-        low, high = self.healthy_z_range
-        healthy = np.isfinite(state).all(-1) & (height >= low) & (height <= high)
-        terminated = torch.from_numpy(~healthy).reshape(*shape, 1)
-        self._steps = self._steps + 1
-        truncated = self._steps >= self.max_steps
-        return self._output(
-            {
-                "reward": torch.from_numpy(reward).to(torch.get_default_dtype()).reshape(*shape, 1),
-                "done": terminated | truncated,
-                "terminated": terminated,
-                "truncated": truncated,
-            }
-        )
+        return self.ant_reward(-np.abs(xy - task).sum(-1), action)

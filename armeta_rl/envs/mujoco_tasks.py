@@ -7,6 +7,9 @@ values except gravity:
     body_mass_scale      body_mass[b] ← v · nominal, and body_inertia[b] ← v · nominal: the body's
                          density scales, its shape stays (the usual domain-randomization choice;
                          scaling the mass alone would change the body's radius of gyration)
+    body_mass_only_scale body_mass[b] ← v · nominal, inertia unchanged: MPTS's mass scale
+                         (HalfCheetah-MassVel, Walker2d-MassVel: ``model.body_mass[:] =
+                         m_scale · original``)
     geom_friction_scale  sliding friction geom_friction[g, 0] ← v · nominal
     joint_damping_scale  dof_damping of every degree of freedom of the joint ← v · nominal
     actuator_gear_scale  actuator_gear[a, 0] ← v · nominal (the actuator's force per control)
@@ -33,9 +36,9 @@ task box of goal × physics, and the base env sees its own columns only. Support
 envs: a TorchRL ``GymEnv`` of a gymnasium MuJoCo env (one simulation, batch ``[]``), a
 ``SerialEnv`` of them (one task per sub-env, batch ``[n]``), and any env that steps a
 :class:`mujoco.batch.Batch` under ``env.sim`` with its model under ``env.model`` (our
-:class:`~armeta_rl.envs.ant_goal.AntGoalEnv`: one task per simulation, batch ``[tasks,
-episodes]``). To run tasks in parallel processes, put one transform inside each worker's env
-(``ParallelEnv(n, lambda: TransformedEnv(GymEnv(...), PhysicsTaskTransform(...)))``).
+:class:`~armeta_rl.envs.batched_mujoco.BatchedMujocoEnv` envs: one task per simulation,
+batch ``[tasks, episodes]``). To run tasks in parallel processes, put one transform inside each
+worker's env (``ParallelEnv(n, lambda: TransformedEnv(GymEnv(...), PhysicsTaskTransform(...)))``).
 
 Task families are written in YAML (``configs/task_family/``)::
 
@@ -75,6 +78,7 @@ KEY = "task_family.parameters"
 # row it writes or None for the whole row, whether the value scales the nominal one)
 _KINDS: dict[str, tuple[str | None, tuple[tuple[str, int | None], ...], bool]] = {
     "body_mass_scale": ("body", (("body_mass", None), ("body_inertia", None)), True),
+    "body_mass_only_scale": ("body", (("body_mass", None),), True),
     "geom_friction_scale": ("geom", (("geom_friction", 0),), True),
     "joint_damping_scale": ("joint", (("dof_damping", None),), True),
     "actuator_gear_scale": ("actuator", (("actuator_gear", 0),), True),

@@ -17,18 +17,18 @@ class, options and builder) and one entry in :data:`armeta_rl.factory.LEARNERS`.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import torch
-from omegaconf import DictConfig
 from torch import Tensor, nn
 from torch.func import functional_call, grad
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.fields import Options, above, at_least, each, key, section
-from armeta_rl.learners.base import OLD_SIZE_KEYS, mean_squared_error, sizes
+from armeta_rl.fields import Section, above, at_least, each, key, register
+from armeta_rl.learners.base import mean_squared_error, sizes
 from armeta_rl.learners.maml import MAMLLeader, MamlOptions, sgd_step
 
 Params = dict[str, Tensor]
@@ -49,8 +49,9 @@ class BodyHead(nn.Module):
         return self.head(self.body(x))
 
 
+@register("learner.anil")
 @dataclass(frozen=True)
-class AnilOptions(Options):
+class AnilOptions(Section):
     """``learner.anil``: ANIL's keys, their types, ranges and defaults.
 
     Attributes:
@@ -60,8 +61,6 @@ class AnilOptions(Options):
         first_order: drop the second-order terms (treat ∇_{θ_head} L^S as a constant).
         outer_lr: Adam learning rate of the meta-update.
     """
-
-    section = "learner.anil"
 
     hidden: list[int] = each(at_least(1), nonempty=True, default=[128, 128, 128])
     inner_lr: float = above(0, default=0.01)
@@ -104,8 +103,9 @@ class ANILLeader(MAMLLeader):
         return {**params, **head}
 
 
-def build_anil(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> ANILLeader:
-    """ANIL from ``learner.anil``, its network sized by the collector, on ``device``."""
-    options = AnilOptions(**section(cfg, "learner.anil"))
-    model = BodyHead(*sizes(cfg, collector, OLD_SIZE_KEYS), options.hidden).to(device)
-    return ANILLeader(model, collector, options)
+def build_anil(options: AnilOptions, collector: TaskCollector, device: torch.device,
+               model: Mapping[str, Any]) -> ANILLeader:
+    """ANIL with ``options``, its network sized by the collector, on ``device`` (a body and a
+    linear head: no choices in ``model``)."""
+    network = BodyHead(*sizes(collector), options.hidden).to(device)
+    return ANILLeader(network, collector, options)

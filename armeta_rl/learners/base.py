@@ -7,12 +7,10 @@ from collections.abc import Callable
 from typing import Any, Protocol, runtime_checkable
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.errors import ConfigError
 
 TaskWeights = Callable[[Tensor], Tensor]
 """Maps detached per-task losses ``[K]`` to non-negative weights ``[K]`` that sum to one."""
@@ -53,9 +51,12 @@ class Leader(Protocol):
     on_policy: bool
     collector: TaskCollector
 
-    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None) -> Any:
+    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> Any:
         """The data of ``tasks`` ``[K]`` at the current θ, from ``collector`` (e.g. the larger
-        evaluation collector) or the leader's own; the loop passes them on unchanged."""
+        evaluation collector) or the leader's own; the loop passes them on unchanged.
+        ``create_graph``: the data will be differentiated for :meth:`step`'s meta-gradient, so
+        any part computed from θ (MAML-TRPO's adapted policies) keeps its graph."""
         ...
 
     def step(self, data: Any, weights: TaskWeights) -> tuple[TensorDict, dict[str, float]]:
@@ -92,9 +93,10 @@ class OneNetworkLeader:
     collector: TaskCollector
     on_policy = False
 
-    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None) -> TensorDict:
+    def collect(self, tasks: TensorDict, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> TensorDict:
         """Support and query data ``[K]`` of ``tasks`` from ``collector`` or the leader's own; they
-        do not depend on θ."""
+        do not depend on θ (so ``create_graph`` changes nothing)."""
         return (self.collector if collector is None else collector).collect(tasks)
 
     def descend(self, losses: Tensor, weights: TaskWeights) -> None:
@@ -114,18 +116,7 @@ class OneNetworkLeader:
         self.optimizer.load_state_dict(state["optimizer"])
 
 
-OLD_SIZE_KEYS = ("benchmark.model.in_features", "benchmark.model.out_features")
-"""Where configs saved before sizes came from the collector state them."""
-
-
-def sizes(cfg: DictConfig, collector: TaskCollector, stated: tuple[str, str]) -> tuple[int, int]:
+def sizes(collector: TaskCollector) -> tuple[int, int]:
     """The leader's input and output sizes, as the collector defines them (``in_features`` and
-    ``out_features``: x and y, or the env's observation and action). A config saved before sizes
-    came from the collector states them at the keys ``stated``: such a value is accepted when it
-    is the collector's, so old runs load, and refused otherwise."""
-    defined = int(collector.in_features), int(collector.out_features)
-    for key, size in zip(stated, defined):
-        value = OmegaConf.select(cfg, key, default=None)
-        if value is not None and value != size:
-            raise ConfigError(key, value, f"is defined by the collector: {size}")
-    return defined
+    ``out_features``: x and y, or the env's observation and action)."""
+    return int(collector.in_features), int(collector.out_features)

@@ -13,10 +13,11 @@ set, and the decoder is a two-layer MLP on (z, x_query); ReLU activations, Adam 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from torch import Tensor, nn
 from torch.nn import functional as F
@@ -24,9 +25,8 @@ from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.errors import ConfigError
-from armeta_rl.fields import Options, above, at_least, one_of, section
+from armeta_rl.fields import Section, above, at_least, one_of, register
 from armeta_rl.learners.base import (
-    OLD_SIZE_KEYS,
     OneNetworkLeader,
     TaskWeights,
     mean_squared_error,
@@ -70,8 +70,9 @@ def gaussian_nll(mean: Tensor, std: Tensor, target: Tensor) -> Tensor:
     return F.gaussian_nll_loss(mean, target, std.square(), full=True, reduction="none")
 
 
+@register("learner.cnp")
 @dataclass(frozen=True)
-class CnpOptions(Options):
+class CnpOptions(Section):
     """``learner.cnp``: the CNP's keys, their types, ranges and defaults (encoder 3 × ``hidden``
     → mean over the support set → decoder ``hidden`` → (μ, σ)).
 
@@ -82,8 +83,6 @@ class CnpOptions(Options):
             ``"gaussian"`` (negative log-likelihood of the predicted Gaussian, as in Garnelo et al.)
             or ``"mse"`` (squared error of the predicted mean; the std head is then unused).
     """
-
-    section = "learner.cnp"
 
     lr: float = above(0, default=0.001)
     hidden: int = at_least(1, default=128)
@@ -148,10 +147,11 @@ class CNPLeader(OneNetworkLeader):
         return mean_squared_error(mean, data["query", "y"], (-2, -1))
 
 
-def build_cnp(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> CNPLeader:
-    """The CNP from ``learner.cnp``, sized by the collector, on ``device``."""
-    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
+def build_cnp(options: CnpOptions, collector: TaskCollector, device: torch.device,
+              model: Mapping[str, Any]) -> CNPLeader:
+    """The CNP with ``options``, sized by the collector, on ``device`` (it has no heads to choose
+    in ``model``)."""
+    head = model.get("head", "none")
     if head != "none":
         raise ConfigError("benchmark.model.head", head, "the CNP leader has no heads: use none")
-    return CNPLeader(*sizes(cfg, collector, OLD_SIZE_KEYS), collector,
-                     CnpOptions(**section(cfg, "learner.cnp")), device=device)
+    return CNPLeader(*sizes(collector), collector, options, device=device)

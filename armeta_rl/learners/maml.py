@@ -10,12 +10,11 @@ low-rank weight updates, :mod:`armeta_rl.learners.low_rank`) and ``learner.maml.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
 from torch import Tensor, nn
 from torch.func import functional_call, grad, vmap
@@ -23,9 +22,8 @@ from torch.func import functional_call, grad, vmap
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
-from armeta_rl.fields import Options, above, at_least, each, key, one_of, section
+from armeta_rl.fields import Section, above, at_least, each, key, one_of, register
 from armeta_rl.learners.base import (
-    OLD_SIZE_KEYS,
     OneNetworkLeader,
     TaskWeights,
     mean_squared_error,
@@ -45,8 +43,9 @@ def sgd_step(params: Params, gradients: Params, lr: float) -> Params:
     return {name: p - lr * gradients[name] for name, p in params.items()}
 
 
+@register("learner.maml")
 @dataclass(frozen=True)
-class MamlOptions(Options):
+class MamlOptions(Section):
     """``learner.maml``: MAML's keys, their types, ranges and defaults.
 
     Attributes:
@@ -64,13 +63,8 @@ class MamlOptions(Options):
             :mod:`armeta_rl.compiling`.
     """
 
-    section = "learner.maml"
-
     hidden: list[int] = each(at_least(1), default=[128, 128, 128])  # the paper's MLP: 3 × 128, ReLU
-    # The paper's text gives 1e-3 for both loops. Measured (sinusoid_uniform, MAML, 7,500
-    # iterations, seeds 0/1/2): inner 1e-3 reaches mean MSE 0.659/0.639/0.727 on p0, inner
-    # 0.01 reaches 0.460/0.475/0.457 (the paper's MAML row: 0.499), so the inner learning rate
-    # defaults to 0.01 (docs/protocol.md, section 5).
+    # 0.01, not the paper's 1e-3: MAML reaches the paper's MSE with it (docs/notes/history.md)
     inner_lr: float = above(0, default=0.01)
     inner_steps: int = at_least(1, default=1)
     first_order: bool = key(default=False)
@@ -173,14 +167,15 @@ class MAMLLeader(OneNetworkLeader):
             return self._losses(self._training_loss, data)
 
 
-def build_maml(cfg: DictConfig, collector: TaskCollector, device: torch.device) -> MAMLLeader:
-    """MAML from ``learner.maml``, its MLP sized by the collector, on ``device``."""
-    options = MamlOptions(**section(cfg, "learner.maml"))
-    head = OmegaConf.select(cfg, "benchmark.model.head", default="none")
-    target = OmegaConf.select(cfg, "benchmark.collector.target", default=None)
+def build_maml(options: MamlOptions, collector: TaskCollector, device: torch.device,
+               model: Mapping[str, Any]) -> MAMLLeader:
+    """MAML with ``options``, its MLP sized by the collector, with the head the benchmark's
+    ``model`` choices name, on ``device``."""
+    head = model.get("head", "none")
+    target = getattr(collector, "target", None)
     if head == "tied_angle" and target != "next":
         raise ConfigError("benchmark.model.head", head,
                           f"predicts the next observation: needs benchmark.collector.target=next, "
                           f"not {target}")
-    model = make_mlp(*sizes(cfg, collector, OLD_SIZE_KEYS), options.hidden, head).to(device)
-    return MAMLLeader(model, collector, options)
+    network = make_mlp(*sizes(collector), options.hidden, head).to(device)
+    return MAMLLeader(network, collector, options)

@@ -18,19 +18,18 @@ The per-task loss reported to the game is −(mean return of the adapted policy)
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import torch
-from omegaconf import DictConfig
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
-from armeta_rl.fields import Options, above, at_least, each, inside, key, section
-from armeta_rl.learners.base import TaskWeights, sizes, weighted_sum
+from armeta_rl.fields import Section, above, at_least, each, inside, key, register
+from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml import sgd_step
 from armeta_rl.rl.baseline import episode_mean, gae_advantages
 from armeta_rl.rl.policy import GaussianMLP, loc_scale, log_prob
@@ -76,8 +75,9 @@ class SurrogateGraph(NamedTuple):
     outputs: tuple[Tensor, Tensor]
 
 
+@register("learner.maml_trpo")
 @dataclass(frozen=True)
-class MamlTrpoOptions(Options):
+class MamlTrpoOptions(Section):
     """``learner.maml_trpo``: MAML's form on episode benchmarks (point_nav, ant_goal), MAML-TRPO
     with pytorch-maml-rl's settings: its keys, their types, ranges and defaults. The policy's
     input and output sizes are the env's observation and action.
@@ -99,8 +99,6 @@ class MamlTrpoOptions(Options):
             step's Jacobian is estimated from the subsample too (it is most of their cost). The
             surrogate, its gradient and the line search always use every episode.
     """
-
-    section = "learner.maml_trpo"
 
     # Gaussian MLP, tanh, state-independent log-std (init 0)
     hidden_sizes: list[int] = each(at_least(1), default=[64, 64])
@@ -227,15 +225,15 @@ class MAMLTRPOLeader:
 
     # -- Leader protocol ----------------------------------------------------------------------
 
-    def collect(self, tasks: TensorDictBase, collector: TaskCollector | None = None) -> MetaBatch:
+    def collect(self, tasks: TensorDictBase, collector: TaskCollector | None = None,
+                create_graph: bool = False) -> MetaBatch:
         """Roll out π_θ, adapt every task (one batched inner step), roll out the adapted policies,
         with ``collector`` or the leader's own.
 
-        Under grad mode the adapted parameters keep their graph to θ (for the meta-gradient of
-        :meth:`step`); under ``torch.no_grad()`` (the follower's and the evaluation's data, which
-        are only scored) they do not.
+        With ``create_graph`` the adapted parameters keep their graph to θ, for the meta-gradient
+        of :meth:`step`; the follower's and the evaluation's data, which are only scored, need
+        none.
         """
-        create_graph = torch.is_grad_enabled()
         collector = self.collector if collector is None else collector
         train = collector.collect(tasks, None, policy=self.net)
         train_advantages = self.advantages(train)
@@ -323,7 +321,9 @@ class MAMLTRPOLeader:
 
         Natural-gradient direction by conjugate gradient on the second-order KL Hessian, scaled to
         the trust region, then backtracking until the surrogate improves with Σ_k w_k KL_k ≤ δ.
-        Returns the surrogate and KL of the accepted step (θ unchanged if none qualifies).
+        Returns ``trpo_kl`` (Σ_k w_k KL_k of the accepted step), ``trpo_improvement`` (decrease of
+        the weighted surrogate) and ``trpo_line_search_steps`` (backtracking steps taken; −1 when
+        no step qualified and θ is unchanged).
         """
         w = weights.to(batch.valid["reward"].dtype)
         params = list(self.net.parameters())
@@ -354,10 +354,9 @@ class MAMLTRPOLeader:
             for p, value in zip(params, unflatten(new_theta, params)):
                 p.copy_(value)
         return {
-            "trpo/line_search_steps": float(-1 if accepted is None else accepted),
-            "trpo/surrogate_before": surrogate.item(),
-            "trpo/surrogate_after": loss.item(),
-            "trpo/kl": kl.item(),
+            "trpo_kl": kl.item(),
+            "trpo_improvement": surrogate.item() - loss.item(),
+            "trpo_line_search_steps": float(-1 if accepted is None else accepted),
         }
 
     def step(
@@ -367,19 +366,14 @@ class MAMLTRPOLeader:
         on Σ_k w_k L^out_k with ``w = weights(losses)``.
 
         Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"`` and
-        ``"return_post"``, and the step's TRPO diagnostics: ``"trpo_kl"`` (Σ_k w_k KL_k of the
-        accepted step), ``"trpo_improvement"`` (decrease of the weighted surrogate) and
-        ``"trpo_line_search_steps"`` (backtracking steps taken; −1 when no step was accepted).
+        ``"return_post"``, and the step's TRPO diagnostics (:meth:`trpo_update`). ``batch`` must
+        keep its graph to θ (``collect(tasks, create_graph=True)``) for the second-order
+        meta-gradient.
         """
         return_pre = episode_returns(batch.train).mean(-1)
         losses = self.evaluate(batch)
         return_post = -losses
-        update = self.trpo_update(batch, weights(losses))
-        diagnostics = {
-            "trpo_kl": update["trpo/kl"],
-            "trpo_improvement": update["trpo/surrogate_before"] - update["trpo/surrogate_after"],
-            "trpo_line_search_steps": update["trpo/line_search_steps"],
-        }
+        diagnostics = self.trpo_update(batch, weights(losses))
         per_task = TensorDict(
             {"loss": losses, "return_pre": return_pre, "return_post": return_post},
             batch_size=[losses.shape[0]],
@@ -403,16 +397,8 @@ class MAMLTRPOLeader:
         self.net.load_state_dict(state["policy"])
 
 
-OLD_SIZE_KEYS = ("learner.maml_trpo.obs_dim", "learner.maml_trpo.action_dim")
-"""Where configs saved before sizes came from the collector state the policy's sizes."""
-
-
-def build_maml_trpo(
-    cfg: DictConfig, collector: TaskCollector, device: torch.device
-) -> MAMLTRPOLeader:
-    """MAML-TRPO from ``learner.maml_trpo``, its policy sized by the collector's env, on
-    ``device`` (sizes a config saved before then states are checked against the env's)."""
-    sizes(cfg, collector, OLD_SIZE_KEYS)
-    opts = {k: v for k, v in section(cfg, "learner.maml_trpo").items()
-            if f"learner.maml_trpo.{k}" not in OLD_SIZE_KEYS}
-    return MAMLTRPOLeader(collector, options=MamlTrpoOptions(**opts), device=device)
+def build_maml_trpo(options: MamlTrpoOptions, collector: TaskCollector, device: torch.device,
+                    model: Mapping[str, Any]) -> MAMLTRPOLeader:
+    """MAML-TRPO with ``options``, its policy sized by the collector's env, on ``device`` (a
+    Gaussian MLP policy: no choices in ``model``)."""
+    return MAMLTRPOLeader(collector, options=options, device=device)

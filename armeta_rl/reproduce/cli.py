@@ -172,25 +172,15 @@ class SweepClock:
 def check_runs(plan: Plan) -> None:
     """Compose and check the config of every distinct run (seeds aside) before launching, so a
     bad override in an experiment's YAML fails with one line instead of in every job."""
-    from hydra import compose, initialize_config_dir
-    from hydra.errors import HydraException
-
-    from armeta_rl.cli import config_dir
-    from armeta_rl.config import check_config
+    from armeta_rl.cli import check_jobs
 
     distinct = {(*run.command()[:2], *run.overrides): run.target is not None
                 for run in (*plan.runs, *plan.attacks)}
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        for overrides, attack in distinct.items():
-            try:
-                cfg = compose("train", overrides=list(overrides))
-            except HydraException as error:
-                raise ConfigError("overrides", " ".join(overrides),
-                                  str(error).splitlines()[0]) from None
-            check_config(cfg)
-            if attack and cfg.method.risk != "ar":
-                raise ConfigError("attacks", cfg.method.name,
-                                  "an attack trains a flow adversary: allowed: the ar_* methods")
+    for overrides, attack in distinct.items():
+        (config,) = check_jobs(list(overrides))
+        if attack and config.method.risk != "ar":
+            raise ConfigError("attacks", config.method.name,
+                              "an attack trains a flow adversary: allowed: the ar_* methods")
 
 
 def run_times(records: list[dict]) -> str:
@@ -279,13 +269,13 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     with listening(DEFAULT_STOP_SIGNALS, forward_to_children=local) as stop, SweepClock(
             results, manifest, experiment) as clock:
         if runs:
-            code = launch(train, "armeta-train", [train_job(results, r) for r in runs], results,
+            code = launch(train, [train_job(results, r) for r in runs], results,
                           f"{experiment} train", len(plan.runs) - len(runs),
                           (*selected, *hydra_args), local)
         attacks = [] if launcher == "none" or stop.requested else [  # targets finished
             a for a in plan.attacks if not finished(results, a) and finished(results, a.target)]
         if attacks:
-            code = launch(train, "armeta-train", [train_job(results, a) for a in attacks],
+            code = launch(train, [train_job(results, a) for a in attacks],
                           results, f"{experiment} attack",
                           sum(finished(results, a) for a in plan.attacks),
                           (*selected, *hydra_args), local) or code
@@ -293,7 +283,7 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
         ready = [] if stop.requested else [
             e for e in evals if finished(results, e.learner) and finished(results, e.adversary)]
         if ready and launcher != "none":
-            code = launch(evaluate, "armeta-eval", [eval_job(results, e) for e in ready],
+            code = launch(evaluate, [eval_job(results, e) for e in ready],
                           results, f"{experiment} eval", len(plan.evals) - len(evals),
                           (*selected, *hydra_args), local) or code
     wall = manifest["wall_seconds"]
@@ -355,9 +345,15 @@ def parse(args: list[str]) -> dict:
 def main() -> None:
     """``armeta-reproduce``: exit code 0 when the experiment is complete, 1 when runs failed or
     are missing, 2 for bad input (one line)."""
+    from armeta_rl.cli import Refused
+
+    if any(arg in ("--help", "-h") for arg in sys.argv[1:]):
+        print(f"usage: {__doc__.replace('``', '').strip()}\n\n"
+              f"experiments: {', '.join(experiment_names())}")
+        sys.exit(0)
     options = parse(sys.argv[1:])
     try:
         code = reproduce(**options)
-    except ConfigError as error:
+    except (ConfigError, Refused) as error:
         _fail(str(error))
     sys.exit(code)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import os
 import socket
-import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -95,11 +94,11 @@ def eval_job(results: Path, job: EvalJob) -> dict:
             "done": str(results / job.out)}
 
 
-def launch(entry: Callable[[], None], prog: str, jobs: Sequence[dict], results: Path,
+def launch(entry: Callable[[list[str]], int], jobs: Sequence[dict], results: Path,
            label: str, finished_before: int, hydra_args: Sequence[str],
            local_workers: bool = False) -> int:
-    """Run ``jobs`` as one multirun of ``entry`` (``armeta_rl.cli.train`` or ``evaluate``) and
-    return its exit code (0 when every job finished).
+    """Run ``jobs`` as one multirun of ``entry`` (``armeta_rl.cli.train`` or ``evaluate``, which
+    take the command line's arguments) and return its exit code (0 when every job finished).
 
     The jobs file goes to ``results/.sweeps/<label>.yaml`` (kept: it records what was launched).
     With ``local_workers`` (joblib processes of this machine) each job's worker also runs
@@ -110,7 +109,7 @@ def launch(entry: Callable[[], None], prog: str, jobs: Sequence[dict], results: 
     jobs_file.parent.mkdir(parents=True, exist_ok=True)
     OmegaConf.save(OmegaConf.create({"jobs": list(jobs)}), jobs_file)
     progress = "+hydra.callbacks.progress"
-    argv = [prog, "-m", "hydra/sweeper=run_list", f"hydra.sweeper.jobs_file={jobs_file}",
+    argv = ["-m", "hydra/sweeper=run_list", f"hydra.sweeper.jobs_file={jobs_file}",
             f"hydra.sweep.dir={results}",
             f"{progress}._target_=armeta_rl.reproduce.progress.Progress",
             f"{progress}.jobs_file={jobs_file}", f"{progress}.label={label}",
@@ -118,12 +117,4 @@ def launch(entry: Callable[[], None], prog: str, jobs: Sequence[dict], results: 
             *([f"+hydra.callbacks.worker._target_={WORKER}",
                f"+hydra.callbacks.worker.sweep_pid={os.getpid()}"] if local_workers else []),
             *hydra_args]
-    saved = sys.argv
-    sys.argv = argv
-    try:
-        entry()
-    except SystemExit as stop:
-        return stop.code if isinstance(stop.code, int) else 1
-    finally:
-        sys.argv = saved
-    return 0
+    return entry(argv)

@@ -9,8 +9,6 @@ cosine learning-rate schedule (paper appendix "Distribution Adversary Implementa
 
 from __future__ import annotations
 
-import copy
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,17 +18,17 @@ from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
-from armeta_rl.adversary.objective import BASELINES, adversary_surrogate, surrogate_gradient
+from armeta_rl.adversary.objective import BASELINES, Follower, follower_step
 from armeta_rl.compiling import compile_backend, maybe_compile
-from armeta_rl.errors import ConfigError, TrainingDiverged
-from armeta_rl.fields import Options, above, at_least, key, one_of
+from armeta_rl.errors import ConfigError
+from armeta_rl.fields import Section, above, at_least, key, one_of, register
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.tasks.distributions import TaskDistribution
-from armeta_rl.tasks.protocol import TASK_KEY
 
 
+@register("risk.ar")
 @dataclass(frozen=True)
-class ArOptions(Options):
+class ArOptions(Section):
     """``risk.ar``: the keys of :class:`AdversarialPrinciple` and of its flow adversary, their
     types, ranges and defaults.
 
@@ -52,8 +50,6 @@ class ArOptions(Options):
             name; see :mod:`armeta_rl.compiling`.
     """
 
-    section = "risk.ar"
-
     # spline (exact, box-preserving) or planar (the paper's 2 layers)
     flow: str = one_of(*FLOW_KINDS, default=DEFAULT_FLOW)
     # spline: layers (default 1 on a 2-D box, else 2), bins, hidden, blocks; checked by the flow
@@ -61,11 +57,11 @@ class ArOptions(Options):
     # the paper's: 0.2 regression/sys-id, 0 for RL (the RL benchmarks set it)
     lam: float = key("must be >= 0 (λ ≥ 0)", lambda v: v >= 0, default=0.2)
     update_every: int = at_least(1, default=1)
-    # The code's: 1e-4 every 10th iteration; the paper profile's choice: docs/protocol.md,
-    # section 2.
+    # the follower's step size, cosine-annealed over the run (docs/notes/history.md: the
+    # authors' code's schedule and this default)
     lr: float = above(0, default=0.001)
-    # Active in nearly every update, not only early (docs/protocol.md, section 5); the code clips
-    # at 5; None (null): off.
+    # clips φ's gradient norm (null: off); it acts in nearly every update
+    # (docs/notes/history.md)
     grad_clip: float | None = above(0, default=1.0)
     baseline: str = one_of(*BASELINES, default="mean")  # mean (the paper's) or leave_one_out
     initial_samples: int = at_least(1, default=256)
@@ -102,18 +98,18 @@ class AdversarialPrinciple(nn.Module):
         ):
             raise ConfigError("risk.ar.total_updates", total_updates, "must be an integer >= 1")
         self.adversary = adversary
-        self.lam, self.update_every = float(options.lam), options.update_every
-        self.grad_clip = options.grad_clip
-        self.baseline, self.initial_samples = options.baseline, options.initial_samples
-        self._phi = list(adversary.parameters())
+        self.update_every = options.update_every
         backend = compile_backend("risk.ar.compile", options.compile)
-        self._log_prob = maybe_compile(adversary.log_prob, backend)
         self._push_forward = maybe_compile(adversary.push_forward, backend)
-        self.optimizer = torch.optim.Adam(self._phi, lr=options.lr, maximize=True, fused=True)
-        self.scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(
-            self.optimizer, T_max=total_updates
+        optimizer = torch.optim.Adam(adversary.parameters(), lr=options.lr, maximize=True,
+                                     fused=True)
+        self.follower = Follower(
+            adversary, optimizer,
+            torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates),
+            lam=float(options.lam), baseline=options.baseline,
+            initial_samples=options.initial_samples, grad_clip=options.grad_clip,
+            log_prob=maybe_compile(adversary.log_prob, backend),
         )
-        self._backup: list[Tensor] = []
 
     @property
     def initial(self) -> TaskDistribution:
@@ -132,60 +128,29 @@ class AdversarialPrinciple(nn.Module):
         return uniform_weights(losses)
 
     def update(self, tasks: TensorDict, losses: Tensor) -> dict[str, float]:
-        """One follower ascent step on the losses of ``tasks`` at θ_{t+1} (paper Eq.
-        (14), second line; gradient of Eq. (17)).
+        """One follower ascent step on the losses of ``tasks`` at θ_{t+1}
+        (:func:`~armeta_rl.adversary.objective.follower_step`: paper Eq. (14), second line;
+        gradient of Eq. (17)); a diverged step raises ``TrainingDiverged`` and the run stops at
+        its last checkpoint.
 
         Logs ``adversary/objective`` (the estimate of J), ``adversary/entropy`` (from the K task
         samples) and ``adversary/kl_p0`` (from the ``initial_samples`` p0 samples), all of p_φ
         before the step and free by-products of the surrogate; ``adversary/lr`` (the rate used)
         and ``adversary/grad_norm`` (before clipping). Precise entropy and KL of the final p_φ go
-        to the evaluation report. After the step the new p_φ's log-density at ``tasks`` checks the
-        new flow; it draws no random numbers.
+        to the evaluation report."""
+        stats = follower_step(self.follower, tasks, losses)
+        return {f"adversary/{name}": stats[name]
+                for name in ("objective", "entropy", "kl_p0", "lr", "grad_norm")}
 
-        Raises:
-            TrainingDiverged: if the losses, the surrogate, its gradient, the new parameters or the
-                new density are not finite; the parameters and optimizer are left as they were.
-        """
-        losses = losses.detach().to(torch.float64)
-        if not torch.isfinite(losses).all():
-            raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
-        initial = self.initial.sample_params(self.initial_samples)
-        surrogate, stats = adversary_surrogate(
-            self.adversary, tasks, losses, self.lam, initial, self.baseline, self._log_prob
-        )
-        if not torch.isfinite(surrogate):
-            raise TrainingDiverged(
-                "adversary surrogate is not finite (a task outside the box, "
-                "or a non-finite flow log-density)"
-            )
-        grad_norm = surrogate_gradient(surrogate, self.optimizer, self._phi, self.grad_clip)
-        if not torch.isfinite(grad_norm):
-            self.optimizer.zero_grad(set_to_none=True)
-            raise TrainingDiverged(f"adversary gradient is not finite (norm {float(grad_norm)})")
-        lr = self.optimizer.param_groups[0]["lr"]
-        self._ascend(tasks)
-        return {
-            "adversary/objective": stats["objective"],
-            "adversary/entropy": stats["entropy"],
-            "adversary/kl_p0": stats["kl_p0"],
-            "adversary/lr": float(lr),
-            "adversary/grad_norm": float(grad_norm),
-        }
+    @property
+    def optimizer(self) -> torch.optim.Optimizer:
+        """The follower's Adam (ascent)."""
+        return self.follower.optimizer
 
-    def _ascend(self, tasks: TensorDict) -> None:
-        """φ ← Adam-ascent step on the gradients already set (paper Eq. (14), second line), then
-        one step of the schedule; undone, with ``TrainingDiverged``, if the new parameters or the
-        new log-density at ``tasks`` are not finite."""
-        snapshot = self._snapshot()
-        self.optimizer.step()
-        self.scheduler.step()
-        self.optimizer.zero_grad(set_to_none=True)
-        largest = torch.nn.utils.get_total_norm(self._phi, norm_type=math.inf, foreach=True)
-        with torch.no_grad():
-            log_prob = self._log_prob(tasks[TASK_KEY])
-        if not (torch.isfinite(largest) and torch.isfinite(log_prob).all()):
-            self._restore(snapshot)
-            raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
+    @property
+    def scheduler(self) -> torch.optim.lr_scheduler.CosineAnnealingLR:
+        """The follower's cosine learning-rate schedule."""
+        return self.follower.scheduler
 
     def get_extra_state(self) -> dict[str, Any]:
         """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``."""
@@ -216,32 +181,4 @@ class AdversarialPrinciple(nn.Module):
             planned.step()
         self.scheduler.load_state_dict(planned.state_dict())
         for group, lr in zip(self.optimizer.param_groups, planned.get_last_lr(), strict=True):
-            group["lr"] = lr
-
-    @torch.no_grad()
-    def _snapshot(self) -> tuple[list[Tensor], bool, dict[str, Any]]:
-        """A copy of the parameters and Adam's moments and step counts, whether Adam has state
-        yet, and the schedule: what :meth:`_restore` needs to undo a step. The copy goes into
-        buffers kept between updates, in one foreach copy, rather than concatenating the ~100
-        small tensors afresh."""
-        tensors = self._state_tensors()
-        if [b.shape for b in self._backup] != [t.shape for t in tensors]:
-            self._backup = [torch.empty_like(t) for t in tensors]
-        torch._foreach_copy_(self._backup, tensors)
-        return self._backup, bool(self.optimizer.state), copy.deepcopy(self.scheduler.state_dict())
-
-    def _state_tensors(self) -> list[Tensor]:
-        states = [self.optimizer.state[p] for p in self._phi if p in self.optimizer.state]
-        return self._phi + [s[k] for s in states for k in sorted(s)]
-
-    @torch.no_grad()
-    def _restore(self, snapshot: tuple[list[Tensor], bool, dict[str, Any]]) -> None:
-        backup, had_state, schedule = snapshot
-        tensors = self._state_tensors() if had_state else self._phi
-        torch._foreach_copy_(tensors, backup[: len(tensors)])
-        if not had_state:
-            self.optimizer.state.clear()
-        self.scheduler.load_state_dict(schedule)
-        last_lrs = self.scheduler.get_last_lr()
-        for group, lr in zip(self.optimizer.param_groups, last_lrs, strict=True):
             group["lr"] = lr

@@ -23,7 +23,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from armeta_rl.fields import Options, above, at_least
+from armeta_rl.fields import Section, above, at_least, register
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
 
@@ -45,7 +45,7 @@ def project_to_simplex(v: Tensor) -> Tensor:
 
 
 @dataclass(frozen=True)
-class _GroupOptions(Options):
+class _GroupOptions(Section):
     """The keys a group principle's section shares; each principle's options give ``step_size``
     its own default.
 
@@ -58,26 +58,21 @@ class _GroupOptions(Options):
     step_size: float = above(0)
 
 
+@register("risk.tr")
 @dataclass(frozen=True)
 class TrOptions(_GroupOptions):
     """``risk.tr``: the keys of :class:`WorstCasePrinciple`, their types, ranges and defaults."""
 
-    section = "risk.tr"
-
-    # Chosen on a validation seed and validation tasks (seed 100, eval.seed 4321; TR-MAML and
-    # TR-CNP alike): docs/protocol.md, section 3 (TR-MAML's validation MSE: 0.618 at 1e-5,
-    # 1.114 at the untuned 0.001).
+    # chosen on a validation seed and validation tasks (docs/notes/history.md)
     step_size: float = above(0, default=1.0e-5)
 
 
+@register("risk.dro")
 @dataclass(frozen=True)
 class DroOptions(_GroupOptions):
     """``risk.dro``: the keys of :class:`GroupDROPrinciple`, their types, ranges and defaults."""
 
-    section = "risk.dro"
-
-    # Chosen as tr's: docs/protocol.md, section 3 (DRO-MAML's validation MSE: 0.623 at
-    # 1e-4, 1.495 at 0.01).
+    # chosen as tr's (docs/notes/history.md)
     step_size: float = above(0, default=1.0e-4)
 
 

@@ -16,7 +16,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor, nn
 
-from armeta_rl.fields import Options, inside, key
+from armeta_rl.fields import Section, inside, key, register
 from armeta_rl.tasks.distributions import TaskDistribution
 
 
@@ -59,8 +59,9 @@ def tail_risk(losses: Tensor, alpha: float) -> Tensor:
     return (tail_weights(losses, alpha) * losses).sum()
 
 
+@register("risk.dr")
 @dataclass(frozen=True)
-class DrOptions(Options):
+class DrOptions(Section):
     """``risk.dr``: the keys of :class:`TailRiskPrinciple`, their types, ranges and defaults.
 
     Attributes:
@@ -73,8 +74,6 @@ class DrOptions(Options):
             the weights zero the tasks outside the tail. When ``False`` the tail of a meta-batch
             of ``n`` tasks is about ``(1 − α)·n``.
     """
-
-    section = "risk.dr"
 
     alpha: float = inside(0, 1, default=0.5)  # as in the paper
     oversample: bool = key(default=False)  # propose ceil(K / (1 − α)): the tail keeps ≈ K tasks

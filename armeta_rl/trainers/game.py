@@ -92,7 +92,7 @@ class GameTrainer:
             )
         weights = partial(self.principle.weights, tasks=tasks)
         if self.train_leader:
-            data = self.leader.collect(tasks)
+            data = self.leader.collect(tasks, create_graph=True)
             out, scalars = self.leader.step(data, weights)
         else:  # θ stays: its losses on the proposed tasks are the follower's at θ_{t+1} = θ_t
             with torch.no_grad():

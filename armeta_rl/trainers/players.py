@@ -10,9 +10,11 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.config import load_run_config
+from armeta_rl.collectors.episodes import EpisodeCollector
+from armeta_rl.config import TrainConfig, load_run_config, validate
 from armeta_rl.devices import CPU, resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
@@ -22,6 +24,7 @@ from armeta_rl.factory import (
     build_principle,
     build_space,
 )
+from armeta_rl.fields import config_error
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
@@ -52,17 +55,27 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-def build_players(cfg: DictConfig) -> Players:
-    """Seed, then build the players of ``cfg`` on its ``device`` (the seed fixes their initial
-    parameters, which are drawn on the CPU whatever the device)."""
-    device = resolve_device(cfg.device)
-    seed_everything(cfg.seed)
-    space = build_space(cfg)
-    initial = build_initial(cfg, space, device)
-    collector = build_collector(cfg, "benchmark.collector", device)
-    eval_collector = build_collector(cfg, "benchmark.eval_collector", device)
-    leader = build_leader(cfg, collector, device)
-    principle = build_principle(cfg, space, initial, device)
+def build_players(config: TrainConfig) -> Players:
+    """Seed, then build the players of ``config`` (:func:`armeta_rl.config.validate`) on its
+    ``device`` (the seed fixes their initial parameters, which are drawn on the CPU whatever the
+    device)."""
+    device = resolve_device(config.device)
+    seed_everything(config.seed)
+    benchmark, method = config.benchmark, config.method
+    space = build_space(benchmark.space)
+    initial = build_initial(benchmark.initial, space, device)
+    collector = build_collector(benchmark.collector, "benchmark.collector", space, device)
+    eval_collector = build_collector(benchmark.eval_collector, "benchmark.eval_collector", space,
+                                     device)
+    if config.eval.support_noise > 0 and isinstance(eval_collector, EpisodeCollector):
+        raise ConfigError(
+            "eval.support_noise", config.eval.support_noise,
+            f"must be 0 on {benchmark.name}: its tasks are adapted from episodes, which have "
+            "no support labels to perturb",
+        )
+    leader = build_leader(method, config.learner, collector, benchmark.model, device)
+    principle = build_principle(method, config.risk, space, initial, config.trainer.iterations,
+                                device)
     return Players(space, initial, leader, principle, eval_collector, device)
 
 
@@ -128,17 +141,21 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
 
 
 def load_players(
-    run_dir: str | Path, key: str, device: str | None = None
-) -> tuple[DictConfig, Players]:
-    """Rebuild a saved run's players on ``device`` (default: the run's own ``device``) and load
-    its latest checkpoint there, wherever it was saved."""
-    cfg = load_run_config(run_dir, key)
-    if device is not None:
-        cfg = OmegaConf.merge(cfg, {"device": device})
-    players = build_players(cfg)
+    run_dir: str | Path, key: str, device: str | None = None, changes: dict | None = None
+) -> tuple[TrainConfig, Players]:
+    """Rebuild a saved run's players on ``device`` (default: the run's own ``device``), with
+    ``changes`` to its config (e.g. other ``eval`` settings), and load its latest checkpoint
+    there, wherever it was saved."""
+    try:
+        cfg = OmegaConf.merge(load_run_config(run_dir, key), changes or {},
+                              {} if device is None else {"device": device})
+    except OmegaConfBaseException as error:
+        raise config_error(error) from None
+    config = validate(cfg)
+    players = build_players(config)
     checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle,
                                device=players.device)
     if not checkpoint.checkpoints():
         raise ConfigError(key, str(run_dir), "has no checkpoint")
     checkpoint.restore(key, ("leader", "principle"), fallback=False)
-    return cfg, players
+    return config, players

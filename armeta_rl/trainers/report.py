@@ -8,12 +8,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 
-from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.regression import NoisySupport
-from armeta_rl.config import check_config
+from armeta_rl.config import TrainConfig
 from armeta_rl.devices import CPU, forked_rng, resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
@@ -24,23 +21,24 @@ EVAL_FILE = "eval.json"
 
 
 def evaluate_players(
-    cfg: DictConfig, players: Players, adversary: TaskDistribution | None = None
+    config: TrainConfig, players: Players, adversary: TaskDistribution | None = None
 ) -> dict[str, Any]:
-    """``eval.json``'s content: the leader on p0 and on an adversarial distribution.
+    """``eval.json``'s content: the leader on p0 and on an adversarial distribution, with the
+    run's ``eval`` settings; with ``eval.support_noise`` σ > 0 also with N(0, σ²) noise on the
+    support labels (the paper's random perturbation test).
 
     ``adversary`` defaults to the run's own p_φ (AR methods); ERM-style runs have none unless one
     is given (``armeta-eval`` scores any learner on any saved adversary).
     """
-    ev = cfg.eval
-    noisy = noisy_support_collector(cfg, players)
+    ev = config.eval
     adversary = adversary if adversary is not None else players.adversary
     distributions = {"initial": players.initial}
     if adversary is not None:
         distributions["adversarial"] = adversary
     report: dict[str, Any] = {
         "metric": players.leader.metric,
-        "benchmark": cfg.benchmark.name,
-        "method": cfg.method.name,
+        "benchmark": config.benchmark.name,
+        "method": config.method.name,
     }
     for offset, (name, distribution) in enumerate(distributions.items()):
         report[name] = evaluate_on(
@@ -54,7 +52,8 @@ def evaluate_players(
         )
         report[name].update(distribution_stats(distribution, players.initial, ev.seed + offset,
                                                device=players.device))
-    if noisy is not None:
+    if ev.support_noise > 0:
+        noisy = NoisySupport(players.eval_collector, ev.support_noise)
         report["support_noise"] = ev.support_noise
         for offset, (name, distribution) in enumerate(distributions.items()):
             report[f"{name}_noisy"] = evaluate_on(
@@ -62,25 +61,6 @@ def evaluate_players(
                 players.device,
             )
     return report
-
-
-def noisy_support_collector(cfg: DictConfig, players: Players) -> TaskCollector | None:
-    """The evaluation collector with N(0, σ²) noise on the support labels for σ =
-    ``eval.support_noise`` (the paper's random perturbation test), or ``None`` when σ = 0.
-
-    RL benchmarks adapt on episodes, which have no support labels, so σ > 0 is refused there;
-    :func:`run_training` asks before training, so the error does not wait for the evaluation.
-    """
-    sigma = cfg.eval.support_noise
-    if not sigma > 0:
-        return None
-    if isinstance(players.eval_collector, EpisodeCollector):
-        raise ConfigError(
-            "eval.support_noise", sigma,
-            f"must be 0 on {cfg.benchmark.name}: its tasks are adapted from episodes, which have "
-            "no support labels to perturb",
-        )
-    return NoisySupport(players.eval_collector, sigma)
 
 
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
@@ -116,15 +96,16 @@ def cross_evaluate(
     ``adversary_dir`` (same benchmark), both loaded onto ``device`` wherever they were trained;
     ``eval_overrides`` replace the learner run's ``eval.*``."""
     resolve_device(device)
-    cfg, players = load_players(learner_dir, "learner", device)
+    config, players = load_players(learner_dir, "learner", device,
+                                   {"eval": eval_overrides or {}})
     adversary = None
     if adversary_dir is not None:
-        adv_cfg, adv_players = load_players(adversary_dir, "adversary", device)
+        adv_config, adv_players = load_players(adversary_dir, "adversary", device)
         if adv_players.adversary is None:
             raise ConfigError(
                 "adversary",
                 str(adversary_dir),
-                f"was trained with method {adv_cfg.method.name}, which has no adversary",
+                f"was trained with method {adv_config.method.name}, which has no adversary",
             )
         if adv_players.space != players.space:
             raise ConfigError(
@@ -134,9 +115,7 @@ def cross_evaluate(
                 f"{players.space}",
             )
         adversary = adv_players.adversary
-    cfg = OmegaConf.merge(cfg, {"eval": eval_overrides or {}})
-    check_config(cfg)
-    report = evaluate_players(cfg, players, adversary)
+    report = evaluate_players(config, players, adversary)
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report

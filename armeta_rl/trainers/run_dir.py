@@ -1,7 +1,7 @@
 """The run directory: its layout, its lock, and writing files in it atomically.
 
-A run directory holds ``run.lock``, ``config.yaml`` (the resolved config), ``checkpoints/``,
-``logs/``, ``eval.json`` and ``density.png``.
+A run directory holds ``run.lock`` (while a run holds it), ``config.yaml`` (the resolved
+config), ``checkpoints/``, ``logs/``, ``eval.json`` and ``density.png``.
 """
 
 from __future__ import annotations
@@ -55,31 +55,37 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
     """Hold an exclusive lock on ``run_dir`` (``fcntl.flock`` on ``run.lock``, which names the
     holder's pid) for the ``with`` block, creating the directory.
 
-    The kernel releases the lock when its holder exits, however it exits, so a lock left by a dead
-    process is taken over. Taking a lock this process already holds is a no-op (the CLI locks the
-    run directory before Hydra writes to it, and the run locks it again).
+    The lock file is removed when the block ends; the kernel releases the lock when its holder
+    exits, however it exits, so a lock file left by a dead process is taken over. Taking a lock
+    this process already holds is a no-op (the CLI locks the run directory before Hydra writes
+    to it, and the run locks it again).
 
     Raises:
         ConfigError: naming ``key``, if another live process holds the lock.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LOCK_FILE
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     held_here = False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError as error:
-        holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
-        os.close(fd)
-        if error.errno not in (errno.EWOULDBLOCK, errno.EACCES):
-            raise
-        if holder != str(os.getpid()):
-            raise ConfigError(
-                key, str(run_dir),
-                f"is in use by another run (pid {holder or '?'}): wait for it to end or choose "
-                "another directory",
-            ) from None
-        held_here = True
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as error:
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip()
+            os.close(fd)
+            if error.errno not in (errno.EWOULDBLOCK, errno.EACCES):
+                raise
+            if holder != str(os.getpid()):
+                raise ConfigError(
+                    key, str(run_dir),
+                    f"is in use by another run (pid {holder or '?'}): wait for it to end or "
+                    "choose another directory",
+                ) from None
+            held_here = True
+            break
+        if _same_file(fd, path):
+            break
+        os.close(fd)  # locked a file its holder removed on release: lock the one there now
     if held_here:  # yielded outside the except clause: an error in the block is not chained to
         yield path  # the BlockingIOError
         return
@@ -88,7 +94,16 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield path
     finally:
+        path.unlink(missing_ok=True)
         os.close(fd)
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """Whether ``fd`` is still the file at ``path`` (a lock's holder removes it on release)."""
+    try:
+        return os.fstat(fd).st_ino == os.stat(path).st_ino
+    except FileNotFoundError:
+        return False
 
 
 def write_config(cfg: DictConfig, path: Path) -> None:

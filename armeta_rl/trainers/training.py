@@ -3,15 +3,17 @@
 from __future__ import annotations
 
 import json
+import logging
 import signal
 from pathlib import Path
+from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import Logger, WandbLogger
 
 from armeta_rl.compiling import COMPILE_KEYS
-from armeta_rl.config import CONFIG_FILE, check_config, load_run_config
+from armeta_rl.config import CONFIG_FILE, TrainConfig, load_run_config, validate
 from armeta_rl.errors import (
     CollectionFailed,
     ConfigError,
@@ -26,12 +28,7 @@ from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_repo
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.loggers import make_logger
 from armeta_rl.trainers.players import Players, build_players, load_frozen_leader
-from armeta_rl.trainers.report import (
-    EVAL_FILE,
-    eval_scalars,
-    evaluate_players,
-    noisy_support_collector,
-)
+from armeta_rl.trainers.report import EVAL_FILE, eval_scalars, evaluate_players
 from armeta_rl.trainers.run_dir import (
     CSV_LOG_DIR,
     check_run_dir,
@@ -44,6 +41,15 @@ from armeta_rl.trainers.run_dir import (
 )
 
 DENSITY_FILE = "density.png"
+log = logging.getLogger(__name__)
+"""The job log: under ``armeta-train``, ``<run dir>/armeta-train.log``
+(``configs/hydra/job_logging/run_log.yaml``)."""
+
+
+def say(message: str) -> None:
+    """Print ``message`` and write it to the job log."""
+    print(message)
+    log.info(message)
 
 
 def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True,
@@ -70,11 +76,12 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True,
     run_dir = Path(run_dir)
     key = "resume" if cfg.resume else "hydra.run.dir"
     stop = stop if stop is not None else StopRequest()
-    check_config(cfg)
+    config = validate(cfg)
+    say(f"run directory: {run_dir}")
     check_run_dir(run_dir, key)
     with run_lock(run_dir, key):
         try:
-            return _train_locked(cfg, run_dir, progress, stop)
+            return _train_locked(cfg, config, run_dir, progress, stop)
         except KeyboardInterrupt:
             if stop.signal != signal.SIGINT:  # not the second Ctrl-C of preemption.listening
                 raise
@@ -114,62 +121,73 @@ def finished_report(run_dir: Path) -> dict | None:
         return None
 
 
-def _train_locked(cfg: DictConfig, run_dir: Path, progress: bool,
+def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress: bool,
                   stop: StopRequest) -> dict | None:
-    saved_iterations = (load_run_config(run_dir, "resume").trainer.iterations if cfg.resume
+    """:func:`run_training` inside the run directory's lock; ``config`` is ``cfg`` validated."""
+    saved_iterations = (load_run_config(run_dir, "resume").trainer.iterations if config.resume
                         else None)
-    report = finished_report(run_dir) if cfg.resume else None
-    if report is not None and saved_iterations == cfg.trainer.iterations:
-        print(f"{run_dir} has finished: nothing to do ({EVAL_FILE} holds its evaluation; "
-              "resume with a larger trainer.iterations to train longer)")
+    report = finished_report(run_dir) if config.resume else None
+    if report is not None and saved_iterations == config.trainer.iterations:
+        say(f"{run_dir} has finished: nothing to do ({EVAL_FILE} holds its evaluation; "
+            "resume with a larger trainer.iterations to train longer)")
         return report
-    torch.set_num_threads(cfg.threads)
-    players = build_players(cfg)
-    noisy_support_collector(cfg, players)
+    torch.set_num_threads(config.threads)
+    players = build_players(config)
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
                                device=players.device)
-    if cfg.trainer.frozen_leader is not None and not (cfg.resume and checkpoint.checkpoints()):
+    trainer_options = config.trainer
+    if trainer_options.frozen_leader is not None and not (
+        config.resume and checkpoint.checkpoints()
+    ):
         load_frozen_leader(cfg, players)
     start = _open_run(cfg, run_dir, checkpoint, evaluated=report is not None)
     logger = make_logger(cfg, run_dir)
     compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
     if compiled:
-        print(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
-              "(about 2 minutes with an empty compile cache)")
+        say(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
+            "(about 2 minutes with an empty compile cache)")
+    log.info("%s on %s from iteration %d to %d, device %s", config.method.name,
+             config.benchmark.name, start, trainer_options.iterations, players.device)
     frames = None
-    if players.adversary is not None and cfg.trainer.density_every > 0:
+    if players.adversary is not None and trainer_options.density_every > 0:
         frames = DensityFrames(players.adversary, players.initial, run_dir,
-                               cfg.trainer.density_every, logger)
+                               trainer_options.density_every, logger)
         if start == 0:
             frames.draw(0)  # p_φ = p0
     trainer = GameTrainer(
         players.leader,
         players.principle,
-        iterations=cfg.trainer.iterations,
-        meta_batch=cfg.trainer.meta_batch,
-        log_every=cfg.trainer.log_every,
+        iterations=trainer_options.iterations,
+        meta_batch=trainer_options.meta_batch,
+        log_every=trainer_options.log_every,
         checkpoint=checkpoint,
-        checkpoint_every=cfg.trainer.checkpoint_every,
-        log=None if logger is None else logger.log_metrics,
-        progress=progress and cfg.trainer.progress,
-        max_loss=cfg.trainer.max_loss,
+        checkpoint_every=trainer_options.checkpoint_every,
+        log=lambda scalars, step: _log_scalars(logger, scalars, step),
+        progress=progress and trainer_options.progress,
+        max_loss=trainer_options.max_loss,
         after_iteration=frames,
-        train_leader=cfg.trainer.frozen_leader is None,
+        train_leader=trainer_options.frozen_leader is None,
     )
     trainer.iteration = start
-    reached = trainer.run(stop_at=cfg.trainer.stop_at, stop=stop)
-    planned = min(cfg.trainer.iterations, cfg.trainer.stop_at or cfg.trainer.iterations)
+    reached = trainer.run(stop_at=trainer_options.stop_at, stop=stop)
+    planned = min(trainer_options.iterations,
+                  trainer_options.stop_at or trainer_options.iterations)
     if stop.requested and reached < planned:
         written = checkpoint.path(reached) if reached > start else None
         raise RunStopped(_stopped(f"stopped by {stop.name} after iteration {reached}", run_dir,
                                   written), stop.exit_code)
-    if reached < cfg.trainer.iterations:
-        print(
-            f"stopped at iteration {trainer.iteration}; continue with: "
-            f"armeta-train resume={run_dir}"
-        )
+    if reached < trainer_options.iterations:
+        say(f"stopped at iteration {trainer.iteration}; continue with: "
+            f"armeta-train resume={run_dir}")
         return None
-    return _finish(cfg, run_dir, players, logger, frames, reached)
+    return _finish(config, run_dir, players, logger, frames, reached)
+
+
+def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> None:
+    """An iteration's scalars to the run's logger (CSV, wandb) and a line of the job log."""
+    if logger is not None:
+        logger.log_metrics(scalars, step)
+    log.info("iteration %d: %s", step, " ".join(f"{k}={v:.6g}" for k, v in scalars.items()))
 
 
 def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
@@ -202,20 +220,20 @@ def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
     return start
 
 
-def _finish(cfg: DictConfig, run_dir: Path, players: Players, logger: Logger | None,
+def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger | None,
             frames: DensityFrames | None, iteration: int) -> dict:
     """Evaluate the trained players, log the scores, draw the final p_φ and its animation, and
     write ``eval.json`` last (atomically): a run with an ``eval.json`` has everything. Prints the
     table; returns the report."""
-    report = evaluate_players(cfg, players)
+    report = evaluate_players(config, players)
     if logger is not None:
-        logger.log_metrics(eval_scalars(report), cfg.trainer.iterations)
+        logger.log_metrics(eval_scalars(report), config.trainer.iterations)
     if players.adversary is not None:
         _save_density(players, run_dir / DENSITY_FILE, logger)
     if frames is not None:
         frames.finish(iteration)
     write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
-    print(format_table(report))
+    say(format_table(report))
     return report
 
 

@@ -1,0 +1,241 @@
+"""Planar locomotion task families, batched over ``[tasks, episodes]`` on gymnasium's v5 MuJoCo
+models: HalfCheetah-Vel and HalfCheetah-Dir (MAML, Finn et al. 2017, Sec. 5.3) and Walker2d-Vel
+(the velocity half of MPTS's Walker2d-MassVel, Wang et al. 2025).
+
+Each robot is planar: its root is an x slider, a z slider and a pitch hinge (``qpos[0:3]``), and
+its forward velocity over an env step is ``v = (x' − x) / dt``, with ``x = qpos[0]`` before and
+``x'`` after the step and ``dt = frame_skip · timestep``. With ``a`` the action as given (MuJoCo
+clamps the applied control to [-1, 1]), the rewards are
+
+    HalfCheetah-Vel   r = −|v − v_goal| − 0.05‖a‖²        pytorch-maml-rl's HalfCheetahVelEnv
+                                                          (cbfinn/maml_rl half_cheetah_env_rand.py)
+    HalfCheetah-Dir   r = d · v − 0.05‖a‖², d = ±1        pytorch-maml-rl's HalfCheetahDirEnv
+                                                          (half_cheetah_env_rand_direc.py)
+    Walker2d-Vel      r = −|v − v_goal| − 0.05‖a‖² + 1    MPTS's Walker2dMassVelEnv (thu-rllab/MPTS,
+                                                          MetaRL/envs/mujoco/walker2d.py)
+
+(0.05 is the references' ``0.5 * 1e-1``, ``ctrl_cost_weight`` here; Walker2d's 1 is its alive
+bonus, given every step). No episode terminates (the references' ``done = False``; gymnasium's
+HalfCheetah never terminates, and MPTS turned Walker2d's health check off) unless its state
+turns non-finite; episodes are truncated after ``max_steps`` (200, MAML's horizon and MPTS's
+time limit).
+
+Observation (20 values), as the references' ``_get_obs``: ``qpos[1:]`` (root height, pitch and
+the 6 joint angles), ``qvel`` (Walker2d: clipped to ±10), and the torso position ``xpos`` (3).
+The references read ``xpos`` right after ``mj_step``, where it still describes the start of the
+last substep; here it is computed at the new state (forward kinematics after the step), as
+:class:`~armeta_rl.envs.ant_goal.AntGoalEnv` does. The dynamics are ``mj_step``'s exactly.
+
+Models: ``half_cheetah.xml`` (HalfCheetah-v5: time step 0.01 s, frame skip 5, dt = 0.05 s) and
+``walker2d_v5.xml`` (Walker2d-v5, both feet of friction 1.9: time step 0.002 s, frame skip 4,
+dt = 0.008 s). Reset as gymnasium's: ``qpos0 + U(±s)`` and, for HalfCheetah, ``s·N(0, 1)``
+velocities (s = 0.1), for Walker2d ``U(±s)`` velocities (s = 0.005).
+
+Task identifiers (``"params"``, :data:`~armeta_rl.tasks.TASK_KEY`; the protocol of
+:mod:`armeta_rl.envs.batched_mujoco`): ``goal_velocity`` (any finite value; the references draw
+it from U(0, 2)) or ``direction`` in [-1, 1]. HalfCheetah-Dir is a discrete-valued family
+read from a continuous identifier: the direction is ``d = +1`` where ``direction ≥ 0`` and
+``d = −1`` below, so p0 uniform on [-1, 1] is the references' Bernoulli(½) over {−1, +1}, and a
+density over [-1, 1] (an adversary's) weighs the two directions by its mass on each half. The
+mass-scale families (HalfCheetah-MassVel, Walker2d-MassVel) add MPTS's mass scale on top with a
+:class:`~armeta_rl.envs.mujoco_tasks.PhysicsTaskTransform` (``configs/benchmark/``).
+
+One departure from pytorch-maml-rl: its configs wrap the env in a ``NormalizedActionWrapper``
+of scale 10 (the control is ``clip(a / 10, −1, 1)`` and the cost is on that control), while here,
+as in cbfinn/maml_rl, gymnasium and :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`, the policy's
+action is the control.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from armeta_rl.envs.batched_mujoco import (
+    STAGE_POS,
+    BatchedMujocoEnv,
+    check_arguments,
+    common_checks,
+    load_gym_model,
+)
+
+TORSO = "torso"
+
+
+class PlanarRunnerEnv(BatchedMujocoEnv):
+    """A planar runner of gymnasium (root x, z, pitch; see the module docstring), its 20-value
+    observation and its forward velocity; a subclass sets the model (:attr:`xml`), the
+    identifiers and the reward.
+
+    Args:
+        batch_size, max_steps, frame_skip, reset_noise_scale, threads, seed, device: as
+            :class:`~armeta_rl.envs.batched_mujoco.BatchedMujocoEnv`.
+        ctrl_cost_weight: weight of ``‖a‖²`` in the reward.
+    """
+
+    xml: str = ""
+    velocity_clip: float = np.inf  # |qvel| observed at most (Walker2d: 10)
+    stage = STAGE_POS  # forward kinematics at the new state: the torso's xpos
+
+    def __init__(
+        self,
+        batch_size: Sequence[int],
+        max_steps: int,
+        frame_skip: int,
+        ctrl_cost_weight: float,
+        reset_noise_scale: float,
+        threads: int | None,
+        seed: int | None,
+        device: torch.device | str,
+    ) -> None:
+        check_arguments({
+            **common_checks(max_steps, frame_skip, reset_noise_scale, threads),
+            "ctrl_cost_weight": (ctrl_cost_weight, ctrl_cost_weight >= 0, "must be >= 0"),
+        })
+        self.ctrl_cost_weight = float(ctrl_cost_weight)
+        model = load_gym_model(self.xml)
+        self._torso = model.body(TORSO).id
+        super().__init__(model, batch_size, max_steps, frame_skip, reset_noise_scale, threads,
+                         seed, device)
+
+    def observation_size(self) -> int:
+        return self.model.nq - 1 + self.model.nv + 3
+
+    def _bind_outputs(self) -> None:
+        self._xpos = self.sim.bind("xpos")
+
+    def _observe(self) -> np.ndarray:
+        """Fill the observation buffer ``[n_sims, 20]``: qpos[1:], clipped qvel, torso xpos."""
+        nq, nv, obs = self.model.nq, self.model.nv, self._obs
+        obs[:, : nq - 1] = self._qpos[:, 1:]
+        np.clip(self._qvel, -self.velocity_clip, self.velocity_clip,
+                out=obs[:, nq - 1 : nq - 1 + nv])
+        obs[:, nq - 1 + nv :] = self._xpos[:, self._torso]
+        return obs
+
+    def forward_velocity(self, qpos_before: np.ndarray) -> np.ndarray:
+        """``(x' − x) / dt`` ``[n_sims]``: the root's mean forward velocity over the step."""
+        return (self._qpos[:, 0] - qpos_before[:, 0]) / self.dt
+
+    def ctrl_cost(self, action: np.ndarray) -> np.ndarray:
+        """``ctrl_cost_weight · ‖a‖²`` ``[n_sims]``."""
+        return self.ctrl_cost_weight * np.square(action).sum(-1)
+
+
+class HalfCheetahTaskEnv(PlanarRunnerEnv):
+    """gymnasium's HalfCheetah as a planar runner with its defaults; :class:`HalfCheetahVelEnv`
+    and :class:`HalfCheetahDirEnv` add the task.
+
+    Args:
+        batch_size: ``[tasks, episodes]`` (any batch shape works).
+        max_steps: time limit in env steps (200).
+        frame_skip: physics steps per env step (5, as gymnasium's HalfCheetah).
+        ctrl_cost_weight: 0.05 (pytorch-maml-rl's ``0.5 * 1e-1``).
+        reset_noise_scale: initial qpos = qpos0 + U(±scale), qvel = scale·N(0, 1).
+        threads: threads stepping the MuJoCo batch natively (1: the calling thread only;
+            ``None``: one per CPU core).
+        seed: seed of the generator for reset noise and default identifiers.
+        device: torch device of the outputs (the physics runs on the CPU).
+    """
+
+    xml = "half_cheetah.xml"
+
+    def __init__(
+        self,
+        batch_size: Sequence[int] = (1, 1),
+        max_steps: int = 200,
+        frame_skip: int = 5,
+        ctrl_cost_weight: float = 0.05,
+        reset_noise_scale: float = 0.1,
+        threads: int | None = 1,
+        seed: int | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, reset_noise_scale,
+                         threads, seed, device)
+
+
+class HalfCheetahVelEnv(HalfCheetahTaskEnv):
+    """HalfCheetah-Vel: run at a hidden target velocity; reward ``−|v − goal_velocity| −
+    ctrl_cost_weight·‖a‖²`` (module docstring). Arguments as :class:`HalfCheetahTaskEnv`;
+    velocities never set are drawn from U(0, 2)."""
+
+    identifier_names = ("goal_velocity",)
+
+    def _default_identifiers(self) -> torch.Tensor:
+        return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
+
+    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
+                task: np.ndarray) -> np.ndarray:
+        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0]) - self.ctrl_cost(action)
+
+
+class HalfCheetahDirEnv(HalfCheetahTaskEnv):
+    """HalfCheetah-Dir: run forward or backward; reward ``d·v − ctrl_cost_weight·‖a‖²`` with
+    ``d = +1`` where the identifier ``direction ≥ 0``, else ``−1`` (module docstring). Arguments
+    as :class:`HalfCheetahTaskEnv`; directions never set are ±1 with probability ½ each."""
+
+    identifier_names = ("direction",)
+    identifier_low, identifier_high = -1.0, 1.0
+
+    def _default_identifiers(self) -> torch.Tensor:
+        unit = torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
+        return torch.where(unit < 0.5, -1.0, 1.0).to(torch.float64)
+
+    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
+                task: np.ndarray) -> np.ndarray:
+        direction = np.where(task[:, 0] >= 0, 1.0, -1.0)
+        return direction * self.forward_velocity(qpos_before) - self.ctrl_cost(action)
+
+
+class Walker2dVelEnv(PlanarRunnerEnv):
+    """Walker2d-Vel (MPTS): walk at a hidden target velocity; reward ``−|v − goal_velocity| −
+    ctrl_cost_weight·‖a‖² + alive_bonus`` (module docstring), no termination. Batch size
+    ``[tasks, episodes]``.
+
+    Args:
+        batch_size: ``[tasks, episodes]`` (any batch shape works).
+        max_steps: time limit in env steps (200, MPTS's).
+        frame_skip: physics steps per env step (4, as gymnasium's Walker2d).
+        ctrl_cost_weight: 0.05 (MPTS's ``0.5 * 1e-1``).
+        alive_bonus: reward added every step (1, MPTS's).
+        reset_noise_scale: initial qpos = qpos0 + U(±scale), qvel = U(±scale) (0.005).
+        threads, seed, device: as :class:`HalfCheetahTaskEnv`.
+    """
+
+    xml = "walker2d_v5.xml"
+    identifier_names = ("goal_velocity",)
+    velocity_clip = 10.0
+
+    def __init__(
+        self,
+        batch_size: Sequence[int] = (1, 1),
+        max_steps: int = 200,
+        frame_skip: int = 4,
+        ctrl_cost_weight: float = 0.05,
+        alive_bonus: float = 1.0,
+        reset_noise_scale: float = 5e-3,
+        threads: int | None = 1,
+        seed: int | None = None,
+        device: torch.device | str = "cpu",
+    ) -> None:
+        self.alive_bonus = float(alive_bonus)
+        super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, reset_noise_scale,
+                         threads, seed, device)
+
+    def _default_identifiers(self) -> torch.Tensor:
+        return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
+
+    def _reset_noise(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """gymnasium's Walker2d: U(±s) on both qpos and qvel."""
+        scale, gen = self.reset_noise_scale, self._generator
+        qpos = scale * (2 * torch.rand(n, self.model.nq, generator=gen, dtype=torch.float64) - 1)
+        qvel = scale * (2 * torch.rand(n, self.model.nv, generator=gen, dtype=torch.float64) - 1)
+        return qpos, qvel
+
+    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
+                task: np.ndarray) -> np.ndarray:
+        velocity_error = np.abs(self.forward_velocity(qpos_before) - task[:, 0])
+        return -velocity_error - self.ctrl_cost(action) + self.alive_bonus

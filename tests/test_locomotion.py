@@ -1,0 +1,167 @@
+"""The planar locomotion families (HalfCheetah-Vel, HalfCheetah-Dir, Walker2d-Vel): TorchRL
+contract at several batch shapes, every simulation of a batch against a hand computation on its
+own raw MjData with its own task, dynamics and reward against gymnasium's v5 envs, and the
+half_cheetah_vel benchmark end to end. Identifiers under transforms, batched envs and automatic
+resets: tests/test_task_protocol.py; the mass-scale families: tests/test_mujoco_tasks.py."""
+
+from __future__ import annotations
+
+import os
+
+import gymnasium
+import mujoco
+import numpy as np
+import pytest
+import torch
+from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs, step_mdp
+
+from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
+from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
+from armeta_rl.errors import ConfigError
+from armeta_rl.trainers.training import run_training
+
+ENVS = {"half_cheetah_vel": HalfCheetahVelEnv, "half_cheetah_dir": HalfCheetahDirEnv,
+        "walker2d_vel": Walker2dVelEnv}
+# one identifier per task of a [4, 2] batch; the directions cover both signs and the boundary 0
+TASKS = {"half_cheetah_vel": [0.0, 0.5, 1.25, 2.0], "half_cheetah_dir": [-1.0, -0.25, 0.0, 0.75],
+         "walker2d_vel": [0.0, 0.5, 1.25, 2.0]}
+
+
+def hand_reward(name: str, task: float, x_before: float, data: mujoco.MjData,
+                action: np.ndarray, dt: float) -> float:
+    """The family's reward written out from the references (module docstring)."""
+    velocity = (data.qpos[0] - x_before) / dt
+    cost = 0.05 * float(np.sum(action**2))
+    if name == "half_cheetah_dir":
+        return (1.0 if task >= 0 else -1.0) * velocity - cost
+    bonus = 1.0 if name == "walker2d_vel" else 0.0
+    return -abs(velocity - task) - cost + bonus
+
+
+def test_gym_model_is_the_xml_compiled_to_the_bit_without_the_settotalmass_warning(capfd):
+    compiled = mujoco.MjModel.from_xml_path(os.path.join(GYM_ASSETS, "half_cheetah.xml"))
+    capfd.readouterr()
+    model = load_gym_model("half_cheetah.xml")
+    assert "settotalmass" not in capfd.readouterr().err
+    fields = [name for name in dir(compiled) if not name.startswith("_")]
+    compared = 0
+    for name in fields:
+        value = getattr(compiled, name)
+        if isinstance(value, np.ndarray) and value.dtype.kind == "f":
+            np.testing.assert_array_equal(getattr(model, name), value, err_msg=name)
+            compared += 1
+    assert compared > 50 and model.body_mass.sum() == pytest.approx(14.0)
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (3, 2), (4,), (2, 2, 2)])
+@pytest.mark.parametrize("name", list(ENVS))
+def test_check_env_specs(name, shape):
+    check_env_specs(ENVS[name](shape, max_steps=4, seed=0))
+
+
+@pytest.mark.parametrize("name", list(ENVS))
+def test_every_simulation_equals_a_hand_computation_with_its_own_task(name):
+    """Each simulation of a [4 tasks, 2 episodes] batch equals ``mj_step × frame_skip`` then
+    ``mj_kinematics`` on its own MjData of the plain gymnasium model, with the observation and
+    reward written out by hand from its own task's identifier: the batched env equals a per-task
+    reference, through the resets that truncation makes."""
+    torch.manual_seed(0)
+    env = ENVS[name]((4, 2), max_steps=12, seed=1)
+    tasks = torch.tensor(TASKS[name])
+    td = env.reset(TensorDict({"params": tasks[:, None, None].expand(4, 2, 1)}, [4, 2]))
+    model = load_gym_model(env.xml)
+    frame_skip, dt = env.frame_skip, env.frame_skip * model.opt.timestep
+    torso = model.body("torso").id
+    datas = raw_mjdata(model, env.sim)
+    per_sim = tasks.repeat_interleave(2).tolist()
+    clip = 10.0 if name == "walker2d_vel" else np.inf
+    for step in range(12):
+        action = 1.2 * (2 * torch.rand(4, 2, 6) - 1)  # beyond the control range: MuJoCo clamps
+        td["action"] = action
+        td = env.step(td)
+        for i, data in enumerate(datas):
+            a = action.reshape(8, 6)[i].double().numpy()
+            x_before = data.qpos[0]
+            data.ctrl[:] = a
+            mujoco.mj_step(model, data, nstep=frame_skip)
+            mujoco.mj_kinematics(model, data)
+            expected_obs = np.concatenate(
+                [data.qpos[1:], np.clip(data.qvel, -clip, clip), data.xpos[torso]])
+            obs = td["next", "observation"].reshape(8, -1)[i].double().numpy()
+            np.testing.assert_allclose(obs, expected_obs, rtol=1e-6, atol=1e-6)
+            reward = td["next", "reward"].reshape(8)[i].item()
+            expected = hand_reward(name, per_sim[i], x_before, data, a, dt)
+            assert reward == pytest.approx(expected, rel=1e-6, abs=1e-5)
+        assert not td["next", "terminated"].any()
+        assert td["next", "truncated"].all() == (step == 11)
+        td = step_mdp(td)
+    assert (td["params"] == tasks[:, None, None]).all()
+
+
+@pytest.mark.parametrize(("name", "gym_id"), [("half_cheetah_dir", "HalfCheetah-v5"),
+                                              ("walker2d_vel", "Walker2d-v5")])
+def test_dynamics_equal_gymnasium_v5(name, gym_id):
+    """From the same state and actions, qpos and qvel follow gymnasium's env exactly, and
+    HalfCheetah-Dir forward (direction +1) with gymnasium's control weight 0.1 has
+    HalfCheetah-v5's reward."""
+    torch.manual_seed(0)
+    env = ENVS[name]((1, 1), seed=2, ctrl_cost_weight=0.1)
+    td = env.reset(TensorDict({"params": torch.ones(1, 1, 1)}, [1, 1]))
+    kwargs = {} if name == "half_cheetah_dir" else {"terminate_when_unhealthy": False}
+    gym_env = gymnasium.make(gym_id, exclude_current_positions_from_observation=False, **kwargs)
+    gym_env.reset(seed=0)
+    gym_env.unwrapped.set_state(env.sim.bind("qpos")[0].copy(), env.sim.bind("qvel")[0].copy())
+    for _ in range(40):
+        action = 2 * torch.rand(1, 1, 6) - 1
+        td["action"] = action
+        td = env.step(td)
+        gym_obs, gym_reward, *_ = gym_env.step(action.reshape(6).double().numpy())
+        np.testing.assert_array_equal(env.sim.bind("qpos")[0], gym_obs[:9])
+        if name == "half_cheetah_dir":
+            np.testing.assert_array_equal(env.sim.bind("qvel")[0], gym_obs[9:])
+            assert td["next", "reward"].item() == pytest.approx(gym_reward, rel=1e-6, abs=1e-6)
+        else:  # gymnasium's Walker2d observes qvel clipped to ±10, as this env
+            np.testing.assert_array_equal(np.clip(env.sim.bind("qvel")[0], -10, 10), gym_obs[9:])
+        td = step_mdp(td)
+    gym_env.close()
+
+
+def test_seeded_resets_and_native_threads_change_nothing():
+    def run(seed: int, threads: int | None = 1) -> torch.Tensor:
+        torch.manual_seed(0)
+        env = HalfCheetahVelEnv((2, 3), max_steps=4, seed=seed, threads=threads)
+        td, observations = env.reset(), []
+        for _ in range(10):
+            td["action"] = 2 * torch.rand(2, 3, 6) - 1
+            td = env.step_and_maybe_reset(td)[1]
+            observations.append(td["observation"])
+        return torch.stack(observations)
+
+    assert torch.equal(run(5), run(5))
+    assert not torch.allclose(run(5), run(6))
+    assert torch.equal(run(5, threads=2), run(5))
+
+
+@pytest.mark.parametrize("kwargs", [{"max_steps": 0}, {"frame_skip": 0},
+                                    {"ctrl_cost_weight": -1.0}, {"reset_noise_scale": -0.1},
+                                    {"threads": 0}])
+def test_bad_arguments_raise_one_config_error(kwargs):
+    key = next(iter(kwargs))
+    with pytest.raises(ConfigError, match=rf"'benchmark\.collector\.{key}' = "):
+        HalfCheetahVelEnv((1, 1), **kwargs)
+
+
+def test_half_cheetah_vel_benchmark_trains(tmp_path):
+    """The benchmark's collector steps HalfCheetahVelEnv with the YAML's settings, and ar_maml
+    (MAML-TRPO under the adversary) trains on it end to end."""
+    cfg = compose_train(*SMALL_RUN, "benchmark=half_cheetah_vel", "method=ar_maml",
+                        "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
+                        "benchmark.collector.make_env.threads=1")
+    env = collector_of(cfg).env(2)
+    assert isinstance(env, HalfCheetahVelEnv) and env.batch_size == (2, 2)
+    assert (env.ctrl_cost_weight, env.frame_skip, env.max_steps) == (0.05, 5, 10)
+    report = run_training(cfg, tmp_path)
+    assert report["metric"] == "return" and "adversarial" in report
