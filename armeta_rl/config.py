@@ -26,6 +26,15 @@ from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.fields import Section, above, at_least, config_error, each, inside, key, one_of
 from armeta_rl.preemption import STOP_SIGNALS
+from armeta_rl.resources import (
+    hidden_units,
+    machine_memory,
+    sample_bytes,
+    samples_per_task,
+    size_words,
+    task_batch_bytes,
+    usable_cpus,
+)
 
 CONFIG_FILE = "config.yaml"
 SEED_RANGE = (-(2**63), 2**64 - 1)
@@ -174,7 +183,9 @@ class TrainConfig(Section):
     # cpu, cuda or cuda:N: where leaders, task distributions, torch-native envs and evaluation
     # compute (MuJoCo steps on the CPU; docs/scale.md); checked against this machine
     device: str = key(default="cpu")
-    threads: int = at_least(1, 1)  # torch intra-op threads; batched small ops are fastest on one
+    # torch intra-op threads; batched small ops are fastest on one; at most the CPUs this process
+    # may run on (more only slow it down, and far more crash torch's thread pool)
+    threads: int = at_least(1, 1)
     resume: str | None = key()  # a run directory to continue from its latest checkpoint
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -189,6 +200,37 @@ class TrainConfig(Section):
         super().__post_init__()
         resolve_device(self.device)
         self.check_task_split()
+        self.check_machine()
+
+    def check_machine(self) -> None:
+        """``threads`` within this process's CPUs, and the sizes within the device's memory:
+        :mod:`armeta_rl.resources`' lower bound of what each needs, before any allocation."""
+        cpus = usable_cpus()
+        if self.threads > cpus:
+            self.refuse("threads", f"must be <= {cpus}, the CPUs this process may run on (a "
+                                   "resumed run may set threads= too)")
+        memory = machine_memory(self.device)
+        sections = [options for name, options in self.learner.items()
+                    if name == self.method.learner or name.startswith(f"{self.method.learner}_")]
+        units = min((hidden_units(options) for options in sections), default=1)
+        for name, tasks, collector in (
+                ("trainer.meta_batch", self.trainer.meta_batch, self.benchmark.collector),
+                ("eval.n_tasks", self.eval.n_tasks, self.benchmark.eval_collector)):
+            need = task_batch_bytes(tasks, collector, units)
+            if need > memory:
+                each = task_batch_bytes(1, collector, units)
+                raise ConfigError(name, tasks, (
+                    f"needs at least {size_words(need)} ({samples_per_task(collector)} samples "
+                    f"x {units} hidden units x 4 bytes per task) of this device's "
+                    f"{size_words(memory)}: allowed: at most {memory // each}"))
+        adversary = self.risk.get(self.method.risk) if self.method.risk == "ar" else None
+        samples = getattr(adversary, "initial_samples", None)
+        if samples is not None and self.benchmark.space.names != MISSING:
+            dim = len(self.benchmark.space.names)
+            if sample_bytes(samples, dim) > memory:
+                raise ConfigError(f"risk.{self.method.risk}.initial_samples", samples, (
+                    f"needs at least {size_words(sample_bytes(samples, dim))} of this device's "
+                    f"{size_words(memory)}: allowed: at most {memory // sample_bytes(1, dim)}"))
 
     def check_task_split(self) -> None:
         """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs

@@ -739,7 +739,7 @@ def test_a_lock_taken_again_chains_no_blocking_io_error(tmp_path):
 # Resume keys that change no result --------------------------------------------------------------
 
 @pytest.mark.parametrize("override", [
-    "logger=wandb", "logger=none", "trainer.progress=true", "threads=2", "threads=4",
+    "logger=wandb", "logger=none", "trainer.progress=true", "threads=2",
     "trainer.log_every=3", "trainer.density_every=3", "trainer.stop_signals=[SIGUSR2]",
 ])
 def test_resume_takes_the_keys_that_change_no_result(tmp_path, whole, stopped, override):
@@ -966,3 +966,48 @@ def test_ray_joins_a_given_cluster_without_the_local_object_store_size(monkeypat
         check_ray_address(f"127.0.0.1:{closed}")
     with pytest.raises(ConfigError, match="allowed: host:port"):
         check_ray_address("no-port")
+
+
+# Sizes and threads this machine cannot run ------------------------------------------------------
+
+@pytest.mark.parametrize("override,key,words", [
+    ("threads=100000", "threads", r"must be <= \d+, the CPUs this process may run on"),
+    ("eval.n_tasks=100000000", "eval.n_tasks", r"needs at least .*: allowed: at most \d+$"),
+    ("trainer.meta_batch=100000000", "trainer.meta_batch",
+     r"needs at least .*: allowed: at most \d+$"),
+    ("risk.ar.initial_samples=1000000000000", "risk.ar.initial_samples",
+     r"needs at least .*: allowed: at most \d+$"),
+])
+def test_a_size_beyond_this_machine_is_one_line_before_anything_is_allocated(
+        tmp_path, monkeypatch, capsys, override, key, words):
+    run_dir = tmp_path / "run"
+    code, err = run_cli(monkeypatch, capsys, train, *SMALL_RUN, override,
+                        f"hydra.run.dir={run_dir}")
+    assert code == 2 and len(err) == 1, err
+    value = override.split("=")[1]
+    assert re.search(f"config key '{re.escape(key)}' = {value}: {words}", err[0]), err
+    assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("benchmark", ["sinusoid_uniform", "pendulum_uniform", "point_nav_plain"])
+def test_the_memory_bound_is_below_what_an_evaluation_allocates(benchmark):
+    """The bound a size is refused by (armeta_rl.resources.task_batch_bytes) is at most the bytes
+    torch allocates while the leader collects and evaluates the batch: a size it refuses could
+    not run."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from armeta_rl.config import validate
+    from armeta_rl.resources import hidden_units, task_batch_bytes
+    from armeta_rl.trainers.players import build_players
+
+    config = validate(compose_train(*SMALL_RUN, f"benchmark={benchmark}", "method=maml",
+                                    "trainer.meta_batch=3"))
+    players = build_players(config)
+    tasks = players.initial.sample(3)
+    with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as profiled:
+        players.leader.evaluate(players.leader.collect(tasks, players.eval_collector))
+    allocated = sum(event.self_cpu_memory_usage for event in profiled.events()
+                    if event.self_cpu_memory_usage > 0)
+    units = min(hidden_units(options) for name, options in config.learner.items()
+                if name == config.method.learner or name.startswith(f"{config.method.learner}_"))
+    assert 0 < task_batch_bytes(3, config.benchmark.eval_collector, units) <= allocated
