@@ -17,7 +17,7 @@ import sys
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
@@ -52,11 +52,6 @@ class Refused(ValueError):
     def __init__(self, message: str, code: int = 2) -> None:
         super().__init__(message)
         self.code = code
-
-
-def _fail(prog: str, message: str, code: int = 2) -> NoReturn:
-    print(f"{prog}: error: {message}", file=sys.stderr)
-    sys.exit(code)
 
 
 def group_choices(group: str) -> list[str]:
@@ -438,6 +433,20 @@ def _command(main: Callable[[list[str]], None], prog: str, argv: list[str] | Non
     sys.exit(_exit_code(main, prog, sys.argv[1:]))
 
 
+def _without_checks(args: list[str], prog: str, config_name: str,
+                    task: Callable[[DictConfig], None], groups: tuple[str, ...], usage: str
+                    ) -> bool:
+    """Answer ``--help`` (:func:`_print_help`) or hand Hydra a flag whose words are no
+    overrides (``-sc install=bash``, ``--hydra-help``); whether it did."""
+    if any(a in ("--help", "-h") for a in args):
+        _print_help(prog, config_name, groups, usage)
+        return True
+    if any(a in _UNCHECKED_FLAGS for a in args):
+        _run_hydra(args, config_name, task)
+        return True
+    return False
+
+
 def _print_help(prog: str, config_name: str, groups: tuple[str, ...], usage: str) -> None:
     """``--help``: the usage, the groups a command line chooses from and the composed config."""
     from hydra import initialize_config_dir
@@ -469,13 +478,9 @@ def _train(args: list[str]) -> None:
     from armeta_rl.trainers.run_dir import check_run_dir, run_lock
 
     prog = "armeta-train"
-    if any(a in ("--help", "-h") for a in args):
-        _print_help(prog, "train", GROUPS, "train a method on a benchmark "
-                    "(armeta-train [group=option ...] [key=value ...] [-m])")
-        return
     task = _report_errors(prog, _train_task)
-    if any(a in _UNCHECKED_FLAGS for a in args):
-        _run_hydra(args, "train", task)
+    if _without_checks(args, prog, "train", task, GROUPS, "train a method on a benchmark "
+                       "(armeta-train [group=option ...] [key=value ...] [-m])"):
         return
     for arg in args:
         name, _, value = arg.partition("=")
@@ -574,14 +579,10 @@ def evaluate(argv: list[str] | None = None) -> int:
 
 def _evaluate(args: list[str]) -> None:
     prog = "armeta-eval"
-    if any(a in ("--help", "-h") for a in args):
-        _print_help(prog, "eval", (), "score a saved learner on p0 and on a saved adversary "
-                    "(armeta-eval learner=<run dir> [adversary=<run dir>] [eval.n_tasks=...] "
-                    "[out=<file>])")
-        return
     task = _report_errors(prog, _eval_task)
-    if any(a in _UNCHECKED_FLAGS for a in args):
-        _run_hydra(args, "eval", task)
+    if _without_checks(args, prog, "eval", task, (), "score a saved learner on p0 and on a "
+                       "saved adversary (armeta-eval learner=<run dir> [adversary=<run dir>] "
+                       "[eval.n_tasks=...] [out=<file>])"):
         return
     multirun = "-m" in args or "--multirun" in args  # a sweep's jobs carry their own learner=
     if not multirun and not any(a.startswith("learner=") for a in args):

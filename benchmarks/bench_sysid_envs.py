@@ -1,8 +1,12 @@
-"""Environment steps per second of the batched system-identification envs, and the time one
+"""Environment steps per second of the batched system-identification envs, through TorchRL's
+``env.rollout`` and through ``env.transitions`` (the same transitions bit for bit, without
+TorchRL's per-step machinery: what ``SysIdCollector`` steps with), and the time one
 ``SysIdCollector.collect`` takes for a meta-batch (16 tasks x 200 transitions), on one thread.
 
-The collect rows vary how the 200 transitions of a task are split into episodes: the TorchRL step
-costs about the same for any batch, so the time grows with the steps per episode.
+The collect rows vary how the 200 transitions of a task are split into episodes: a step costs
+about the same for any batch, so the time grows with the steps per episode. The env rows are CPU
+time (``time.process_time``), which other processes on a shared machine stretch less than wall
+time.
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_sysid_envs.py``; it prints its tables and
 writes them to its section of docs/benchmarks.md.
 """
@@ -31,17 +35,26 @@ def _median_and_best(run, repeats: int = REPEATS) -> tuple[float, float]:
     return statistics.median(times), min(times)
 
 
-def bench_env(env_cls, episodes: int, steps: int) -> float:
-    """Steps per second (one step = one transition of one env) of a random-policy rollout."""
+def bench_env(env_cls, episodes: int, steps: int) -> tuple[float, float]:
+    """Steps per second of CPU time (one step = one transition of one env) of a random-policy
+    rollout through ``env.rollout`` and through ``env.transitions``."""
     env = env_cls(batch_size=(TASKS, episodes), seed=0)
     params = 0.4 + 1.2 * torch.rand(TASKS, 1, 2).expand(TASKS, episodes, 2)
     reset = TensorDict({"params": params}, batch_size=env.batch_size)
 
-    def run() -> None:
+    def rollout() -> None:
         env.rollout(steps, tensordict=env.reset(reset.clone()), auto_reset=False,
                     break_when_any_done=False)
 
-    return TASKS * episodes * steps / _median_and_best(run, 7)[0]
+    def transitions() -> None:
+        env.reset(reset.clone())
+        env.transitions(steps)
+
+    rates = []
+    for run in (rollout, transitions):
+        seconds = statistics.median(wall_times(run, 7, warmup=3, clock=time.process_time))
+        rates.append(TASKS * episodes * steps / seconds)
+    return rates[0], rates[1]
 
 
 def bench_collect(env_name: str, episodes: int) -> tuple[float, float, float]:
@@ -61,8 +74,9 @@ def main() -> None:
     env_rows = []
     for env_cls in (PendulumEnv, AcrobotEnv):
         for episodes, steps in ((1, 200), (10, 20), (20, 10), (16, 200)):
-            rate = bench_env(env_cls, episodes, steps)
-            env_rows.append((env_cls.__name__, f"{TASKS} × {episodes}", steps, f"{rate:,.0f}"))
+            slow, fast = bench_env(env_cls, episodes, steps)
+            env_rows.append((env_cls.__name__, f"{TASKS} × {episodes}", steps, f"{slow:,.0f}",
+                             f"{fast:,.0f}", f"{fast / slow:.1f}×"))
     default = inspect.signature(SysIdCollector).parameters["episodes"].default
     collect_rows = []
     for env_name in ("pendulum", "acrobot"):
@@ -71,8 +85,10 @@ def main() -> None:
             mark = " (default)" if episodes == default else ""
             collect_rows.append((env_name, f"{episodes}{mark}", TRANSITIONS // episodes,
                                  f"{median:.1f}", f"{best:.1f}", f"{cpu:.1f}"))
-    body = (f"Batched envs, random policy, {TASKS} tasks (median of 7 rollouts):\n\n"
-            + markdown_table(("env", "batch", "steps", "env steps/s"), env_rows)
+    body = (f"Batched envs, random policy, {TASKS} tasks (env steps per second of CPU time, "
+            f"median of 7 rollouts, each with its reset):\n\n"
+            + markdown_table(("env", "batch", "steps", "env.rollout", "env.transitions",
+                              "transitions / rollout"), env_rows)
             + f"\n\nOne ``SysIdCollector.collect`` of {TASKS} tasks × {TRANSITIONS} transitions "
             f"(wall median and best, CPU median, of {REPEATS}):\n\n"
             + markdown_table(("env", "episodes", "steps", "median ms", "best ms", "CPU ms"),

@@ -15,15 +15,17 @@ Device-side assumptions (``benchmarks/gpu_check.sh`` sets them up and calls ``ru
   ``results.jsonl`` (one JSON object per measured row), ``summary.txt`` and a copy of
   ``docs/benchmarks.md`` after the check wrote its GPU section there.
 
-``run`` starts the two test files (``tests/test_devices.py`` and the MuJoCo Warp tests) in the
-background, then times, one part after the other: the Ant env steps/s with MuJoCo Warp at
-40 tasks × 20 episodes (the policy acting on the collector's device), an Ant meta-iteration
-(40 tasks × 20 episodes × 200 steps, MAML-TRPO on CUDA), a meta-iteration of every benchmark family
-on the CPU (one thread) and on CUDA, eager, and with ``torch.compile`` where the code offers it
-(``learner.maml.compile``, ``risk.ar.compile``). Every part runs in its own process under its own
-time limit, never stops the others, and all of them together stay within ``--budget`` seconds
-(default 400): a part that would start with too little time left is skipped and says so. Without
-CUDA the CUDA rows and parts are skipped with that reason, and the rest runs.
+``run`` runs the two test files (the MuJoCo Warp tests, then ``tests/test_devices.py``) in the
+background, one after the other, then times, one part after the other: a meta-iteration of the
+benchmark families (``DEFAULT_BENCHMARKS``; ``--benchmarks`` for others) on the CPU (one thread)
+and on CUDA, eager (and, with ``--compiled``, compiled where the code offers it:
+``learner.maml.compile``, ``risk.ar.compile``), then the Ant with MuJoCo Warp in one process that
+writes each figure as soon as it has it: a tiny env first (it compiles the warp kernels), the env
+steps/s of a collection of 40 tasks × 20 episodes × 200 steps with the policy acting on the env's
+device, and MAML-TRPO meta-iterations at that size on CUDA. Every part runs in its own process
+under its own time limit, never stops the others, and all of them together stay within ``--budget``
+seconds (default 230): a part that would start with too little time left is skipped and says so.
+Without CUDA the CUDA rows and parts are skipped with that reason, and the rest runs.
 
 Each timing row reports the peak RSS of its process (``ru_maxrss``) and, on CUDA, the peak of
 ``torch.cuda.max_memory_allocated``. ``report`` turns ``results.jsonl`` into the GPU section of
@@ -31,7 +33,9 @@ docs/benchmarks.md and a summary against the issue's targets (one H100-class GPU
 >= 20x pytorch-maml-rl's CPU time, Ant >= 100,000 env steps/s, an Ant meta-iteration <= 5 s).
 
 Subcommands (``python benchmarks/gpu_check.py <cmd> --help``): ``run`` (everything), ``preflight``,
-``tests``, ``meta``, ``ant-steps``, ``ant-meta``, ``report``.
+``tests``, ``meta``, ``ant``, ``report``. To try every code path on a machine without CUDA:
+``python benchmarks/gpu_check.py run --device cpu --warp-device cpu --ant-tasks 2
+--ant-episodes 2 --ant-steps 5 --budget 600``.
 """
 
 from __future__ import annotations
@@ -57,7 +61,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS_DIR = ROOT / "benchmarks"
-BUDGET_S = 400
+BUDGET_S = 230
 REPORT_RESERVE_S = 25
 MIN_PART_S = 15
 
@@ -70,8 +74,11 @@ FAMILIES = (  # (benchmark, method): every family's code path once; *_paper: the
     ("pendulum_uniform", "ar_maml"),
     ("acrobot_uniform", "ar_maml"),
 )
+DEFAULT_BENCHMARKS = ("point_nav", "pendulum_uniform_paper", "acrobot_uniform_paper",
+                      "sinusoid_uniform")
+"""The families a default run times (all of them did not fit the last lent machine's budget)."""
 COMPILED = ("sinusoid_uniform", "pendulum_uniform_paper")
-"""The benchmarks timed compiled as well (compiling every one would not fit the budget)."""
+"""The benchmarks timed compiled as well with ``--compiled``."""
 COMPILE_OVERRIDES = ("learner.maml.compile=true", "risk.ar.compile=true")
 ANT = {"tasks": 40, "episodes": 20, "steps": 200}
 TARGETS = {"ant_steps_per_s": 100_000, "ant_meta_s": 5.0, "point_robot_speedup": 20.0}
@@ -214,70 +221,79 @@ def ant_overrides(args: argparse.Namespace) -> list[str]:
             f"benchmark.collector.max_steps={args.steps}", *args.overrides]
 
 
-def ant_steps(args: argparse.Namespace) -> None:
-    """Env steps/s of one Ant collection with MuJoCo Warp, ``tasks × episodes`` worlds, the policy
-    of the leader acting on the env's device (as training collects)."""
-    import torch
-
-    row = {"part": "ant-steps", "device": args.device, "warp_device": args.warp_device,
-           "tasks": args.tasks, "episodes": args.episodes, "steps": args.steps}
-    for device in (args.device, args.warp_device):
-        ok, reason = cuda_state(device)
-        if not ok:
-            append_row(Path(args.results), {**row, "status": "skipped", "reason": reason})
-            return
-    torch.set_num_threads(1)
-    try:
-        sync, gpu_peak = device_tools(args.device)
-        trainer, players = trainer_for(ant_overrides(args))
-        leader = players.leader
-        tasks = players.initial.sample(args.tasks)
-        collector = leader.collector
-
-        def collect() -> object:
-            return collector.collect(tasks, None, policy=leader.net)
-
-        first, times = timed_calls(collect, 1, args.repeats, args.seconds, sync)
-        env = collector.env(args.tasks)
-        steps = args.tasks * args.episodes * args.steps
-        row.update(status="ok", env=type(env).__name__, env_device=str(env.device),
-                   policy_device=str(next(leader.net.parameters()).device),
-                   first_collect_s=first, collects=len(times),
-                   median_s=statistics.median(times),
-                   steps_per_s=steps / statistics.median(times),
-                   peak_gpu_mib=gpu_peak(), peak_rss_mib=peak_rss_mib())
-    except Exception as error:
-        row = failure(row, error)
-    append_row(Path(args.results), row)
-    print(json.dumps(row), flush=True)
-
-
-def ant_meta(args: argparse.Namespace) -> None:
-    """Seconds of one MAML-TRPO meta-iteration on ant_goal_warp (40 × 20 × 200 by default)."""
+def ant(args: argparse.Namespace) -> None:
+    """The Ant with MuJoCo Warp, in one process, each figure written as soon as it is measured
+    (a part killed at its time limit keeps what it measured): a tiny env first (it compiles the
+    warp kernels), then env steps/s of one collection of ``tasks × episodes`` worlds with the
+    leader's policy acting on the env's device, as training collects (part ``ant-steps``), then
+    MAML-TRPO meta-iterations on ant_goal_warp (part ``ant-meta``)."""
     import torch
 
     from armeta_rl.allocator import keep_freed_memory
 
-    row = {"part": "ant-meta", "device": args.device, "warp_device": args.warp_device,
-           "tasks": args.tasks, "episodes": args.episodes, "steps": args.steps}
+    out = Path(args.results)
+    size = {"device": args.device, "warp_device": args.warp_device, "tasks": args.tasks,
+            "episodes": args.episodes, "steps": args.steps}
     for device in (args.device, args.warp_device):
         ok, reason = cuda_state(device)
         if not ok:
-            append_row(Path(args.results), {**row, "status": "skipped", "reason": reason})
+            for part in ("ant-steps", "ant-meta"):
+                append_row(out, {"part": part, **size, "status": "skipped", "reason": reason})
             return
     torch.set_num_threads(1)
-    keep_freed_memory()
+    keep_freed_memory()  # as armeta-train does
+    sync, gpu_peak = device_tools(args.device)
+    row: dict = {"part": "ant-warmup", **size}
     try:
-        sync, gpu_peak = device_tools(args.device)
-        trainer, _ = trainer_for(ant_overrides(args))
-        first, times = timed_calls(trainer.train_iteration, 1, args.repeats, args.seconds, sync)
-        row.update(status="ok", first_iteration_s=first, iterations=len(times),
-                   median_s=statistics.median(times), min_s=min(times),
-                   peak_gpu_mib=gpu_peak(), peak_rss_mib=peak_rss_mib())
+        from armeta_rl.envs.ant_goal_warp import AntGoalWarpEnv
+
+        start = time.perf_counter()
+        AntGoalWarpEnv((1, 1), max_steps=2, seed=0, warp_device=args.warp_device).rollout(2)
+        sync()
+        append_row(out, {**row, "status": "ok", "seconds": time.perf_counter() - start})
+        row = {"part": "ant-steps", **size}
+        trainer, players = trainer_for(ant_overrides(args))
+        leader, collector = players.leader, players.leader.collector
+        tasks = players.initial.sample(args.tasks)
+        steps = args.tasks * args.episodes * args.steps
+        start = time.perf_counter()
+        collector.collect(tasks, None, policy=leader.net)
+        sync()
+        env = collector.env(args.tasks)
+        row.update(env=type(env).__name__, env_device=str(env.device),
+                   policy_device=str(next(leader.net.parameters()).device),
+                   first_collect_s=time.perf_counter() - start)
+        times: list[float] = []
+        for _ in range(args.repeats):
+            start = time.perf_counter()
+            collector.collect(tasks, None, policy=leader.net)
+            sync()
+            times.append(time.perf_counter() - start)
+            median = statistics.median(times)
+            row.update(status="ok", collects=len(times), median_s=median,
+                       steps_per_s=steps / median, peak_gpu_mib=gpu_peak(),
+                       peak_rss_mib=peak_rss_mib())
+            append_row(out, row)
+            print(json.dumps(row), flush=True)
+        row = {"part": "ant-meta", **size}
+        start = time.perf_counter()
+        trainer.train_iteration()
+        sync()
+        row["first_iteration_s"] = time.perf_counter() - start
+        times = []
+        for _ in range(args.repeats):
+            start = time.perf_counter()
+            trainer.train_iteration()
+            sync()
+            times.append(time.perf_counter() - start)
+            row.update(status="ok", iterations=len(times), median_s=statistics.median(times),
+                       min_s=min(times), peak_gpu_mib=gpu_peak(), peak_rss_mib=peak_rss_mib())
+            append_row(out, row)
+            print(json.dumps(row), flush=True)
     except Exception as error:
         row = failure(row, error)
-    append_row(Path(args.results), row)
-    print(json.dumps(row), flush=True)
+        append_row(out, row)
+        print(json.dumps(row), flush=True)
 
 
 def preflight(args: argparse.Namespace) -> None:
@@ -443,39 +459,43 @@ def run(args: argparse.Namespace) -> None:
         return parts[-1]
 
     part("preflight", [*me, "preflight", *res], 60).run(clock)
-    # The tests run beside the timings, each with its own MuJoCo Warp kernel cache (two processes
-    # compiling into one cache could race).
+    # The tests run beside the timings, one file after the other, sharing one MuJoCo Warp kernel
+    # cache (the warp tests compile the kernels, test_devices' ant_goal_warp run reuses them); the
+    # Ant part keeps its own (two processes compiling into one cache could race).
+    cache = tempfile.mkdtemp(prefix="warp_tests_")
     background = [
-        part("tests-devices", [*me, "tests", "--name", "test_devices", *res,
-                               "tests/test_devices.py"], args.tests_limit),
         part("tests-warp", [*me, "tests", "--name", "test_ant_goal_warp", *res,
                             "tests/test_ant_goal_warp.py"], args.tests_limit,
-             WARP_CACHE_PATH=tempfile.mkdtemp(prefix="warp_tests_")),
+             WARP_CACHE_PATH=cache),
+        part("tests-devices", [*me, "tests", "--name", "test_devices", *res,
+                               "tests/test_devices.py"], args.tests_limit,
+             WARP_CACHE_PATH=cache),
     ]
-    waiters = [threading.Thread(target=test_part.wait) for test_part in background
-               if test_part.start(clock)]
+
+    def in_order() -> None:
+        for test_part in background:
+            test_part.run(clock)
+
+    waiters = [threading.Thread(target=in_order)]
     for waiter in waiters:
         waiter.start()
+    families = [f for f in FAMILIES if f[0] in (args.benchmarks or DEFAULT_BENCHMARKS)]
+    for benchmark, method in families:
+        iterations = ["--iterations", str(args.iterations), "--seconds", "5"]
+        part(f"meta-{benchmark}", [*me, "meta", *res, "--benchmark", benchmark, "--method",
+                                   method, "--devices", "cpu", args.device, *iterations],
+             45).run(clock)
+    # The Ant last, with whatever the budget has left: it writes each figure as it measures it.
     size = ["--tasks", str(args.ant_tasks), "--episodes", str(args.ant_episodes),
             "--steps", str(args.ant_steps), "--device", args.device,
             "--warp-device", args.warp_device]
-    part("ant-steps", [*me, "ant-steps", *res, *size, "--repeats", "3", "--seconds", "20"],
-         150).run(clock)
-    part("ant-meta", [*me, "ant-meta", *res, *size, "--repeats", "2", "--seconds", "20"],
-         150).run(clock)
-    families = FAMILIES if not args.benchmarks else [
-        f for f in FAMILIES if f[0] in args.benchmarks]
-    for benchmark, method in families:
-        iterations = ["--iterations", str(args.iterations), "--seconds", "8"]
-        part(f"meta-{benchmark}", [*me, "meta", *res, "--benchmark", benchmark, "--method",
-                                   method, "--devices", "cpu", args.device, *iterations],
-             90).run(clock)
-    for benchmark, method in families:
+    part("ant", [*me, "ant", *res, *size, "--repeats", "2"], 200).run(clock)
+    for benchmark, method in families if args.compiled else ():
         if benchmark in COMPILED:
             part(f"compiled-{benchmark}", [*me, "meta", *res, "--benchmark", benchmark,
                                            "--method", method, "--devices", args.device,
                                            "--compile", "--iterations", str(args.iterations),
-                                           "--seconds", "8"], 120).run(clock)
+                                           "--seconds", "5"], 120).run(clock)
     for waiter in waiters:
         waiter.join()
     for item in parts:
@@ -551,20 +571,26 @@ def report(args: argparse.Namespace) -> None:
           ", ".join(r.get("failed", [])) or "–", "; ".join(r.get("skip_reasons", [])) or "–")
          for r in test_rows])
     ant_rows = []
-    for r in rows:
-        if r.get("part") not in ("ant-steps", "ant-meta"):
+    last = {r["part"]: r for r in rows if r.get("part", "").startswith("ant")}
+    for part in ("ant-warmup", "ant-steps", "ant-meta"):
+        r = last.get(part)
+        if r is None:
             continue
         size = f"{r['tasks']} × {r['episodes']} × {r['steps']}"
         if r.get("status") != "ok":
-            ant_rows.append((r["part"], size, "–", "–", "–", "–",
-                             f"{r['status']}: {r.get('reason') or r.get('error', '')}"))
-        elif r["part"] == "ant-steps":
-            ant_rows.append((r["part"], size, f"{r['steps_per_s']:,.0f} env steps/s",
+            ant_rows.append((part, size, "–", "–", "–", "–",
+                             f"{r.get('status')}: {r.get('reason') or r.get('error', '')}"))
+        elif part == "ant-warmup":
+            ant_rows.append((part, "1 × 1 × 2", f"{r['seconds']:.1f} s", "–", "–", "–",
+                             "compiles the warp kernels"))
+        elif part == "ant-steps":
+            ant_rows.append((part, size, f"{r['steps_per_s']:,.0f} env steps/s",
                              f"{r['first_collect_s']:.1f}", fmt(r["peak_rss_mib"], 0),
                              fmt(r["peak_gpu_mib"], 0),
-                             f"{r['env']} on {r['env_device']}, policy on {r['policy_device']}"))
+                             f"{r['env']} on {r['env_device']}, policy on {r['policy_device']}, "
+                             f"median of {r['collects']} collections ({r['median_s']:.2f} s)"))
         else:
-            ant_rows.append((r["part"], size, f"{r['median_s']:.2f} s / iteration",
+            ant_rows.append((part, size, f"{r['median_s']:.2f} s / iteration",
                              f"{r['first_iteration_s']:.1f}", fmt(r["peak_rss_mib"], 0),
                              fmt(r["peak_gpu_mib"], 0), f"{r['iterations']} timed"))
     ant_table = markdown_table(("Ant (ant_goal_warp)", "tasks × episodes × steps", "measured",
@@ -609,10 +635,11 @@ def summarize_targets(rows: list[dict]) -> list[str]:
     """One line per target of the issue: the figure measured against it, or why there is none.
     A figure measured at other sizes than the target's is given without a verdict."""
     def ok_row(part: str) -> dict | None:
-        return next((r for r in rows if r.get("part") == part and r.get("status") == "ok"), None)
+        found = [r for r in rows if r.get("part") == part and r.get("status") == "ok"]
+        return found[-1] if found else None
 
     def missing(part: str) -> str:
-        row = next((r for r in rows if r.get("part") == part), None)
+        row = next((r for r in reversed(rows) if r.get("part") == part), None)
         if row is None:
             return "not measured (the part did not finish: see the parts table)"
         return f"not measured ({row['status']}: {row.get('reason') or row.get('error', '')})"
@@ -671,14 +698,19 @@ def main(argv: Sequence[str] | None = None) -> None:
                             help="seconds for the whole check")
     everything.add_argument("--device", default="cuda")
     everything.add_argument("--warp-device", default="cuda")
-    everything.add_argument("--iterations", type=int, default=5,
+    everything.add_argument("--iterations", type=int, default=3,
                             help="timed meta-iterations per row (at most)")
-    everything.add_argument("--tests-limit", type=float, default=240)
+    everything.add_argument("--tests-limit", type=float, default=200)
     everything.add_argument("--ant-tasks", type=int, default=ANT["tasks"])
     everything.add_argument("--ant-episodes", type=int, default=ANT["episodes"])
     everything.add_argument("--ant-steps", type=int, default=ANT["steps"])
     everything.add_argument("--benchmarks", nargs="*", default=None,
-                            help="only these benchmark families (default: all)")
+                            help="the benchmark families timed (default: "
+                                 + ", ".join(DEFAULT_BENCHMARKS) + "; all: "
+                                 + ", ".join(f for f, _ in FAMILIES) + ")")
+    everything.add_argument("--compiled", action="store_true",
+                            help="also time " + ", ".join(COMPILED) + " compiled on CUDA (the "
+                                 "compile alone took more than 40 s there)")
     everything.add_argument("--command-line", default="benchmarks/gpu_check.sh")
 
     sub("preflight", preflight, "versions, GPU, importable modules")
@@ -697,17 +729,14 @@ def main(argv: Sequence[str] | None = None) -> None:
                         help="stop timing a row after this long (at least 2 iterations)")
     timing.add_argument("--overrides", nargs="*", default=[])
 
-    for name, fn, what in (("ant-steps", ant_steps, "Ant env steps/s, MuJoCo Warp"),
-                           ("ant-meta", ant_meta, "one Ant meta-iteration, MuJoCo Warp")):
-        ant = sub(name, fn, what)
-        ant.add_argument("--device", default="cuda")
-        ant.add_argument("--warp-device", default="cuda")
-        ant.add_argument("--tasks", type=int, default=ANT["tasks"])
-        ant.add_argument("--episodes", type=int, default=ANT["episodes"])
-        ant.add_argument("--steps", type=int, default=ANT["steps"])
-        ant.add_argument("--repeats", type=int, default=2)
-        ant.add_argument("--seconds", type=float, default=20.0)
-        ant.add_argument("--overrides", nargs="*", default=[])
+    ant_part = sub("ant", ant, "the Ant on MuJoCo Warp: env steps/s, then meta-iterations")
+    ant_part.add_argument("--device", default="cuda")
+    ant_part.add_argument("--warp-device", default="cuda")
+    ant_part.add_argument("--tasks", type=int, default=ANT["tasks"])
+    ant_part.add_argument("--episodes", type=int, default=ANT["episodes"])
+    ant_part.add_argument("--steps", type=int, default=ANT["steps"])
+    ant_part.add_argument("--repeats", type=int, default=2)
+    ant_part.add_argument("--overrides", nargs="*", default=[])
 
     summary = commands.add_parser("report", help="GPU section and summary from results.jsonl")
     summary.set_defaults(fn=report)

@@ -21,6 +21,7 @@ lands and kicks (0 to 3 contacts). MuJoCo Warp computes in float32, CPU MuJoCo i
 import os
 import subprocess
 import sys
+from functools import partial
 from pathlib import Path
 
 import mujoco
@@ -30,8 +31,10 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
+from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import TASK_KEY
 
 warp = pytest.importorskip("warp", reason="MuJoCo Warp is not installed (pip install "
@@ -48,6 +51,15 @@ from armeta_rl.envs.ant_goal_warp import (  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 STEPS, WORLDS = 200, 2
 HAS_CUDA = warp.is_cuda_available()
+HAS_CPU = "cpu" in [str(device) for device in warp.get_devices()]
+DEVICES = [
+    pytest.param("cpu", marks=pytest.mark.skipif(
+        not HAS_CPU, reason="warp has no CPU device here (its LLVM backend, warp-clang, is "
+                            "missing)")),
+    pytest.param("cuda", marks=pytest.mark.skipif(
+        not HAS_CUDA, reason="no CUDA device: MuJoCo Warp on the GPU is checked where there is "
+                             "one")),
+]
 
 
 def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
@@ -64,31 +76,33 @@ def _teacher_forced(cone: int, device: str) -> dict[str, np.ndarray]:
         data.qvel[:] = rng.normal(0.0, 0.1, model.nv)
     torso = model.body("torso").id
     out = {"qpos": [], "qvel": [], "torso": [], "forces": [], "ncon": []}
+    def host(name: str) -> np.ndarray:  # the warp field, read on the host in float64
+        return batch.bind(name).cpu().numpy().astype(np.float64)
+
     for _ in range(STEPS):
         ctrl = rng.uniform(-1.0, 1.0, (WORLDS, model.nu))
         for name in ("qpos", "qvel"):
-            batch.bind(name)[:] = [getattr(data, name) for data in datas]
-        batch.bind("ctrl")[:] = ctrl
+            batch.bind(name).copy_(torch.tensor(np.array([getattr(d, name) for d in datas])))
+        batch.bind("ctrl").copy_(torch.tensor(ctrl))
         batch.step(nstep=1)
         for data, row in zip(datas, ctrl):
             data.ctrl[:] = row
             mujoco.mj_step(model, data)
             mujoco.mj_forward(model, data)
-        out["qpos"].append(np.abs(batch.bind("qpos") - [d.qpos for d in datas]).max(-1))
-        out["qvel"].append(np.abs(batch.bind("qvel") - [d.qvel for d in datas]).max(-1))
-        pose = np.concatenate([batch.bind("xpos")[:, torso], batch.bind("xmat")[:, torso]], -1)
+        out["qpos"].append(np.abs(host("qpos") - [d.qpos for d in datas]).max(-1))
+        out["qvel"].append(np.abs(host("qvel") - [d.qvel for d in datas]).max(-1))
+        pose = np.concatenate([host("xpos")[:, torso], host("xmat")[:, torso]], -1)
         reference = [np.concatenate([d.xpos[torso], d.xmat[torso]]) for d in datas]
         out["torso"].append(np.abs(pose - reference).max(-1))
         forces = [np.clip(d.cfrc_ext, -1, 1) for d in datas]
-        out["forces"].append(np.abs(np.clip(batch.bind("cfrc_ext"), -1, 1) - forces).max((-2, -1)))
+        out["forces"].append(np.abs(np.clip(host("cfrc_ext"), -1, 1) - forces).max((-2, -1)))
         nacon = int(batch.data.nacon.numpy()[0])
         warp_ncon = np.bincount(batch.data.contact.worldid.numpy()[:nacon], minlength=WORLDS)
         out["ncon"].append(np.maximum([d.ncon for d in datas], warp_ncon))
     return {key: np.array(value) for key, value in out.items()}
 
 
-@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
-    not HAS_CUDA, reason="no CUDA device: MuJoCo Warp on the GPU is checked where there is one"))])
+@pytest.mark.parametrize("device", DEVICES)
 def test_warp_equals_cpu_mujoco_with_frame_invariant_friction(device):
     errors = _teacher_forced(mujoco.mjtCone.mjCONE_ELLIPTIC, device)
     assert errors["ncon"].max() >= 2  # the check covers contact dynamics
@@ -98,8 +112,9 @@ def test_warp_equals_cpu_mujoco_with_frame_invariant_friction(device):
     assert errors["forces"].max() <= 1e-2  # the observation's clip(cfrc_ext, -1, 1)
 
 
-def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
-    errors = _teacher_forced(mujoco.mjtCone.mjCONE_PYRAMIDAL, "cpu")
+@pytest.mark.parametrize("device", DEVICES)
+def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts(device):
+    errors = _teacher_forced(mujoco.mjtCone.mjCONE_PYRAMIDAL, device)
     air = errors["ncon"] == 0
     # no contact in either engine at the step's start, its end, or the next step's end
     free = air & np.roll(air, 1, axis=0) & np.roll(air, -1, axis=0)
@@ -111,21 +126,65 @@ def test_warp_equals_cpu_mujoco_on_the_ant_mjcf_away_from_contacts():
     assert np.isfinite(errors["qvel"]).all() and errors["qpos"].max() <= 5e-3
 
 
-def test_warp_env_resets_like_the_cpu_env_and_rolls_out():
+@pytest.mark.parametrize("device", DEVICES)
+def test_warp_env_resets_like_the_cpu_env_and_rolls_out(device):
     """Same seed, same reset noise and goals: the first observations agree to float32 precision;
     the env satisfies TorchRL's spec check and terminates like the CPU env's rule says."""
     goals = TensorDict({TASK_KEY: torch.tensor([[[1.0, -2.0]], [[0.5, 3.0]]])}, [2, 1])
     cpu = AntGoalEnv((2, 1), max_steps=5, seed=3)
-    env = AntGoalWarpEnv((2, 1), max_steps=5, seed=3, warp_device="cpu")
-    start, reference = env.reset(goals.clone()), cpu.reset(goals.clone())
-    torch.testing.assert_close(start["observation"], reference["observation"], atol=1e-6, rtol=0)
-    assert torch.equal(start[TASK_KEY], reference[TASK_KEY])
+    env = AntGoalWarpEnv((2, 1), max_steps=5, seed=3, warp_device=device)
+    start, reference = env.reset(goals.clone().to(env.device)), cpu.reset(goals.clone())
+    torch.testing.assert_close(start["observation"].cpu(), reference["observation"], atol=1e-6,
+                               rtol=0)
+    assert torch.equal(start[TASK_KEY].cpu(), reference[TASK_KEY])
     check_env_specs(env)
     rollout = env.rollout(5, auto_reset=True)
     height = rollout["next", "observation"][..., 2]
     healthy = (height >= 0.2) & (height <= 1.0)
     assert torch.equal(rollout["next", "terminated"].squeeze(-1), ~healthy)
     assert rollout["next", "truncated"][..., -1, :].all()  # max_steps = 5
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_collection_stays_on_the_warp_device_with_the_rewards_of_the_task(device):
+    """The env's outputs live on the warp device, so the policy acts there and the trajectories
+    stay there; every step's reward is the goal-position reward computed by hand from the
+    trajectory's observation (torso xy, contact forces) and action; steps are not aliased."""
+    torch_device = torch.device("cuda:0" if device == "cuda" else "cpu")
+    collector = EpisodeCollector(partial(AntGoalWarpEnv, warp_device=device, seed=0),
+                                 episodes=2, max_steps=6, device=torch_device)
+    net = GaussianMLP(119, 8).to(torch_device)
+    goals = torch.tensor([[1.0, -2.0], [0.5, 3.0]], device=torch_device)
+    data = collector.collect(TensorDict({TASK_KEY: goals}, [2]), policy=net)
+    assert collector.env(2).device == torch_device
+    assert {t.device for t in data.values(True, True)} == {torch_device}
+    observation, action = data["observation"][..., 1:, :], data["action"][..., :-1, :]
+    forces = observation[..., 29:107]
+    xy = observation[..., 116:118]
+    by_hand = (-(xy - goals[:, None, None]).abs().sum(-1) - 0.005 * action.square().sum(-1)
+               - 0.0005 * forces.square().sum(-1) + 0.05)
+    valid = ~data["done"][..., :-1, 0]  # a reset step's observation is the new episode's
+    reward = data["reward"][..., :-1, 0]
+    torch.testing.assert_close(reward[valid], by_hand[valid], atol=1e-5, rtol=1e-5)
+    assert (data["observation"][..., 1:, :] != data["observation"][..., :-1, :]).any(-1).all()
+
+
+@pytest.mark.skipif(not HAS_CUDA, reason="no CUDA device: CUDA graphs are checked where they run")
+def test_the_cuda_graph_replays_the_same_physics_as_the_kernels_launched_one_by_one():
+    goals = TensorDict({TASK_KEY: torch.tensor([[[1.0, -2.0]] * 3, [[0.5, 3.0]] * 3])}, [2, 3])
+    actions = torch.rand(10, 2, 3, 8, generator=torch.Generator().manual_seed(0)) * 2 - 1
+    observations = {}
+    for graphs in (True, False):
+        env = AntGoalWarpEnv((2, 3), max_steps=10, seed=3, warp_device="cuda", graphs=graphs)
+        assert env.sim.graphs is graphs
+        td = env.reset(goals.clone().to(env.device))
+        steps = []
+        for action in actions:
+            td = env.step(td.set("action", action.to(env.device)))["next"]
+            steps.append(td["observation"])
+        observations[graphs] = torch.stack(steps)
+    assert observations[True].device.type == "cuda"
+    torch.testing.assert_close(observations[True], observations[False], atol=1e-4, rtol=0)
 
 
 @pytest.mark.skipif(HAS_CUDA, reason="this machine has CUDA")

@@ -149,13 +149,15 @@ def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path):
                                               ("sinusoid_uniform", "ar_cnp"),
                                               ("pendulum_uniform", "dro_maml"),
                                               ("point_nav_plain", "ar_maml"),
-                                              ("ant_goal_smoke", "maml")])
+                                              ("ant_goal_smoke", "maml"),
+                                              ("ant_goal_warp", "maml")])
 def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, method):
     """Two iterations on CUDA put every player there; the run is scored on the CPU from its CUDA
-    checkpoint; it resumes on CUDA to the end; a second seeded CUDA run reproduces it."""
+    checkpoint; it resumes on CUDA to the end; a second seeded CUDA run reproduces it. Ant with
+    MuJoCo Warp (ant_goal_warp) steps, acts and learns on the GPU end to end."""
     small = (*SMALL_RUN, f"benchmark={benchmark}", f"method={method}", "trainer.meta_batch=2",
              "eval.n_tasks=4", "trainer.iterations=4", "trainer.checkpoint_every=2")
-    if benchmark in ("point_nav_plain", "ant_goal_smoke"):
+    if benchmark in ("point_nav_plain", "ant_goal_smoke", "ant_goal_warp"):
         small += ("benchmark.collector.episodes=2", "benchmark.collector.max_steps=5")
     run = tmp_path / "run"
     assert run_training(compose_train(*small, "device=cuda", "trainer.stop_at=2"), run) is None

@@ -1,12 +1,15 @@
 """The planar locomotion families (HalfCheetah-Vel, HalfCheetah-Dir, Walker2d-Vel): TorchRL
 contract at several batch shapes, every simulation of a batch against a hand computation on its
-own raw MjData with its own task, dynamics and reward against gymnasium's v5 envs, and the
-half_cheetah_vel benchmark end to end. Identifiers under transforms, batched envs and automatic
-resets: tests/test_task_protocol.py; the mass-scale families: tests/test_mujoco_tasks.py."""
+own raw MjData with its own task, dynamics and reward against gymnasium's v5 envs, the
+half_cheetah_vel benchmark end to end and the docs page's example. Identifiers under transforms,
+batched envs and automatic resets: tests/test_task_protocol.py; the mass-scale families:
+tests/test_mujoco_tasks.py."""
 
 from __future__ import annotations
 
 import os
+import re
+from pathlib import Path
 
 import gymnasium
 import mujoco
@@ -165,3 +168,11 @@ def test_half_cheetah_vel_benchmark_trains(tmp_path):
     assert (env.ctrl_cost_weight, env.frame_skip, env.max_steps) == (0.05, 5, 10)
     report = run_training(cfg, tmp_path)
     assert report["metric"] == "return" and "adversarial" in report
+
+
+def test_the_docs_example_runs():
+    page = Path(__file__).resolve().parents[1] / "docs" / "meta-rl-families.md"
+    blocks = re.findall(r"```python\n(.*?)```", page.read_text(), flags=re.S)
+    assert blocks
+    for block in blocks:
+        exec(compile(block, str(page), "exec"), {})

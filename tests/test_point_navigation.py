@@ -6,9 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.envs import RewardSum, StepCounter, TransformedEnv
-from torchrl.envs.utils import check_env_specs
+from torchrl.envs.utils import ExplorationType, check_env_specs, set_exploration_type
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, episode_returns, valid_mask
 from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
@@ -213,3 +214,50 @@ def test_episode_collector_acts_with_each_tasks_parameters() -> None:
     torch.testing.assert_close(final[1], torch.tensor([[0.0, -0.4]] * 2), atol=1e-4, rtol=0)
     expected_x = torch.tensor([0.1, 0.2, 0.3])
     torch.testing.assert_close(data["observation"][0, 0, 1:, 0], expected_x, atol=1e-4, rtol=0)
+
+
+def _rollouts(batch: tuple[int, ...], goals: torch.Tensor, policy, steps: int) -> list:
+    """``env.rollout`` and ``env.transitions`` from the same seeds and reset, each with the env's
+    position and step count after it and the next draw of torch's global RNG."""
+    results = []
+    for fast in (False, True):
+        torch.manual_seed(2)
+        env = PointNavigationEnv(batch, max_steps=7, sparse_regions=PAPER_SPARSE_REGIONS, seed=4)
+        start = env.reset(TensorDict({"params": goals}, batch))
+        with set_exploration_type(ExplorationType.RANDOM):
+            rollout = env.transitions(steps, policy) if fast else env.rollout(
+                steps, policy, tensordict=start, auto_reset=False, break_when_any_done=False)
+        results.append([rollout, env._position, env._steps, torch.rand(2)])
+    return results
+
+
+@pytest.mark.parametrize("batch", [(4, 5), (3,), (2, 3, 2)])
+@pytest.mark.parametrize("per_task", [False, True])
+def test_transitions_equal_env_rollout_bit_for_bit(batch, per_task):
+    """The episode collector's fast rollout is ``env.rollout`` with the same stochastic actor
+    (shared or per-task parameters): every key it writes at every step, through the automatic
+    resets of truncated episodes (7-step limit in 20 steps), the env state and the RNG stream
+    left behind."""
+    goals = torch.rand(*batch, 2, generator=torch.Generator().manual_seed(0)) - 0.5
+    net = GaussianMLP()
+    params = None
+    if per_task:
+        params = TensorDict.from_module(net).detach().expand(batch[0]).clone()
+        params.apply_(lambda p: p + 0.1 * torch.randn_like(p))
+    slow, fast = _rollouts(batch, goals, make_actor(net, params), 20)
+    assert fast[0]["next", "truncated"].any()
+    for key in fast[0].keys(True, True):
+        assert torch.equal(fast[0][key], slow[0][key]), key
+    for a, b in zip(fast[1:], slow[1:]):
+        assert torch.equal(a, b)
+
+
+def test_transitions_equal_env_rollout_when_goals_are_reached():
+    """Episodes that reach their goal terminate and restart from the origin between steps, as
+    in ``env.rollout``: a policy that stays at the origin, with goals there, ends every step."""
+    batch = (3, 2)
+    stay = TensorDictModule(lambda observation: -observation, ["observation"], ["action"])
+    slow, fast = _rollouts(batch, torch.zeros(*batch, 2), stay, 5)
+    assert fast[0]["next", "terminated"].all()
+    for key in fast[0].keys(True, True):
+        assert torch.equal(fast[0][key], slow[0][key]), key

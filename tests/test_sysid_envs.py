@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
+from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.envs.utils import check_env_specs
 
@@ -139,6 +140,73 @@ def test_identifiers_survive_partial_resets_in_rollout():
         start = fresh.reset(start, set_state=True).set("action", rollout["action"][:, :, t])
         torch.testing.assert_close(fresh.step(start)["next", "state"],
                                    rollout["next", "state"][:, :, t])
+
+
+def _policy(env_cls: type) -> TensorDictModule:
+    """A deterministic policy of the observation with the action spec's shape: a torque in
+    [-2, 2] for the pendulum, an action index in {0, 1, 2} for the acrobot."""
+    weights = torch.randn(env_cls.observation_dim, generator=torch.Generator().manual_seed(3))
+    if env_cls is PendulumEnv:
+        def act(observation):
+            return 2 * (observation @ weights).tanh().unsqueeze(-1)
+    else:
+        def act(observation):
+            return ((observation @ weights).sign() + 1).long()
+    return TensorDictModule(act, ["observation"], ["action"])
+
+
+def _both_rollouts(env_cls: type, params: torch.Tensor, steps: int, policy=None,
+                   state: torch.Tensor | None = None) -> tuple[list, list]:
+    """``env.rollout`` and ``env.transitions`` from the same seeds and reset, each with the env's
+    state after it and the next draw of torch's global RNG (the streams they leave behind)."""
+    results = []
+    for fast in (False, True):
+        torch.manual_seed(11)
+        env = env_cls(batch_size=params.shape[:-1], seed=5)
+        start = TensorDict({"params": params}, params.shape[:-1])
+        if state is not None:
+            start["state"] = state
+        start = env.reset(start, set_state=state is not None)
+        if fast:
+            rollout = env.transitions(steps, policy)
+        else:
+            rollout = env.rollout(steps, policy, tensordict=start, auto_reset=False,
+                                  break_when_any_done=False)
+        results.append([rollout, env._state, torch.rand(2)])
+    return results
+
+
+@pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])
+@pytest.mark.parametrize("batch", [(16, 1), (4, 5), (3,), (2, 3, 2)])
+@pytest.mark.parametrize("acting", ["random", "policy"])
+def test_transitions_equal_env_rollout_bit_for_bit(env_cls, batch, acting):
+    """The fast rollout of the system-identification collector is ``env.rollout`` on the public
+    env: every key it writes, at every step, and the env state and RNG stream it leaves."""
+    params = 0.4 + 1.2 * torch.rand(*batch, 2, generator=torch.Generator().manual_seed(0))
+    policy = None if acting == "random" else _policy(env_cls)
+    (slow, slow_state, slow_draw), (fast, fast_state, fast_draw) = _both_rollouts(
+        env_cls, params, 40, policy)
+    assert fast.batch_size == slow.batch_size
+    for key in fast.keys(True, True):
+        assert torch.equal(fast[key], slow[key]), key
+    assert torch.equal(fast_state, slow_state) and torch.equal(fast_draw, slow_draw)
+
+
+@pytest.mark.parametrize("acting", ["random", "policy"])
+def test_transitions_equal_env_rollout_through_partial_resets(acting):
+    """Acrobot episodes that terminate are reset between steps as TorchRL's automatic partial
+    reset does: the same new initial states, the same transitions after them."""
+    params = torch.tensor([[0.5, 1.5], [1.2, 0.7], [0.9, 1.1]])[:, None].expand(3, 2, 2)
+    upright = torch.tensor([[True, False], [False, True], [True, True]])
+    state = torch.zeros(3, 2, 4)
+    state[..., 0] = torch.where(upright, torch.pi, 0.0)
+    policy = None if acting == "random" else _policy(AcrobotEnv)
+    (slow, slow_state, slow_draw), (fast, fast_state, fast_draw) = _both_rollouts(
+        AcrobotEnv, params, 6, policy, state)
+    assert torch.equal(slow["next", "terminated"][:, :, 0, 0], upright)  # resets happened
+    for key in fast.keys(True, True):
+        assert torch.equal(fast[key], slow[key]), key
+    assert torch.equal(fast_state, slow_state) and torch.equal(fast_draw, slow_draw)
 
 
 @pytest.mark.parametrize("env_cls", [PendulumEnv, AcrobotEnv])

@@ -6,6 +6,8 @@ env (point navigation, Ant goal, any env taking its identifiers under
 ``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
 ``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
 steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
+An env that offers ``transitions(steps, policy)`` (point navigation) is stepped with it instead:
+``env.rollout``'s rollout bit for bit, without TorchRL's per-step env machinery.
 
 Devices: the policy acts on the env's device (a torch-native env runs wherever it was built; a
 MuJoCo env on the CPU), and the trajectories are returned on the collector's ``device``, where the
@@ -151,8 +153,9 @@ class EpisodeCollector:
             policy = copy.deepcopy(policy).to(env_device)
             policy_params = None if policy_params is None else policy_params.to(env_device)
         actor = make_actor(policy, policy_params)
+        fast = getattr(env, "transitions", None)
         with set_exploration_type(ExplorationType.RANDOM):
-            rollout = env.rollout(
+            rollout = fast(self.max_steps, actor) if fast is not None else env.rollout(
                 self.max_steps, actor, tensordict=start, auto_reset=False, break_when_any_done=False
             )
         done = rollout["next", "done"].squeeze(-1)

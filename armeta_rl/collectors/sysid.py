@@ -30,8 +30,11 @@ class SysIdCollector:
     For tasks ``[K]`` with identifiers ``"params"`` (``TASK_KEY``) ``[K, d]`` ((m, l) for the
     pendulum by default, any of (m, l, g) with ``identifiers``; (m1, m2) for the acrobot), one
     batched env ``[K, episodes]`` is reset with those identifiers
-    and a uniformly random policy acts for ``n_transitions / episodes`` steps in a single
-    ``env.rollout`` (finished acrobot episodes are reset and collection goes on). Each task's
+    and a uniformly random policy acts for ``n_transitions / episodes`` steps (finished acrobot
+    episodes are reset and collection goes on). The steps are
+    :meth:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.transitions`: ``env.rollout``'s
+    transitions bit for bit, without TorchRL's per-step TensorDicts, which cost a hundred times
+    the physics of these envs. Each task's
     ``n_transitions`` transitions are split at random (torch's global RNG) into ``n_support``
     support and ``n_transitions - n_support`` query points::
 
@@ -46,8 +49,8 @@ class SysIdCollector:
     The defaults ``target="delta"``, ``normalize="none"`` learned best of the four pairs on both
     envs (docs/notes/history.md).
 
-    ``episodes=20`` (20 episodes of 10 steps per task): a TorchRL step costs about the same for
-    any batch, so collection time grows with the steps per episode (see
+    ``episodes=20`` (20 episodes of 10 steps per task): a step costs about the same for any
+    batch, so collection time grows with the steps per episode (see
     ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the initial states
     (the velocities they cover: docs/notes/history.md).
 
@@ -150,9 +153,8 @@ class SysIdCollector:
         env.set_seed(int(torch.randint(0, 2**62, ())))
         batch = (n_tasks, self.episodes)
         params = params.to(self.device)[:, None].expand(*batch, -1)
-        reset = env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
-        return env.rollout(self.n_transitions // self.episodes, tensordict=reset,
-                           auto_reset=False, break_when_any_done=False)
+        env.reset(TensorDict({TASK_KEY: params}, batch_size=batch, device=self.device))
+        return env.transitions(self.n_transitions // self.episodes)
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:
         """Support and query transitions for every task: TensorDict ``[K]`` with

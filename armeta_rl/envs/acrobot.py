@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDictBase
 from torch import Tensor
 from torchrl.data import Categorical
 
@@ -123,15 +122,20 @@ class AcrobotEnv(IdentifiedSystemEnv):
         slope = torch.add(k1, k4).add_(k2, alpha=2.0).add_(k3, alpha=2.0)
         return torch.add(state, slope, alpha=self.dt / 6.0)
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        torque = self.available_torque[tensordict["action"].reshape(self.n_envs)]
-        state = self._rk4(self._state, torque)
+    def _random_actions(self, steps: int) -> Tensor:
+        return torch.randint(0, 3, (steps, *self.batch_size), device=self.device)
+
+    def _dynamics(self, state: Tensor, action: Tensor) -> Tensor:
+        torque = self.available_torque[action.reshape(self.n_envs)]
+        state = self._rk4(state, torque)
         self._wrap_angles_(state[:2])
         state[2:].clamp_(self.min_velocity, self.max_velocity)
-        observation = self._observe_rows(state)
-        # gymnasium's _terminal: the tip above the bar, -cos θ1 - cos(θ1 + θ2) > 1
-        cos1, cos12 = observation[0], (state[0] + state[1]).cos()
-        terminated = -cos1 - cos12 > 1.0
-        reward = terminated.to(self.dtype) - 1.0
-        self._state = state
-        return self._output(state.T, observation.T, reward, terminated)
+        return state
+
+    def _terminated(self, new_state: Tensor) -> Tensor:
+        """gymnasium's ``_terminal``: the tip above the bar, -cos θ1 - cos(θ1 + θ2) > 1."""
+        return -new_state[0].cos() - (new_state[0] + new_state[1]).cos() > 1.0
+
+    def _reward(self, state: Tensor, action: Tensor, new_state: Tensor) -> Tensor:
+        """0 when the step terminates, -1 otherwise."""
+        return self._terminated(new_state).to(self.dtype) - 1.0

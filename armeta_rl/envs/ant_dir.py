@@ -42,7 +42,9 @@ class AntDirEnv(AntTaskEnv):
         batch_size: ``[tasks, episodes]`` (any batch shape works).
         max_steps: time limit in env steps (200).
         frame_skip: physics steps per env step (5, as gymnasium's Ant).
-        ctrl_cost_weight, contact_cost_weight, survive_reward: reward terms (module docstring).
+        ctrl_cost_weight: weight of the control cost (module docstring).
+        contact_cost_weight: weight of the contact cost (module docstring).
+        survive_reward: reward per step alive (module docstring).
         healthy_z_range: torso heights outside this closed interval terminate the episode.
         reset_noise_scale: initial qpos = model qpos0 + U(±scale), qvel = scale·N(0, 1).
         threads: threads stepping the MuJoCo batch natively (1: the calling thread only;

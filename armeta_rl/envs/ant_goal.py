@@ -49,6 +49,7 @@ direction.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Sequence
 
@@ -146,13 +147,17 @@ class AntTaskEnv(BatchedMujocoEnv):
         self._cfrc_ext, self._xpos, self._xmat = (
             self.sim.bind(k) for k in ("cfrc_ext", "xpos", "xmat")
         )
-        self._forces = np.empty_like(self._cfrc_ext)
+        self._forces = self._cfrc_ext.clip(-1.0, 1.0)  # the clipped forces, refilled every step
+
+    # _observe, ant_reward, _healthy and AntGoalEnv._reward read the bound arrays with operators
+    # and methods that NumPy arrays and torch tensors share: the same code serves the CPU batch
+    # (float64 NumPy) and MuJoCo Warp (float32 torch on its device, ant_goal_warp).
 
     def _observe(self) -> np.ndarray:
         """Fill the observation buffer ``[n_sims, 119]`` and the clipped forces from the batch."""
         nq, nv, n = self.model.nq, self.model.nv, self.n_sims
         obs = self._obs
-        np.clip(self._cfrc_ext, -1.0, 1.0, out=self._forces)
+        self._forces[...] = self._cfrc_ext.clip(-1.0, 1.0)
         obs[:, :nq] = self._qpos
         obs[:, nq : nq + nv] = self._qvel
         end = obs.shape[1] - 12
@@ -166,8 +171,8 @@ class AntTaskEnv(BatchedMujocoEnv):
         ``[n_sims]``, with ``F`` the clipped contact forces after the step."""
         return (
             task_term
-            - self.ctrl_cost_weight * np.square(action).sum(-1)
-            - self.contact_cost_weight * np.square(self._forces).sum((-2, -1))
+            - self.ctrl_cost_weight * (action * action).sum(-1)
+            - self.contact_cost_weight * (self._forces * self._forces).sum((-2, -1))
             + self.survive_reward
         )
 
@@ -175,7 +180,7 @@ class AntTaskEnv(BatchedMujocoEnv):
         state = self._obs[:, : self.model.nq + self.model.nv]
         height = self._qpos[:, 2]
         low, high = self.healthy_z_range
-        return np.isfinite(state).all(-1) & (height >= low) & (height <= high)
+        return (abs(state) < math.inf).all(-1) & (height >= low) & (height <= high)
 
 
 class AntGoalEnv(AntTaskEnv):
@@ -227,4 +232,4 @@ class AntGoalEnv(AntTaskEnv):
                 task: np.ndarray) -> np.ndarray:
         """The AntPos reward of the module docstring."""
         xy = self._xpos[:, self._torso, :2]
-        return self.ant_reward(-np.abs(xy - task).sum(-1), action)
+        return self.ant_reward(-abs(xy - task).sum(-1), action)

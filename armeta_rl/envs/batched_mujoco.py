@@ -140,12 +140,12 @@ class BatchedMujocoEnv(EnvBase):
         self.sim = self._make_batch(threads)
         self._qpos, self._qvel, self._ctrl = (self.sim.bind(k) for k in ("qpos", "qvel", "ctrl"))
         self._bind_outputs()
-        self._obs = np.empty((self.n_sims, self.observation_size()))
+        self._obs = self._new_observation()
         self._make_specs()
         self._generator = torch.Generator()
         self._set_seed(seed)
         self._task = self._default_identifiers()
-        self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long)
+        self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long, device=self.sim_device)
         self.sim.reset()
 
     # -- what a subclass states --------------------------------------------------------------
@@ -191,6 +191,32 @@ class BatchedMujocoEnv(EnvBase):
 
     # -- the machinery -----------------------------------------------------------------------
 
+    # -- the simulation's arrays -------------------------------------------------------------
+    # The step below is written once for the arrays the batch binds: float64 NumPy arrays here;
+    # torch tensors on a GPU for MuJoCo Warp (armeta_rl.envs.ant_goal_warp), which overrides
+    # these four. What reads the bound arrays (_observe, _reward, _healthy) uses only operators
+    # and methods the two share.
+
+    sim_device = torch.device("cpu")
+    """Where the bound arrays live, as a torch device."""
+
+    def _new_observation(self) -> np.ndarray:
+        """The observation buffer ``[n_sims, size]``, of the simulation's array type."""
+        return np.empty((self.n_sims, self.observation_size()))
+
+    def _as_sim(self, tensor: torch.Tensor) -> np.ndarray:
+        """``tensor`` as the simulation's array type: float64 NumPy (a view of a float64 CPU
+        tensor)."""
+        return tensor.detach().to("cpu", torch.float64).numpy()
+
+    def _as_torch(self, array: np.ndarray) -> torch.Tensor:
+        """An array of the simulation's type as a torch tensor on :attr:`sim_device` (a view)."""
+        return torch.from_numpy(array)
+
+    def _snapshot(self, array: np.ndarray) -> np.ndarray:
+        """A copy of a bound array (its values before the next batch call)."""
+        return array.copy()
+
     def _make_batch(self, threads: int) -> Batch:
         """The ``n_sims`` simulations of the model, stepped natively on ``threads`` threads
         (:class:`armeta_rl.envs.ant_goal_warp.AntGoalWarpEnv` puts them on MuJoCo Warp)."""
@@ -233,7 +259,8 @@ class BatchedMujocoEnv(EnvBase):
 
     def _output(self, extra: dict[str, torch.Tensor]) -> TensorDict:
         shape, dtype = self.batch_size, torch.get_default_dtype()
-        observation = torch.from_numpy(self._obs).to(dtype).reshape(*shape, -1)
+        # a copy: the buffer is refilled by the next step
+        observation = self._as_torch(self._obs).to(dtype, copy=True).reshape(*shape, -1)
         return TensorDict(
             {"observation": observation, TASK_KEY: self._task.to(dtype), **extra},
             batch_size=shape,
@@ -253,7 +280,8 @@ class BatchedMujocoEnv(EnvBase):
         if task is not None:
             task = task.to("cpu", torch.float64)
             self._task = torch.where(mask, task, self._task)
-        self._steps = torch.where(mask, torch.zeros_like(self._steps), self._steps)
+        steps = self._steps
+        self._steps = torch.where(mask.to(steps.device), torch.zeros_like(steps), steps)
         ids = np.flatnonzero(mask.reshape(-1).numpy())
         if ids.size:
             self._reset_sims(ids)
@@ -270,26 +298,25 @@ class BatchedMujocoEnv(EnvBase):
         ids = None if ids.size == self.n_sims else ids.astype(np.int32)
         self.sim.reset(ids, stage=STAGE_NONE)
         rows = slice(None) if ids is None else ids
-        self._qpos[rows] = self.model.qpos0 + qpos_noise.numpy()
-        self._qvel[rows] = qvel_noise.numpy()
+        self._qpos[rows] = self._as_sim(torch.from_numpy(self.model.qpos0) + qpos_noise)
+        self._qvel[rows] = self._as_sim(qvel_noise)
         self.sim.forward(ids, stage=self.stage)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         shape = self.batch_size
-        action = tensordict.get("action").detach().to("cpu", torch.float64)
-        action = action.reshape(self.n_sims, self.model.nu).numpy()
-        qpos_before = self._qpos.copy()
+        action = self._as_sim(tensordict.get("action").reshape(self.n_sims, self.model.nu))
+        qpos_before = self._snapshot(self._qpos)
         self._ctrl[:] = action
         self.sim.step(nstep=self.frame_skip, stage=self.stage)
         self._observe()
-        task = self._task.reshape(self.n_sims, -1).numpy()
-        reward = self._reward(action, qpos_before, task)
-        terminated = torch.from_numpy(~self._healthy()).reshape(*shape, 1)
+        task = self._as_sim(self._task.reshape(self.n_sims, -1))
+        reward = self._as_torch(self._reward(action, qpos_before, task))
+        terminated = self._as_torch(~self._healthy()).reshape(*shape, 1)
         self._steps = self._steps + 1
         truncated = self._steps >= self.max_steps
         return self._output(
             {
-                "reward": torch.from_numpy(reward).to(torch.get_default_dtype()).reshape(*shape, 1),
+                "reward": reward.to(torch.get_default_dtype()).reshape(*shape, 1),
                 "done": terminated | truncated,
                 "terminated": terminated,
                 "truncated": truncated,

@@ -202,7 +202,10 @@ class Walker2dVelEnv(PlanarRunnerEnv):
         ctrl_cost_weight: 0.05 (MPTS's ``0.5 * 1e-1``).
         alive_bonus: reward added every step (1, MPTS's).
         reset_noise_scale: initial qpos = qpos0 + U(±scale), qvel = U(±scale) (0.005).
-        threads, seed, device: as :class:`HalfCheetahTaskEnv`.
+        threads: threads stepping the MuJoCo batch natively (1: the calling thread only;
+            ``None``: one per CPU core).
+        seed: seed of the generator for reset noise and default velocities (U(0, 2)).
+        device: torch device of the outputs (the physics runs on the CPU).
     """
 
     xml = "walker2d_v5.xml"

@@ -6,7 +6,6 @@ from __future__ import annotations
 import math
 
 import torch
-from tensordict import TensorDictBase
 from torch import Tensor
 from torchrl.data import Bounded
 
@@ -79,16 +78,25 @@ class PendulumEnv(IdentifiedSystemEnv):
         theta, theta_dot = state
         return torch.stack([theta.cos(), theta.sin(), theta_dot])
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        theta, theta_dot = self._state
-        torque = self.torque(tensordict["action"].reshape(self.n_envs)).to(self.dtype)
+    def _random_actions(self, steps: int) -> Tensor:
+        action = torch.empty((steps, *self.batch_size, 1), dtype=self.dtype, device=self.device)
+        return action.uniform_(-self.max_torque, self.max_torque)
+
+    def _torques(self, action: Tensor) -> Tensor:
+        """The clipped torques ``[n]`` of actions ``[n, 1]`` (or the batch's ``[*batch, 1]``)."""
+        return self.torque(action.reshape(-1)).to(self.dtype)
+
+    def _dynamics(self, state: Tensor, action: Tensor) -> Tensor:
+        theta, theta_dot = state
         gravity, inertia = self.constants  # 3g / (2l) dt and 3 / (m l²) dt
-        normalized = self._wrap_angles_(theta.clone())
-        reward = -(normalized.square() + 0.1 * theta_dot.square() + 0.001 * torque.square())
-        new_theta_dot = theta_dot + gravity * theta.sin() + inertia * torque
+        new_theta_dot = theta_dot + gravity * theta.sin() + inertia * self._torques(action)
         new_theta_dot = new_theta_dot.clamp(-self.max_speed, self.max_speed)
         new_theta = self._wrap_angles_(theta + new_theta_dot * self.dt)
-        new_state = torch.stack([new_theta, new_theta_dot])
-        terminated = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
-        self._state = new_state
-        return self._output(new_state.T, self._observe_rows(new_state).T, reward, terminated)
+        return torch.stack([new_theta, new_theta_dot])
+
+    def _reward(self, state: Tensor, action: Tensor, new_state: Tensor) -> Tensor:
+        """-(normalize(θ)² + 0.1 θ̇² + 0.001 u²) at the step's start."""
+        theta, theta_dot = state
+        torque = self._torques(action)
+        normalized = self._wrap_angles_(theta.clone())
+        return -(normalized.square() + 0.1 * theta_dot.square() + 0.001 * torque.square())

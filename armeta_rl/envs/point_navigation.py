@@ -17,7 +17,7 @@ gives plain navigation.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -172,16 +172,23 @@ class PointNavigationEnv(EnvBase):
             device=self.device,
         )
 
-    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action").clamp(-MAX_SPEED, MAX_SPEED)
-        self._position = self._position + action
-        self._steps = self._steps + 1
-        offset = self._position - self._goal
+    def _move(self, position: torch.Tensor, steps: torch.Tensor, action: torch.Tensor
+              ) -> tuple[torch.Tensor, ...]:
+        """One step from ``position`` ``[*batch, 2]`` after ``steps`` ``[*batch, 1]`` steps, a pure
+        function under the env's goals: the new position and step count, the reward, and
+        whether the episode terminates (goal reached) or is truncated (time limit)."""
+        position = position + action.clamp(-MAX_SPEED, MAX_SPEED)
+        steps = steps + 1
+        offset = position - self._goal
         squared = offset.square().sum(-1, keepdim=True)
         distance = squared if self.squared_distance else squared.sqrt()
         reward = -distance * self._scale
         terminated = (offset.abs() < GOAL_TOLERANCE).all(-1, keepdim=True)
-        truncated = self._steps >= self.max_steps
+        return position, steps, reward, terminated, steps >= self.max_steps
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self._position, self._steps, reward, terminated, truncated = self._move(
+            self._position, self._steps, tensordict.get("action"))
         return TensorDict(
             {
                 "observation": self._position.clone(),
@@ -194,3 +201,43 @@ class PointNavigationEnv(EnvBase):
             batch_size=self.batch_size,
             device=self.device,
         )
+
+    def transitions(self, steps: int,
+                    policy: Callable[[TensorDictBase], TensorDictBase]) -> TensorDict:
+        """``env.rollout(steps, policy, auto_reset=False, break_when_any_done=False)`` from the
+        env's current state (after a reset), without TorchRL's per-step env machinery, which
+        costs far more than this env's physics.
+
+        ``policy`` reads ``"observation"`` from a TensorDict and writes ``"action"`` and whatever
+        else it writes (a TorchRL actor: ``"action_log_prob"``, ``"loc"``, ...); it is called once
+        a step, as ``env.rollout`` calls it, so it draws the same random actions. Finished
+        episodes restart from the origin between steps, as TorchRL's automatic partial reset
+        restarts them (never after the last step). Equal to ``env.rollout`` transition for
+        transition, bit for bit (``tests/test_point_navigation.py``).
+
+        Returns a TensorDict ``[*batch, steps]`` with ``"observation"``, ``"params"``, the
+        policy's outputs, and ``"next"``: ``"observation"``, ``"params"``, ``"reward"``,
+        ``"done"``, ``"terminated"``, ``"truncated"``.
+        """
+        batch, n_steps = self.batch_size, int(steps)
+        position, counts = self._position, self._steps
+        acted, moved = [], []
+        for t in range(n_steps):
+            observed = TensorDict({"observation": position.clone()}, batch, device=self.device)
+            acted.append(policy(observed))
+            new_position, counts, reward, terminated, truncated = self._move(
+                position, counts, acted[-1].get("action"))
+            done = terminated | truncated
+            moved.append({"observation": new_position.clone(), "reward": reward, "done": done,
+                          "terminated": terminated, "truncated": truncated})
+            position = new_position
+            if t < n_steps - 1 and bool(done.any()):
+                position = torch.where(done, torch.zeros_like(position), position)
+                counts = torch.where(done, torch.zeros_like(counts), counts)
+        self._position, self._steps = new_position, counts
+        dim = len(batch)
+        rollout = torch.stack(acted, dim)
+        goal = self._goal.unsqueeze(dim).expand(*batch, n_steps, 2)
+        after = {key: torch.stack([step[key] for step in moved], dim) for key in moved[0]}
+        rollout.update({TASK_KEY: goal.clone(), "next": {**after, TASK_KEY: goal.clone()}})
+        return rollout
