@@ -192,15 +192,6 @@ def test_a_missing_components_directory_falls_back(tmp_path, whole, stopped, cap
     assert outcome(run_dir) == outcome(whole)
 
 
-def test_no_intact_checkpoint_is_a_clear_refusal(tmp_path, stopped):
-    run_dir = tmp_path / "run"
-    shutil.copytree(stopped, run_dir)
-    for checkpoint in (run_dir / "checkpoints").iterdir():
-        corrupt(checkpoint / FILES["leader"], "garbled")
-    with pytest.raises(CheckpointBroken, match="has no intact checkpoint; broken: checkpoint-0"):
-        finish(run_dir)
-
-
 def enospc_from(monkeypatch, call):
     """Make the checkpoint writer fail with a full disk from its ``call``-th call on."""
     write_file, calls = checkpoint_module.write_file, [0]
@@ -521,6 +512,7 @@ def signalled_cli(run_dir, sig, where, times="once", *extra):
     ("SIGUSR1", "iteration", 75, 3),
     ("SIGUSR1", "checkpoint", 75, 4),
     ("SIGINT", "iteration", 130, 3),
+    ("SIGINT", "checkpoint", 130, 4),
 ])
 def test_a_signal_stops_the_run_after_its_iteration_with_a_checkpoint_and_it_resumes_exactly(
         tmp_path, whole, sig, where, code, stopped_after):
@@ -721,7 +713,7 @@ def test_a_run_whose_checkpoints_were_all_refused_is_refused_again(tmp_path, sto
     shutil.copytree(stopped, run_dir)
     for checkpoint in (run_dir / "checkpoints").iterdir():
         corrupt(checkpoint / FILES["leader"], "garbled")
-    with pytest.raises(CheckpointBroken, match="has no intact checkpoint"):
+    with pytest.raises(CheckpointBroken, match="has no intact checkpoint; broken: checkpoint-0"):
         finish(run_dir)
     with pytest.raises(CheckpointBroken, match="checkpoint-000000000004.broken \\(set aside by an"):
         finish(run_dir)  # not trained again from iteration 0
