@@ -48,6 +48,10 @@ LONG = ("trainer.iterations=400", "trainer.checkpoint_every=100", "trainer.log_e
         "trainer.progress=false", "eval.n_tasks=20", "trainer.density_every=0", "logger=csv")
 """A run long enough (tens of seconds) to be signalled after its first checkpoint."""
 REPRODUCE = ("table1", "profile=tiny", "benchmarks=sinusoid_uniform", "seeds=0")
+TEMPORARY = re.compile(r"/tmp/fault_campaign_\w+/")
+"""The temporary directory of a campaign, left out of the table."""
+CRASH = re.compile(r"traceback|segfault|killed by SIG(TERM|USR1|INT)")
+"""An outcome a user meets as a crash: a traceback, a segfault, a catchable signal's death."""
 ADDRESS_SPACE = 16 * 2**30
 """The address-space limit of the cases that ask for huge sizes: a command that allocates without
 checking fails inside it instead of taking the shared machine's memory."""
@@ -614,16 +618,22 @@ def main() -> None:
         stored["now"] = now
     RESULTS.write_text(json.dumps(stored, indent=1, sort_keys=True) + "\n")
     if "now" in stored:
-        rows = [(case, stored["before"]["cases"].get(name, "–"),
-                 stored["now"]["cases"].get(name, "–")) for name, case in CASES.items()]
+        columns = [stored[column]["cases"] for column in ("before", "now")]
+        rows = [(case, *(TEMPORARY.sub("…/", cases.get(name, "–")) for cases in columns))
+                for name, case in CASES.items()]
         table = markdown_table(("case", f"before ({stored['before']['revision']})",
                                 f"now ({stored['now']['revision']})"), rows)
+        counts = [sum(CRASH.search(cases.get(name, "")) is not None for name in CASES)
+                  for cases in columns]
         write_section("fault_campaign", "The fault campaign", (
             "Each case run through the command-line tools as a user types it "
             "(`benchmarks/fault_campaign.py`; raw outcomes in "
-            "`benchmarks/fault_campaign.json`). Exit codes: 0 done, 1 a failed run or sweep, "
-            "2 bad input, 75 stopped by a preemption signal (resume it), 130 stopped by "
-            "SIGINT.\n\n" + table), PAGE)
+            "`benchmarks/fault_campaign.json`; the columns may come from runs of some cases "
+            "only, `--only`). Exit codes: 0 done, 1 a failed run or sweep, 2 bad input, 75 "
+            "stopped by a preemption signal (resume it), 130 stopped by SIGINT. Cases ending in "
+            f"a traceback, a segfault or a death by a catchable signal: {counts[0]} of "
+            f"{len(CASES)} before, {counts[1]} now.\n\n" + table), PAGE,
+            command=f"OMP_NUM_THREADS=1 python benchmarks/fault_campaign.py --before {args.before}")
 
 
 if __name__ == "__main__":
