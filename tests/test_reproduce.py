@@ -240,9 +240,18 @@ def test_cvar_curves_by_hand():
     assert all(math.isclose(p.se, 0.5) for p in points)
 
 
-def _report(mean: float, cvar: float, section: str = "initial") -> dict:
-    return {"metric": "mse", section: {"mean": mean, "sem": 0.1, "cvar": {"0.5": cvar},
-                                       "n_tasks": 4, "entropy": 1.0, "kl_p0": 0.0}}
+def _report(mean: float, cvar: float, adversarial: tuple[float, float] | None = None) -> dict:
+    """A report that passes the schema (check_report): p0's ``mean`` and CVaR_0.5 over 4 tasks
+    (sem |cvar - mean|, at least the spread they imply), and an adversary's if given."""
+    def section(mean: float, cvar: float) -> dict:
+        return {"mean": mean, "sem": abs(cvar - mean), "cvar": {"0.5": cvar}, "n_tasks": 4,
+                "entropy": 1.0, "kl_p0": 0.0}
+
+    report = {"metric": "mse", "benchmark": "sinusoid_uniform", "method": "maml",
+              "initial": section(mean, cvar)}
+    if adversarial is not None:
+        report["adversarial"] = section(*adversarial)
+    return report
 
 
 def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
@@ -254,7 +263,7 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
         run.mkdir(parents=True)
         (run / "eval.json").write_text(json.dumps(_report(mean, cvar)))
         (run / "eval_vs_same_seed.json").write_text(
-            json.dumps(_report(2 * mean, 2 * cvar, "adversarial")))
+            json.dumps(_report(mean, cvar, adversarial=(2 * mean, 2 * cvar))))
     records = collect(plan, tmp_path, {})
     assert len(records) == 8
     write_csv(records, tmp_path / "t.csv")
