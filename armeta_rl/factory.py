@@ -29,12 +29,15 @@ from armeta_rl.learners.anil import build_anil
 from armeta_rl.learners.base import Leader
 from armeta_rl.learners.cnp import build_cnp
 from armeta_rl.learners.maml import build_maml
+from armeta_rl.learners.maml_ppo import build_maml_ppo
 from armeta_rl.learners.maml_trpo import build_maml_trpo
 from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
-from armeta_rl.risk.groups import DroOptions, GroupDROPrinciple, TrOptions, WorstCasePrinciple
-from armeta_rl.risk.tail import DrOptions, TailRiskPrinciple
+from armeta_rl.risk.groups import GroupDROPrinciple, WorstCasePrinciple
+from armeta_rl.risk.mpts import MPTSPrinciple
+from armeta_rl.risk.pdts import PDTSPrinciple
+from armeta_rl.risk.tail import TailRiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace, make_initial
 
 
@@ -87,10 +90,11 @@ class RLForm:
 @dataclass(frozen=True)
 class Learner:
     """A registered meta-learner: its builder on regression and system-identification data
-    (``build``, handed the options of its ``learner.<name>`` section), and its meta-RL form on
-    episode data (``rl``; ``None``: it has none)."""
+    (``build``, handed the options of its ``learner.<name>`` section; ``None``: it learns from
+    episodes only, as MAML-PPO), and its meta-RL form on episode data (``rl``; ``None``: it has
+    none)."""
 
-    build: Builder
+    build: Builder | None
     rl: RLForm | None = None
 
 
@@ -98,6 +102,7 @@ LEARNERS: dict[str, Learner] = {
     "maml": Learner(build_maml, rl=RLForm("maml_trpo", build_maml_trpo)),
     "cnp": Learner(build_cnp),
     "anil": Learner(build_anil),
+    "maml_ppo": Learner(None, rl=RLForm("maml_ppo", build_maml_ppo)),
 }
 """Every meta-learner ``method.learner`` may name; adding one is a module and an entry here
 (docs/adding-a-learner.md)."""
@@ -115,27 +120,26 @@ def _ar(options: ArOptions, space: TaskSpace, initial: TaskDistribution, iterati
     return AdversarialPrinciple(adversary, options, total_updates=total_updates)
 
 
-def _dr(options: DrOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
-        ) -> RiskPrinciple:
-    return TailRiskPrinciple(initial, options)
+def _on_p0(principle: Callable[[TaskDistribution, Any], RiskPrinciple]) -> PrincipleBuilder:
+    """The builder of a principle made from p0 and its options alone (DR, TR, DRO, MPTS,
+    PDTS)."""
 
+    def build(options: Any, space: TaskSpace, initial: TaskDistribution, iterations: int
+              ) -> RiskPrinciple:
+        return principle(initial, options)
 
-def _tr(options: TrOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
-        ) -> RiskPrinciple:
-    return WorstCasePrinciple(initial, options)
-
-
-def _dro(options: DroOptions, space: TaskSpace, initial: TaskDistribution, iterations: int
-         ) -> RiskPrinciple:
-    return GroupDROPrinciple(initial, options)
+    return build
 
 
 PrincipleBuilder = Callable[[Any, TaskSpace, TaskDistribution, int], RiskPrinciple]
 """Builds a risk principle from its options (``None`` where it has no section, as ERM), the
 identifier box, p0 and the run's number of iterations."""
 
-PRINCIPLES: dict[str, PrincipleBuilder] = {"erm": _erm, "ar": _ar, "dr": _dr, "tr": _tr,
-                                           "dro": _dro}
+PRINCIPLES: dict[str, PrincipleBuilder] = {
+    "erm": _erm, "ar": _ar, "dr": _on_p0(TailRiskPrinciple), "tr": _on_p0(WorstCasePrinciple),
+    "dro": _on_p0(GroupDROPrinciple), "mpts": _on_p0(MPTSPrinciple),
+    "pdts": _on_p0(PDTSPrinciple),
+}
 """Every risk principle ``method.risk`` may name."""
 
 
@@ -163,6 +167,9 @@ def build_leader(method: MethodConfig, sections: Mapping[str, Any], collector: T
                               f"the benchmark gathers episodes: it supports methods whose "
                               f"learner is one of: {', '.join(with_rl)}")
         build, section = learner.rl.build, learner.rl.section
+    elif learner.build is None:
+        raise ConfigError("method.learner", method.learner, "learns from episodes: this "
+                          "benchmark has none (point_nav, ant_goal have)")
     else:
         build, section = learner.build, method.learner
     return build(sections[section], collector, device, model)

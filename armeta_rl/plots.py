@@ -1,6 +1,11 @@
 """Figures: the learned task distribution against p0 (paper figures "Task Structure Analysis"),
 and its evolution during training as PNG frames and an animated GIF.
 
+A figure is drawn from its numbers (:class:`DensityPicture`), so that an animation's frames can be
+redrawn on one colour scale at the end. Scales follow the densities' range
+(:func:`density_norm`): linear while p_φ stays within a decade of p0, logarithmic over its own
+range beyond; each pair of identifiers of a pairwise-marginal grid has its own.
+
 Figures are built on matplotlib's Agg canvas directly (no pyplot state, nothing to close), so they
 work headless and from any thread.
 """
@@ -9,7 +14,9 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from matplotlib.animation import PillowWriter
@@ -57,8 +64,9 @@ def pairwise_marginals(distribution: TaskDistribution,
     density = density_on_grid(distribution, points_per_axis)
     d = space.dim
     one = torch.stack([
-        density.sum([k for k in range(d) if k != i]) * width[torch.arange(d) != i].prod()
+        density.sum(others) * width[torch.arange(d) != i].prod() if others else density
         for i in range(d)
+        for others in [[k for k in range(d) if k != i]]
     ])
     two = torch.zeros(d, d, points_per_axis, points_per_axis, dtype=torch.float64)
     for i in range(d):
@@ -70,16 +78,114 @@ def pairwise_marginals(distribution: TaskDistribution,
     return axes, one, two
 
 
+@dataclass(frozen=True)
+class DensityPicture:
+    """What a density figure shows, as numbers: the grid midpoints ``axes`` ``[d, n]`` and, for
+    the distribution and p0, the 1-D marginals ``[d, n]`` and the 2-D marginals ``[d, d, n, n]``
+    (:func:`pairwise_marginals`; with two identifiers, the pair's marginal is the density
+    itself). Saved beside each animation frame, so that the animation is drawn at the end on one
+    colour scale."""
+
+    names: tuple[str, ...]
+    axes: Tensor
+    one: Tensor
+    two: Tensor
+    one_initial: Tensor
+    two_initial: Tensor
+
+    @property
+    def dim(self) -> int:
+        return len(self.names)
+
+    def pairs(self) -> list[tuple[int, int]]:
+        """The identifier pairs drawn as heat maps, ``(j, i)`` with ``τ_j`` across, ``τ_i`` up:
+        the one pair of a 2-D box, the pairs below the diagonal of a larger one."""
+        return [(j, i) for i in range(self.dim) for j in range(i)]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"names": list(self.names), **{k: getattr(self, k) for k in TENSORS}}
+
+    @classmethod
+    def from_state_dict(cls, state: dict[str, Any]) -> DensityPicture:
+        return cls(tuple(state["names"]), *(state[k] for k in TENSORS))
+
+
+TENSORS = ("axes", "one", "two", "one_initial", "two_initial")
+
+
+def density_picture(distribution: TaskDistribution, initial: TaskDistribution,
+                    points_per_axis: int = 100) -> DensityPicture:
+    """The numbers :func:`draw_density` draws: ``distribution`` (e.g. p_φ) and ``initial`` (p0)
+    on a grid of ``points_per_axis`` per identifier (fewer for three identifiers or more, so that
+    the grid has at most :data:`GRID_POINTS` points)."""
+    space = distribution.space
+    if points_per_axis < 2:
+        raise ConfigError("plots.points_per_axis", points_per_axis, "must be an integer >= 2")
+    if space.dim > 2:
+        points_per_axis = max(2, min(points_per_axis,
+                                     math.floor(GRID_POINTS ** (1 / space.dim) + 1e-9)))
+    axes, one, two = pairwise_marginals(distribution, points_per_axis)
+    _, one_initial, two_initial = pairwise_marginals(initial, points_per_axis)
+    return DensityPicture(tuple(space.names), axes, one, two, one_initial, two_initial)
+
+
+def density_norm(shown: Sequence[Tensor], reference: Tensor) -> Normalize:
+    """The colour scale of heat maps of the densities ``shown`` (one figure's, or every frame's
+    of an animation) beside ``reference``, p0's on the same cells.
+
+    Linear from zero while every value stays within a decade of p0's largest: a density that
+    moved mass within that range reads as its own shape, which a logarithmic scale flattens.
+    Otherwise logarithmic over the values' own range: from the smallest positive value (at most
+    four decades below the largest) to the largest, so a density spanning two decades gets two,
+    not a fixed four in which it looks like p0."""
+    values = torch.cat([v.reshape(-1) for v in (*shown, reference)])
+    top = float(values.max())
+    if not 0.0 < top < math.inf:  # the density underflows at every grid point: drawn blank
+        return Normalize(vmin=0.0, vmax=1.0)
+    if top <= 10 * float(reference.max()):
+        return Normalize(vmin=0.0, vmax=top)
+    smallest = float(values[values > 0].min())
+    return LogNorm(vmin=max(smallest, top * 1e-4), vmax=top, clip=True)
+
+
+def picture_norms(pictures: Sequence[DensityPicture]) -> dict[tuple[int, int], Normalize]:
+    """One colour scale per drawn pair for all ``pictures`` (the frames of one animation, or one
+    figure): :func:`density_norm` of the pair's 2-D marginals of every picture against p0's."""
+    first = pictures[0]
+    return {(j, i): density_norm([picture.two[j, i] for picture in pictures],
+                                 first.two_initial[j, i])
+            for j, i in first.pairs()}
+
+
+def draw_density(picture: DensityPicture, path: str | Path, title: str | None = None,
+                 norms: dict[tuple[int, int], Normalize] | None = None,
+                 low: Sequence[float] = (), high: Sequence[float] = ()) -> Figure:
+    """Draw ``picture`` and save a PNG at ``path``.
+
+    One identifier: both densities as curves. Two: heat maps of p_φ and p0 side by side on one
+    colour scale. Three or more: a grid of pairwise marginals, the 1-D marginals of both on the
+    diagonal, the 2-D marginals of p_φ below it, each pair on its own colour scale. ``norms``
+    gives the scale of each pair (:func:`picture_norms`; default: this picture's own); ``low``
+    and ``high`` the box, for the heat maps' extent (default: the grid's)."""
+    if picture.dim == 1:
+        figure = _curves(picture)
+    else:
+        norms = picture_norms([picture]) if norms is None else norms
+        half = (picture.axes[:, 1] - picture.axes[:, 0]) / 2
+        low = list(low) or (picture.axes[:, 0] - half).tolist()
+        high = list(high) or (picture.axes[:, -1] + half).tolist()
+        figure = (_heat_maps(picture, norms, low, high) if picture.dim == 2
+                  else _marginals(picture, norms, low, high))
+    if title is not None:
+        figure.suptitle(title)
+    figure.savefig(path, dpi=100)
+    return figure
+
+
 def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path: str | Path,
                  points_per_axis: int = 100, title: str | None = None) -> Figure:
-    """Plot the density of ``distribution`` (e.g. p_φ) against ``initial`` (p0) and save a PNG.
-
-    One identifier: both densities as curves on one axis. Two: two heat maps over the box on one
-    logarithmic colour scale (so they compare, and a concentrated p_φ does not wash out p0), axes
-    named by ``space.names``. Three or more: a grid of pairwise marginals
-    (:func:`pairwise_marginals`): on the diagonal the 1-D marginals of both distributions as
-    curves, below it the 2-D marginals of ``distribution`` as heat maps; the grid has at most
-    :data:`GRID_POINTS` points, so ``points_per_axis`` shrinks as the dimension grows.
+    """Plot the density of ``distribution`` (e.g. p_φ) against ``initial`` (p0) and save a PNG
+    (:func:`density_picture`, then :func:`draw_density` on the picture's own scales).
 
     Args:
         distribution: the distribution to show.
@@ -92,26 +198,8 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
         The figure (already saved).
     """
     space = distribution.space
-    if points_per_axis < 2:
-        raise ConfigError("plots.points_per_axis", points_per_axis, "must be an integer >= 2")
-    if space.dim == 1:
-        figure = _curves(distribution, initial, points_per_axis)
-    elif space.dim == 2:
-        figure = _heat_maps(distribution, initial, points_per_axis)
-    else:
-        most = math.floor(GRID_POINTS ** (1 / space.dim) + 1e-9)
-        figure = _marginals(distribution, initial, max(2, min(points_per_axis, most)))
-    if title is not None:
-        figure.suptitle(title)
-    figure.savefig(path, dpi=100)
-    return figure
-
-
-def _drawable(top: float) -> bool:
-    """Whether a colour scale can end at ``top``, the largest density on the grid: not where
-    the density underflows to zero (or overflows) at every grid point, e.g. a distribution whose
-    mass lies between the points; the map is then drawn blank on a unit scale."""
-    return 0.0 < top < math.inf
+    return draw_density(density_picture(distribution, initial, points_per_axis), path, title,
+                        low=space.low, high=space.high)
 
 
 def _new_figure(size: tuple[float, float]) -> Figure:
@@ -120,45 +208,38 @@ def _new_figure(size: tuple[float, float]) -> Figure:
     return figure
 
 
-def _curves(distribution: TaskDistribution, initial: TaskDistribution, n: int) -> Figure:
-    space = distribution.space
-    grid, _ = space.grid(n)
+def _curves(picture: DensityPicture) -> Figure:
     figure = _new_figure((6, 4))
     axis = figure.add_subplot()
-    for shown, label in ((distribution, "adversarial p_φ"), (initial, "initial p0")):
-        axis.plot(grid[:, 0].numpy(), density_on_grid(shown, n).numpy(), label=label)
-    axis.set_xlabel(space.names[0])
+    for density, label in ((picture.one[0], "adversarial p_φ"),
+                           (picture.one_initial[0], "initial p0")):
+        axis.plot(picture.axes[0].numpy(), density.numpy(), label=label)
+    axis.set_xlabel(picture.names[0])
     axis.set_ylabel("density")
     axis.legend()
     return figure
 
 
-def _heat_maps(distribution: TaskDistribution, initial: TaskDistribution, n: int) -> Figure:
-    space = distribution.space
-    densities = [density_on_grid(shown, n).numpy() for shown in (distribution, initial)]
-    extent = (space.low[0], space.high[0], space.low[1], space.high[1])
-    top = max(float(density.max()) for density in densities)
-    norm = LogNorm(vmin=top * 1e-4, vmax=top, clip=True) if _drawable(top) else Normalize(0, 1)
+def _heat_maps(picture: DensityPicture, norms: dict[tuple[int, int], Normalize],
+               low: Sequence[float], high: Sequence[float]) -> Figure:
+    extent = (low[0], high[0], low[1], high[1])
     figure = _new_figure((11, 4.5))
     axes = figure.subplots(1, 2)
-    for axis, density, label in zip(axes, densities, ("adversarial p_φ", "initial p0"),
-                                    strict=True):
-        image = axis.imshow(density.T, origin="lower", extent=extent, aspect="auto",
-                            cmap="viridis", norm=norm)
-        axis.set_xlabel(space.names[0])
-        axis.set_ylabel(space.names[1])
+    for axis, density, label in zip(axes, (picture.two[0, 1], picture.two_initial[0, 1]),
+                                    ("adversarial p_φ", "initial p0"), strict=True):
+        image = axis.imshow(density.T.numpy(), origin="lower", extent=extent, aspect="auto",
+                            cmap="viridis", norm=norms[0, 1])
+        axis.set_xlabel(picture.names[0])
+        axis.set_ylabel(picture.names[1])
         axis.set_title(label)
     figure.colorbar(image, ax=axes, label="density")
     return figure
 
 
-def _marginals(distribution: TaskDistribution, initial: TaskDistribution, n: int) -> Figure:
-    space, d = distribution.space, distribution.space.dim
-    axes_points, one, two = pairwise_marginals(distribution, n)
-    _, one_initial, _ = pairwise_marginals(initial, n)
-    top = float(two.max())
-    norm = Normalize(vmin=0.0, vmax=top if _drawable(top) else 1.0)  # linear: smooth marginals
-    figure = _new_figure((2.6 * d + 1, 2.4 * d))
+def _marginals(picture: DensityPicture, norms: dict[tuple[int, int], Normalize],
+               low: Sequence[float], high: Sequence[float]) -> Figure:
+    d, points = picture.dim, picture.axes
+    figure = _new_figure((3.0 * d + 1, 2.4 * d))
     grid = figure.subplots(d, d, squeeze=False)
     for i in range(d):
         for j in range(d):
@@ -167,17 +248,17 @@ def _marginals(distribution: TaskDistribution, initial: TaskDistribution, n: int
                 axis.set_axis_off()
                 continue
             if i == j:
-                axis.plot(axes_points[i].numpy(), one[i].numpy(), label="adversarial p_φ")
-                axis.plot(axes_points[i].numpy(), one_initial[i].numpy(), label="initial p0")
+                axis.plot(points[i].numpy(), picture.one[i].numpy(), label="adversarial p_φ")
+                axis.plot(points[i].numpy(), picture.one_initial[i].numpy(), label="initial p0")
                 axis.set_ylabel("marginal density" if i == 0 else "")
-            else:  # row i, column j < i: τ_j across, τ_i up
-                extent = (space.low[j], space.high[j], space.low[i], space.high[i])
-                image = axis.imshow(two[j, i].T.numpy(), origin="lower", extent=extent,
-                                    aspect="auto", cmap="viridis", norm=norm)
-                axis.set_ylabel(space.names[i] if j == 0 else "")
-            axis.set_xlabel(space.names[j] if i == d - 1 else "")
+            else:  # row i, column j < i: τ_j across, τ_i up, on the pair's own scale
+                extent = (low[j], high[j], low[i], high[i])
+                image = axis.imshow(picture.two[j, i].T.numpy(), origin="lower", extent=extent,
+                                    aspect="auto", cmap="viridis", norm=norms[j, i])
+                figure.colorbar(image, ax=axis, label="2-D marginal")
+                axis.set_ylabel(picture.names[i] if j == 0 else "")
+            axis.set_xlabel(picture.names[j] if i == d - 1 else "")
     grid[0, 0].legend(loc="upper right", fontsize="small")
-    figure.colorbar(image, ax=grid[1:, 0].tolist(), label="2-D marginal density of p_φ")
     return figure
 
 

@@ -1,4 +1,5 @@
-"""TorchRL PPO on a MuJoCo task family: uniform against adversarial domain randomization.
+"""TorchRL PPO on a MuJoCo task family: uniform, adversarial and risk-predictive domain
+randomization.
 
 Trains one PPO agent (ClipPPOLoss, GAE, ``torchrl.collectors.Collector``) per task source on the
 physics family of a YAML file (default: HalfCheetah, torso mass scale × friction scale):
@@ -6,6 +7,10 @@ physics family of a YAML file (default: HalfCheetah, torso mass scale × frictio
     uniform      every batch of episodes runs on physics drawn uniformly from the box
     adversarial  a flow adversary (:class:`armeta_rl.adversary.TaskSampler`) proposes the physics
                  of each batch and ascends on the negative returns of those episodes
+    mpts, pdts   a risk predictive model picks each batch from a pseudo-batch of uniform draws
+                 (MPTS's UCB score, PDTS's posterior sample and diversity) and learns from the
+                 negative returns (:class:`armeta_rl.risk.PrincipleSampler`), with the settings of
+                 the PDTS authors' domain-randomization code (see :func:`make_sampler`)
 
 Both start from the same seed and are evaluated on the same held-out grid of the box (the cell
 midpoints of a 5 × 5 grid, the mean of 4 deterministic episodes each): mean return, CVaR0.5 (the
@@ -48,11 +53,14 @@ from torchrl.objectives.value import GAE
 
 from armeta_rl.adversary import FlowAdversary, TaskSampler
 from armeta_rl.envs.mujoco_tasks import TaskFamily, load_task_family, make_gym_task_env
+from armeta_rl.risk import MPTSPrinciple, PDTSPrinciple, PrincipleSampler
+from armeta_rl.risk.mpts import MptsOptions
+from armeta_rl.risk.pdts import PdtsOptions
 from armeta_rl.tasks import BoxUniform
 
 ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_FAMILY = ROOT / "configs" / "task_family" / "half_cheetah.yaml"
-SOURCES = ("uniform", "adversarial")
+SOURCES = ("uniform", "adversarial", "mpts", "pdts")
 
 
 @dataclass(frozen=True)
@@ -78,6 +86,29 @@ class Settings:
 
 QUICK = Settings(iterations=2, tasks=2, episode_steps=10, epochs=1, minibatch=10, grid=2,
                  eval_episodes=2)
+
+
+def make_sampler(source: str, family: TaskFamily,
+                 settings: Settings) -> TaskSampler | PrincipleSampler | None:
+    """The task sampler of ``source`` (``None`` for uniform draws). MPTS and PDTS take the PDTS
+    authors' domain-randomization settings: losses standardized per batch, 10 Adam steps at
+    0.005 on one ELBO sample, uniform draws for the first tenth of training; MPTS a pool of
+    2.5 × the batch, γ1 = 5 on 50 samples, half of the batch random; PDTS a pool of 64 × the
+    batch, diversity γ = 1 measured in the unit box."""
+    uniform = BoxUniform(family.space)
+    if source == "adversarial":
+        return TaskSampler(FlowAdversary(family.space, uniform), lam=settings.adversary_lam,
+                           lr=settings.adversary_lr, total_updates=settings.iterations)
+    shared = {"lr": 5e-3, "steps": 10, "elbo_samples": 1, "standardize": True,
+              "warmup": settings.iterations // 10}
+    if source == "mpts":
+        return PrincipleSampler(MPTSPrinciple(uniform, MptsOptions(
+            **shared, candidate_ratio=2.5, gamma_std=5.0, score_samples=50,
+            random_fraction=0.5)))
+    if source == "pdts":
+        return PrincipleSampler(PDTSPrinciple(uniform, PdtsOptions(
+            **shared, candidate_ratio=64.0, distance="unit")))
+    return None
 
 
 def make_env(family: TaskFamily, tasks: int, steps: int) -> TransformedEnv:
@@ -152,17 +183,15 @@ def evaluate(actor: ProbabilisticActor, family: TaskFamily, settings: Settings,
 
 def train(source: str, family: TaskFamily, settings: Settings, seed: int, out: Path,
           log: Callable[[str], None] = print) -> dict[str, object]:
-    """Train PPO with tasks from ``source`` (``uniform`` or ``adversarial``), save the policy to
+    """Train PPO with tasks from ``source`` (one of :data:`SOURCES`), save the policy to
     ``out/actor_<source>_seed<seed>.pt`` and evaluate it."""
     torch.manual_seed(seed)
     env = make_env(family, settings.tasks, settings.episode_steps)
     env.set_seed(seed)
     actor, critic = make_agent(env, settings.hidden)
     uniform = BoxUniform(family.space)
-    sampler = None
-    if source == "adversarial":
-        sampler = TaskSampler(FlowAdversary(family.space, uniform), lam=settings.adversary_lam,
-                              lr=settings.adversary_lr, total_updates=settings.iterations)
+    sampler = make_sampler(source, family, settings)
+    prefix = "adversary/" if isinstance(sampler, TaskSampler) else ""  # MPTS/PDTS: risk/…
     frames = settings.tasks * settings.episode_steps
     collector = Collector(env, actor, frames_per_batch=frames,
                           total_frames=frames * settings.iterations,
@@ -195,7 +224,7 @@ def train(source: str, family: TaskFamily, settings: Settings, seed: int, out: P
         elapsed = time.perf_counter() - start
         history.append({"iteration": iteration, "mean_return": float(-losses.mean()),
                         "seconds": elapsed,
-                        **{f"adversary/{k}": v for k, v in stats.items()}})
+                        **{f"{prefix}{k}": v for k, v in stats.items()}})
         log(f"[{source}] iteration {iteration + 1}/{settings.iterations}: mean return "
             f"{-losses.mean():.1f}, {elapsed / (iteration + 1):.2f} s/iteration")
         if iteration + 1 < settings.iterations:
@@ -206,7 +235,7 @@ def train(source: str, family: TaskFamily, settings: Settings, seed: int, out: P
     result = {"train_seconds": time.perf_counter() - start, "history": history}
     torch.save(actor.state_dict(), out / f"actor_{source}_seed{seed}.pt")
     result["eval"] = evaluate(actor, family, settings, seed + 1)
-    if sampler is not None:
+    if isinstance(sampler, TaskSampler):
         result["adversary_samples"] = sampler.sample(256)["params"].tolist()
     return result
 

@@ -1,18 +1,22 @@
 """The adversary visible while it trains (issue 26): p_φ drawn every N iterations into PNG frames
-and an animated GIF, with exact marginals for boxes of three or more identifiers."""
+and an animated GIF, with exact marginals for boxes of three or more identifiers; colour scales
+chosen from the densities' range, one per animation and one per pair of identifiers."""
 
 from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from conftest import SMALL_RUN, compose_train
+from matplotlib.colors import LogNorm
 from PIL import Image
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.plots import pairwise_marginals, plot_density
+from armeta_rl.plots import density_norm, pairwise_marginals, plot_density
 from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
+from armeta_rl.trainers.density import DensityFrames
 from armeta_rl.trainers.training import run_training
 
 CUBE = TaskSpace(["m", "l", "g"], [0.4, 0.4, 5.0], [1.6, 1.6, 15.0])
@@ -68,8 +72,9 @@ def test_a_short_run_writes_frames_and_an_animation(tmp_path, benchmark, iterati
                         "trainer.density_every=2", f"trainer.iterations={iterations}",
                         "eval.n_tasks=4")
     run_training(cfg, tmp_path)
-    frames = sorted(path.name for path in (tmp_path / "density").iterdir())
+    frames = sorted(path.name for path in (tmp_path / "density").glob("*.png"))
     assert frames == [f"iter_{i:06d}.png" for i in drawn]
+    assert all((tmp_path / "density" / f"iter_{i:06d}.pt").is_file() for i in drawn)
     with Image.open(tmp_path / "density.gif") as animation:
         assert animation.n_frames == len(drawn)
         with Image.open(tmp_path / "density" / frames[0]) as first:
@@ -88,3 +93,66 @@ def test_drawing_frames_leaves_the_seeded_run_unchanged(tmp_path):
                             tmp_path / str(every)) for every in (0, 3)]
     assert (tmp_path / "3" / "density" / "iter_000006.png").is_file()
     assert reports[0] == reports[1]
+
+
+def test_a_density_within_a_decade_of_p0_gets_a_linear_scale_beyond_it_a_log_scale_of_its_range():
+    p0 = torch.ones(4, 4)
+    linear = density_norm([torch.tensor([[0.2, 5.0], [3.0, 0.0]])], p0)
+    assert not isinstance(linear, LogNorm) and (linear.vmin, linear.vmax) == (0.0, 5.0)
+    two_decades = density_norm([torch.tensor([[0.5, 50.0], [3.0, 0.0]])], p0)
+    assert isinstance(two_decades, LogNorm)
+    assert (two_decades.vmin, two_decades.vmax) == (0.5, 50.0)  # its own range, not 4 decades
+    sharp = density_norm([torch.tensor([[1e-9, 500.0], [3.0, 0.0]])], p0)
+    assert (sharp.vmin, sharp.vmax) == pytest.approx((0.05, 500.0))  # at most 4 decades
+
+
+def test_an_animation_keeps_p0_in_one_colour_while_p_phi_sharpens(tmp_path):
+    """Frames drawn as p_φ concentrates are redrawn on one scale at the end: p0's heat map (the
+    right half, below the title) is the same picture in every frame of the GIF."""
+    space = TaskSpace(["a", "b"], [0.0, 0.0], [1.0, 1.0])
+    torch.manual_seed(0)
+    adversary = FlowAdversary(space, BoxUniform(space), "spline")
+    frames = DensityFrames(adversary, adversary.base, tmp_path, every=1, points_per_axis=24)
+    for iteration in range(3):
+        frames.draw(iteration)
+        with torch.no_grad():
+            for parameter in adversary.parameters():
+                parameter.add_(0.6 * torch.randn_like(parameter))
+    frames.finish(2)
+    pictures = []
+    for iteration in range(3):
+        with Image.open(frames.frame_path(iteration)) as image:
+            pixels = np.asarray(image.convert("RGB"))
+        pictures.append(pixels[60:, pixels.shape[1] // 2:])
+    assert all(np.array_equal(pictures[0], other) for other in pictures[1:])
+    with Image.open(tmp_path / "density.gif") as animation:
+        assert animation.n_frames == 3
+
+
+def test_each_pair_of_identifiers_gets_its_own_colour_scale(tmp_path):
+    """A density sharp in one identifier: the pairs with it peak far above the other pair, and
+    each pair's heat map spans its own range."""
+    sharp = TruncatedNormal(CUBE, [1.0, 1.0, 10.0], [0.02, 0.4, 3.0])
+    figure = plot_density(sharp, BoxUniform(CUBE), tmp_path / "pairs.png", points_per_axis=30)
+    tops = sorted(image.get_clim()[1] for axis in figure.axes for image in axis.images)
+    assert len(tops) == 3 and tops[-1] > 5 * tops[0]
+
+
+
+def test_the_readme_figure_script_draws_a_finished_run_and_refuses_another(tmp_path):
+    """docs/figures/density.py draws the final p_φ of the default run; a run of other settings
+    is refused with one line (exit code 2), and draws when asked to take any run."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "figures" / "density.py"
+    spec = importlib.util.spec_from_file_location("density_figure", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    run = tmp_path / "run"
+    run_training(compose_train(*SMALL_RUN, "trainer.meta_batch=4", "eval.n_tasks=4"), run)
+    assert script.main(["--run", str(run), "--out", str(tmp_path / "refused.png")]) == 2
+    assert not (tmp_path / "refused.png").exists()
+    out = script.draw(run, tmp_path / "figure.png", check_default=False)
+    with Image.open(out) as image:
+        assert image.size[0] > image.size[1] > 100

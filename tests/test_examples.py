@@ -28,7 +28,8 @@ def test_ppo_domain_randomization_quick(tmp_path):
     example = load_example("ppo_domain_randomization")
     assert example.main(["--quick", "--out", str(tmp_path)]) == 0
     results = json.loads((tmp_path / "results.json").read_text())
-    for source in ("uniform", "adversarial"):
+    assert set(results["runs"]) == {"uniform", "adversarial", "mpts", "pdts"}
+    for source in example.SOURCES:
         (run,) = results["runs"][source]
         assert len(run["history"]) == example.QUICK.iterations
         evaluation = run["eval"]
@@ -42,10 +43,12 @@ def test_ppo_domain_randomization_quick(tmp_path):
         assert evaluation["worst_cell"] == returns[0]
         assert math.isclose(evaluation["cvar_0.5"], sum(returns[:2]) / 2, rel_tol=1e-12)
         assert math.isclose(evaluation["mean_return"], sum(returns) / len(returns), rel_tol=1e-12)
-    # the same held-out grid for both
-    assert results["runs"]["uniform"][0]["eval"]["grid_params"] == \
-        results["runs"]["adversarial"][0]["eval"]["grid_params"]
+    # the same held-out grid for all
+    grids = {str(results["runs"][source][0]["eval"]["grid_params"]) for source in example.SOURCES}
+    assert len(grids) == 1
     assert "adversary/grad_norm" in results["runs"]["adversarial"][0]["history"][0]
+    for source in ("mpts", "pdts"):  # the risk model learned from every batch's returns
+        assert all("risk/pcc" in step for step in results["runs"][source][0]["history"])
 
 
 @pytest.mark.parametrize("body", ["no_such_body", None])

@@ -673,7 +673,8 @@ def test_a_damaged_density_frame_is_left_out_of_the_animation_with_a_warning(
         tmp_path, framed, caplog):
     run_dir = tmp_path / "run"
     run_training(compose_train(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
-    (run_dir / "density" / "iter_000002.png").write_bytes(b"")  # a kill during its write
+    for damaged in ("iter_000002.png", "iter_000002.pt"):  # a frame with its numbers is redrawn
+        (run_dir / "density" / damaged).write_bytes(b"")
     with caplog.at_level(logging.WARNING):
         run_training(compose_train(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
     assert "iter_000002.png cannot be read: left out of density.gif" in caplog.text

@@ -41,6 +41,7 @@ def test_the_registry_registers_every_section_whichever_module_comes_first(modul
     principle's section in Hydra's ConfigStore."""
     statement = (f"import {module}\nimport armeta_rl.factory\n"
                  "from armeta_rl.config import schema\n"
-                 "assert sorted(schema().learner) == ['anil', 'cnp', 'maml', 'maml_trpo']\n"
+                 "assert sorted(schema().learner) == "
+                 "['anil', 'cnp', 'maml', 'maml_ppo', 'maml_trpo']\n"
                  "assert sorted(schema().risk) == ['ar', 'dr', 'dro', 'tr']")
     imported_after(statement)

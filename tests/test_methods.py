@@ -32,6 +32,10 @@ METHODS = [
     "tr_cnp",
     "dro_cnp",
     "ar_cnp",
+    "mpts_maml",
+    "pdts_maml",
+    "mpts_cnp",
+    "pdts_cnp",
 ]
 
 

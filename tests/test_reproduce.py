@@ -60,7 +60,7 @@ def _eval_files(results: Path) -> dict[Path, bytes]:
 
 def test_table1_runs_end_to_end_and_aggregates(table1_dir):
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
-    assert len(plan.runs) == 10 and len(plan.attacks) == 2 and len(plan.evals) == 30
+    assert len(plan.runs) == 14 and len(plan.attacks) == 2 and len(plan.evals) == 42
     for run in plan.runs:
         report = json.loads((table1_dir / run.subdir / "eval.json").read_text())
         assert report["method"] == run.method and report["benchmark"] == run.benchmark
@@ -85,12 +85,12 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
                        .read_text())
     assert again["adversarial"]["mean"] == own["adversarial"]["mean"]
     text = (table1_dir / "table1.md").read_text()
-    assert ("complete: 12/12 training runs (2 of them attack runs) and 30/30 evaluations"
+    assert ("complete: 16/16 training runs (2 of them attack runs) and 42/42 evaluations"
             in text)
     assert "0.499 ± 0.01" in text  # the paper's MAML average beside ours
     assert "| Adversarial (p_φ trained against MAML) |" in text
     rows = (table1_dir / "table1.csv").read_text().splitlines()
-    assert len(rows) == 1 + 10 + 30  # p0 of every run, three adversaries of every run
+    assert len(rows) == 1 + 14 + 42  # p0 of every run, three adversaries of every run
 
 
 def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
@@ -147,7 +147,7 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
         path.unlink()
     assert reproduce("table1", "tiny", table1_dir, launcher="none",
                      benchmarks=("sinusoid_uniform",)) == 1  # aggregates only: incomplete
-    assert ("**partial**: 11/12 training runs (2 of them attack runs) and 25/30 evaluations"
+    assert ("**partial**: 15/16 training runs (2 of them attack runs) and 35/42 evaluations"
             in (table1_dir / "table1.md").read_text())
     assert reproduce("table1", "tiny", table1_dir, launcher="basic",
                      benchmarks=("sinusoid_uniform",)) == 0
@@ -208,7 +208,7 @@ def test_a_sweep_restricted_to_another_benchmark_keeps_the_finished_rows(table1_
                      benchmarks=("sinusoid_normal",)) == 1  # aggregates only: nothing ran
     text = (results / "table1.md").read_text()
     assert "| Sinusoid-U | Initial |" in text
-    assert ("**partial**: 12/24 training runs (4 of them attack runs) and 30/60 evaluations"
+    assert ("**partial**: 16/32 training runs (4 of them attack runs) and 42/84 evaluations"
             in text)
     rows = (results / "table1.csv").read_text().splitlines()
     assert rows == (table1_dir / "table1.csv").read_text().splitlines()
@@ -365,7 +365,7 @@ def test_a_ray_launched_sweep_equals_the_local_one(tmp_path):
 def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
     whole = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",))
     part = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",), seeds=(1,))
-    assert {run.seed for run in part.runs} == {1} and len(part.runs) == 5
+    assert {run.seed for run in part.runs} == {1} and len(part.runs) == 7
     assert set(part.runs) < set(whole.runs) and set(part.evals) < set(whole.evals)
     assert [run.subdir for run in part.attacks] == ["runs/sinusoid_uniform/ar_maml-vs-maml/seed1"]
     # Same seed: learner seed 1 on adversary seed 1; next seed: seed 0 on 1 and seed 1 on 2;
@@ -373,7 +373,7 @@ def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
     pairs = {(job.name, job.learner.seed, job.adversary.seed) for job in part.evals}
     assert pairs == {("same_seed", 1, 1), ("next_seed", 0, 1), ("next_seed", 1, 2),
                      ("maml", 1, 1)}
-    assert len(part.evals) == 20
+    assert len(part.evals) == 28
 
 
 def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):

@@ -6,8 +6,9 @@ env (point navigation, Ant goal, any env taking its identifiers under
 ``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
 ``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
 steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
-An env that offers ``transitions(steps, policy)`` (point navigation) is stepped with it instead:
-``env.rollout``'s rollout bit for bit, without TorchRL's per-step env machinery.
+An env whose class offers ``transitions(steps, policy)`` (point navigation) is stepped with it
+instead: ``env.rollout``'s rollout bit for bit, without TorchRL's per-step env machinery. The same
+env behind transforms or in a batched env is stepped by ``env.rollout``, transforms and all.
 
 Devices: the policy acts on the env's device (a torch-native env runs wherever it was built; a
 MuJoCo env on the CPU), and the trajectories are returned on the collector's ``device``, where the
@@ -29,7 +30,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from armeta_rl.envs.point_navigation import PointNavigationEnv, Region, check_regions
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianMLP, make_actor
-from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.protocol import TASK_KEY, reset_with_identifiers
 from armeta_rl.tasks.space import TaskSpace
 
 
@@ -108,7 +109,7 @@ class EpisodeCollector:
             try:
                 for corner in (space.low, space.high):
                     params = torch.tensor([[corner]], dtype=dtype, device=env.device)
-                    env.reset(TensorDict({TASK_KEY: params}, [1, 1]))
+                    reset_with_identifiers(env, TensorDict({TASK_KEY: params}, [1, 1]))
             except IdentifierError as error:
                 box = {"names": list(space.names), "low": list(space.low),
                        "high": list(space.high)}
@@ -147,13 +148,15 @@ class EpisodeCollector:
         env_device = torch.device(env.device or "cpu")  # an env without one returns CPU tensors
         identifiers = tasks[TASK_KEY].to(env_device)
         env.set_seed(int(torch.randint(0, 2**62, ())))
-        start = env.reset(TensorDict(
+        start = reset_with_identifiers(env, TensorDict(
             {TASK_KEY: identifiers[:, None].expand(n_tasks, self.episodes, -1)}, env.batch_size))
         if next(policy.parameters()).device != env_device:
             policy = copy.deepcopy(policy).to(env_device)
             policy_params = None if policy_params is None else policy_params.to(env_device)
         actor = make_actor(policy, policy_params)
-        fast = getattr(env, "transitions", None)
+        # the env's own method only: TransformedEnv and batched envs forward unknown attributes
+        # to the env(s) inside, whose transitions would skip the transforms (or fail)
+        fast = env.transitions if callable(getattr(type(env), "transitions", None)) else None
         with set_exploration_type(ExplorationType.RANDOM):
             rollout = fast(self.max_steps, actor) if fast is not None else env.rollout(
                 self.max_steps, actor, tensordict=start, auto_reset=False, break_when_any_done=False

@@ -54,9 +54,6 @@ class AcrobotEnv(IdentifiedSystemEnv):
     def _make_action_spec(self) -> Categorical:
         return Categorical(n=3, shape=self.batch_size, dtype=torch.int64, device=self.device)
 
-    def _random_action(self) -> Tensor:
-        return torch.randint(0, 3, self.batch_size, device=self.device)
-
     def _precompute(self) -> None:
         # gymnasium's AVAIL_TORQUE: the torque of each action
         self.available_torque = torch.tensor([-1.0, 0.0, 1.0], dtype=self.dtype,

@@ -49,6 +49,17 @@ from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
 
 
+class UniformBounded(Bounded):
+    """A ``Bounded`` spec with one range for every entry whose samples are
+    ``Tensor.uniform_(low, high)``: the draws the envs' random actions have always taken (torch's
+    global RNG), now through TorchRL's own ``rand_action``."""
+
+    def rand(self, shape: torch.Size | None = None) -> Tensor:
+        low, high = (float(bound.reshape(-1)[0]) for bound in self.space)
+        out = torch.empty((*(shape or ()), *self.shape), dtype=self.dtype, device=self.device)
+        return out.uniform_(low, high)
+
+
 class IdentifiedSystemEnv(EnvBase):
     """Base class of the batched system-identification environments.
 
@@ -135,10 +146,6 @@ class IdentifiedSystemEnv(EnvBase):
         flat identifiers ``[n_envs, d]``."""
         raise NotImplementedError
 
-    def _random_action(self) -> Tensor:
-        """A uniform random action with the action spec's shape, dtype and range."""
-        raise NotImplementedError
-
     def _wrap_angles_(self, angles: Tensor) -> Tensor:
         """Wrap ``angles`` into ``[-π, π)`` in place (gymnasium's ``angle_normalize`` and
         ``wrap``, equal up to the value at ±π)."""
@@ -175,19 +182,6 @@ class IdentifiedSystemEnv(EnvBase):
         shape = (*self.batch_size, self.state_dim)
         unit = torch.rand(shape, generator=self.rng, dtype=self.dtype, device=self.device)
         return low + (high - low) * unit
-
-    def rand_action(self, tensordict: TensorDictBase | None = None) -> TensorDictBase:
-        """A uniform random action in the action spec's range (torch's global RNG).
-
-        Draws the one action tensor directly (:meth:`_random_action`): ``EnvBase.rand_action``
-        samples the full action Composite and rebuilds a TensorDict every step, which dominated
-        the rollout time.
-        """
-        action = self._random_action()
-        if tensordict is None:
-            return TensorDict({"action": action}, batch_size=self.batch_size, device=self.device)
-        tensordict.set("action", action)
-        return tensordict
 
     def _input_td_has_state(self, tensordict: TensorDictBase | None) -> bool:
         """Whether a reset TensorDict carries a simulator state to start from: ``"state"`` only.

@@ -54,8 +54,10 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from functools import partial
 from typing import Any
 
 import mujoco
@@ -480,6 +482,38 @@ class PhysicsTaskTransform(Transform):
         return state_spec
 
 
+class MujocoWarning(UserWarning):
+    """A warning MuJoCo's C library raised (through ``mju_warning``), e.g. the compiler's
+    deprecation of ``settotalmass`` in gymnasium's HalfCheetah model."""
+
+
+_ISSUED: set[str] = set()
+"""The MuJoCo warnings :func:`gym_env` has issued in this process. Python's own memory of shown
+warnings cannot serve: TorchRL's ``GymEnv`` enters ``warnings.catch_warnings`` at every env it
+builds, which clears it, so every env would show the warning again."""
+
+
+def gym_env(env_id: str, **gym_kwargs: Any) -> GymEnv:
+    """``GymEnv(env_id, **gym_kwargs)`` with the warnings MuJoCo raises while compiling its model
+    issued as :class:`MujocoWarning`: MuJoCo prints each one to stdout at every compilation (24
+    times for the 24 envs of the PPO example); each is issued once per process. They are
+    collected during construction (TorchRL's ``GymEnv`` records and drops
+    the Python warnings raised inside ``gym.make``) and issued after it; MuJoCo's own handler is
+    restored."""
+    messages: list[str] = []
+    previous = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(messages.append)
+    try:
+        env = GymEnv(env_id, **gym_kwargs)
+    finally:
+        mujoco.set_mju_user_warning(previous)
+    for message in messages:
+        if message not in _ISSUED:
+            _ISSUED.add(message)
+            warnings.warn(message, MujocoWarning, stacklevel=2)
+    return env
+
+
 def make_gym_task_env(
     family: TaskFamily,
     num_tasks: int | None = None,
@@ -493,11 +527,11 @@ def make_gym_task_env(
     if family.env is None:
         raise ConfigError("task_family.env", None, "a gymnasium MuJoCo env id, e.g. HalfCheetah-v5")
     if num_tasks is None:
-        base: EnvBase = GymEnv(family.env, **gym_kwargs)
+        base: EnvBase = gym_env(family.env, **gym_kwargs)
     else:
         if num_tasks < 1:
             raise ConfigError("num_tasks", num_tasks, "must be >= 1")
-        base = SerialEnv(num_tasks, lambda: GymEnv(family.env, **gym_kwargs))
+        base = SerialEnv(num_tasks, partial(gym_env, family.env, **gym_kwargs))
     env = TransformedEnv(base, PhysicsTaskTransform(family.parameters))
     if max_steps is not None:
         env.append_transform(StepCounter(max_steps))

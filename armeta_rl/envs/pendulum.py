@@ -7,9 +7,8 @@ import math
 
 import torch
 from torch import Tensor
-from torchrl.data import Bounded
 
-from armeta_rl.envs.identified_env import IdentifiedSystemEnv
+from armeta_rl.envs.identified_env import IdentifiedSystemEnv, UniformBounded
 
 
 class PendulumEnv(IdentifiedSystemEnv):
@@ -45,14 +44,9 @@ class PendulumEnv(IdentifiedSystemEnv):
         """The action is the torque, clipped to ``[-2, 2]``."""
         return action.clamp(-PendulumEnv.max_torque, PendulumEnv.max_torque)
 
-    def _make_action_spec(self) -> Bounded:
-        return Bounded(low=-self.max_torque, high=self.max_torque, shape=(*self.batch_size, 1),
-                       dtype=self.dtype, device=self.device)
-
-    def _random_action(self) -> Tensor:
-        shape = (*self.batch_size, 1)
-        action = torch.empty(shape, dtype=self.dtype, device=self.device)
-        return action.uniform_(-self.max_torque, self.max_torque)
+    def _make_action_spec(self) -> UniformBounded:
+        return UniformBounded(low=-self.max_torque, high=self.max_torque,
+                              shape=(*self.batch_size, 1), dtype=self.dtype, device=self.device)
 
     def _precompute(self) -> None:
         self.initial_scale = torch.tensor([math.pi, 1.0], dtype=self.dtype, device=self.device)

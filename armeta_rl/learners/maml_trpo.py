@@ -5,8 +5,10 @@ One meta-iteration on K tasks, all batched over tasks:
 
 1. roll out π_θ for ``episodes`` episodes per task (one env call, batch ``[K, episodes]``);
 2. inner step per task: θ'_k = θ − α ∇_θ L^in_k(θ), L^in_k = −mean(log π_θ(a|s)·Â) with normalized
-   GAE advantages from the per-task linear baseline; the K adapted parameter sets live in a
-   TensorDict ``[K]`` and the adapted policies roll out together;
+   GAE advantages from the per-task linear baseline, TorchRL's ``A2CLoss`` batched over tasks
+   (:func:`~armeta_rl.rl.losses.per_task_objective`; any loss module built on the policy may take
+   its place); the K adapted parameter sets live in a TensorDict ``[K]`` and the adapted
+   policies roll out together;
 3. outer TRPO step on the weighted post-adaptation surrogate
    Σ_k w_k L^out_k(θ), L^out_k = −mean(π_θ'_k(a|s)/π_old(a|s)·Â), subject to
    Σ_k w_k KL_k(π_θ'_k ‖ π_old) ≤ δ, with w = weights(per-task losses) (ERM: 1/K; the risk
@@ -25,14 +27,17 @@ from typing import Any, NamedTuple
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torch import Tensor
+from torchrl.modules import ProbabilisticActor
+from torchrl.objectives import LossModule
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.fields import Section, above, at_least, each, inside, key, register
 from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml import sgd_step
-from armeta_rl.rl.baseline import episode_mean, gae_advantages
-from armeta_rl.rl.policy import GaussianMLP, loc_scale, log_prob
+from armeta_rl.rl.baseline import gae_advantages
+from armeta_rl.rl.losses import check_loss_module, per_task_objective, reinforce_loss
+from armeta_rl.rl.policy import GaussianMLP, loc_scale, log_prob, make_actor
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
     flatten,
@@ -128,6 +133,9 @@ class MAMLTRPOLeader:
         device: where the policy and every meta-update computation live (its initial weights are
             drawn on the CPU, so a seed gives the same policy on every device); the collector
             rolls it out on its env's device.
+        inner_loss: builds the inner objective, a TorchRL loss module, from the policy's actor
+            (:func:`~armeta_rl.rl.losses.reinforce_loss`, TorchRL's ``A2CLoss``, by default; see
+            :func:`~armeta_rl.rl.losses.check_loss_module` for what it must be).
     """
 
     metric = "return"
@@ -138,10 +146,12 @@ class MAMLTRPOLeader:
         collector: TaskCollector,
         options: MamlTrpoOptions = MamlTrpoOptions(),
         device: torch.device | str = "cpu",
+        inner_loss: Callable[[ProbabilisticActor], LossModule] = reinforce_loss,
     ) -> None:
         self.collector = collector
         self.net = GaussianMLP(int(collector.in_features), int(collector.out_features),
                                tuple(options.hidden_sizes)).to(device)
+        self.inner_objective = check_loss_module(inner_loss(make_actor(self.net)), self.net)
         self.inner_lr = float(options.inner_lr)
         self.gamma, self.gae_lambda = float(options.gamma), float(options.gae_lambda)
         self.max_kl = float(options.max_kl)
@@ -165,11 +175,11 @@ class MAMLTRPOLeader:
     def inner_loss(
         self, params: Params, trajectories: TensorDictBase, advantages: Tensor
     ) -> Tensor:
-        """Per-task REINFORCE loss ``[K]``: −mean(log π(a|s)·Â) under per-task ``params`` (the
-        policy-gradient loss of the inner step, MAML paper Sec. 5.3; Williams 1992)."""
-        loc, scale = loc_scale(self.net, params, trajectories["observation"])
-        logp = log_prob(loc, scale, trajectories["action"])
-        return -episode_mean(logp * advantages, trajectories["mask"])
+        """Per-task inner loss ``[K]`` under per-task ``params``: by default REINFORCE,
+        −mean(log π(a|s)·Â) (the policy-gradient loss of the inner step, MAML paper Sec. 5.3;
+        Williams 1992), TorchRL's ``A2CLoss`` batched over tasks."""
+        return per_task_objective(self.inner_objective, self.net, as_task_params(params),
+                                  trajectories, advantages)
 
     def inner_step(
         self, theta: Params, trajectories: TensorDictBase, advantages: Tensor, create_graph: bool

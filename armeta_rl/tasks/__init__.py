@@ -1,4 +1,5 @@
-"""Task identifiers: the box they live in and the initial distributions p0 over it."""
+"""Task identifiers: the box they live in, the initial distributions p0 over it, the key they
+travel under, and the transform that draws them at every reset of a TorchRL env."""
 
 from armeta_rl.tasks.distributions import (
     BoxUniform,
@@ -6,14 +7,18 @@ from armeta_rl.tasks.distributions import (
     TruncatedNormal,
     make_initial,
 )
-from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.protocol import TASK_KEY, reset_with_identifiers
 from armeta_rl.tasks.space import TaskSpace
+from armeta_rl.tasks.transform import TaskTransform, finished_episodes
 
 __all__ = [
     "TASK_KEY",
     "BoxUniform",
     "TaskDistribution",
     "TaskSpace",
+    "TaskTransform",
     "TruncatedNormal",
+    "finished_episodes",
     "make_initial",
+    "reset_with_identifiers",
 ]

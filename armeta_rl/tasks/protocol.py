@@ -19,12 +19,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
 from armeta_rl.errors import IdentifierError
+
+if TYPE_CHECKING:
+    from torchrl.envs import EnvBase
 
 TASK_KEY = "params"
 """TensorDict key of the task identifiers, a float tensor ``[..., task_dim]``."""
@@ -85,3 +89,17 @@ def _describe(value: object) -> object:
     if isinstance(value, Tensor):
         return f"tensor of shape {list(value.shape)}, {value.dtype}"
     return value
+
+
+def reset_with_identifiers(env: EnvBase, tensordict: TensorDictBase) -> TensorDictBase:
+    """``env.reset(tensordict)`` for a reset TensorDict carrying identifiers under
+    :data:`TASK_KEY`, with ``set_state=True`` where the env takes a state at reset.
+
+    The identifiers are entries of the env's state spec (so that ``TransformedEnv`` and batched
+    envs forward them), so torchrl counts such a reset as one carrying a state: a batched env of
+    the system-identification envs honors it in torchrl 0.14 with a ``FutureWarning`` that from
+    0.15 a reset not asking for its state ignores it, which would silently keep the old tasks.
+    """
+    if env._supports_set_state:
+        return env.reset(tensordict, set_state=True)
+    return env.reset(tensordict)

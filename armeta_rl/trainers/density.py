@@ -2,13 +2,16 @@
 
 :class:`DensityFrames` is the callback :class:`~armeta_rl.trainers.game.GameTrainer` calls after
 every iteration. Every ``every`` iterations it draws p_φ against p0
-(:func:`armeta_rl.plots.plot_density`: a curve, a heat map, or pairwise marginals for three or
-more identifiers) into ``<run>/density/iter_<iteration>.png`` and, with a wandb logger, logs it as
-the image ``adversary/density`` at that step. :meth:`DensityFrames.finish` draws the last
-iteration if it is not a multiple of ``every`` and writes ``<run>/density.gif`` from all frames in
-the directory (a resumed run's animation includes the frames written before the interruption).
-Frames and the GIF are written atomically; a frame that cannot be read (a file damaged outside
-the run) is left out of the GIF with a warning, and the last iteration's is drawn again.
+(:func:`armeta_rl.plots.draw_density`: a curve, a heat map, or pairwise marginals for three or
+more identifiers) into ``<run>/density/iter_<iteration>.png``, on the frame's own colour scale,
+keeps the numbers drawn beside it (``iter_<iteration>.pt``, a
+:class:`~armeta_rl.plots.DensityPicture`) and, with a wandb logger, logs the image
+``adversary/density`` at that step. :meth:`DensityFrames.finish` draws the last iteration if it
+is not a multiple of ``every``, redraws every frame in the directory on one colour scale (per
+pair of identifiers) chosen from all of them, and writes ``<run>/density.gif``: p0 keeps its
+colour from frame to frame (a resumed run's animation includes the frames written before the
+interruption). Frames, their numbers and the GIF are written atomically; a frame that cannot
+be read (a file damaged outside the run) is left out of the GIF with a warning.
 
 Drawing evaluates the exact density on a grid: it draws no random numbers, so a run with frames
 is bit-identical to one without.
@@ -17,12 +20,20 @@ is bit-identical to one without.
 from __future__ import annotations
 
 import logging
+import pickle
 from pathlib import Path
 
+import torch
 from matplotlib.image import imread
 from torchrl.record.loggers import Logger, WandbLogger
 
-from armeta_rl.plots import plot_density, write_animation
+from armeta_rl.plots import (
+    DensityPicture,
+    density_picture,
+    draw_density,
+    picture_norms,
+    write_animation,
+)
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.trainers.run_dir import write_atomically
 
@@ -61,32 +72,58 @@ class DensityFrames:
             self.draw(iteration)
 
     def draw(self, iteration: int) -> Path:
-        """Draw p_φ as it is now as the frame of ``iteration``; returns the PNG's path."""
+        """Draw p_φ as it is now as the frame of ``iteration``, keeping its numbers beside it;
+        returns the PNG's path."""
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         path = self.frame_path(iteration)
-        write_atomically(path, lambda staged: plot_density(
-            self.adversary, self.initial, staged, self.points_per_axis,
-            title=f"p_φ at meta-iteration {iteration}"))
+        picture = density_picture(self.adversary, self.initial, self.points_per_axis)
+        write_atomically(path.with_suffix(".pt"),
+                         lambda staged: torch.save(picture.state_dict(), staged))
+        self._draw(picture, iteration)
         if isinstance(self.logger, WandbLogger):
             import wandb
 
             self.logger.log_metrics({"adversary/density": wandb.Image(str(path))}, iteration)
         return path
 
+    def _draw(self, picture: DensityPicture, iteration: int, norms=None) -> Path:
+        space = self.adversary.space
+        path = self.frame_path(iteration)
+        write_atomically(path, lambda staged: draw_density(
+            picture, staged, f"p_φ at meta-iteration {iteration}", norms, space.low, space.high))
+        return path
+
     def finish(self, iteration: int) -> Path:
-        """Draw the final ``iteration`` if it has no frame yet, then write the GIF of every frame
-        in the directory, in iteration order; returns the GIF's path."""
+        """Draw the final ``iteration`` if it has no frame yet, redraw every frame on the colour
+        scales of all of them (:func:`~armeta_rl.plots.picture_norms`), then write the GIF of
+        every frame in the directory, in iteration order; returns the GIF's path."""
         if not readable(self.frame_path(iteration)):
             self.draw(iteration)
-        frames = []
-        for frame in sorted(self.frames_dir.glob("iter_*.png"), key=lambda f: int(f.stem[5:])):
+        frames = sorted(self.frames_dir.glob("iter_*.png"), key=lambda f: int(f.stem[5:]))
+        pictures = [self._picture(frame) for frame in frames]
+        if all(picture is not None for picture in pictures):
+            norms = picture_norms(pictures)
+            for frame, picture in zip(frames, pictures, strict=True):
+                self._draw(picture, int(frame.stem[5:]), norms)
+        kept = []
+        for frame in frames:
             if readable(frame):
-                frames.append(frame)
+                kept.append(frame)
             else:
                 log.warning("density frame %s cannot be read: left out of %s", frame,
                             self.animation.name)
-        write_atomically(self.animation, lambda staged: write_animation(frames, staged))
+        write_atomically(self.animation, lambda staged: write_animation(kept, staged))
         return self.animation
+
+    @staticmethod
+    def _picture(frame: Path) -> DensityPicture | None:
+        """The numbers drawn in ``frame``, or ``None`` when they are missing or unreadable (a run
+        killed while saving them): the animation then keeps every frame's own scale."""
+        try:
+            state = torch.load(frame.with_suffix(".pt"), weights_only=True)
+        except (OSError, RuntimeError, EOFError, pickle.UnpicklingError):
+            return None
+        return DensityPicture.from_state_dict(state)
 
 
 def readable(frame: Path) -> bool:

@@ -1,0 +1,62 @@
+"""Any risk principle as a task sampler for a training loop that is not ours.
+
+:class:`PrincipleSampler` gives a principle (ERM, DR, TR, DRO, AR, MPTS, PDTS) the verbs of
+:class:`~armeta_rl.adversary.TaskSampler` and of p0 itself: ``sample(n)`` tasks, run them in any
+loop (TorchRL PPO, say), hand back one loss per task with ``update(tasks, losses)``. A loop that
+weighs its per-task losses asks :meth:`PrincipleSampler.weights` (uniform for ERM, AR, MPTS and
+PDTS; the tail for DR; the group weights for TR and DRO).
+
+The losses a loop hands back are the ones it has: for a follower of the game
+(``needs_next_losses``, AR, TR, DRO) our trainer evaluates the learner again after its step, an
+outside loop usually passes the batch's own losses (the flow adversary's :class:`TaskSampler`
+does the same).
+"""
+
+from __future__ import annotations
+
+from tensordict import TensorDict, TensorDictBase
+from torch import Tensor
+
+from armeta_rl.risk.base import RiskPrinciple
+from armeta_rl.risk.predictive import check_batch_size, checked_losses, task_params
+
+
+class PrincipleSampler:
+    """Tasks from a risk principle, and its update on their losses.
+
+    Args:
+        principle: any :class:`~armeta_rl.risk.base.RiskPrinciple` (e.g.
+            ``MPTSPrinciple(BoxUniform(space))``); it is updated every ``update_every`` calls of
+            :meth:`update`, as in the trainer.
+    """
+
+    def __init__(self, principle: RiskPrinciple) -> None:
+        self.principle = principle
+        self.calls = 0
+
+    def sample(self, n: int) -> TensorDict:
+        """Tasks ``{"params": [K, d], "log_prob": [K]}`` for a batch of ``n`` (K = n, or more for a
+        principle that oversamples, such as DR with ``oversample``)."""
+        return self.principle.propose(check_batch_size("n", n))
+
+    def weights(self, losses: Tensor, tasks: TensorDict) -> Tensor:
+        """The principle's weights ``[K]`` of the tasks' losses (they sum to one)."""
+        return self.principle.weights(losses, tasks)
+
+    def update(self, tasks: TensorDictBase | Tensor, losses: Tensor) -> dict[str, float]:
+        """Update the principle on the losses ``[K]`` of ``tasks`` (a task TensorDict or its
+        identifiers ``[K, d]``); returns its scalars (none between updates).
+
+        Raises:
+            ValueError: losses that are not one per task.
+            TrainingDiverged: non-finite losses.
+        """
+        params = task_params(tasks)
+        losses = checked_losses(losses, len(params), "task sampler update")
+        self.calls += 1
+        every = self.principle.update_every
+        if not every or self.calls % every:
+            return {}
+        if not isinstance(tasks, TensorDictBase):
+            tasks = TensorDict({"params": params}, batch_size=[len(params)])
+        return self.principle.update(tasks, losses.to(params.device))

@@ -1,0 +1,289 @@
+"""What a TorchRL user does with the package's envs: tasks drawn at every reset by a transform in
+any collector (multi-process too), their episodes' losses back to the sampler, identifiers
+required behind transforms and batched envs, specs that TorchRL's checks accept under the usual
+transforms, resets that torchrl 0.15 will still honor, and random actions through TorchRL."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+from functools import partial
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.envs import (
+    Compose,
+    DoubleToFloat,
+    EnvCreator,
+    ExcludeTransform,
+    RewardScaling,
+    RewardSum,
+    SerialEnv,
+    StepCounter,
+    TransformedEnv,
+)
+from torchrl.envs import PendulumEnv as TorchRLPendulum
+from torchrl.envs.utils import check_env_specs
+
+from armeta_rl.adversary import FlowAdversary, TaskSampler
+from armeta_rl.collectors.episodes import EpisodeCollector
+from armeta_rl.envs import AcrobotEnv, HalfCheetahVelEnv, PendulumEnv, PointNavigationEnv
+from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.rl.policy import GaussianMLP
+from armeta_rl.tasks import (
+    TASK_KEY,
+    BoxUniform,
+    TaskSpace,
+    TaskTransform,
+    finished_episodes,
+    reset_with_identifiers,
+)
+
+GOALS = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
+MASSES = TaskSpace(["m", "l"], [0.5, 0.5], [1.5, 1.5])
+
+
+class Numbered:
+    """A task source whose k-th draw is the goal (k/1000 − 0.4, 0.1): every task it proposes is
+    different and tells when it was drawn."""
+
+    def __init__(self) -> None:
+        self.drawn = 0
+
+    def sample(self, n: int) -> TensorDict:
+        k = torch.arange(self.drawn, self.drawn + n, dtype=torch.float32)
+        self.drawn += n
+        goals = torch.stack([k / 1000 - 0.4, torch.full_like(k, 0.1)], -1)
+        return TensorDict({TASK_KEY: goals}, [n])
+
+
+def navigation(source, entries: int = 3, steps: int = 4) -> TransformedEnv:
+    return TransformedEnv(PointNavigationEnv(batch_size=(entries,), seed=0),
+                          Compose(TaskTransform(source), StepCounter(steps), RewardSum()))
+
+
+def test_a_collector_runs_one_drawn_task_per_episode_and_reports_each_episode():
+    """A plain Collector with no manual reset: every episode runs a task of the source, drawn
+    when it started (consecutive episodes of an entry differ), and :func:`finished_episodes`
+    gives each finished episode's task and its return, the sum of its rewards."""
+    source = Numbered()
+    collector = Collector(navigation(source), policy=None, frames_per_batch=30, total_frames=60)
+    seen = []
+    for batch in collector:
+        episodes = finished_episodes(batch)
+        seen.append(episodes[TASK_KEY])
+        goal = batch[TASK_KEY]
+        assert (goal == batch["next", TASK_KEY]).all()  # constant within a step
+        ends = batch["next", "done"].squeeze(-1)
+        for entry in range(3):
+            done_steps = ends[entry].nonzero().squeeze(-1).tolist()
+            starts = [0] + [t + 1 for t in done_steps[:-1]]
+            for start, end in zip(starts, done_steps):
+                if start == 0 and batch["step_count"][entry, 0] != 0:
+                    continue  # an episode begun in the previous batch
+                assert (goal[entry, start:end + 1] == goal[entry, end]).all()
+                reward = batch["next", "reward"][entry, start:end + 1].sum()
+                torch.testing.assert_close(batch["next", "episode_reward"][entry, end, 0],
+                                           reward)
+    collector.shutdown()
+    tasks = torch.cat(seen)
+    assert len(torch.unique(tasks, dim=0)) == len(tasks)  # one fresh task per episode
+    index = ((tasks[:, 0] + 0.4) * 1000).round().long()
+    assert int(index.max()) < source.drawn  # every one of them drawn by the source
+
+
+def test_a_partial_reset_draws_for_its_entries_only():
+    env = navigation(Numbered(), entries=4)
+    first = env.reset()[TASK_KEY].clone()
+    mask = torch.tensor([True, False, True, False])
+    reset = env.reset(TensorDict({"_reset": mask[:, None]}, [4]))
+    again = env.rand_step(reset)["next", TASK_KEY]  # what the env runs
+    assert (again[~mask] == first[~mask]).all() and (again[mask] != first[mask]).any(-1).all()
+
+
+def test_a_task_sampler_learns_from_the_episodes_it_proposed():
+    """The documented loop: the collector's episodes go back to TaskSampler.update as
+    (tasks, −return); the env then draws from the updated p_φ (the same sampler object)."""
+    torch.manual_seed(0)
+    sampler = TaskSampler(FlowAdversary(GOALS, BoxUniform(GOALS)), lr=0.05)
+    env = navigation(sampler, entries=4, steps=5)
+    assert env.transform[0].tasks is sampler
+    collector = Collector(env, policy=None, frames_per_batch=40, total_frames=400)
+    for batch in collector:
+        episodes = finished_episodes(batch)
+        sampler.update(episodes, episodes[TASK_KEY][:, 0].double() * 10)  # loss: goal_x
+    collector.shutdown()
+    assert sampler.sample(2000)[TASK_KEY][:, 0].mean() > 0.1  # p0's mean is 0
+    assert env.reset()[TASK_KEY][:, 0].mean() > -0.5
+
+
+def make_shared_env(sampler: TaskSampler) -> TransformedEnv:
+    return navigation(sampler, entries=4, steps=5)
+
+
+def test_a_multi_process_collector_draws_from_the_current_sampler():
+    """MultiSyncCollector with EnvCreator: the workers' copies of the sampler draw from the flow's
+    tensors as the main process updates them (shared through TaskTransform's state)."""
+    torch.manual_seed(0)
+    sampler = TaskSampler(FlowAdversary(GOALS, BoxUniform(GOALS)), lr=0.05)
+    collector = MultiSyncCollector([EnvCreator(partial(make_shared_env, sampler))] * 2,
+                                   policy=None, frames_per_batch=80, total_frames=240)
+    goals = []
+    for batch in collector:
+        episodes = finished_episodes(batch)
+        goals.append(episodes[TASK_KEY][:, 0].mean())
+        if len(goals) == 1:  # move p_φ far toward goal_x = 0.5 after the first batch
+            for _ in range(150):
+                tasks = sampler.sample(64)
+                sampler.update(tasks, tasks[TASK_KEY][:, 0].double() * 10)
+    collector.shutdown()
+    assert sampler.sample(2000)[TASK_KEY][:, 0].mean() > 0.3
+    assert abs(goals[0]) < 0.2 and goals[-1] > 0.3
+
+
+@pytest.mark.parametrize("make", [
+    lambda: PointNavigationEnv(batch_size=(2, 3)),
+    lambda: PendulumEnv(batch_size=(2, 3)),
+    lambda: SerialEnv(2, lambda: PendulumEnv(batch_size=(3,))),
+])
+def test_specs_hold_with_drawn_tasks_and_with_identifiers_left_out_of_the_data(make):
+    base = make()
+    space = GOALS if isinstance(base, PointNavigationEnv) else MASSES
+    check_env_specs(TransformedEnv(base, TaskTransform(BoxUniform(space))))
+    quiet = TransformedEnv(make(), Compose(TaskTransform(BoxUniform(space)),
+                                           ExcludeTransform(TASK_KEY)))
+    check_env_specs(quiet)
+    assert TASK_KEY not in quiet.rollout(3).keys(True)
+
+
+def test_a_fixed_shift_runs_the_same_tasks_every_episode():
+    shift = torch.tensor([0.3, -0.2])
+    env = navigation(shift, entries=2, steps=3)
+    rollout = env.rollout(9, break_when_any_done=False)
+    assert (rollout[TASK_KEY] == shift).all()
+    per_entry = torch.tensor([[0.3, -0.2], [-0.1, 0.4]])
+    assert (navigation(per_entry, entries=2).reset()[TASK_KEY] == per_entry).all()
+    with pytest.raises(ConfigError, match="identifiers \\[d\\] or \\[\\*batch, d\\]"):
+        navigation(torch.zeros(3, 2), entries=2).reset()
+
+
+@pytest.mark.parametrize("env", [
+    lambda: TransformedEnv(PointNavigationEnv(batch_size=(4,)),
+                           Compose(TaskTransform(), StepCounter(10))),
+    lambda: TransformedEnv(SerialEnv(2, lambda: PointNavigationEnv(batch_size=(2,))),
+                           TaskTransform()),
+    lambda: SerialEnv(2, lambda: TransformedEnv(PointNavigationEnv(batch_size=(2,)),
+                                                Compose(TaskTransform(), StepCounter(5)))),
+    lambda: TransformedEnv(HalfCheetahVelEnv(batch_size=(4,)),
+                           Compose(TaskTransform(), StepCounter(5))),
+])
+def test_required_identifiers_refuse_a_misspelled_key_behind_transforms_and_batched_envs(env):
+    """Behind a transform TorchRL forwards only state-spec keys, so "goal" never reaches the env:
+    with identifiers required, the reset is refused instead of keeping the old goals."""
+    env = env()
+    with pytest.raises(IdentifierError, match="'params' = missing: task identifiers are required"):
+        env.reset(TensorDict({"goal": torch.zeros(*env.batch_size, 2)}, env.batch_size))
+    width = env.state_spec[TASK_KEY].shape[-1]
+    start = env.reset(TensorDict({TASK_KEY: torch.full((*env.batch_size, width), 0.25)},
+                                 env.batch_size))
+    assert (start[TASK_KEY] == 0.25).all()
+    rollout = env.rollout(12, break_when_any_done=False, auto_reset=False, tensordict=start)
+    assert (rollout[TASK_KEY] == 0.25).all()  # automatic partial resets keep each entry's task
+
+
+def test_an_env_without_identifiers_under_the_key_is_refused():
+    """TorchRL's own pendulum keeps a nested TensorDict of constants under "params": not task
+    identifiers, so a TaskTransform on it is refused when built."""
+    with pytest.raises(ConfigError, match="takes no task identifiers"):
+        TransformedEnv(TorchRLPendulum(), TaskTransform(BoxUniform(MASSES)))
+
+
+@pytest.mark.parametrize("env_class", [PendulumEnv, AcrobotEnv])
+def test_a_batched_reset_with_identifiers_is_honored_without_torchrl_s_warning(env_class):
+    """SerialEnv of system-identification envs: reset through reset_with_identifiers, the
+    identifiers reach every worker (its physics runs them) and torchrl's FutureWarning (a reset
+    whose state 0.15 would ignore) is not raised."""
+    names = env_class.param_names
+    identifiers = torch.tensor([[0.6, 1.4], [1.3, 0.7]])[:, None].expand(2, 3, len(names))
+    env = SerialEnv(2, lambda: env_class(batch_size=(3,), seed=1))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", FutureWarning)
+        start = reset_with_identifiers(env, TensorDict({TASK_KEY: identifiers}, [2, 3]))
+    assert (start[TASK_KEY] == identifiers).all()
+    for worker, ids in zip(env._envs, identifiers):
+        assert (worker.task_params == ids).all()
+        reference = env_class(batch_size=(3,), seed=0)
+        reference.reset(TensorDict({TASK_KEY: ids, "state": worker._state.T.clone()}, [3]),
+                        set_state=True)
+        assert torch.equal(reference.constants[0], worker.constants[0])
+
+
+def test_a_float64_env_works_under_double_to_float():
+    """The envs draw random actions through TorchRL's rand_action (no override), so a transform
+    that changes the action (DoubleToFloat) gets actions of its own spec."""
+    env = TransformedEnv(PendulumEnv(batch_size=(2, 3), dtype=torch.float64, seed=0),
+                         DoubleToFloat())
+    check_env_specs(env)
+    step = env.rand_step(env.reset())
+    assert step["action"].dtype == torch.float32 and step["next", "observation"].dtype == (
+        torch.float32)
+    assert env.rollout(5).batch_size == (2, 3, 5)
+
+
+def test_random_actions_are_the_seeded_draws_of_before():
+    """rand_action draws what the envs' own override drew (torch's global RNG, uniform_ over the
+    torque range; the acrobot's randint), so seeded system-identification data are unchanged."""
+    for env, expected in [
+        (PendulumEnv(batch_size=(2, 3)), lambda: torch.empty(2, 3, 1).uniform_(-2.0, 2.0)),
+        (AcrobotEnv(batch_size=(2, 3)), lambda: torch.randint(0, 3, (2, 3))),
+    ]:
+        torch.manual_seed(11)
+        action = env.rand_action()["action"]
+        torch.manual_seed(11)
+        assert torch.equal(action, expected())
+
+
+def test_mujoco_compiler_warnings_are_python_warnings_shown_once():
+    """gymnasium's HalfCheetah model uses the compiler's deprecated settotalmass: MuJoCo printed
+    it to stdout at every compilation, one line per env (24 in the PPO example). It arrives as a
+    MujocoWarning now, shown once per process: once for two families of three envs and a single
+    env."""
+    code = (
+        "from armeta_rl.envs.mujoco_tasks import load_task_family, make_gym_task_env\n"
+        "family = load_task_family('configs/task_family/half_cheetah.yaml')\n"
+        "for tasks in (3, 3, None):\n"
+        "    make_gym_task_env(family, num_tasks=tasks).close()\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                            cwd=root, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert "settotalmass" not in result.stdout
+    shown = [line for line in result.stderr.splitlines() if "MujocoWarning" in line]
+    assert len(shown) == 1 and "settotalmass" in shown[0]
+
+
+def plain_navigation(batch_size, max_steps) -> PointNavigationEnv:
+    return PointNavigationEnv(batch_size=batch_size, max_steps=max_steps, seed=0)
+
+
+def doubled_navigation(batch_size, max_steps) -> TransformedEnv:
+    return TransformedEnv(plain_navigation(batch_size, max_steps), RewardScaling(0.0, 2.0))
+
+
+def test_an_episode_collector_steps_a_transformed_env_through_its_transforms():
+    """The point robot's fast transitions serve the bare env only: behind a transform (doubling
+    the rewards) the collector steps env.rollout, so the rewards are exactly twice the bare env's
+    (TransformedEnv forwards ``transitions`` to the env inside, which skipped the transform)."""
+    tasks = TensorDict({TASK_KEY: torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
+    rewards = []
+    for make_env in (plain_navigation, doubled_navigation):
+        torch.manual_seed(0)
+        policy = GaussianMLP(2, 2, (8, 8))
+        rewards.append(EpisodeCollector(make_env, episodes=3, max_steps=8)
+                       .collect(tasks, policy=policy)["reward"])
+    assert torch.equal(rewards[1], 2 * rewards[0])
