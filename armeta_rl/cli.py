@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import difflib
 import json
-import os
 import sys
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 GROUPS = ("benchmark", "method", "logger")
 """The config groups a command line chooses from (``benchmark=point_nav``)."""
@@ -226,17 +225,23 @@ def check_jobs(args: Sequence[str]) -> list[Any]:
     return configs
 
 
-RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device", "trainer.keep_freed_memory")
-"""The keys a resumed run may change (``hydra.*`` aside): train longer, stop earlier, continue on
-another device (its checkpoint loads there), with or without glibc keeping freed memory (which
-changes no value)."""
+RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
+"""The keys a resumed run may change that change what it computes: train longer, stop earlier,
+continue on another device (its checkpoint loads there)."""
+NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "trainer.progress",
+                  "trainer.log_every", "trainer.density_every", "trainer.keep_freed_memory",
+                  "trainer.stop_signals", "threads")
+"""The keys a resumed run may change that change no result (``eval.json`` and every logged
+value stay those of the uninterrupted run): where and how often it logs and draws, the progress
+bar, the allocator, the stop signals, and torch's thread count (which the seeded benchmark
+families were measured not to change: tests/test_faults.py)."""
 
 
 def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
     config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised and
-    ``device`` and ``trainer.keep_freed_memory`` changed if given. Any other override, or fewer
-    iterations, is refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
+    ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given. Any other override, or
+    fewer iterations, is refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
     from armeta_rl.config import load_run_config, validate
 
     saved = load_run_config(run_dir, "resume")
@@ -247,13 +252,18 @@ def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
         if name == "resume" or _is_hydra_key(name):
             continue
         value = arg.split("=", 1)[1] if "=" in arg else ""
-        if override.is_add() or override.is_delete() or name not in RESUMABLE:
+        allowed = (*RESUMABLE, *NO_RESULT_KEYS)
+        if override.is_add() or override.is_delete() or name not in allowed:
             raise Refused(f"config key '{name.lstrip('+~')}' = {value}: cannot change on resume "
-                           f"(only {', '.join(RESUMABLE)} can); train a new run to change it")
+                          f"(only {', '.join(allowed)} can); train a new run to change it")
+        if name == "logger":  # a group: its file's keys
+            chosen = OmegaConf.load(config_files() / "logger" / f"{value}.yaml")
+            changes["logger"] = {"project": None, **OmegaConf.to_container(chosen)}
+            continue
         *groups, leaf = name.split(".")
         node = changes
         for group in groups:
-            node = node[group]
+            node = node.setdefault(group, {})
         node[leaf] = override.value()
     new = changes["trainer"].get("iterations", saved.trainer.iterations)
     if isinstance(new, int) and not isinstance(new, bool) and new < saved.trainer.iterations:
@@ -263,6 +273,17 @@ def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
     cfg = _merged(saved, changes)
     validate(cfg)
     return cfg
+
+
+def changed_on_resume(saved: DictConfig, cfg: DictConfig) -> list[str]:
+    """``key=value`` of every key of :data:`NO_RESULT_KEYS` whose value ``cfg`` changes."""
+    changed = []
+    for name in NO_RESULT_KEYS:
+        old, new = (OmegaConf.select(c, name) for c in (saved, cfg))
+        if old != new and not isinstance(new, DictConfig):
+            shown = new if not isinstance(new, (list, tuple, ListConfig)) else list(new)
+            changed.append(f"{name}={shown}")
+    return changed
 
 
 def _merged(saved: DictConfig, changes: dict[str, Any]) -> DictConfig:
@@ -288,7 +309,7 @@ def _report_errors(prog: str, task: Callable[[DictConfig], None]) -> Callable[[D
         code, message = _run_task(task, cfg)
         if code == 0:
             return
-        print(f"{prog}: error: {message}", file=sys.stderr)
+        print(f"{prog}: {message}", file=sys.stderr)
         if _in_run_list_sweep():
             raise JobFailed(code)
         sys.exit(code)
@@ -297,19 +318,28 @@ def _report_errors(prog: str, task: Callable[[DictConfig], None]) -> Callable[[D
 
 
 def _run_task(task: Callable[[DictConfig], None], cfg: DictConfig) -> tuple[int, str]:
-    """``task(cfg)``; the exit code and line of a user error (0 and ``""`` if none)."""
-    from armeta_rl.errors import CollectionFailed, ConfigError, RunDirectoryError, TrainingDiverged
+    """``task(cfg)``; the exit code and line of a user error or a stopped run (0 and ``""`` if
+    none)."""
+    from armeta_rl.errors import (
+        CollectionFailed,
+        ConfigError,
+        RunDirectoryError,
+        RunStopped,
+        TrainingDiverged,
+    )
 
     try:
         task(cfg)
     except (ConfigError, Refused) as error:
-        return getattr(error, "code", 2), str(error)
+        return getattr(error, "code", 2), f"error: {error}"
+    except RunStopped as error:  # not an error: a code a requeue acts on
+        return error.code, str(error)
     except (TrainingDiverged, CollectionFailed) as error:
-        return 1, f"training stopped: {error}"
+        return 1, f"error: training stopped: {error}"
     except RunDirectoryError as error:
-        return 1, str(error)
+        return 1, f"error: {error}"
     except OSError as error:
-        return 1, f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
+        return 1, "error: " + f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
     return 0, ""
 
 
@@ -328,19 +358,33 @@ def _in_run_list_sweep() -> bool:
 
 
 def _train_task(cfg: DictConfig) -> None:
+    """Train (or resume) one run, stopping cleanly on ``trainer.stop_signals`` and SIGINT
+    (:mod:`armeta_rl.preemption`): the signal becomes the process's stop request, which the game
+    loop reads."""
     from hydra.core.hydra_config import HydraConfig
 
     from armeta_rl.allocator import keep_freed_memory
+    from armeta_rl.config import load_run_config
+    from armeta_rl.errors import RunStopped
+    from armeta_rl.preemption import PROCESS, listening
     from armeta_rl.trainers.training import run_training
 
     if cfg.resume:
+        saved = load_run_config(cfg.resume, "resume")
         cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task))
         run_dir = Path(cfg.resume)
+        taken = changed_on_resume(saved, cfg)
+        if taken:
+            print(f"resuming {run_dir} with {', '.join(taken)} (they change no result)")
     else:
         run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if PROCESS.requested:  # a later job of a sweep worker that was asked to stop
+        raise RunStopped(f"not started: this process received {PROCESS.name}; the same command "
+                         "starts it", PROCESS.exit_code)
     if cfg.trainer.keep_freed_memory:
         keep_freed_memory()
-    run_training(cfg, run_dir)
+    with listening(cfg.trainer.stop_signals) as stop:
+        run_training(cfg, run_dir, stop=stop)
 
 
 def _run_hydra(argv: list[str], config_name: str, task: Callable[[DictConfig], None]) -> None:
@@ -367,12 +411,16 @@ def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str]) ->
     """``main(argv)``'s exit code: 0, the code of its ``SystemExit``, or 2 (1) with one line
     for a refused command (a failed run)."""
     from armeta_rl.errors import ConfigError
+    from armeta_rl.preemption import EXIT_INTERRUPTED
 
     try:
         main(argv)
     except (Refused, ConfigError) as error:
         print(f"{prog}: error: {error}", file=sys.stderr)
         return getattr(error, "code", 2)
+    except KeyboardInterrupt:  # Ctrl-C where no run stops cleanly (armeta_rl.preemption)
+        print(f"{prog}: interrupted (SIGINT)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except SystemExit as stop:
         return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
     return 0
@@ -434,6 +482,10 @@ def _train(args: list[str]) -> None:
     if _without_checks(args, prog, "train", task, GROUPS, "train a method on a benchmark "
                        "(armeta-train [group=option ...] [key=value ...] [-m])"):
         return
+    for arg in args:
+        name, _, value = arg.partition("=")
+        if name in ("hydra.run.dir", "hydra.sweep.dir") and not value.strip():
+            raise Refused(f"config key '{name}' = '': must name a directory")
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     multirun = any(a in ("-m", "--multirun") for a in args)
     if resume:
@@ -483,6 +535,7 @@ def _remove_run_dir(run_dir: Path) -> None:
 
 
 def _eval_task(cfg: DictConfig) -> None:
+    from armeta_rl.config import load_run_config
     from armeta_rl.errors import ConfigError
     from armeta_rl.trainers.evaluation import format_table
     from armeta_rl.trainers.report import cross_evaluate
@@ -490,6 +543,9 @@ def _eval_task(cfg: DictConfig) -> None:
 
     if not isinstance(cfg.initial, bool):
         raise ConfigError("initial", cfg.initial, "must be true or false")
+    load_run_config(cfg.learner, "learner")  # the run directories first, each named as itself,
+    if cfg.adversary is not None:            # then the report's path derived from them
+        load_run_config(cfg.adversary, "adversary")
     shifts = OmegaConf.to_container(cfg.shifts) if OmegaConf.is_list(cfg.shifts) else cfg.shifts
     suffix = ("" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}") or (
         "" if shifts is None else "_shifts")
@@ -504,18 +560,20 @@ def _eval_task(cfg: DictConfig) -> None:
 
 
 def check_writable(path: Path, key: str) -> None:
-    """Refuse an output file that cannot be written, before the work that fills it."""
+    """Refuse an output file that cannot be written, before the work that fills it: its folder
+    is tried by creating and removing a hidden file there (the report is written atomically,
+    through such a sibling)."""
     from armeta_rl.errors import ConfigError
+    from armeta_rl.trainers.run_dir import unwritable
 
     if path.is_dir():
         raise ConfigError(key, str(path), "is a directory, not a file")
     parent = path.parent
     if not parent.is_dir():
         raise ConfigError(key, str(path), f"cannot be written: {parent} is not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK) or (
-        path.exists() and not os.access(path, os.W_OK)
-    ):
-        raise ConfigError(key, str(path), "cannot be written: permission denied")
+    problem = unwritable(parent)
+    if problem is not None:
+        raise ConfigError(key, str(path), f"cannot be written in {parent} ({problem})")
 
 
 def evaluate(argv: list[str] | None = None) -> int:

@@ -25,6 +25,16 @@ from omegaconf.errors import OmegaConfBaseException
 from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.fields import Section, above, at_least, config_error, each, inside, key, one_of
+from armeta_rl.preemption import STOP_SIGNALS
+from armeta_rl.resources import (
+    hidden_units,
+    machine_memory,
+    sample_bytes,
+    samples_per_task,
+    size_words,
+    task_batch_bytes,
+    usable_cpus,
+)
 
 CONFIG_FILE = "config.yaml"
 SEED_RANGE = (-(2**63), 2**64 - 1)
@@ -78,6 +88,11 @@ class TrainerConfig(Section):
     # meta-RL: the follower's loss of a task is the mean of this many fresh rollouts at θ_{t+1}
     # (1: the paper's single rollout; docs/meta-rl.md)
     follower_rollouts: int = at_least(1, 1)
+    # on these signals (and SIGINT) a run finishes its iteration, writes a checkpoint and exits
+    # 75 (SIGINT: 130) for resume= to continue (armeta_rl/preemption.py; docs/configuration.md)
+    stop_signals: list[str] = key(f"every element must be one of {', '.join(STOP_SIGNALS)}",
+                                  lambda v: all(name in STOP_SIGNALS for name in v),
+                                  ["SIGTERM", "SIGUSR1"])
 
 
 @dataclass
@@ -178,7 +193,9 @@ class TrainConfig(Section):
     # cpu, cuda or cuda:N: where leaders, task distributions, torch-native envs and evaluation
     # compute (MuJoCo steps on the CPU; docs/scale.md); checked against this machine
     device: str = key(default="cpu")
-    threads: int = at_least(1, 1)  # torch intra-op threads; batched small ops are fastest on one
+    # torch intra-op threads; batched small ops are fastest on one; at most the CPUs this process
+    # may run on (more only slow it down, and far more crash torch's thread pool)
+    threads: int = at_least(1, 1)
     resume: str | None = key()  # a run directory to continue from its latest checkpoint
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
@@ -193,6 +210,37 @@ class TrainConfig(Section):
         super().__post_init__()
         resolve_device(self.device)
         self.check_task_split()
+        self.check_machine()
+
+    def check_machine(self) -> None:
+        """``threads`` within this process's CPUs, and the sizes within the device's memory:
+        :mod:`armeta_rl.resources`' lower bound of what each needs, before any allocation."""
+        cpus = usable_cpus()
+        if self.threads > cpus:
+            self.refuse("threads", f"must be <= {cpus}, the CPUs this process may run on (a "
+                                   "resumed run may set threads= too)")
+        memory = machine_memory(self.device)
+        sections = [options for name, options in self.learner.items()
+                    if name == self.method.learner or name.startswith(f"{self.method.learner}_")]
+        units = min((hidden_units(options) for options in sections), default=1)
+        for name, tasks, collector in (
+                ("trainer.meta_batch", self.trainer.meta_batch, self.benchmark.collector),
+                ("eval.n_tasks", self.eval.n_tasks, self.benchmark.eval_collector)):
+            need = task_batch_bytes(tasks, collector, units)
+            if need > memory:
+                each = task_batch_bytes(1, collector, units)
+                raise ConfigError(name, tasks, (
+                    f"needs at least {size_words(need)} ({samples_per_task(collector)} samples "
+                    f"x {units} hidden units x 4 bytes per task) of this device's "
+                    f"{size_words(memory)}: allowed: at most {memory // each}"))
+        adversary = self.risk.get(self.method.risk) if self.method.risk == "ar" else None
+        samples = getattr(adversary, "initial_samples", None)
+        if samples is not None and self.benchmark.space.names != MISSING:
+            dim = len(self.benchmark.space.names)
+            if sample_bytes(samples, dim) > memory:
+                raise ConfigError(f"risk.{self.method.risk}.initial_samples", samples, (
+                    f"needs at least {size_words(sample_bytes(samples, dim))} of this device's "
+                    f"{size_words(memory)}: allowed: at most {memory // sample_bytes(1, dim)}"))
 
     def check_task_split(self) -> None:
         """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs
@@ -236,7 +284,9 @@ def schema() -> DictConfig:
 
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
     """The resolved config saved in ``run_dir``, typed (:func:`schema`); ``key`` names the option
-    that pointed there."""
+    that pointed there. A file that does not parse, or lacks a section every run's config has
+    (:data:`SAVED_SECTIONS`: an empty or truncated file), is refused: merged into the schema it
+    would silently take defaults."""
     path = Path(run_dir) / CONFIG_FILE
     if not path.is_file():
         raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
@@ -249,9 +299,36 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
         ) from None
     if not isinstance(saved, DictConfig):
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
+    missing = next((name for name in saved_sections(saved)
+                    if OmegaConf.select(saved, name, default=_ABSENT) is _ABSENT), None)
+    if missing is not None:
+        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is incomplete (no '{missing}'; "
+                          "empty or cut short): restore it, or train the run again")
     try:
         return OmegaConf.merge(schema(), saved)
     except OmegaConfBaseException as error:
         line = config_error(error)
         raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} does not fit this version: "
                                              f"{line}") from None
+
+
+_ABSENT = object()
+SAVED_SECTIONS = ("seed", "trainer", "trainer.iterations", "eval", "eval.n_tasks", "method",
+                  "method.learner", "method.risk", "logger", "benchmark", "benchmark.name",
+                  "benchmark.space", "benchmark.initial", "benchmark.collector",
+                  "benchmark.eval_collector", "learner", "risk")
+"""The keys every saved run config holds."""
+
+
+def saved_sections(saved: DictConfig) -> list[str]:
+    """The keys a run's saved config must hold: :data:`SAVED_SECTIONS` and the sections of its
+    own learner and risk principle (``learner.maml``, ``risk.ar``; those registered, the file's
+    last ones: a truncated file loses them, and merged into the schema they would take their
+    defaults)."""
+    store = ConfigStore.instance()
+    own = []
+    for group in ("learner", "risk"):
+        name = OmegaConf.select(saved, f"method.{group}", default=None)
+        if isinstance(name, str) and f"{name}.yaml" in store.list(f"schema/{group}"):
+            own.append(f"{group}.{name}")
+    return [*SAVED_SECTIONS, *own]

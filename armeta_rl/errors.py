@@ -53,6 +53,19 @@ class IdentifierError(ConfigError):
         ValueError.__init__(self, f"tensordict key '{key}' = {value}: {allowed}")
 
 
+class RunStopped(RuntimeError):
+    """A run stopped before it finished because the process was asked to (a preemption signal,
+    Ctrl-C); the message names the checkpoint kept and the resume command, and ``code`` is the
+    exit code (:mod:`armeta_rl.preemption`)."""
+
+    def __init__(self, message: str, code: int) -> None:
+        self.code = code
+        super().__init__(message)
+
+    def __reduce__(self) -> tuple[type, tuple[str, int]]:
+        return type(self), (str(self), self.code)
+
+
 class CollectionFailed(RuntimeError):
     """A collection worker died or stopped answering; the run stops, keeping its last checkpoint."""
 

@@ -140,6 +140,8 @@ def density_norm(shown: Sequence[Tensor], reference: Tensor) -> Normalize:
     not a fixed four in which it looks like p0."""
     values = torch.cat([v.reshape(-1) for v in (*shown, reference)])
     top = float(values.max())
+    if not 0.0 < top < math.inf:  # the density underflows at every grid point: drawn blank
+        return Normalize(vmin=0.0, vmax=1.0)
     if top <= 10 * float(reference.max()):
         return Normalize(vmin=0.0, vmax=top)
     smallest = float(values[values > 0].min())

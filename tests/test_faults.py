@@ -11,15 +11,19 @@ import logging
 import math
 import os
 import random
+import re
 import shutil
+import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 import torch
 from conftest import SMALL_RUN, compose_train
 from hydra import compose, initialize_config_dir
+from PIL import Image
 
 import armeta_rl.trainers.checkpoint as checkpoint_module
 from armeta_rl.cli import Refused, _eval_task, _report_errors, config_dir, resume_config, train
@@ -186,15 +190,6 @@ def test_a_missing_components_directory_falls_back(tmp_path, whole, stopped, cap
         finish(run_dir)
     assert "missing components/" in caplog.text
     assert outcome(run_dir) == outcome(whole)
-
-
-def test_no_intact_checkpoint_is_a_clear_refusal(tmp_path, stopped):
-    run_dir = tmp_path / "run"
-    shutil.copytree(stopped, run_dir)
-    for checkpoint in (run_dir / "checkpoints").iterdir():
-        corrupt(checkpoint / FILES["leader"], "garbled")
-    with pytest.raises(CheckpointBroken, match="has no intact checkpoint; broken: checkpoint-0"):
-        finish(run_dir)
 
 
 def enospc_from(monkeypatch, call):
@@ -457,7 +452,7 @@ def test_a_read_only_run_directory_is_refused_before_anything_is_written(tmp_pat
     parent.mkdir()
     parent.chmod(0o555)
     try:
-        with pytest.raises(ConfigError, match="cannot be written: .* is read-only"):
+        with pytest.raises(ConfigError, match=r"cannot be written in .* \(read-only\)"):
             run_training(compose_train(*RUN), parent / "run", progress=False)
         assert not (parent / "run").exists()
     finally:
@@ -474,3 +469,538 @@ def test_an_rl_run_resumes_exactly(tmp_path):
                  progress=False)
     assert (tmp_path / "split" / EVAL_FILE).read_text() == (tmp_path / "whole" / EVAL_FILE
                                                              ).read_text()
+
+
+# Preemption: a signal is a stop request the game loop reads (armeta_rl.preemption) ------------
+
+SIGNALLED = """
+import os, signal, sys, time
+from armeta_rl.trainers import checkpoint, game
+sig, where, times = getattr(signal, sys.argv.pop(1)), sys.argv.pop(1), sys.argv.pop(1)
+if where == "iteration":  # while iteration 3 trains
+    step = game.GameTrainer.train_iteration
+    def train_iteration(self):
+        if self.iteration == 2:
+            os.kill(os.getpid(), sig)
+            if times == "twice":  # after the first one was handled
+                time.sleep(0.5)
+                os.kill(os.getpid(), sig)
+        return step(self)
+    game.GameTrainer.train_iteration = train_iteration
+else:  # between two payload writes of the checkpoint of iteration 4
+    write, calls = checkpoint.write_file, [0]
+    def write_file(path, data):
+        calls[0] += 1
+        if calls[0] == 6:
+            os.kill(os.getpid(), sig)
+        write(path, data)
+    checkpoint.write_file = write_file
+from armeta_rl.cli import train
+train()
+"""
+
+
+def signalled_cli(run_dir, sig, where, times="once", *extra):
+    return subprocess.run([sys.executable, "-c", SIGNALLED, sig, where, times, *RUN, *extra,
+                           f"hydra.run.dir={run_dir}"], capture_output=True, text=True,
+                          timeout=300)
+
+
+@pytest.mark.parametrize("sig,where,code,stopped_after", [
+    ("SIGTERM", "iteration", 75, 3),
+    ("SIGTERM", "checkpoint", 75, 4),
+    ("SIGUSR1", "iteration", 75, 3),
+    ("SIGUSR1", "checkpoint", 75, 4),
+    ("SIGINT", "iteration", 130, 3),
+    ("SIGINT", "checkpoint", 130, 4),
+])
+def test_a_signal_stops_the_run_after_its_iteration_with_a_checkpoint_and_it_resumes_exactly(
+        tmp_path, whole, sig, where, code, stopped_after):
+    run_dir = tmp_path / "run"
+    result = signalled_cli(run_dir, sig, where)
+    newest = f"checkpoint-{stopped_after:012d}"
+    assert result.returncode == code, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"armeta-train: stopped by {sig} after iteration {stopped_after}: checkpoint "
+        f"{run_dir / 'checkpoints' / newest} written; continue with: armeta-train "
+        f"resume={run_dir}"]
+    assert verify(run_dir / "checkpoints" / newest) is None
+    assert not (run_dir / EVAL_FILE).exists()
+    finish(run_dir)
+    assert outcome(run_dir) == outcome(whole)
+
+
+def test_a_second_sigint_stops_at_once_keeping_the_last_checkpoint(tmp_path, whole):
+    run_dir = tmp_path / "run"
+    result = signalled_cli(run_dir, "SIGINT", "iteration", "twice")
+    assert result.returncode == 130
+    assert result.stderr.strip().splitlines() == [
+        f"armeta-train: stopped at once by a second SIGINT: the last checkpoint "
+        f"{run_dir / 'checkpoints' / 'checkpoint-000000000002'} is kept; continue with: "
+        f"armeta-train resume={run_dir}"]
+    finish(run_dir)
+    assert outcome(run_dir) == outcome(whole)
+
+
+def test_a_stop_request_is_read_by_the_game_loop(tmp_path, whole, monkeypatch):
+    """In process: the request, not a signal, is what the loop reads; a run asked to stop before
+    its first iteration trains none and keeps its config, so resume= starts it."""
+    from armeta_rl.errors import RunStopped
+    from armeta_rl.preemption import EXIT_PREEMPTED, StopRequest
+
+    stop = StopRequest()
+    step = game.GameTrainer.train_iteration
+
+    def requested_during_5(self):
+        if self.iteration == 4:
+            stop.request(signal.SIGUSR1)
+        return step(self)
+
+    monkeypatch.setattr(game.GameTrainer, "train_iteration", requested_during_5)
+    run_dir = tmp_path / "run"
+    with pytest.raises(RunStopped, match="stopped by SIGUSR1 after iteration 5") as stopped:
+        run_training(compose_train(*RUN), run_dir, progress=False, stop=stop)
+    assert stopped.value.code == EXIT_PREEMPTED
+    monkeypatch.undo()
+    finish(run_dir)
+    assert outcome(run_dir) == outcome(whole)
+    before = tmp_path / "before"
+    with pytest.raises(RunStopped, match="after iteration 0: no checkpoint yet"):
+        run_training(compose_train(*RUN), before, progress=False, stop=stop)
+    assert (before / "config.yaml").exists() and not (before / "checkpoints").exists()
+    finish(before)
+    assert outcome(before) == outcome(whole)
+
+
+def descendants(pid):
+    """Every live process below ``pid`` (Linux /proc)."""
+    children = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        with contextlib.suppress(OSError):
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            if fields[0] != "Z":
+                children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found += [child]
+            todo += [child]
+    return found
+
+
+def alive(pid):
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="reads processes from /proc")
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL])
+def test_a_stopped_or_killed_sweep_stops_its_workers_with_checkpoints(tmp_path, sig):
+    """``armeta-reproduce launcher=local``: SIGTERM to the parent is forwarded to its joblib
+    workers, whose runs checkpoint and stop (the parent exits 75); after a SIGKILL of the parent
+    the workers notice it is gone and do the same."""
+    results, err = tmp_path / "results", tmp_path / "stderr"
+    with err.open("w") as stderr:  # a file: the workers would hold a pipe open
+        process = subprocess.Popen(
+            [sys.executable, "-c", "from armeta_rl.reproduce.cli import main; main()", "noise",
+             "profile=tiny", "benchmarks=sinusoid_uniform", "seeds=0", "launcher=local",
+             "jobs=2", "+train.trainer.iterations=100000",
+             "+train.trainer.checkpoint_every=100000", f"results={results}"],
+            stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True)
+    deadline = time.monotonic() + 300
+    while len(list(results.glob("runs/*/*/*/config.yaml"))) < 2:  # two runs train
+        assert process.poll() is None and time.monotonic() < deadline, err.read_text()
+        time.sleep(0.2)
+    time.sleep(1)
+    workers = descendants(process.pid)
+    process.send_signal(sig)
+    if sig == signal.SIGTERM:
+        assert process.wait(timeout=300) == 75
+        assert err.read_text().strip().splitlines()[-1] == (
+            "armeta-reproduce: stopped by SIGTERM: the runs in flight wrote checkpoints; the "
+            "same command continues the sweep")
+    else:
+        process.wait(timeout=60)
+    while any(alive(pid) for pid in workers):
+        assert time.monotonic() < deadline, [pid for pid in workers if alive(pid)]
+        time.sleep(0.2)
+    stopped = sorted(results.glob("runs/*/*/*/checkpoints/checkpoint-*"))
+    assert len(stopped) == 2 and all(verify(path) is None for path in stopped), stopped
+
+
+# A finished run, damaged artefacts ------------------------------------------------------------
+
+FRAMES = (*RUN, "trainer.density_every=2")
+
+
+def test_resuming_a_finished_run_changes_nothing(tmp_path, whole, capsys):
+    run_dir = tmp_path / "run"
+    shutil.copytree(whole, run_dir)
+    files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != LOCK_FILE}
+    report = run_training(compose_train(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+    assert report == json.loads((whole / EVAL_FILE).read_text())
+    assert "has finished: nothing to do" in capsys.readouterr().out
+    assert {p: p.read_bytes() for p in files} == files
+    rows = (run_dir / CSV_LOG_DIR / "scalars" / "eval" / "initial" / "mean.csv").read_text()
+    assert rows.count("\n") == 1
+
+
+def test_an_evaluation_cut_short_is_logged_once_on_resume(tmp_path, whole, monkeypatch):
+    """A crash after the evaluation's scalars were logged and before eval.json (written last):
+    the resumed run logs them again, once."""
+    run_dir = tmp_path / "run"
+    with monkeypatch.context() as patch:
+        patch.setattr("armeta_rl.trainers.training.write_text_atomically",
+                      lambda path, text: (_ for _ in ()).throw(Killed()))
+        with pytest.raises(Killed):
+            run_training(compose_train(*RUN), run_dir, progress=False)
+    assert not (run_dir / EVAL_FILE).exists()
+    finish(run_dir)
+    assert outcome(run_dir) == outcome(whole)
+
+
+@pytest.fixture(scope="module")
+def framed(tmp_path_factory):
+    """The uninterrupted run with density frames at 0, 2, 4 and 6."""
+    run_dir = tmp_path_factory.mktemp("framed")
+    run_training(compose_train(*FRAMES), run_dir, progress=False)
+    return run_dir
+
+
+def test_a_damaged_density_frame_is_left_out_of_the_animation_with_a_warning(
+        tmp_path, framed, caplog):
+    run_dir = tmp_path / "run"
+    run_training(compose_train(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
+    for damaged in ("iter_000002.png", "iter_000002.pt"):  # a frame with its numbers is redrawn
+        (run_dir / "density" / damaged).write_bytes(b"")
+    with caplog.at_level(logging.WARNING):
+        run_training(compose_train(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
+    assert "iter_000002.png cannot be read: left out of density.gif" in caplog.text
+    assert outcome(run_dir) == outcome(framed)
+    frames = Image.open(run_dir / "density.gif")
+    assert frames.n_frames == Image.open(framed / "density.gif").n_frames - 1
+
+
+def test_every_file_of_a_run_is_written_through_a_staged_sibling(tmp_path, monkeypatch):
+    """No file of the run directory but the lock and the CSV rows (appended whole, a torn last
+    row dropped on resume) is opened for writing under its own name: each is staged, fsynced
+    and renamed (a kill or a full disk leaves the old file or none)."""
+    import builtins
+    import io
+
+    written, real_open, real_io_open = [], builtins.open, io.open
+
+    def spy(opener):
+        def opened(file, mode="r", *args, **kwargs):
+            if any(m in mode for m in "wax") and str(tmp_path) in str(file):
+                written.append(Path(file))
+            return opener(file, mode, *args, **kwargs)
+        return opened
+
+    monkeypatch.setattr(builtins, "open", spy(real_open))
+    monkeypatch.setattr(io, "open", spy(real_io_open))
+    run_training(compose_train(*FRAMES), tmp_path / "run", progress=False)
+    monkeypatch.undo()
+    staged = [p for p in written if any(part.startswith(".") for part in p.parts)]
+    direct = sorted({p.relative_to(tmp_path) for p in written
+                     if p not in staged and p.suffix != ".csv"})
+    assert staged and direct == [], direct
+
+
+def test_a_run_whose_checkpoints_were_all_refused_is_refused_again(tmp_path, stopped):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    for checkpoint in (run_dir / "checkpoints").iterdir():
+        corrupt(checkpoint / FILES["leader"], "garbled")
+    with pytest.raises(CheckpointBroken, match="has no intact checkpoint; broken: checkpoint-0"):
+        finish(run_dir)
+    with pytest.raises(CheckpointBroken, match="checkpoint-000000000004.broken \\(set aside by an"):
+        finish(run_dir)  # not trained again from iteration 0
+    assert not (run_dir / EVAL_FILE).exists()
+
+
+def test_a_lock_taken_again_chains_no_blocking_io_error(tmp_path):
+    from armeta_rl.trainers.run_dir import run_lock
+
+    with pytest.raises(ValueError) as raised, run_lock(tmp_path, "k"), run_lock(tmp_path, "k"):
+        raise ValueError("inside")
+    assert raised.value.__context__ is None
+
+
+# Resume keys that change no result --------------------------------------------------------------
+
+@pytest.mark.parametrize("override", [
+    "logger=wandb", "logger=none", "trainer.progress=true", "threads=2",
+    "trainer.log_every=3", "trainer.density_every=3", "trainer.stop_signals=[SIGUSR2]",
+])
+def test_resume_takes_the_keys_that_change_no_result(tmp_path, whole, stopped, override):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    cfg = resume_config(str(run_dir), [f"resume={run_dir}", override])
+    run_training(cfg, run_dir, progress=False)
+    assert json.loads((run_dir / EVAL_FILE).read_text()) == outcome(whole)[0]
+
+
+def test_a_resumed_run_says_which_keys_it_took(tmp_path, stopped):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    result = subprocess.run([sys.executable, "-c", "from armeta_rl.cli import train; train()",
+                             f"resume={run_dir}", "logger=wandb", "threads=2"],
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert (f"resuming {run_dir} with logger.kind=wandb, logger.project=armeta_rl, threads=2 "
+            "(they change no result)") in result.stdout
+
+
+# Damaged inputs: one line naming the key --------------------------------------------------------
+
+@pytest.mark.parametrize("how", ["empty", "truncated"])
+def test_a_damaged_run_config_is_one_line_for_resume_and_eval(tmp_path, stopped, capsys, how):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    config = run_dir / "config.yaml"
+    config.write_text("" if how == "empty" else config.read_text()[:200])
+    with pytest.raises(ConfigError, match=f"'resume' = '{run_dir}': its config.yaml"):
+        resume_config(str(run_dir), [f"resume={run_dir}"])
+    code, err = evaluate_in_process(capsys, f"learner={run_dir}")
+    assert code == 2 and len(err) == 1 and f"'learner' = '{run_dir}'" in err[0], err
+
+
+def test_eval_names_the_learner_before_the_report_path_and_checks_out_first(
+        tmp_path, stopped, capsys, monkeypatch):
+    code, err = evaluate_in_process(capsys, f"learner={tmp_path / 'no' / 'run'}")
+    assert code == 2 and len(err) == 1 and "'learner'" in err[0], err
+    monkeypatch.setattr("armeta_rl.trainers.report.cross_evaluate",
+                        lambda *args: pytest.fail("evaluated before checking out="))
+    code, err = evaluate_in_process(capsys, f"learner={stopped}", "out=/proc/armeta/eval.json")
+    assert code == 2 and len(err) == 1 and "'out'" in err[0], err
+
+
+def test_an_empty_run_directory_key_is_refused(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    code, err = run_cli(monkeypatch, capsys, train, *SMALL_RUN, "hydra.run.dir=")
+    assert code == 2 and err == ["armeta-train: error: config key 'hydra.run.dir' = '': must "
+                                 "name a directory"]
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("override,key", [
+    ("benchmark.space.high=[1e300,3.14]", "benchmark.space.high"),
+    ("benchmark.initial.loc=[40,40]", "benchmark.initial.loc"),
+])
+def test_a_box_no_run_can_use_is_one_line(tmp_path, override, key):
+    """A box beyond float32, or a normal p0 with no mass in the box (its density plot had no
+    scale), is refused as the players are built, before training."""
+    result = subprocess.run(
+        [sys.executable, "-c", "from armeta_rl.cli import train; train()", *SMALL_RUN,
+         "benchmark=sinusoid_normal", "trainer.density_every=2", override,
+         f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=300)
+    err = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(err) == 1 and f"'{key}'" in err[0], result.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_density_that_underflows_on_the_grid_is_drawn_blank(tmp_path):
+    from armeta_rl.plots import plot_density
+    from armeta_rl.tasks.distributions import TruncatedNormal
+    from armeta_rl.tasks.space import TaskSpace
+
+    space = TaskSpace(["a", "b"], [0.0, 0.0], [1.0, 1.0])
+    needle = TruncatedNormal(space, [0.5, 0.5], [1e-30, 1e-30])  # all mass between grid points
+    plot_density(needle, needle, tmp_path / "needle.png", points_per_axis=4)
+    assert Image.open(tmp_path / "needle.png").size[0] > 0
+
+
+# Evaluation reports: a schema, and armeta-reproduce marking a run that fails it unfinished ------
+
+@pytest.mark.parametrize("metric", ["mse", "return"])
+def test_every_report_summarize_makes_passes_its_schema(metric):
+    from armeta_rl.trainers.evaluation import check_report, summarize
+
+    generator = torch.Generator().manual_seed(0)
+    for n in (1, 2, 3, 10, 101):
+        for _ in range(20):
+            losses = torch.randn(n, generator=generator).exp() * 10 ** float(
+                torch.randint(-6, 6, (), generator=generator))
+            section = summarize(losses.float(), metric, [0.1, 0.5, 0.9, 0.99])
+            check_report({"metric": metric, "benchmark": "b", "method": "m", "initial": section})
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda r: r["initial"].update(mean=12345), "'initial.cvar.0.5'"),
+    (lambda r: r["initial"].update(mean=float("nan")), "'initial.mean' = nan"),
+    (lambda r: r.pop("initial"), "no 'initial'"),
+    (lambda r: r["initial"].update(sem=r["initial"]["sem"] / 100), "'initial.sem'"),
+    (lambda r: r["initial"]["cvar"].update({"0.9": 0.0}), "'initial.cvar.0.9'"),
+    (lambda r: r["initial"].update(n_tasks=0), "'initial.n_tasks'"),
+    (lambda r: r.update(metric=None), "'metric'"),
+])
+def test_a_hand_edited_report_fails_its_schema(whole, edit, words):
+    from armeta_rl.trainers.evaluation import ReportInvalid, check_report
+
+    report = json.loads((whole / EVAL_FILE).read_text())
+    check_report(report, ("initial", "adversarial"))
+    edit(report)
+    with pytest.raises(ReportInvalid, match=re.escape(words)):
+        check_report(report)
+
+
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory):
+    """table1 at the tiny profile on Sinusoid-U, seed 0 (its next-seed evaluations wait)."""
+    from armeta_rl.reproduce.cli import reproduce
+
+    results = tmp_path_factory.mktemp("swept")
+    assert reproduce("table1", "tiny", results, launcher="basic",
+                     benchmarks=("sinusoid_uniform",), seeds=(0,)) == 1
+    return results
+
+
+SWEPT = {"benchmarks": ("sinusoid_uniform",), "seeds": (0,)}
+
+
+@pytest.mark.parametrize("damage", ["mean_12345", "nan", "no_initial", "empty", "non_utf8"])
+def test_a_report_that_fails_its_schema_is_unfinished_and_made_again(
+        tmp_path, swept, damage, capsys):
+    from armeta_rl.reproduce.cli import reproduce
+
+    results = tmp_path / "results"
+    shutil.copytree(swept, results)
+    run_dir = results / "runs" / "sinusoid_uniform" / "maml" / "seed0"
+    report = run_dir / (EVAL_FILE if damage in ("mean_12345", "nan", "no_initial")
+                        else "eval_vs_same_seed.json")
+    original = report.read_bytes()
+    data = json.loads(original)
+    if damage == "mean_12345":
+        data["initial"]["mean"] = 12345
+    elif damage == "nan":
+        data["initial"]["mean"] = float("nan")
+    elif damage == "no_initial":
+        del data["initial"]
+    report.write_text(json.dumps(data))
+    if damage in ("empty", "non_utf8"):
+        report.write_bytes(b"" if damage == "empty" else b"\xff\xfe{\x00\x93")
+    capsys.readouterr()
+    assert reproduce("table1", "tiny", results, launcher="none", **SWEPT) == 1
+    assert f"{report} is not a finished report" in capsys.readouterr().err
+    row = "sinusoid_uniform,maml,,0,initial,False,"
+    table = (results / "table1.csv").read_text()
+    assert (row in table) == (report.name != EVAL_FILE)  # an eval report only drops its row
+    assert "12345" not in table and "nan" not in table
+    if damage in ("mean_12345", "empty"):
+        assert reproduce("table1", "tiny", results, launcher="basic", **SWEPT) == 1
+        made, before = (json.loads(text) for text in (report.read_bytes(), original))
+        for paths in ("learner", "adversary"):  # the copy's directories
+            made.pop(paths, None), before.pop(paths, None)
+        assert made == before  # made again, the same numbers bit for bit
+
+
+@pytest.mark.parametrize("damage,words", [
+    ("file", "is an existing file"),
+    ("proc", "cannot be written in /proc"),
+    ("garbled", "its reproduce.yaml cannot be read"),
+    ("not_a_manifest", "its reproduce.yaml is not a manifest"),
+])
+def test_a_results_directory_that_cannot_be_used_is_one_line(
+        tmp_path, swept, monkeypatch, capsys, damage, words):
+    from armeta_rl.reproduce.cli import main
+
+    results = tmp_path / "results"
+    if damage == "file":
+        results.write_text("")
+    elif damage == "proc":
+        results = Path("/proc/armeta-results")
+    else:
+        shutil.copytree(swept, results)
+        (results / "reproduce.yaml").write_text(
+            "experiment: [table1\n" if damage == "garbled" else "- a\n- list\n")
+    monkeypatch.setattr(sys, "argv", ["armeta-reproduce", "table1", "profile=tiny",
+                                      "launcher=none", f"results={results}"])
+    with pytest.raises(SystemExit) as exit_:
+        main()
+    code, err = exit_.value.code, capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1, err
+    assert f"'results' = '{results}'" in err[0] and words in err[0], err
+
+
+def test_an_unfinished_run_with_a_damaged_config_is_one_line_in_its_sweep(
+        tmp_path, swept, capsys):
+    from armeta_rl.reproduce.cli import reproduce
+
+    results = tmp_path / "results"
+    shutil.copytree(swept, results)
+    run_dir = results / "runs" / "sinusoid_uniform" / "maml" / "seed0"
+    (run_dir / EVAL_FILE).unlink()
+    (run_dir / "config.yaml").write_text("")
+    assert reproduce("table1", "tiny", results, launcher="basic", **SWEPT) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert f"config key 'resume' = '{run_dir}': its config.yaml is incomplete" in err[0]
+
+
+def test_ray_joins_a_given_cluster_without_the_local_object_store_size(monkeypatch):
+    import socket
+
+    from armeta_rl.reproduce.launch import check_ray_address, launcher_overrides
+
+    monkeypatch.delenv("RAY_ADDRESS", raising=False)
+    assert launcher_overrides("ray", None) == ["hydra/launcher=ray"]
+    assert launcher_overrides("ray", None, ["hydra.launcher.ray.init.address=10.0.0.1:6379"]) == [
+        "hydra/launcher=ray", "+hydra.launcher.ray.init.object_store_memory=null"]
+    with socket.socket() as listening:
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        check_ray_address(f"127.0.0.1:{listening.getsockname()[1]}")  # it answers
+        closed = listening.getsockname()[1]
+    with pytest.raises(ConfigError, match=r"'hydra.launcher.ray.init.address' = '127.0.0.1:\d+': "
+                       "nothing answers there"):
+        check_ray_address(f"127.0.0.1:{closed}")
+    with pytest.raises(ConfigError, match="allowed: host:port"):
+        check_ray_address("no-port")
+
+
+# Sizes and threads this machine cannot run ------------------------------------------------------
+
+@pytest.mark.parametrize("override,key,words", [
+    ("threads=100000", "threads", r"must be <= \d+, the CPUs this process may run on"),
+    ("eval.n_tasks=100000000", "eval.n_tasks", r"needs at least .*: allowed: at most \d+$"),
+    ("trainer.meta_batch=100000000", "trainer.meta_batch",
+     r"needs at least .*: allowed: at most \d+$"),
+    ("risk.ar.initial_samples=1000000000000", "risk.ar.initial_samples",
+     r"needs at least .*: allowed: at most \d+$"),
+])
+def test_a_size_beyond_this_machine_is_one_line_before_anything_is_allocated(
+        tmp_path, monkeypatch, capsys, override, key, words):
+    run_dir = tmp_path / "run"
+    code, err = run_cli(monkeypatch, capsys, train, *SMALL_RUN, override,
+                        f"hydra.run.dir={run_dir}")
+    assert code == 2 and len(err) == 1, err
+    value = override.split("=")[1]
+    assert re.search(f"config key '{re.escape(key)}' = {value}: {words}", err[0]), err
+    assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("benchmark", ["sinusoid_uniform", "pendulum_uniform", "point_nav_plain"])
+def test_the_memory_bound_is_below_what_an_evaluation_allocates(benchmark):
+    """The bound a size is refused by (armeta_rl.resources.task_batch_bytes) is at most the bytes
+    torch allocates while the leader collects and evaluates the batch: a size it refuses could
+    not run."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from armeta_rl.config import validate
+    from armeta_rl.resources import hidden_units, task_batch_bytes
+    from armeta_rl.trainers.players import build_players
+
+    config = validate(compose_train(*SMALL_RUN, f"benchmark={benchmark}", "method=maml",
+                                    "trainer.meta_batch=3"))
+    players = build_players(config)
+    tasks = players.initial.sample(3)
+    with profile(activities=[ProfilerActivity.CPU], profile_memory=True) as profiled:
+        players.leader.evaluate(players.leader.collect(tasks, players.eval_collector))
+    allocated = sum(event.self_cpu_memory_usage for event in profiled.events()
+                    if event.self_cpu_memory_usage > 0)
+    units = min(hidden_units(options) for name, options in config.learner.items()
+                if name == config.method.learner or name.startswith(f"{config.method.learner}_"))
+    assert 0 < task_batch_bytes(3, config.benchmark.eval_collector, units) <= allocated

@@ -249,9 +249,18 @@ def test_cvar_curves_by_hand():
     assert all(math.isclose(p.se, 0.5) for p in points)
 
 
-def _report(mean: float, cvar: float, section: str = "initial") -> dict:
-    return {"metric": "mse", section: {"mean": mean, "sem": 0.1, "cvar": {"0.5": cvar},
-                                       "n_tasks": 4, "entropy": 1.0, "kl_p0": 0.0}}
+def _report(mean: float, cvar: float, adversarial: tuple[float, float] | None = None) -> dict:
+    """A report that passes the schema (check_report): p0's ``mean`` and CVaR_0.5 over 4 tasks
+    (sem |cvar - mean|, at least the spread they imply), and an adversary's if given."""
+    def section(mean: float, cvar: float) -> dict:
+        return {"mean": mean, "sem": abs(cvar - mean), "cvar": {"0.5": cvar}, "n_tasks": 4,
+                "entropy": 1.0, "kl_p0": 0.0}
+
+    report = {"metric": "mse", "benchmark": "sinusoid_uniform", "method": "maml",
+              "initial": section(mean, cvar)}
+    if adversarial is not None:
+        report["adversarial"] = section(*adversarial)
+    return report
 
 
 def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
@@ -263,7 +272,7 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
         run.mkdir(parents=True)
         (run / "eval.json").write_text(json.dumps(_report(mean, cvar)))
         (run / "eval_vs_same_seed.json").write_text(
-            json.dumps(_report(2 * mean, 2 * cvar, "adversarial")))
+            json.dumps(_report(mean, cvar, adversarial=(2 * mean, 2 * cvar))))
     records = collect(plan, tmp_path, {})
     assert len(records) == 8
     write_csv(records, tmp_path / "t.csv")
@@ -283,9 +292,10 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
 
 def _paired_report(per_task: list[float], section: str = "initial", seed: int = 1234) -> dict:
     values = torch.tensor(per_task)
-    return {"metric": "return", section: {
-        "mean": float(values.mean()), "sem": 0.1, "cvar": {"0.5": float(values.min())},
-        "cvar_sem": {"0.5": 0.2}, "n_tasks": 2, "rollouts": 8, "seed": seed,
+    return {"metric": "return", "benchmark": "point_nav", "method": "maml", section: {
+        "mean": float(values.mean()), "sem": float(values.std() / len(per_task) ** 0.5),
+        "cvar": {"0.5": float(values.min())}, "cvar_sem": {"0.5": 0.2}, "n_tasks": 2,
+        "rollouts": 8, "seed": seed,
         "per_task": per_task, "entropy": 1.0, "kl_p0": 0.0}}
 
 
@@ -301,7 +311,7 @@ def test_paired_differences_over_seeds_by_hand(tmp_path):
         (run / "eval.json").write_text(json.dumps(_paired_report(per_task)))
         shifted = [v - 1 for v in per_task]
         (run / "eval_shifts.json").write_text(json.dumps(
-            _paired_report(shifted, "shift/rim", seed=7) | {"initial": {}}))
+            _paired_report(shifted, "shift/rim", seed=7)))
     records = collect(plan, tmp_path, {})
     assert {r["distribution"] for r in records} == {"initial", "shift/rim"}
     text = paired(plan, records, tmp_path)
@@ -317,7 +327,7 @@ def test_paired_differences_over_seeds_by_hand(tmp_path):
     assert "+1.000 ± 1.414 [1.000] (1/2)" in initial
     assert "| point_nav | shift: rim |" in text
     level = next(line for line in text.splitlines() if line.startswith("| point_nav | initial |"))
-    assert "-11.5 ± 0.7 [0.1]" in level  # MAML's average: (−11, −12) over seeds, task s.e. 0.1
+    assert "-11.5 ± 0.7 [1.0]" in level  # MAML's average: (−11, −12) over seeds, task s.e. 1.0
 
 
 def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:

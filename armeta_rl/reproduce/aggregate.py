@@ -9,6 +9,7 @@ Over seeds, ``std`` is the sample standard deviation (n − 1; the paper's "± �
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from collections.abc import Iterable, Sequence
@@ -17,7 +18,9 @@ from pathlib import Path
 from typing import Any
 
 from armeta_rl.config import CONFIG_FILE
-from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished
+from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished, report_sections
+from armeta_rl.trainers.evaluation import ReportInvalid, read_report
+from armeta_rl.trainers.run_dir import write_text_atomically
 
 INITIAL = "initial"
 SHIFT_PREFIX = "shift/"
@@ -144,7 +147,8 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
     """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
     run's wall time from ``seconds``, :func:`train_seconds`), each named adversary from its
     ``eval_vs_<name>.json``, each shift (``shift/<name>``) from its ``eval_shifts.json``; with
-    noisy support labels as extra records."""
+    noisy support labels as extra records. A report that fails its schema is not finished
+    (:func:`~armeta_rl.reproduce.plan.finished`) and is left out."""
     records = []
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
     sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals
@@ -157,10 +161,10 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
             sources += [(run, file, name, name) for name in json.loads(path.read_text())
                         if name.startswith(SHIFT_PREFIX) and not name.endswith("_noisy")]
     for run, file, section, distribution in sources:
-        path = results / run.subdir / file
-        if not path.is_file():
+        try:
+            report = read_report(results / run.subdir / file, report_sections(file))
+        except ReportInvalid:
             continue
-        report = json.loads(path.read_text())
         run_time = seconds.get(run.subdir) if file == EVAL_FILE else None
         for noisy in (False, True):
             name = f"{section}_noisy" if noisy else section
@@ -172,7 +176,8 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
 
 
 def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:
-    """The records as CSV, one column per key (CVaR columns in increasing α)."""
+    """The records as CSV, one column per key (CVaR columns in increasing α), written
+    atomically."""
     keys: list[str] = []
     for record in records:
         keys += [k for k in record if k not in keys and k not in KEPT_OUT_OF_CSV]
@@ -180,10 +185,11 @@ def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:
     sems = sorted((k for k in keys if cvar_alpha(k, "cvar_sem_") is not None),
                   key=lambda k: cvar_alpha(k, "cvar_sem_"))
     columns = [k for k in keys if k not in cvars and k not in sems] + cvars + sems
-    with path.open("w", newline="") as handle:
-        writer = csv.DictWriter(handle, fieldnames=columns, restval="", extrasaction="ignore")
-        writer.writeheader()
-        writer.writerows(records)
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=columns, restval="", extrasaction="ignore")
+    writer.writeheader()
+    writer.writerows(records)
+    write_text_atomically(path, text.getvalue())
 
 
 def select(records: Iterable[dict[str, Any]], **where: Any) -> list[dict[str, Any]]:

@@ -28,6 +28,7 @@ from typing import NoReturn
 from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.preemption import listening
 from armeta_rl.reproduce.aggregate import (
     INITIAL,
     collect,
@@ -36,13 +37,32 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
-from armeta_rl.reproduce.launch import LAUNCHERS, eval_job, launch, launcher_overrides, train_job
-from armeta_rl.reproduce.plan import Plan, experiment_names, finished, make_plan
+from armeta_rl.reproduce.launch import (
+    LAUNCHERS,
+    check_ray_address,
+    eval_job,
+    launch,
+    launcher_overrides,
+    ray_address,
+    train_job,
+)
+from armeta_rl.reproduce.plan import (
+    Plan,
+    experiment_names,
+    finished,
+    make_plan,
+    report_path,
+    report_problem,
+)
 from armeta_rl.reproduce.reports import LAYOUTS
+from armeta_rl.trainers.run_dir import write_text_atomically
 
 PROG = "armeta-reproduce"
 MANIFEST = "reproduce.yaml"
 OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs")
+DEFAULT_STOP_SIGNALS = ("SIGTERM", "SIGUSR1")
+"""The signals (besides SIGINT) on which a sweep stops: its runs in flight finish their
+iteration and checkpoint, no further job starts, and the command exits 75 (SIGINT: 130)."""
 
 
 def _fail(message: str) -> NoReturn:
@@ -52,12 +72,15 @@ def _fail(message: str) -> NoReturn:
 
 def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
     """The results directory's manifest (a new one for a new directory; nothing is written). A
-    directory of another experiment (unless the plan shares its runs: ``shares_runs_with``),
-    another profile or other ``+train.`` overrides, or a non-empty directory without a manifest,
-    is refused."""
+    path that is a file or cannot be written, a manifest that cannot be read, a directory of
+    another experiment (unless the plan shares its runs: ``shares_runs_with``), another profile
+    or other ``+train.`` overrides, or a non-empty directory without a manifest, is refused."""
+    from armeta_rl.trainers.run_dir import check_run_dir
+
+    check_run_dir(results, "results")
     path = results / MANIFEST
     if path.is_file():
-        manifest = OmegaConf.to_container(OmegaConf.load(path))
+        manifest = read_manifest(results)
         allowed = {plan.experiment, *plan.spec.get("shares_runs_with", [])}
         if manifest["experiment"] not in allowed:
             raise ConfigError("results", str(results),
@@ -75,11 +98,30 @@ def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
             "wall_seconds": {}}
 
 
+def read_manifest(results: Path) -> dict:
+    """The results directory's ``reproduce.yaml``; :class:`ConfigError` naming ``results`` when
+    it cannot be read or lacks its keys."""
+    import yaml
+
+    path = results / MANIFEST
+    try:
+        manifest = OmegaConf.to_container(OmegaConf.load(path))
+    except (yaml.YAMLError, UnicodeDecodeError, ValueError) as error:
+        raise ConfigError("results", str(results), f"its {MANIFEST} cannot be read "
+                          f"({' '.join(str(error).split())[:120]}): delete it to start the "
+                          "directory's manifest again") from None
+    keys = {"experiment": str, "profile": str, "train": list, "wall_seconds": dict}
+    if not isinstance(manifest, dict) or any(
+            not isinstance(manifest.get(k), kind) for k, kind in keys.items()):
+        raise ConfigError("results", str(results),
+                          f"its {MANIFEST} is not a manifest (it needs {', '.join(keys)}): "
+                          "delete it to start the directory's manifest again")
+    return manifest
+
+
 def save_manifest(results: Path, manifest: dict) -> None:
     """Write ``manifest`` as the results directory's ``reproduce.yaml`` atomically (a kill
     leaves the old file or the new one)."""
-    from armeta_rl.trainers.run_dir import write_text_atomically
-
     write_text_atomically(results / MANIFEST, OmegaConf.to_yaml(OmegaConf.create(manifest)))
 
 
@@ -175,7 +217,7 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
             f"Cells: mean ± std over seeds unless marked s.e.; every run's numbers are in "
             f"`{plan.experiment}.csv`.\n\n{body}\n")
     path = results / f"{plan.experiment}.md"
-    path.write_text(text)
+    write_text_atomically(path, text)
     return path
 
 
@@ -208,11 +250,20 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
 
     plan = make_plan(experiment, profile, extra, benchmarks, seeds)
     results = (results or Path("results") / experiment).resolve()
-    selected = launcher_overrides(launcher, jobs)
+    selected = launcher_overrides(launcher, jobs, hydra_args)
+    address = ray_address(hydra_args) if launcher == "ray" else None
+    if address is not None:
+        given = any(arg.startswith("hydra.launcher.ray.init.address=") for arg in hydra_args)
+        check_ray_address(address, "hydra.launcher.ray.init.address" if given else "RAY_ADDRESS")
     manifest = claim(results, plan, extra)
     check_runs(plan)
     results.mkdir(parents=True, exist_ok=True)
     save_manifest(results, manifest)
+    for item in (*plan.runs, *plan.attacks, *plan.evals):
+        refused = report_problem(results, item)
+        if refused is not None and report_path(results, item).exists():
+            print(f"{PROG}: {report_path(results, item)} is not a finished report ({refused}): "
+                  "made again", file=sys.stderr)
     runs = [r for r in plan.runs if not finished(results, r)]
     attack_note = (f", {len(plan.attacks)} attack runs" if plan.attacks else "")
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
@@ -221,25 +272,28 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     code = 0
     if launcher == "none":
         runs = []
-    with SweepClock(results, manifest, experiment) as clock:
+    local = launcher == "local"
+    with listening(DEFAULT_STOP_SIGNALS, forward_to_children=local) as stop, SweepClock(
+            results, manifest, experiment) as clock:
         if runs:
             code = launch(train, [train_job(results, r) for r in runs], results,
                           f"{experiment} train", len(plan.runs) - len(runs),
-                          (*selected, *hydra_args))
-        attacks = [] if launcher == "none" else [  # the second batch: targets finished
+                          (*selected, *hydra_args), local)
+        attacks = [] if launcher == "none" or stop.requested else [  # targets finished
             a for a in plan.attacks if not finished(results, a) and finished(results, a.target)]
         if attacks:
             code = launch(train, [train_job(results, a) for a in attacks],
                           results, f"{experiment} attack",
                           sum(finished(results, a) for a in plan.attacks),
-                          (*selected, *hydra_args)) or code
+                          (*selected, *hydra_args), local) or code
         evals = [e for e in plan.evals if not finished(results, e)]
-        ready = [e for e in evals if finished(results, e.learner)
-                 and (e.adversary is None or finished(results, e.adversary))]
+        ready = [] if stop.requested else [
+            e for e in evals if finished(results, e.learner)
+            and (e.adversary is None or finished(results, e.adversary))]
         if ready and launcher != "none":
             code = launch(evaluate, [eval_job(results, e) for e in ready],
                           results, f"{experiment} eval", len(plan.evals) - len(evals),
-                          (*selected, *hydra_args)) or code
+                          (*selected, *hydra_args), local) or code
     wall = manifest["wall_seconds"]
     if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
         wall[experiment] = clock.before + clock.seconds
@@ -249,6 +303,10 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     save_manifest(results, manifest)
     report = write_report(whole, results, wall.get(experiment, 0.0), seconds)
     print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
+    if stop.requested:
+        print(f"{PROG}: stopped by {stop.name}: the runs in flight wrote checkpoints; the same "
+              "command continues the sweep", file=sys.stderr)
+        return stop.exit_code
     incomplete = any(not finished(results, r)
                      for r in (*plan.runs, *plan.attacks, *plan.evals))
     return code or int(incomplete)

@@ -14,6 +14,12 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from armeta_rl.reproduce.aggregate import display, method_curve, select, summary
+from armeta_rl.trainers.run_dir import write_atomically
+
+
+def _save(figure: Figure, path: Path, dpi: int) -> None:
+    """Save ``figure`` as the PNG ``path`` atomically (a kill leaves the old figure or none)."""
+    write_atomically(path, lambda staged: figure.savefig(staged, dpi=dpi))
 
 
 def _figure(rows: int, cols: int, width: float = 4.2, height: float = 3.4) -> Figure:
@@ -45,7 +51,7 @@ def cvar_curves(records: Sequence[dict[str, Any]], benchmarks: Sequence[str],
             ax.set_xlabel("α")
             ax.set_ylabel("CVaR_α")
     axes[0][0].legend(fontsize=7)
-    figure.savefig(path, dpi=90)
+    _save(figure, path, 90)
 
 
 def scatter(records: Sequence[dict[str, Any]], benchmarks: Sequence[str],
@@ -78,7 +84,7 @@ def scatter(records: Sequence[dict[str, Any]], benchmarks: Sequence[str],
             ax.set_xlabel("initial (p0)")
             ax.set_ylabel("adversarial")
     axes[0][0].legend(fontsize=7)
-    figure.savefig(path, dpi=90)
+    _save(figure, path, 90)
 
 
 def bars(records: Sequence[dict[str, Any]], benchmarks: Sequence[str], methods: Sequence[str],
@@ -105,7 +111,7 @@ def bars(records: Sequence[dict[str, Any]], benchmarks: Sequence[str], methods: 
         ax.set_ylabel(ylabel)
         ax.set_title(display(benchmark))
     axes[0].legend(fontsize=7)
-    figure.savefig(path, dpi=90)
+    _save(figure, path, 90)
 
 
 def lambda_curves(records: Sequence[dict[str, Any]], benchmarks: Sequence[str], method: str,
@@ -135,7 +141,7 @@ def lambda_curves(records: Sequence[dict[str, Any]], benchmarks: Sequence[str], 
         ax.set_title(f"{display(benchmark)}: {display(method)}", fontsize=9)
         ax.set_xlabel("λ")
         ax.legend(fontsize=7)
-    figure.savefig(path, dpi=90)
+    _save(figure, path, 90)
 
 
 def image_grid(images: dict[tuple[str, str], Path], rows: Sequence[str],
@@ -150,4 +156,4 @@ def image_grid(images: dict[tuple[str, str], Path], rows: Sequence[str],
             if (row, col) in images:
                 ax.imshow(matplotlib.image.imread(images[(row, col)]))
                 ax.set_title(f"{display(row)}, {col}", fontsize=8)
-    figure.savefig(path, dpi=110)
+    _save(figure, path, 110)

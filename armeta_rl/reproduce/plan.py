@@ -273,10 +273,38 @@ def shift_jobs(spec: dict[str, Any], runs: list[TrainRun]) -> list[EvalJob]:
     return [EvalJob(SHIFTS_JOB, run, None, shifts) for run in runs]
 
 
+def report_sections(file: str) -> tuple[str, ...]:
+    """The distributions a report must hold: a run's ``eval.json`` p0's, an adversary's
+    report (``eval_vs_<name>.json``) the adversary's, a shift report none by name (its
+    ``shift/<name>`` sections are checked as every section is)."""
+    if file == EVAL_FILE:
+        return ("initial",)
+    return () if file == f"eval_{SHIFTS_JOB}.json" else ("adversarial",)
+
+
+def report_path(results: Path, run: TrainRun | EvalJob) -> Path:
+    """The report that marks ``run`` finished: its ``eval.json``; an evaluation job's own."""
+    return results / (run.out if isinstance(run, EvalJob) else f"{run.subdir}/{EVAL_FILE}")
+
+
+def report_problem(results: Path, run: TrainRun | EvalJob) -> str | None:
+    """Why the report of ``run`` (its ``eval.json``; an evaluation job's own report) does not
+    mark it finished, or ``None`` when it does: the file is missing, unreadable, or fails its
+    schema (:func:`~armeta_rl.trainers.evaluation.check_report`; a hand-edited mean or a NaN)."""
+    from armeta_rl.trainers.evaluation import ReportInvalid, read_report
+
+    path = report_path(results, run)
+    try:
+        read_report(path, report_sections(path.name))
+    except ReportInvalid as error:
+        return str(error)
+    return None
+
+
 def finished(results: Path, run: TrainRun | EvalJob) -> bool:
-    """Whether a run has its ``eval.json`` (an evaluation job: its report)."""
-    path = run.out if isinstance(run, EvalJob) else f"{run.subdir}/{EVAL_FILE}"
-    return (results / path).is_file()
+    """Whether a run has its ``eval.json`` (an evaluation job: its report), passing the schema
+    of a report; a damaged or hand-edited one counts as unfinished, so it is made again."""
+    return report_problem(results, run) is None
 
 
 def interrupted(results: Path, run: TrainRun) -> bool:

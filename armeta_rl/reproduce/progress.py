@@ -9,13 +9,19 @@ worker prints.
 
 from __future__ import annotations
 
+import os
+import signal
+import threading
 import time
 from pathlib import Path
+from types import FrameType
 from typing import Any
 
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
+
+from armeta_rl.preemption import EXIT_PREEMPTED, PROCESS
 
 
 def format_elapsed(seconds: float) -> str:
@@ -56,3 +62,47 @@ class Progress(Callback):
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
         event = "done" if job_return.status == JobStatus.COMPLETED else "FAILED"
         print(self.line(event, config), flush=True)
+
+
+class SweepWorker(Callback):
+    """Make a joblib worker of a sweep stop its runs with the sweep (``armeta-reproduce
+    launcher=local``), and end once the sweep's process ``sweep_pid`` is gone.
+
+    As a job starts in the worker, the worker's ``SIGTERM`` and ``SIGUSR1`` set its stop request
+    for good (:data:`armeta_rl.preemption.PROCESS`): the run in flight checkpoints and stops
+    (while it trains, :func:`~armeta_rl.preemption.listening` handles them alike), and the
+    worker's later jobs stop before starting. The sweep's process forwards its own stop signals
+    to its workers. A thread watches the sweep's process: once it is gone (``SIGKILL``, say),
+    the worker sends itself ``SIGTERM``, and exits as soon as no run of it is in flight.
+    """
+
+    def __init__(self, sweep_pid: int, every: float = 1.0) -> None:
+        self.sweep_pid, self.every = int(sweep_pid), every
+
+    def orphaned(self) -> bool:
+        return os.getppid() != self.sweep_pid
+
+    def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
+        if os.getpid() == self.sweep_pid or threading.current_thread() is not (
+                threading.main_thread()):
+            return
+        for sig in (signal.SIGTERM, signal.SIGUSR1):
+            signal.signal(sig, self._stop)
+        if not any(thread.name == "sweep-watch" for thread in threading.enumerate()):
+            threading.Thread(target=self._watch, name="sweep-watch", daemon=True).start()
+
+    def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
+        if os.getpid() != self.sweep_pid and self.orphaned():
+            os._exit(EXIT_PREEMPTED)  # the run checkpointed; nobody reads its result
+
+    def _stop(self, signum: int, frame: FrameType | None) -> None:
+        """Between runs (or in an evaluation job): a worker whose sweep is gone has nothing to
+        finish; otherwise no later job of it starts."""
+        PROCESS.request(signum)
+        if self.orphaned():
+            os._exit(EXIT_PREEMPTED)
+
+    def _watch(self) -> None:
+        while not self.orphaned():
+            time.sleep(self.every)
+        os.kill(os.getpid(), signal.SIGTERM)

@@ -119,6 +119,12 @@ class BoxUniform(TaskDistribution):
         return torch.tensor(self.space.log_volume, dtype=torch.float64)
 
 
+MIN_BOX_MASS = 1e-6
+"""The least mass a truncated normal p0 may have along each axis of the box: its inverse-CDF
+sampler maps ``u`` into ``[Φ(α), Φ(β)]``, and with less mass than this the float64 CDF keeps
+fewer than ten significant digits of the samples (none, once the mass underflows)."""
+
+
 class TruncatedNormal(TaskDistribution):
     """Diagonal normal N(loc, diag(scale²)) truncated to the box, sampled by inverse CDF.
 
@@ -142,6 +148,15 @@ class TruncatedNormal(TaskDistribution):
         self.register_buffer(
             "cdf_high", torch.special.ndtr((self.high - self.loc) / self.scale), persistent=False
         )
+        mass = self.cdf_high - self.cdf_low
+        if not bool((mass >= MIN_BOX_MASS).all()):
+            axis = int(mass.argmin())
+            raise ConfigError(
+                "benchmark.initial.loc", list(loc),
+                f"N(loc, scale²) puts {float(mass[axis]):.3g} of its mass on "
+                f"[{space.low[axis]:g}, {space.high[axis]:g}] along {space.names[axis]}: "
+                f"allowed: at least {MIN_BOX_MASS:g} on every axis of the box (centre p0 in "
+                "the box, or widen benchmark.initial.scale)")
 
     def sample_params(self, n: int) -> Tensor:
         u = torch.rand(n, self.space.dim, dtype=torch.float64, device=self.low.device)

@@ -11,6 +11,12 @@ from torch import Tensor
 
 from armeta_rl.errors import ConfigError
 
+FLOAT32_MAX = float(torch.finfo(torch.float32).max)
+
+
+def _float32(value: float) -> float:
+    return float(torch.tensor(value, dtype=torch.float32))
+
 
 @dataclass(frozen=True)
 class TaskSpace:
@@ -19,7 +25,8 @@ class TaskSpace:
     Args:
         names: one name per identifier, e.g. ``("amplitude", "phase")``.
         low: lower corner of the box.
-        high: upper corner of the box; every ``high[i]`` must exceed ``low[i]``.
+        high: upper corner of the box; every ``high[i]`` must exceed ``low[i]``, also once both
+            are rounded to float32 (the dtype of the identifiers tasks carry).
     """
 
     names: tuple[str, ...]
@@ -41,10 +48,12 @@ class TaskSpace:
                     list(value),
                     f"needs {len(names)} values, one per name",
                 )
-            if not all(math.isfinite(v) for v in value):
-                raise ConfigError(f"benchmark.space.{key}", list(value), "must be finite")
+            if not all(abs(v) <= FLOAT32_MAX for v in value):
+                raise ConfigError(f"benchmark.space.{key}", list(value),
+                                  f"must be finite float32 numbers, |value| <= {FLOAT32_MAX:.3g} "
+                                  "(tasks carry their identifiers in float32)")
         for name, lo, hi in zip(names, low, high):
-            if not lo < hi:
+            if not _float32(lo) < _float32(hi):
                 raise ConfigError(
                     "benchmark.space.low",
                     list(low),

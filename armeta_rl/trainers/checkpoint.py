@@ -209,6 +209,10 @@ class RunCheckpoint:
             remove_tree(path)
         return leftovers
 
+    def path(self, iteration: int) -> Path:
+        """The directory of the checkpoint written after ``iteration`` iterations."""
+        return self.directory / f"{PREFIX}-{iteration:012d}"
+
     def save(self, iteration: int) -> Path:
         """Write a checkpoint after ``iteration`` completed iterations, atomically.
 
@@ -217,7 +221,7 @@ class RunCheckpoint:
                 directory); the checkpoints written before are untouched.
         """
         self.progress["iteration"] = iteration
-        final = self.directory / f"{PREFIX}-{iteration:012d}"
+        final = self.path(iteration)
         stage = self.directory / f".{final.name}.staging-{os.getpid()}"
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
@@ -257,7 +261,7 @@ class RunCheckpoint:
                 built other networks.
         """
         run_dir = str(self.directory.parent)
-        broken = []
+        broken, earlier = [], self.set_aside()
         for path in reversed(self.checkpoints()):
             reason = verify(path)
             if reason is None:
@@ -273,8 +277,16 @@ class RunCheckpoint:
             os.replace(path, aside)
             log.warning("checkpoint %s is broken (%s): moved to %s", path, reason, aside.name)
             broken.append(f"{path.name} ({reason})")
+        broken += [f"{p.name} (set aside by an earlier resume)" for p in earlier]
         found = f"; broken: {', '.join(broken)}" if broken else ""
         raise CheckpointBroken(key, run_dir, f"has no intact checkpoint{found}")
+
+    def set_aside(self) -> list[Path]:
+        """The checkpoints a restore found broken and renamed ``<name>.broken``, oldest first: a
+        run that has them was trained, so it never starts again from iteration 0 by itself."""
+        if not self.directory.is_dir():
+            return []
+        return sorted(p for p in self.directory.glob(f"{PREFIX}-*{BROKEN_SUFFIX}") if p.is_dir())
 
     def _load(self, path: Path, key: str, components: Collection[str] | None) -> None:
         try:

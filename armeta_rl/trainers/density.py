@@ -10,7 +10,8 @@ keeps the numbers drawn beside it (``iter_<iteration>.pt``, a
 is not a multiple of ``every``, redraws every frame in the directory on one colour scale (per
 pair of identifiers) chosen from all of them, and writes ``<run>/density.gif``: p0 keeps its
 colour from frame to frame (a resumed run's animation includes the frames written before the
-interruption).
+interruption). Frames, their numbers and the GIF are written atomically; a frame that cannot
+be read (a file damaged outside the run) is left out of the GIF with a warning.
 
 Drawing evaluates the exact density on a grid: it draws no random numbers, so a run with frames
 is bit-identical to one without.
@@ -18,10 +19,12 @@ is bit-identical to one without.
 
 from __future__ import annotations
 
+import logging
 import pickle
 from pathlib import Path
 
 import torch
+from matplotlib.image import imread
 from torchrl.record.loggers import Logger, WandbLogger
 
 from armeta_rl.plots import (
@@ -32,6 +35,9 @@ from armeta_rl.plots import (
     write_animation,
 )
 from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.trainers.run_dir import write_atomically
+
+log = logging.getLogger(__name__)
 
 FRAMES_DIR = "density"
 ANIMATION_FILE = "density.gif"
@@ -71,7 +77,8 @@ class DensityFrames:
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         path = self.frame_path(iteration)
         picture = density_picture(self.adversary, self.initial, self.points_per_axis)
-        torch.save(picture.state_dict(), path.with_suffix(".pt"))
+        write_atomically(path.with_suffix(".pt"),
+                         lambda staged: torch.save(picture.state_dict(), staged))
         self._draw(picture, iteration)
         if isinstance(self.logger, WandbLogger):
             import wandb
@@ -81,14 +88,16 @@ class DensityFrames:
 
     def _draw(self, picture: DensityPicture, iteration: int, norms=None) -> Path:
         space = self.adversary.space
-        return draw_density(picture, self.frame_path(iteration),
-                            f"p_φ at meta-iteration {iteration}", norms, space.low, space.high)
+        path = self.frame_path(iteration)
+        write_atomically(path, lambda staged: draw_density(
+            picture, staged, f"p_φ at meta-iteration {iteration}", norms, space.low, space.high))
+        return path
 
     def finish(self, iteration: int) -> Path:
         """Draw the final ``iteration`` if it has no frame yet, redraw every frame on the colour
         scales of all of them (:func:`~armeta_rl.plots.picture_norms`), then write the GIF of
         every frame in the directory, in iteration order; returns the GIF's path."""
-        if not self.frame_path(iteration).exists():
+        if not readable(self.frame_path(iteration)):
             self.draw(iteration)
         frames = sorted(self.frames_dir.glob("iter_*.png"), key=lambda f: int(f.stem[5:]))
         pictures = [self._picture(frame) for frame in frames]
@@ -96,7 +105,14 @@ class DensityFrames:
             norms = picture_norms(pictures)
             for frame, picture in zip(frames, pictures, strict=True):
                 self._draw(picture, int(frame.stem[5:]), norms)
-        write_animation(frames, self.animation)
+        kept = []
+        for frame in frames:
+            if readable(frame):
+                kept.append(frame)
+            else:
+                log.warning("density frame %s cannot be read: left out of %s", frame,
+                            self.animation.name)
+        write_atomically(self.animation, lambda staged: write_animation(kept, staged))
         return self.animation
 
     @staticmethod
@@ -109,3 +125,11 @@ class DensityFrames:
             return None
         return DensityPicture.from_state_dict(state)
 
+
+def readable(frame: Path) -> bool:
+    """Whether ``frame`` is a PNG that can be read back (e.g. not a 0-byte file)."""
+    try:
+        imread(frame)
+    except (OSError, SyntaxError, ValueError):
+        return False
+    return True

@@ -25,6 +25,7 @@ from tqdm.auto import tqdm
 
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.learners.base import Leader
+from armeta_rl.preemption import StopRequest
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks.protocol import TASK_KEY, per_rollout, repeat_tasks
 from armeta_rl.trainers.checkpoint import RunCheckpoint
@@ -157,10 +158,12 @@ class GameTrainer:
                 f"trainer.max_loss = {self.max_loss:g}"
             )
 
-    def run(self, stop_at: int | None = None) -> int:
-        """Train until ``iterations`` (or ``stop_at``, checkpointing there); returns the iteration
+    def run(self, stop_at: int | None = None, stop: StopRequest | None = None) -> int:
+        """Train until ``iterations`` (or ``stop_at``, checkpointing there), or until ``stop`` is
+        requested: then the current iteration is finished and checkpointed; returns the iteration
         reached. A :class:`TrainingDiverged` propagates and leaves the last good checkpoint."""
         end = self.iterations if stop_at is None else min(stop_at, self.iterations)
+        start, saved = self.iteration, None
         bar = tqdm(
             total=end,
             initial=self.iteration,
@@ -169,7 +172,7 @@ class GameTrainer:
             dynamic_ncols=True,
         )
         with bar:
-            while self.iteration < end:
+            while self.iteration < end and not (stop is not None and stop.requested):
                 logs = self.train_iteration()
                 bar.update(1)
                 if self.iteration % self.log_every == 0 or self.iteration == end:
@@ -182,14 +185,19 @@ class GameTrainer:
                     )
                     if self.log is not None:
                         self.log(logs, self.iteration)
-                if self.checkpoint is not None and (
-                    self.iteration % self.checkpoint_every == 0 or self.iteration == end
-                ):
-                    if not all(math.isfinite(v) for v in logs.values()):
-                        raise TrainingDiverged(
-                            f"non-finite training scalars at iteration {self.iteration}"
-                        )
-                    self.checkpoint.save(self.iteration)
+                if self.iteration % self.checkpoint_every == 0 or self.iteration == end:
+                    saved = self.save(logs)
                 if self.after_iteration is not None:
                     self.after_iteration(self.iteration)
+            if self.iteration not in (start, saved):  # stopped on request between checkpoints
+                self.save(logs)
+        return self.iteration
+
+    def save(self, logs: dict[str, float]) -> int:
+        """Checkpoint the iteration just trained (its scalars ``logs`` must be finite); returns
+        its number."""
+        if self.checkpoint is not None:
+            if not all(math.isfinite(v) for v in logs.values()):
+                raise TrainingDiverged(f"non-finite training scalars at iteration {self.iteration}")
+            self.checkpoint.save(self.iteration)
         return self.iteration

@@ -145,9 +145,10 @@ def load_players(
 ) -> tuple[TrainConfig, Players]:
     """Rebuild a saved run's players on ``device`` (default: the run's own ``device``), with
     ``changes`` to its config (e.g. other ``eval`` settings), and load its latest checkpoint
-    there, wherever it was saved."""
+    there, wherever it was saved. Its ``threads`` (training's torch threads, at most the CPUs
+    of the machine that trained it) is set to 1: loading and evaluating use none of them."""
     try:
-        cfg = OmegaConf.merge(load_run_config(run_dir, key), changes or {},
+        cfg = OmegaConf.merge(load_run_config(run_dir, key), {"threads": 1}, changes or {},
                               {} if device is None else {"device": device})
     except OmegaConfBaseException as error:
         raise config_error(error) from None

@@ -138,3 +138,4 @@ def cross_evaluate(
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report
+

@@ -9,7 +9,8 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
-from collections.abc import Iterator
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -24,14 +25,29 @@ CSV_LOG_DIR = "logs"
 
 def check_run_dir(run_dir: Path, key: str) -> None:
     """Refuse, before anything is written, a run directory that is an existing file, or that
-    cannot be created or written (a read-only file system or directory)."""
+    cannot be created or written (a read-only file system or directory: tried by creating and
+    removing a hidden file, which also holds for root and for special file systems)."""
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(key, str(run_dir), "is an existing file, not a directory")
     existing = next(p for p in (run_dir, *run_dir.parents) if p.exists())
     if not existing.is_dir():
         raise ConfigError(key, str(run_dir), f"cannot be created: {existing} is a file")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ConfigError(key, str(run_dir), f"cannot be written: {existing} is read-only")
+    problem = unwritable(existing)
+    if problem is not None:
+        raise ConfigError(key, str(run_dir), f"cannot be written in {existing} ({problem})")
+
+
+def unwritable(directory: Path) -> str | None:
+    """Why no file can be created in ``directory`` (``read-only``, ...), or ``None``: a hidden
+    file is created there and removed."""
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".armeta-probe-", dir=directory)
+    except OSError as error:
+        return "read-only" if error.errno in (errno.EACCES, errno.EPERM, errno.EROFS) else (
+            error.strerror or str(error)).lower()
+    os.close(fd)
+    os.unlink(probe)
+    return None
 
 
 @contextmanager
@@ -49,6 +65,7 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
     """
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LOCK_FILE
+    held_here = False
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
         try:
@@ -58,17 +75,20 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
             os.close(fd)
             if error.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                 raise
-            if holder == str(os.getpid()):
-                yield path
-                return
-            raise ConfigError(
-                key, str(run_dir),
-                f"is in use by another run (pid {holder or '?'}): wait for it to end or choose "
-                "another directory",
-            ) from None
+            if holder != str(os.getpid()):
+                raise ConfigError(
+                    key, str(run_dir),
+                    f"is in use by another run (pid {holder or '?'}): wait for it to end or "
+                    "choose another directory",
+                ) from None
+            held_here = True
+            break
         if _same_file(fd, path):
             break
         os.close(fd)  # locked a file its holder removed on release: lock the one there now
+    if held_here:  # yielded outside the except clause: an error in the block is not chained to
+        yield path  # the BlockingIOError
+        return
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
@@ -93,28 +113,59 @@ def write_config(cfg: DictConfig, path: Path) -> None:
 
 def write_text_atomically(path: Path, text: str) -> None:
     """Write ``text`` to a hidden sibling of ``path``, fsync it and rename it over ``path``."""
-    staged = path.with_name(f".{path.name}.{os.getpid()}")
+    write_atomically(path, lambda staged: write_file(staged, text.encode()))
+
+
+def write_atomically(path: Path, write: Callable[[Path], object]) -> None:
+    """Have ``write`` write the file ``path`` into a hidden sibling ``.<stem>.<pid><suffix>``
+    (the suffix kept: matplotlib and Pillow choose the format by it), fsync it and rename it over
+    ``path``: a crash or a full disk leaves the old file or none, never a partial one (the
+    sibling is removed, or by the next run, :func:`staged_leftovers`)."""
+    staged = path.with_name(f".{path.stem}.{os.getpid()}{path.suffix}")
     try:
-        write_file(staged, text.encode())
+        write(staged)
+        fd = os.open(staged, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
         os.replace(staged, path)
     finally:
         staged.unlink(missing_ok=True)
 
 
-def drop_csv_rows_after(run_dir: Path, iteration: int) -> None:
+def staged_leftovers(run_dir: Path, folders: Iterable[str]) -> list[Path]:
+    """The hidden siblings that :func:`write_atomically` left in ``folders`` of ``run_dir``
+    (``"."``: the run directory itself; CSV logs: every folder below) when a crash interrupted
+    it: hidden files with a pid among their dotted parts (``.eval.4242.json``, and
+    ``.eval.json.4242``); remove them only while holding the run's lock."""
+    found = []
+    for folder in folders:
+        where = run_dir / folder
+        paths = where.rglob(".*.*") if folder == CSV_LOG_DIR else where.glob(".*.*")
+        found += [p for p in paths
+                  if p.is_file() and any(part.isdigit() for part in p.name.split(".")[2:])]
+    return found
+
+
+def drop_csv_rows_after(run_dir: Path, iteration: int, evaluated: bool = False) -> None:
     """Delete the CSV log rows of iterations after ``iteration`` (the checkpoint a run resumes
     from): a run that crashed logged past its last checkpoint, and the resumed run logs those
-    iterations again, so without this every scalar would hold them twice. A last row without
-    its line end (a write the crash cut short) is dropped too.
+    iterations again, so without this every scalar would hold them twice. The evaluation's rows
+    (``eval/``) at ``iteration`` go too, unless ``evaluated`` (the run finished there and is
+    resumed to train longer): they were logged by an evaluation that a crash cut short. A last
+    row without its line end (a write the crash cut short) is dropped too.
 
     Raises:
         ConfigError: a complete row does not start with an iteration number.
     """
-    for path in (run_dir / CSV_LOG_DIR / "scalars").rglob("*.csv"):
+    scalars = run_dir / CSV_LOG_DIR / "scalars"
+    for path in scalars.rglob("*.csv"):
+        last = iteration - (not evaluated and path.relative_to(scalars).parts[0] == "eval")
         rows = path.read_text(errors="replace").splitlines(keepends=True)
         if rows and not rows[-1].endswith("\n"):
             rows[-1] = ""
-        kept = [row for row in rows if row and _csv_step(row, path, run_dir) <= iteration]
+        kept = [row for row in rows if row and _csv_step(row, path, run_dir) <= last]
         if kept != rows:
             write_text_atomically(path, "".join(kept))
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -13,10 +14,17 @@ from torchrl.record.loggers import Logger, WandbLogger
 
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, TrainConfig, load_run_config, validate
-from armeta_rl.errors import CollectionFailed, ConfigError, RunDirectoryError, TrainingDiverged
+from armeta_rl.errors import (
+    CollectionFailed,
+    ConfigError,
+    RunDirectoryError,
+    RunStopped,
+    TrainingDiverged,
+)
+from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact
-from armeta_rl.trainers.density import DensityFrames
-from armeta_rl.trainers.evaluation import format_table
+from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames
+from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.loggers import make_logger
 from armeta_rl.trainers.players import Players, build_players, load_frozen_leader
@@ -26,6 +34,8 @@ from armeta_rl.trainers.run_dir import (
     check_run_dir,
     drop_csv_rows_after,
     run_lock,
+    staged_leftovers,
+    write_atomically,
     write_config,
     write_text_atomically,
 )
@@ -42,9 +52,15 @@ def say(message: str) -> None:
     log.info(message)
 
 
-def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) -> dict | None:
+def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True,
+                 stop: StopRequest | None = None) -> dict | None:
     """Train ``cfg`` in ``run_dir`` (resuming from its checkpoint if ``cfg.resume`` is set),
-    holding the run directory's lock throughout.
+    holding the run directory's lock throughout; a resumed run that has finished (its
+    ``eval.json`` passes its schema) is left as it is.
+
+    ``stop`` is checked after every iteration (the CLI sets it on a preemption signal,
+    :mod:`armeta_rl.preemption`): once it is requested, the run checkpoints the iteration it
+    finished and stops.
 
     Returns the evaluation report, or ``None`` when the run stopped early at ``trainer.stop_at``.
 
@@ -54,15 +70,23 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
         TrainingDiverged: the losses left ``trainer.max_loss``; names the checkpoint kept.
         RunDirectoryError: a checkpoint, log or report could not be written (e.g. a full disk);
             names the checkpoint kept.
+        RunStopped: ``stop`` was requested before the run finished; names the checkpoint kept
+            and the resume command.
     """
     run_dir = Path(run_dir)
     key = "resume" if cfg.resume else "hydra.run.dir"
+    stop = stop if stop is not None else StopRequest()
     config = validate(cfg)
     say(f"run directory: {run_dir}")
     check_run_dir(run_dir, key)
     with run_lock(run_dir, key):
         try:
-            return _train_locked(cfg, config, run_dir, progress)
+            return _train_locked(cfg, config, run_dir, progress, stop)
+        except KeyboardInterrupt:
+            if stop.signal != signal.SIGINT:  # not the second Ctrl-C of preemption.listening
+                raise
+            raise RunStopped(_stopped("stopped at once by a second SIGINT", run_dir),
+                             EXIT_INTERRUPTED) from None
         except (TrainingDiverged, CollectionFailed, RunDirectoryError, OSError) as error:
             stopped = isinstance(error, (TrainingDiverged, CollectionFailed))
             kind = type(error) if stopped else RunDirectoryError
@@ -77,9 +101,36 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True) ->
             ) from None
 
 
-def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress: bool
-                  ) -> dict | None:
+def _stopped(reason: str, run_dir: Path, written: Path | None = None) -> str:
+    """The line a stopped run ends with: why, the checkpoint it continues from, and how."""
+    if written is not None:
+        kept = f"checkpoint {written} written"
+    else:
+        newest = newest_intact(run_dir / "checkpoints")
+        kept = (f"the last checkpoint {newest} is kept" if newest is not None
+                else "no checkpoint yet (it starts again from iteration 0)")
+    return f"{reason}: {kept}; continue with: armeta-train resume={run_dir}"
+
+
+def finished_report(run_dir: Path) -> dict | None:
+    """The run's ``eval.json`` if the run has finished: the file is written last, and only
+    counts when it passes its schema (a damaged or hand-edited one is evaluated again)."""
+    try:
+        return read_report(run_dir / EVAL_FILE)
+    except ReportInvalid:
+        return None
+
+
+def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress: bool,
+                  stop: StopRequest) -> dict | None:
     """:func:`run_training` inside the run directory's lock; ``config`` is ``cfg`` validated."""
+    saved_iterations = (load_run_config(run_dir, "resume").trainer.iterations if config.resume
+                        else None)
+    report = finished_report(run_dir) if config.resume else None
+    if report is not None and saved_iterations == config.trainer.iterations:
+        say(f"{run_dir} has finished: nothing to do ({EVAL_FILE} holds its evaluation; "
+            "resume with a larger trainer.iterations to train longer)")
+        return report
     torch.set_num_threads(config.threads)
     players = build_players(config)
     if config.trainer.follower_rollouts > 1 and not players.leader.on_policy:
@@ -93,7 +144,7 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         config.resume and checkpoint.checkpoints()
     ):
         load_frozen_leader(cfg, players)
-    start = _open_run(cfg, run_dir, checkpoint)
+    start = _open_run(cfg, run_dir, checkpoint, evaluated=report is not None)
     logger = make_logger(cfg, run_dir)
     compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
     if compiled:
@@ -123,16 +174,18 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         follower_rollouts=trainer_options.follower_rollouts,
     )
     trainer.iteration = start
-    if trainer.run(stop_at=trainer_options.stop_at) < trainer_options.iterations:
+    reached = trainer.run(stop_at=trainer_options.stop_at, stop=stop)
+    planned = min(trainer_options.iterations,
+                  trainer_options.stop_at or trainer_options.iterations)
+    if stop.requested and reached < planned:
+        written = checkpoint.path(reached) if reached > start else None
+        raise RunStopped(_stopped(f"stopped by {stop.name} after iteration {reached}", run_dir,
+                                  written), stop.exit_code)
+    if reached < trainer_options.iterations:
         say(f"stopped at iteration {trainer.iteration}; continue with: "
             f"armeta-train resume={run_dir}")
         return None
-    report = _write_report(config, run_dir, players, logger)
-    if frames is not None:
-        frames.finish(trainer.iteration)
-    if logger is not None:
-        logger.log_metrics(eval_scalars(report), trainer_options.iterations)
-    return report
+    return _finish(config, run_dir, players, logger, frames, reached)
 
 
 def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> None:
@@ -142,23 +195,25 @@ def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> N
     log.info("iteration %d: %s", step, " ".join(f"{k}={v:.6g}" for k, v in scalars.items()))
 
 
-def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint) -> int:
+def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
+              evaluated: bool = False) -> int:
     """Clear what a crash left half-written in ``run_dir``, then restore its checkpoint (resume)
-    or save the config of a fresh run; returns the iteration training starts from."""
+    or save the config of a fresh run; returns the iteration training starts from.
+    ``evaluated``: the run's ``eval.json`` holds the evaluation at the iteration it resumes
+    from (a finished run resumed to train longer)."""
     checkpoint.clean_staging()
-    staged = [*run_dir.glob(f".{CONFIG_FILE}.*"), *run_dir.glob(f".{EVAL_FILE}.*"),
-              *(run_dir / CSV_LOG_DIR).rglob(".*.csv.*")]
-    for path in staged:  # what write_text_atomically left when a crash interrupted it
-        path.unlink()
+    for path in staged_leftovers(run_dir, (".", CSV_LOG_DIR, FRAMES_DIR)):
+        path.unlink()  # what an atomic write left when a crash interrupted it
     start = 0
     if cfg.resume:
-        if checkpoint.checkpoints():
+        if checkpoint.checkpoints() or checkpoint.set_aside():
             start = checkpoint.restore("resume")
-        drop_csv_rows_after(run_dir, start)
+        drop_csv_rows_after(run_dir, start, evaluated)
         saved = load_run_config(run_dir, "resume")
         if saved.trainer.iterations != cfg.trainer.iterations:  # resumed to train longer
             saved.trainer.iterations = cfg.trainer.iterations
             write_config(saved, run_dir / CONFIG_FILE)
+            (run_dir / EVAL_FILE).unlink(missing_ok=True)  # the run is no longer finished
     else:
         if checkpoint.checkpoints() or (run_dir / CONFIG_FILE).exists():
             raise ConfigError(
@@ -170,22 +225,28 @@ def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint) -> int:
     return start
 
 
-def _write_report(config: TrainConfig, run_dir: Path, players: Players,
-                  logger: Logger | None) -> dict:
-    """Evaluate the trained players into ``eval.json``, print its table and draw the final p_φ;
-    returns the report."""
+def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger | None,
+            frames: DensityFrames | None, iteration: int) -> dict:
+    """Evaluate the trained players, log the scores, draw the final p_φ and its animation, and
+    write ``eval.json`` last (atomically): a run with an ``eval.json`` has everything. Prints the
+    table; returns the report."""
     report = evaluate_players(config, players)
-    write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
-    say(format_table(report))
+    if logger is not None:
+        logger.log_metrics(eval_scalars(report), config.trainer.iterations)
     if players.adversary is not None:
         _save_density(players, run_dir / DENSITY_FILE, logger)
+    if frames is not None:
+        frames.finish(iteration)
+    write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
+    say(format_table(report))
     return report
 
 
 def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
     from armeta_rl.plots import plot_density
 
-    plot_density(players.adversary, players.initial, path)
+    write_atomically(path, lambda staged: plot_density(players.adversary, players.initial,
+                                                       staged))
     if isinstance(logger, WandbLogger):
         import wandb
 

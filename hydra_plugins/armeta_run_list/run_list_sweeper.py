@@ -19,6 +19,8 @@ Every job runs even when some fail: a job's user error comes back as
 
 # No `from __future__ import annotations`: Hydra loads plugin modules without registering them in
 # sys.modules, and dataclasses cannot then resolve string annotations.
+import io
+from contextlib import redirect_stderr
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -73,8 +75,9 @@ class RunListSweeper(Sweeper):
         returns = self.launcher.launch(batch, initial_job_idx=0)
         codes = []
         for result in returns:
-            try:
-                _ = result.return_value  # re-raises a job's exception, as the basic sweeper does
+            try:  # re-raises a job's exception, as the basic sweeper does, after a line of
+                with redirect_stderr(io.StringIO()):  # Hydra's that would repeat the job's own
+                    _ = result.return_value
             except JobFailed as failed:  # its one line is printed; the other jobs ran
                 codes.append(failed.code)
         if codes:
