@@ -38,8 +38,10 @@ def test_gravity_benchmark_is_pendulum_uniform_on_a_3d_box():
     gravity, uniform = composed("pendulum_gravity"), composed("pendulum_uniform")
     assert gravity["benchmark"]["space"]["names"] == ["m", "l", "g"]
     assert gravity["benchmark"]["collector"].pop("identifiers") == "${benchmark.space.names}"
+    assert gravity["benchmark"]["shift_suite"] is None  # the pendulum's suite is on (m, l) alone
     for config in (gravity, uniform):
         del config["benchmark"]["name"], config["benchmark"]["space"]
+        del config["benchmark"]["shift_suite"]
     assert gravity == uniform
 
 
