@@ -43,5 +43,5 @@ def test_the_registry_registers_every_section_whichever_module_comes_first(modul
                  "from armeta_rl.config import schema\n"
                  "assert sorted(schema().learner) == "
                  "['anil', 'cnp', 'maml', 'maml_ppo', 'maml_trpo']\n"
-                 "assert sorted(schema().risk) == ['ar', 'dr', 'dro', 'tr']")
+                 "assert sorted(schema().risk) == ['ar', 'dr', 'dro', 'mpts', 'pdts', 'tr']")
     imported_after(statement)
