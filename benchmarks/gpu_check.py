@@ -611,7 +611,9 @@ def report(args: argparse.Namespace) -> None:
         "timings):\n\n" + part_table,
     ])
     command = getattr(args, "command", None) or "benchmarks/gpu_check.sh"
-    write_section("gpu_check", "GPU check (gpu_check.sh)", body, command=command)
+    where = (f"{pre.get('machine', '?')}, {pre.get('cpus', '?')} logical CPUs, torch "
+             f"{pre.get('modules', {}).get('torch', '?')}, 1 thread") if pre else None
+    write_section("gpu_check", "GPU check (gpu_check.sh)", body, command=command, machine=where)
     if out.exists():
         shutil.copy(BENCHMARKS_PAGE, out / "benchmarks.md")
     summary = [f"gpu_check {datetime.datetime.now().isoformat(timespec='seconds')}: {machine}"]

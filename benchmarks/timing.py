@@ -98,25 +98,27 @@ def replace_section(page: str, name: str, section: str) -> str:
     return head + block + rest.split(end, 1)[1]
 
 
-def section(title: str, command: str, body: str) -> str:
+def section(title: str, command: str, body: str, machine: str | None = None) -> str:
     """A script's section: its title, the command that produced it, the date, the machine and its
-    load (other processes slow a shared machine down), and ``body`` (the tables)."""
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    machine = (f"{platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} "
-               f"({torch.backends.cpu.get_cpu_capability()} kernels), "
-               f"{torch.get_num_threads()} thread; load average at the end {load}")
+    load (other processes slow a shared machine down; ``machine`` where the figures were measured
+    elsewhere, e.g. rows of a GPU machine reported here), and ``body`` (the tables)."""
+    if machine is None:
+        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+        machine = (f"{platform.machine()}, {os.cpu_count()} logical CPUs, torch "
+                   f"{torch.__version__} ({torch.backends.cpu.get_cpu_capability()} kernels), "
+                   f"{torch.get_num_threads()} thread; load average at the end {load}")
     return (f"## {title}\n\n`{command}`, run on {datetime.date.today().isoformat()} "
             f"({machine}).\n\n{body.strip()}\n")
 
 
 def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE,
-                  command: str | None = None) -> None:
+                  command: str | None = None, machine: str | None = None) -> None:
     """Write script ``name``'s section of ``page`` (docs/benchmarks.md by default), leaving the
     other scripts' sections untouched; the command is ``command``, by default this process's own
-    command line."""
+    command line, and the machine ``machine``, by default this one."""
     if command is None:
         command = "OMP_NUM_THREADS=1 python " + " ".join(
             [f"benchmarks/{Path(sys.argv[0]).name}", *map(shlex.quote, sys.argv[1:])])
     text = page.read_text() if page.exists() else ""
-    page.write_text(replace_section(text, name, section(title, command, body)))
+    page.write_text(replace_section(text, name, section(title, command, body, machine)))
     print(f"wrote the {name} section of {page}")

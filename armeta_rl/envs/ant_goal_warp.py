@@ -119,14 +119,16 @@ class WarpBatch:
         refreshed by every call."""
         return self._views[name]
 
-    def _run(self, name: str, launch: Callable[[], None], graph: bool = True) -> None:
+    def _run(self, name: str, launch: Callable[[], None]) -> None:
         """Run ``launch`` (warp kernels) after torch's pending work and before torch's next; as a
-        CUDA graph captured at its first call when ``graphs`` and ``graph`` (the step and the
-        forward pass, run at every env step; resets launch their kernels)."""
+        CUDA graph captured at its first call when ``graphs``. Resets are replayed too: some of
+        the batch's worlds end at nearly every step, and mujoco_warp's ``reset_data`` builds and
+        hashes its kernels anew at each call (22 ms a call on an H100), while the replay reads
+        the reset mask as the env last wrote it."""
         if self.device.is_cuda:
             torch.cuda.synchronize(self.torch_device)
         with self.wp.ScopedDevice(self.device):
-            if self.graphs and graph and name not in self._graphs:
+            if self.graphs and name not in self._graphs:
                 self._graphs[name] = self._capture(name, launch)
             graph = self._graphs.get(name)
             if graph is None:
@@ -157,7 +159,7 @@ class WarpBatch:
         def launch() -> None:
             self.mjw.reset_data(self.model, self.data, reset=self._reset_mask)
 
-        self._run("reset", launch, graph=False)
+        self._run("reset", launch)
         if stage != mujoco.mjtStage.mjSTAGE_NONE.value:
             self.forward()
 
