@@ -36,9 +36,16 @@ def page_faults(mode: str) -> int:
 
 def test_freed_blocks_are_reused_instead_of_faulted_in_again():
     """Relative, so that it holds whatever page size the kernel faults in (transparent huge
-    pages make both counts smaller)."""
-    kept, returned = page_faults("keep"), page_faults("default")
+    pages make both counts smaller). Memory pressure from other processes (a second test suite
+    on the machine) can fault kept pages in again, never fewer: the least of up to three runs
+    measures the allocator."""
+    returned = page_faults("default")
     assert returned > 0  # glibc's defaults hand each block back to the kernel
+    kept = page_faults("keep")
+    for _ in range(2):
+        if kept * 4 < returned:
+            break
+        kept = min(kept, page_faults("keep"))
     assert kept * 4 < returned
 
 
