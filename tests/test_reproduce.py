@@ -290,6 +290,24 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
     assert "**1.000 ± 0.283**" in adversarial
 
 
+def test_each_benchmark_lists_only_its_own_shift_suite(tmp_path):
+    """Two benchmarks with different shift suites: a benchmark's rows name its own shifts, not
+    the other's (as rows of '–')."""
+    plan = make_plan("table1", "quick")
+    for benchmark, shift in (("sinusoid_uniform", "shift/high_amplitude"),
+                             ("pendulum_uniform", "shift/rim")):
+        run = tmp_path / f"runs/{benchmark}/maml/seed0"
+        run.mkdir(parents=True)
+        (run / "eval.json").write_text(json.dumps(_report(0.5, 1.0)))
+        shifts = _report(0.5, 1.0)
+        shifts[shift] = shifts.pop("initial")
+        (run / "eval_shifts.json").write_text(json.dumps(shifts))
+    text = table(plan, collect(plan, tmp_path, {}), tmp_path)
+    shift_rows = [line.split("|")[1:3] for line in text.splitlines() if "| shift: " in line]
+    assert [[cell.strip() for cell in row] for row in shift_rows] == [
+        ["Sinusoid-U", "shift: high_amplitude"], ["Pendulum-U", "shift: rim"]]
+
+
 def _paired_report(per_task: list[float], section: str = "initial", seed: int = 1234) -> dict:
     values = torch.tensor(per_task)
     return {"metric": "return", "benchmark": "point_nav", "method": "maml", section: {

@@ -34,13 +34,16 @@ def _benchmarks(plan: Plan) -> list[str]:
     return list(dict.fromkeys(run.benchmark for run in plan.runs))
 
 
-def _distributions(plan: Plan, records: Sequence[dict[str, Any]] = ()) -> dict[str, str]:
+def _distributions(plan: Plan, records: Sequence[dict[str, Any]] = (),
+                   benchmark: str | None = None) -> dict[str, str]:
     """``initial``, the experiment's adversaries, its attacks' adversaries and the shifts the
-    records hold (``shift/<name>``, in the order first met), with their labels."""
+    records hold (``shift/<name>``, in the order first met; of ``benchmark`` alone if given, as
+    each benchmark has its own suite), with their labels."""
     labels = plan.spec.get("labels", {})
     names = [INITIAL, *plan.spec.get("adversaries", {}), *plan.spec.get("attacks", {})]
     names += list(dict.fromkeys(r["distribution"] for r in records
-                                if r["distribution"].startswith(SHIFT_PREFIX)))
+                                if r["distribution"].startswith(SHIFT_PREFIX)
+                                and benchmark in (None, r["benchmark"])))
     return {name: labels.get(name, name.replace(SHIFT_PREFIX, "shift: ")) for name in names}
 
 
@@ -81,7 +84,7 @@ def table(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     higher = _higher_better(records)
     paper = plan.spec.get("paper", {})
     for benchmark in _benchmarks(plan):
-        for distribution, label in _distributions(plan, records).items():
+        for distribution, label in _distributions(plan, records, benchmark).items():
             cells = []
             for column in ("mean", cvar):
                 values = [summary(records, column, benchmark=benchmark, method=m,
@@ -334,7 +337,7 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     labels = [_learner_label(plan, learner) for learner in learners]
     level_rows, diff_rows = [], []
     for benchmark in _benchmarks(plan):
-        for distribution, label in distributions.items():
+        for distribution, label in _distributions(plan, records, benchmark).items():
             where = {"benchmark": benchmark, "distribution": distribution, "noisy": False}
             level_rows.append([display(benchmark), label, *(
                 _level(records, column, sem, method=m, variant=v, **where)
