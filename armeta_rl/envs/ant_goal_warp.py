@@ -15,9 +15,9 @@ warp device's, so the policy of an episode collector acts there and the trajecto
 then ``mjw.forward`` at the new state, whose sensor stage (the torso accelerometer of
 :func:`~armeta_rl.envs.ant_goal.load_ant_model`) computes the contact forces ``cfrc_ext``, as the
 CPU batch does with ``stage=mjSTAGE_ACC``. On CUDA that sequence (hundreds of small kernels) is
-captured once into a CUDA graph and replayed at every step (``graphs``; the same kernels on the
-same arrays, so the same results); torch's and warp's work are ordered by synchronizing the device
-between them.
+captured once into a CUDA graph and replayed at every step, as are resets (``graphs``; the same
+kernels on the same arrays, so the same results); torch's and warp's work are ordered by
+synchronizing the device between them.
 
 Reset noise and default goals are drawn on the CPU with the env's generator, exactly as the CPU env
 draws them, and copied to the device (resets are rare against steps).
@@ -90,7 +90,7 @@ class WarpBatch:
         device: warp device name (:func:`find_warp_device`).
         nconmax, njmax: contacts and constraints allocated per world (``None``: MuJoCo Warp's
             defaults for the model).
-        graphs: replay ``step`` and ``forward`` as CUDA graphs (``None``: on CUDA devices; a
+        graphs: replay ``step``, ``forward`` and ``reset`` as CUDA graphs (``None``: on CUDA; a
             capture that fails falls back to launching the kernels, with a warning).
     """
 
