@@ -88,6 +88,15 @@ class Tree:
         return Result.wait(process, timeout)
 
 
+def wait_for(ready: Callable[[], bool], process: subprocess.Popen, seconds: float,
+             poll: float) -> None:
+    """Poll ``ready`` every ``poll`` seconds until it holds, ``process`` ends or ``seconds``
+    pass (the case then goes on and reports what it finds)."""
+    deadline = time.monotonic() + seconds
+    while not ready() and process.poll() is None and time.monotonic() <= deadline:
+        time.sleep(poll)
+
+
 class Result:
     """A finished command: exit code, stdout, stderr, seconds."""
 
@@ -231,11 +240,7 @@ class Campaign:
         run_dir = self.fresh(f"signal_{sig.name}") / "run"
         process = self.tree.start("armeta-train", *LONG, f"hydra.run.dir={run_dir}",
                                   cwd=self.work)
-        deadline = time.monotonic() + 300
-        while not list(run_dir.glob("checkpoints/checkpoint-*")) and process.poll() is None:
-            if time.monotonic() > deadline:
-                break
-            time.sleep(0.05)
+        wait_for(lambda: any(run_dir.glob("checkpoints/checkpoint-*")), process, 300, 0.05)
         time.sleep(1.0)  # into the iterations after the first checkpoint
         process.send_signal(sig)
         result = Result.wait(process, 300)
@@ -260,11 +265,7 @@ class Campaign:
         process = self.tree.start("armeta-reproduce", *REPRODUCE, "launcher=local", "jobs=2",
                                   "+train.trainer.iterations=20000", f"results={results}",
                                   cwd=home)
-        deadline = time.monotonic() + 300
-        while len(list(results.glob("runs/*/*/*/config.yaml"))) < 2 and process.poll() is None:
-            if time.monotonic() > deadline:
-                break
-            time.sleep(0.1)
+        wait_for(lambda: len(list(results.glob("runs/*/*/*/config.yaml"))) >= 2, process, 300, 0.1)
         time.sleep(2.0)
         workers = descendants(process.pid)
         process.send_signal(sig)
