@@ -37,6 +37,11 @@ programs stretch unevenly, while the CPU time each spends on its own work stays 
 torch thread everywhere (``OMP_NUM_THREADS=1``); pytorch-maml-rl samples in one worker process
 (``--num-workers 1``) beside its learner, as its README runs it.
 
+After the rounds our worker records the matrix products of one more turn and times them replayed
+alone (:func:`products_ms`): the part of our meta-iteration that no removal of overhead can take
+away, so the reference's median over it is the highest ratio our computation can reach on this
+machine; the table states it next to the measured ratio.
+
 With ``--compiled`` a third worker takes turns on the regression and system-identification
 workloads: ours with the leader's loss and the adversary's flow compiled (``torch.compile``,
 ``learner.maml.compile=true risk.ar.compile=true``), its compile part of its warm-up.
@@ -65,6 +70,9 @@ from collections.abc import Callable
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+ROWS = HERE.parent / "docs" / "results" / "reference" / "rows.json"
+"""Each workload's latest medians (reference, ours, our products replayed), for other reports
+(the GPU check's point-robot target) to read."""
 
 WORKLOADS = {
     # name: our (benchmark, method), the reference, its arguments, default turn length
@@ -129,11 +137,11 @@ def cpu_seconds() -> float:
 class Gate:
     """Called at the start of every meta-iteration of a reference's own loop: records the wall
     and CPU time (:func:`cpu_seconds`), and after a turn's iterations reports them to the driver
-    and waits for the next command (``run N`` or ``quit``). The time spent waiting is not
-    counted."""
+    and waits for the next command (``run N``, ``profile N`` where the side can answer it, or
+    ``quit``). The time spent waiting is not counted."""
 
-    def __init__(self, warmup: int) -> None:
-        self.warmup, self.seen = warmup, 0
+    def __init__(self, warmup: int, profile: Callable[[int], dict] | None = None) -> None:
+        self.warmup, self.seen, self.profile = warmup, 0, profile
         self.last = (0.0, 0.0)
         self.times: list[float] = []
         self.cpu: list[float] = []
@@ -157,6 +165,9 @@ class Gate:
 
     def wait(self) -> None:
         command = sys.stdin.readline().split()
+        while command and command[0] == "profile" and self.profile is not None:
+            reply(self.profile(int(command[1])))
+            command = sys.stdin.readline().split()
         if not command or command[0] == "quit":
             for child in multiprocessing.active_children():  # pytorch-maml-rl's samplers
                 child.terminate()
@@ -243,10 +254,45 @@ def ours_worker(workload: dict, overrides: list[str]) -> None:
     keep_freed_memory()  # as armeta-train does
     benchmark, method = workload["ours"]
     trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}", *overrides])
-    gate = Gate(warmup=2)
+    gate = Gate(warmup=2, profile=lambda n: {"products_ms": products_ms(trainer, n)})
     while True:
         gate()
         trainer.train_iteration()
+
+
+PRODUCTS = {"aten::mm": 2, "aten::bmm": 2, "aten::addmm": 3, "aten::baddbmm": 3,
+            "aten::addmv": 3, "aten::mv": 2, "aten::dot": 2}
+"""The matrix-product kernels and their number of tensor arguments."""
+
+
+def products_ms(trainer: object, iterations: int) -> float:
+    """Milliseconds per meta-iteration that the matrix products of ``iterations`` iterations
+    take when replayed alone: every product call is recorded with its operand shapes
+    (``torch.profiler``), then each distinct call is timed by itself on fresh contiguous operands
+    of those shapes and counted as often as it was called. This is a floor for the computation on
+    this machine (the same products at the same sizes, without anything between them), so the
+    reference's time over it bounds the ratio any removal of overhead could reach. The profiler's
+    own self times are no such floor: recording inflates them (on the point robot fivefold)."""
+    import torch
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as profiler:
+        for _ in range(iterations):
+            trainer.train_iteration()
+    seconds = 0.0
+    for event in profiler.key_averages(group_by_input_shape=True):
+        if event.key not in PRODUCTS:
+            continue
+        operands = [torch.randn(shape) for shape in event.input_shapes[:PRODUCTS[event.key]]]
+        product = getattr(torch.ops.aten, event.key.split("::")[1])
+        for _ in range(3):
+            product(*operands)
+        repeats = 20
+        start = time.perf_counter()
+        for _ in range(repeats):
+            product(*operands)
+        seconds += (time.perf_counter() - start) / repeats * event.count
+    return 1000 * seconds / iterations
 
 
 # -- driver -------------------------------------------------------------------------------------
@@ -275,6 +321,11 @@ class Worker:
 
     def turn(self, iterations: int) -> dict:
         self.process.stdin.write(f"run {iterations}\n")
+        self.process.stdin.flush()
+        return self.answer()
+
+    def profile(self, iterations: int) -> dict:
+        self.process.stdin.write(f"profile {iterations}\n")
         self.process.stdin.flush()
         return self.answer()
 
@@ -320,10 +371,12 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
                            "load": os.getloadavg()[0]})
             print(f"{name} round {index + 1}: " + ", ".join(
                 f"{side} {rounds[-1][f'{side}_ms']:.1f} ms" for side in workers), flush=True)
+        products = workers["ours"].profile(turn)["products_ms"]
     finally:
         for worker in workers.values():
             worker.stop()
-    return {"name": name, "turn": turn, "rounds": rounds, "sides": list(workers)}
+    return {"name": name, "turn": turn, "rounds": rounds, "sides": list(workers),
+            "products_ms": products}
 
 
 def table(result: dict) -> str:
@@ -350,9 +403,14 @@ def table(result: dict) -> str:
         f"{statistics.median(cpu_ratios[side]):.1f}×, {min(cpu_ratios[side]):.1f}–"
         f"{max(cpu_ratios[side]):.1f}×)" for side, ratio in ratios.items())
     rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in result["sides"])
+    reference_ms = statistics.median(r["reference_ms"] for r in rounds)
+    floor = (f"Our matrix products alone (replayed, `products_ms`) take "
+             f"{result['products_ms']:.1f} ms a meta-iteration: no removal of the rest can take "
+             f"ours past **{reference_ms / result['products_ms']:.1f}×** (median reference ms over "
+             f"that).")
     head = (f"**{result['name']}**: {reference} against `{benchmark}` `{method}`, "
             f"{result['turn']} iterations a turn; ratio reference ms / ours ms, median over the "
-            f"rounds: {summary}; peak RSS: {rss}.")
+            f"rounds: {summary}; peak RSS: {rss}. {floor}")
     header = ("round", "reference ms",
               *[cell for side in ours for cell in (
                   f"{'ours' if side == 'ours' else 'compiled'} ms",
@@ -363,6 +421,23 @@ def table(result: dict) -> str:
                   f"{'CPU ratio' if side == 'ours' else 'compiled CPU ratio'}")],
               "load (1 min)")
     return head + "\n\n" + markdown_table(header, rows)
+
+
+def write_rows(results: list[dict]) -> None:
+    """Merge each workload's medians into :data:`ROWS`, keeping the other workloads' rows."""
+    from timing import this_machine
+
+    rows = json.loads(ROWS.read_text()) if ROWS.exists() else {}
+    for result in results:
+        rounds = result["rounds"]
+        rows[result["name"]] = {
+            "date": time.strftime("%Y-%m-%d"), "machine": this_machine(),
+            "load": statistics.median(r["load"] for r in rounds),
+            **{f"{side}_ms": statistics.median(r[f"{side}_ms"] for r in rounds)
+               for side in result["sides"]},
+            "products_ms": result["products_ms"]}
+    ROWS.parent.mkdir(parents=True, exist_ok=True)
+    ROWS.write_text(json.dumps(rows, indent=1, sort_keys=True) + "\n")
 
 
 def main() -> None:
@@ -411,6 +486,7 @@ def main() -> None:
             "median iteration of each side's turn.\n\n"
             + "\n\n".join(table(result) for result in results))
     print(body)
+    write_rows(results)
     from timing import write_section
 
     write_section("bench_reference", "Against the reference implementations "

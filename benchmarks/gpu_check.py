@@ -82,10 +82,9 @@ COMPILED = ("sinusoid_uniform", "pendulum_uniform_paper")
 COMPILE_OVERRIDES = ("learner.maml.compile=true", "risk.ar.compile=true")
 ANT = {"tasks": 40, "episodes": 20, "steps": 200}
 TARGETS = {"ant_steps_per_s": 100_000, "ant_meta_s": 5.0, "point_robot_speedup": 20.0}
-PYTORCH_MAML_RL_POINT_ROBOT_S = (6.3, 6.9)
-"""pytorch-maml-rl's point-robot MAML-TRPO meta-iteration on one CPU core of the development
-machine (issue 37), the reference of the point-robot target until the reference harness
-(benchmarks/bench_reference.py) measures it in the same session."""
+REFERENCE_ROWS = Path(__file__).resolve().parent.parent / "docs/results/reference/rows.json"
+"""The reference harness's latest medians (benchmarks/bench_reference.py): pytorch-maml-rl's
+point-robot meta-iteration on one CPU core there is the reference of the point-robot target."""
 
 
 # -- measuring ----------------------------------------------------------------------------------
@@ -500,10 +499,12 @@ def run(args: argparse.Namespace) -> None:
         waiter.join()
     for item in parts:
         item.append_log(tests_log if item in background else log)
-    report_args = argparse.Namespace(results=str(results), out=str(out),
-                                     parts=[(p.name, p.outcome, p.wall) for p in parts],
-                                     command=args.command_line)
-    report(report_args)
+    with results.open("a") as handle:
+        for item in parts:
+            handle.write(json.dumps({"part": "outcome", "name": item.name,
+                                     "outcome": item.outcome, "wall_s": item.wall}) + "\n")
+        handle.write(json.dumps({"part": "command", "command": args.command_line}) + "\n")
+    report(argparse.Namespace(results=str(results), out=str(out)))
 
 
 # -- the report ---------------------------------------------------------------------------------
@@ -596,8 +597,9 @@ def report(args: argparse.Namespace) -> None:
     ant_table = markdown_table(("Ant (ant_goal_warp)", "tasks × episodes × steps", "measured",
                                 "first call s", "peak RSS MiB", "peak GPU MiB", "notes"),
                                ant_rows)
-    targets = summarize_targets(rows)
-    parts = getattr(args, "parts", [])
+    reference = json.loads(REFERENCE_ROWS.read_text()) if REFERENCE_ROWS.exists() else {}
+    targets = summarize_targets(rows, reference.get("point_robot"))
+    parts = [(r["name"], r["outcome"], r["wall_s"]) for r in rows if r.get("part") == "outcome"]
     part_table = markdown_table(("part", "outcome", "wall s"),
                                 [(name, outcome, f"{wall:.0f}") for name, outcome, wall in parts])
     body = "\n\n".join([
@@ -610,7 +612,8 @@ def report(args: argparse.Namespace) -> None:
         "Parts (each in its own process under its own time limit; the test files ran beside the "
         "timings):\n\n" + part_table,
     ])
-    command = getattr(args, "command", None) or "benchmarks/gpu_check.sh"
+    command = next((r["command"] for r in reversed(rows) if r.get("part") == "command"),
+                   "benchmarks/gpu_check.sh")
     where = (f"{pre.get('machine', '?')}, {pre.get('cpus', '?')} logical CPUs, torch "
              f"{pre.get('modules', {}).get('torch', '?')}, 1 thread") if pre else None
     write_section("gpu_check", "GPU check (gpu_check.sh)", body, command=command, machine=where)
@@ -633,9 +636,11 @@ def report(args: argparse.Namespace) -> None:
         (out / "summary.txt").write_text(text + "\n")
 
 
-def summarize_targets(rows: list[dict]) -> list[str]:
+def summarize_targets(rows: list[dict], point_reference: dict | None) -> list[str]:
     """One line per target of the issue: the figure measured against it, or why there is none.
-    A figure measured at other sizes than the target's is given without a verdict."""
+    A figure measured at other sizes than the target's is given without a verdict.
+    ``point_reference`` is the reference harness's point-robot row (``reference_ms``: the median
+    pytorch-maml-rl meta-iteration on one CPU core, with its ``date`` and ``machine``)."""
     def ok_row(part: str) -> dict | None:
         found = [r for r in rows if r.get("part") == part and r.get("status") == "ok"]
         return found[-1] if found else None
@@ -665,16 +670,17 @@ def summarize_targets(rows: list[dict]) -> list[str]:
     point = {r["device"]: r for r in rows if r.get("part") == "meta"
              and r.get("benchmark") == "point_nav" and r.get("status") == "ok"}
     cuda = [r["median_ms"] / 1000 for device, r in point.items() if device.startswith("cuda")]
-    low, high = PYTORCH_MAML_RL_POINT_ROBOT_S
-    line = (f"point robot >= {TARGETS['point_robot_speedup']:.0f}x pytorch-maml-rl's CPU time "
-            f"({low}–{high} s per meta-iteration on the development machine's CPU): ")
-    if cuda:
-        best = min(cuda)
-        met = low / best >= TARGETS["point_robot_speedup"]
-        line += (f"{best:.3f} s on CUDA, {low / best:.1f}–{high / best:.1f}x "
-                 f"({'met' if met else 'NOT met'})")
+    line = f"point robot >= {TARGETS['point_robot_speedup']:.0f}x pytorch-maml-rl's CPU time"
+    if point_reference is None:
+        line += ": no reference time (run benchmarks/bench_reference.py)"
+    elif cuda:
+        reference_s, best = point_reference["reference_ms"] / 1000, min(cuda)
+        met = reference_s / best >= TARGETS["point_robot_speedup"]
+        line += (f" ({reference_s:.2f} s per meta-iteration, bench_reference.py on "
+                 f"{point_reference['date']}, {point_reference['machine']}): {best:.3f} s on CUDA, "
+                 f"{reference_s / best:.1f}x ({'met' if met else 'NOT met'})")
     else:
-        line += "not measured on CUDA"
+        line += ": not measured on CUDA"
     if "cpu" in point:
         line += f"; our CPU row here {point['cpu']['median_ms'] / 1000:.2f} s"
     lines.append(line)

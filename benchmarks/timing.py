@@ -98,15 +98,21 @@ def replace_section(page: str, name: str, section: str) -> str:
     return head + block + rest.split(end, 1)[1]
 
 
+def this_machine() -> str:
+    """This machine as the benchmark pages name it: architecture, CPUs, torch, its CPU kernels
+    and threads."""
+    return (f"{platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} "
+            f"({torch.backends.cpu.get_cpu_capability()} kernels), {torch.get_num_threads()} "
+            f"thread")
+
+
 def section(title: str, command: str, body: str, machine: str | None = None) -> str:
     """A script's section: its title, the command that produced it, the date, the machine and its
     load (other processes slow a shared machine down; ``machine`` where the figures were measured
     elsewhere, e.g. rows of a GPU machine reported here), and ``body`` (the tables)."""
     if machine is None:
         load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-        machine = (f"{platform.machine()}, {os.cpu_count()} logical CPUs, torch "
-                   f"{torch.__version__} ({torch.backends.cpu.get_cpu_capability()} kernels), "
-                   f"{torch.get_num_threads()} thread; load average at the end {load}")
+        machine = f"{this_machine()}; load average at the end {load}"
     return (f"## {title}\n\n`{command}`, run on {datetime.date.today().isoformat()} "
             f"({machine}).\n\n{body.strip()}\n")
 
