@@ -139,15 +139,19 @@ def test_a_checkpoint_that_does_not_fit_its_config_gets_one_line(tmp_path):
     assert "'learner'" in result.stderr and "'layers: 2' under risk.ar.flow_kwargs" in result.stderr
 
 
-def test_wandb_offline_run_writes_its_files(tmp_path, monkeypatch):
+def test_wandb_offline_runs_in_one_process_each_write_their_own_files(tmp_path, monkeypatch):
+    # two runs in one process, as the jobs of an in-process sweep: each gets its own wandb run
+    # (a run left open would be handed back to the second job, which would log into it)
     monkeypatch.setenv("WANDB_MODE", "offline")
-    run_training(compose_train(*SMALL_RUN, "logger=wandb", "trainer.density_every=3"), tmp_path)
-    runs = list((tmp_path / "wandb").glob("offline-run-*"))
-    assert len(runs) == 1
-    assert list(runs[0].glob("run-*.wandb"))
-    # the density frames of iterations 0, 3 and 6, and the final density.png, as wandb images
-    images = list((runs[0] / "files" / "media" / "images" / "adversary").glob("density_*.png"))
-    assert len(images) == 4
+    for run_dir in (tmp_path / "first", tmp_path / "second"):
+        run_training(compose_train(*SMALL_RUN, "logger=wandb", "trainer.density_every=3"),
+                     run_dir)
+        runs = list((run_dir / "wandb").glob("offline-run-*"))
+        assert len(runs) == 1
+        assert list(runs[0].glob("run-*.wandb"))
+        # the density frames of iterations 0, 3 and 6 and the final density.png, as wandb images
+        images = list((runs[0] / "files" / "media" / "images" / "adversary").glob("density_*.png"))
+        assert len(images) == 4
 
 
 def test_a_run_prints_its_directory_writes_a_job_log_and_releases_its_lock(tmp_path):

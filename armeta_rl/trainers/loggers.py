@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
@@ -11,6 +13,22 @@ from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR
+
+
+@contextmanager
+def run_logger(cfg: DictConfig, run_dir: Path) -> Iterator[Logger | None]:
+    """The run's logger (:func:`make_logger`) for the ``with`` block; a wandb run is finished
+    when the block ends (marked failed if it raised). A wandb run left open would be handed back
+    by the next ``wandb.init`` in the process (wandb's default ``reinit="return_previous"``), so
+    the jobs of an in-process sweep would all log into the first job's run."""
+    logger = make_logger(cfg, run_dir)
+    failed = True
+    try:
+        yield logger
+        failed = False
+    finally:
+        if isinstance(logger, WandbLogger):
+            logger.experiment.finish(exit_code=1 if failed else 0)
 
 
 def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:

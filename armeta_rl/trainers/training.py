@@ -26,7 +26,7 @@ from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact
 from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames
 from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.loggers import make_logger
+from armeta_rl.trainers.loggers import run_logger
 from armeta_rl.trainers.players import Players, build_players, load_frozen_leader
 from armeta_rl.trainers.report import EVAL_FILE, eval_scalars, evaluate_players
 from armeta_rl.trainers.run_dir import (
@@ -145,47 +145,47 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
     ):
         load_frozen_leader(cfg, players)
     start = _open_run(cfg, run_dir, checkpoint, evaluated=report is not None)
-    logger = make_logger(cfg, run_dir)
-    compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
-    if compiled:
-        say(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
-            "(about 2 minutes with an empty compile cache)")
-    log.info("%s on %s from iteration %d to %d, device %s", config.method.name,
-             config.benchmark.name, start, trainer_options.iterations, players.device)
-    frames = None
-    if players.adversary is not None and trainer_options.density_every > 0:
-        frames = DensityFrames(players.adversary, players.initial, run_dir,
-                               trainer_options.density_every, logger)
-        if start == 0:
-            frames.draw(0)  # p_φ = p0
-    trainer = GameTrainer(
-        players.leader,
-        players.principle,
-        iterations=trainer_options.iterations,
-        meta_batch=trainer_options.meta_batch,
-        log_every=trainer_options.log_every,
-        checkpoint=checkpoint,
-        checkpoint_every=trainer_options.checkpoint_every,
-        log=lambda scalars, step: _log_scalars(logger, scalars, step),
-        progress=progress and trainer_options.progress,
-        max_loss=trainer_options.max_loss,
-        after_iteration=frames,
-        train_leader=trainer_options.frozen_leader is None,
-        follower_rollouts=trainer_options.follower_rollouts,
-    )
-    trainer.iteration = start
-    reached = trainer.run(stop_at=trainer_options.stop_at, stop=stop)
-    planned = min(trainer_options.iterations,
-                  trainer_options.stop_at or trainer_options.iterations)
-    if stop.requested and reached < planned:
-        written = checkpoint.path(reached) if reached > start else None
-        raise RunStopped(_stopped(f"stopped by {stop.name} after iteration {reached}", run_dir,
-                                  written), stop.exit_code)
-    if reached < trainer_options.iterations:
-        say(f"stopped at iteration {trainer.iteration}; continue with: "
-            f"armeta-train resume={run_dir}")
-        return None
-    return _finish(config, run_dir, players, logger, frames, reached)
+    with run_logger(cfg, run_dir) as logger:
+        compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
+        if compiled:
+            say(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
+                "(about 2 minutes with an empty compile cache)")
+        log.info("%s on %s from iteration %d to %d, device %s", config.method.name,
+                 config.benchmark.name, start, trainer_options.iterations, players.device)
+        frames = None
+        if players.adversary is not None and trainer_options.density_every > 0:
+            frames = DensityFrames(players.adversary, players.initial, run_dir,
+                                   trainer_options.density_every, logger)
+            if start == 0:
+                frames.draw(0)  # p_φ = p0
+        trainer = GameTrainer(
+            players.leader,
+            players.principle,
+            iterations=trainer_options.iterations,
+            meta_batch=trainer_options.meta_batch,
+            log_every=trainer_options.log_every,
+            checkpoint=checkpoint,
+            checkpoint_every=trainer_options.checkpoint_every,
+            log=lambda scalars, step: _log_scalars(logger, scalars, step),
+            progress=progress and trainer_options.progress,
+            max_loss=trainer_options.max_loss,
+            after_iteration=frames,
+            train_leader=trainer_options.frozen_leader is None,
+            follower_rollouts=trainer_options.follower_rollouts,
+        )
+        trainer.iteration = start
+        reached = trainer.run(stop_at=trainer_options.stop_at, stop=stop)
+        planned = min(trainer_options.iterations,
+                      trainer_options.stop_at or trainer_options.iterations)
+        if stop.requested and reached < planned:
+            written = checkpoint.path(reached) if reached > start else None
+            raise RunStopped(_stopped(f"stopped by {stop.name} after iteration {reached}", run_dir,
+                                      written), stop.exit_code)
+        if reached < trainer_options.iterations:
+            say(f"stopped at iteration {trainer.iteration}; continue with: "
+                f"armeta-train resume={run_dir}")
+            return None
+        return _finish(config, run_dir, players, logger, frames, reached)
 
 
 def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> None:
