@@ -82,9 +82,6 @@ COMPILED = ("sinusoid_uniform", "pendulum_uniform_paper")
 COMPILE_OVERRIDES = ("learner.maml.compile=true", "risk.ar.compile=true")
 ANT = {"tasks": 40, "episodes": 20, "steps": 200}
 TARGETS = {"ant_steps_per_s": 100_000, "ant_meta_s": 5.0, "point_robot_speedup": 20.0}
-REFERENCE_ROWS = Path(__file__).resolve().parent.parent / "docs/results/reference/rows.json"
-"""The reference harness's latest medians (benchmarks/bench_reference.py): pytorch-maml-rl's
-point-robot meta-iteration on one CPU core there is the reference of the point-robot target."""
 
 
 # -- measuring ----------------------------------------------------------------------------------
@@ -597,7 +594,9 @@ def report(args: argparse.Namespace) -> None:
     ant_table = markdown_table(("Ant (ant_goal_warp)", "tasks × episodes × steps", "measured",
                                 "first call s", "peak RSS MiB", "peak GPU MiB", "notes"),
                                ant_rows)
-    reference = json.loads(REFERENCE_ROWS.read_text()) if REFERENCE_ROWS.exists() else {}
+    from bench_reference import ROWS  # the reference harness's medians
+
+    reference = json.loads(ROWS.read_text()) if ROWS.exists() else {}
     targets = summarize_targets(rows, reference.get("point_robot"))
     parts = [(r["name"], r["outcome"], r["wall_s"]) for r in rows if r.get("part") == "outcome"]
     part_table = markdown_table(("part", "outcome", "wall s"),
