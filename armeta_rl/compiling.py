@@ -1,8 +1,9 @@
-"""Opt-in ``torch.compile`` of the game's hot paths (config keys ``learner.maml.compile`` and
-``risk.ar.compile``).
+"""Opt-in ``torch.compile`` of the game's hot paths (config keys ``learner.maml.compile``,
+``risk.ar.compile`` and, for system identification, ``benchmark.collector.compile``).
 
 A meta-iteration on small tasks is bound by per-op overhead: thousands of small torch ops in the
-flow adversary's spline couplings and in the vmapped second-order MAML step. Compiling fuses them.
+flow adversary's spline couplings and in the vmapped second-order MAML step, and the physics
+steps of a system-identification rollout, one after the other. Compiling fuses them.
 It pays on long runs only: the first iterations wait for the compiler (minutes with an empty
 cache, much less once torch's on-disk compile cache holds the graphs), and shapes are static, so
 each distinct batch shape compiles once. ``benchmarks/bench_speed_options.py`` measures each
@@ -20,7 +21,7 @@ from armeta_rl.errors import ConfigError
 
 F = TypeVar("F", bound=Callable)
 
-COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile")
+COMPILE_KEYS = ("learner.maml.compile", "risk.ar.compile", "benchmark.collector.compile")
 """The config keys that switch compiling on."""
 
 BACKENDS = ("inductor", "aot_eager", "eager")

@@ -12,8 +12,9 @@ step) with ``--tasks`` tasks × ``--episodes`` episodes × ``--horizon`` steps (
 in turns (local, Ray 1, Ray 2, ..., local, ...) so that every Ray row is a ratio to the local
 collector measured in the same turn: the machine's other load affects both sides of each ratio
 alike. Times are scaled linearly to the paper's 40 tasks (as ``bench_ant_goal.py``) and to a
-500-iteration run. The table, with the command and the date, replaces the section between this
-script's markers in ``docs/scale.md`` and in ``docs/benchmarks.md``.
+500-iteration run. The table, with the command, the date and the machine, replaces the section
+between this script's markers in ``docs/scale.md`` and in ``docs/benchmarks.md``
+(``timing.write_section``; ``--no-doc`` prints it only).
 
 Ray: ``--address`` as ``benchmark.collector.address`` (none: a Ray instance of this machine in
 this process). The actors reserve ``--cpus-per-worker`` CPUs each (default 0, so that the actors of
@@ -26,12 +27,7 @@ Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_ray.py --tasks 4 --workers 
 from __future__ import annotations
 
 import argparse
-import datetime
-import os
-import re
-import shlex
 import statistics
-import sys
 import time
 from functools import partial
 from pathlib import Path
@@ -46,8 +42,7 @@ from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
-DOC = Path(__file__).resolve().parents[1] / "docs" / "scale.md"
-START, END = "<!-- bench_ant_ray:start -->", "<!-- bench_ant_ray:end -->"
+SCALE_PAGE = Path(__file__).resolve().parents[1] / "docs" / "scale.md"
 PAPER_TASKS, RUN_ITERATIONS = 40, 500
 
 
@@ -83,17 +78,6 @@ def table(names: list[str], times: dict[str, list[float]], tasks: int) -> list[s
     return rows
 
 
-def write_section(lines: list[str], doc: Path) -> None:
-    """Replace the text between the markers in ``doc`` (appended if they are missing)."""
-    text = doc.read_text() if doc.exists() else ""
-    section = "\n".join([START, *lines, END])
-    pattern = re.compile(re.escape(START) + ".*?" + re.escape(END), re.DOTALL)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) else \
-        f"{text.rstrip()}\n\n{section}\n"
-    doc.parent.mkdir(parents=True, exist_ok=True)
-    doc.write_text(text)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -106,7 +90,6 @@ def main() -> None:
     parser.add_argument("--address", default=None,
                         help="Ray cluster (none: a Ray instance of this machine)")
     parser.add_argument("--cpus-per-worker", type=float, default=0.0)
-    parser.add_argument("--doc", type=Path, default=DOC)
     parser.add_argument("--no-doc", action="store_true", help="print the table only")
     args = parser.parse_args()
     for workers in args.workers:
@@ -136,22 +119,14 @@ def main() -> None:
     for collector in collectors.values():
         collector.close()
 
-    names = list(leaders)
-    load = ", ".join(f"{x:.2f}" for x in os.getloadavg())
-    command = "OMP_NUM_THREADS=1 python benchmarks/bench_ant_ray.py " + shlex.join(sys.argv[1:])
-    lines = [
-        f"Measured {datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC with "
-        f"`{command}` on {os.cpu_count()} CPUs (load average at the end: {load}); "
-        f"{args.tasks} tasks × {args.episodes} episodes × {args.horizon} steps, "
-        f"{args.turns} turns, scaled linearly to {PAPER_TASKS} tasks.",
-        "",
-        *table(names, times, args.tasks),
-    ]
-    print("\n".join(lines))
+    body = (f"{args.tasks} tasks × {args.episodes} episodes × {args.horizon} steps, "
+            f"{args.turns} turns, scaled linearly to {PAPER_TASKS} tasks.\n\n"
+            + "\n".join(table(list(leaders), times, args.tasks)))
+    print(body)
     if not args.no_doc:
-        write_section(lines, args.doc)
         title = "Ant goal-position with Ray workers (bench_ant_ray.py)"
-        timing.write_section("bench_ant_ray", title, "\n".join(lines))
+        for page in (timing.BENCHMARKS_PAGE, SCALE_PAGE):
+            timing.write_section("bench_ant_ray", title, body, page)
 
 
 if __name__ == "__main__":

@@ -43,8 +43,9 @@ away, so the reference's median over it is the highest ratio our computation can
 machine; the table states it next to the measured ratio.
 
 With ``--compiled`` a third worker takes turns on the regression and system-identification
-workloads: ours with the leader's loss and the adversary's flow compiled (``torch.compile``,
-``learner.maml.compile=true risk.ar.compile=true``), its compile part of its warm-up.
+workloads: ours with every compile switch of the workload on (``torch.compile`` of the leader's
+loss, the adversary's flow and, in system identification, the physics step; ``"compiled"`` of
+:data:`WORKLOADS`), its compile part of its warm-up.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_reference.py --authors PATH --maml-rl PATH
 --reference-python PATH/bin/python [--workloads sinusoid pendulum acrobot point_robot]
@@ -75,21 +76,27 @@ ROWS = HERE.parent / "docs" / "results" / "reference" / "rows.json"
 (the GPU check's point-robot target) to read."""
 
 WORKLOADS = {
-    # name: our (benchmark, method), the reference, its arguments, default turn length
+    # name: our (benchmark, method), the reference, its arguments, default turn length, and the
+    # overrides of our compiled form (``--compiled``; none: not compared compiled)
     "sinusoid": {"ours": ("sinusoid_uniform", "ar_maml"), "reference": "authors",
                  "args": ["--task", "sine", "--tasks_per_metaupdate", "25",
                                           "--task_num_data_points", "10",
-                                          "--update_batch_size", "5"], "turn": 20},
+                                          "--update_batch_size", "5"], "turn": 20,
+                 "compiled": ["learner.maml.compile=true", "risk.ar.compile=true"]},
     "pendulum": {"ours": ("pendulum_uniform_paper", "ar_maml"), "reference": "authors",
                  "args": ["--task", "pendulum", "--tasks_per_metaupdate",
                                               "16", "--task_num_data_points", "200",
-                                              "--update_batch_size", "10"], "turn": 10},
+                                              "--update_batch_size", "10"], "turn": 10,
+                 "compiled": ["learner.maml.compile=true", "risk.ar.compile=true",
+                              "benchmark.collector.compile=true"]},
     "acrobot": {"ours": ("acrobot_uniform_paper", "ar_maml"), "reference": "authors",
                 "args": ["--task", "acrobot", "--tasks_per_metaupdate", "16",
                                             "--task_num_data_points", "200",
-                                            "--update_batch_size", "10"], "turn": 10},
+                                            "--update_batch_size", "10"], "turn": 10,
+                "compiled": ["learner.maml.compile=true", "risk.ar.compile=true",
+                             "benchmark.collector.compile=true"]},
     "point_robot": {"ours": ("point_nav", "maml"), "reference": "pytorch-maml-rl",
-                    "config": "configs/maml/2d-navigation.yaml", "turn": 2},
+                    "config": "configs/maml/2d-navigation.yaml", "turn": 2, "compiled": []},
 }
 
 
@@ -238,11 +245,6 @@ def maml_rl_worker(path: Path, workload: dict) -> None:
     train.main(args)
 
 
-COMPILED = ("learner.maml.compile=true", "risk.ar.compile=true")
-"""Our compiled form (``--compiled``, regression and system identification): the leader's loss
-and the adversary's flow through ``torch.compile`` (docs/speed-options.md)."""
-
-
 def ours_worker(workload: dict, overrides: list[str]) -> None:
     """Our trainer on ``workload``'s benchmark with its defaults (eager) and ``overrides``."""
     import torch
@@ -349,9 +351,9 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
                                     name, "--path", str(path)], logs / f"{name}_reference.log"),
                "ours": Worker([sys.executable, me, "worker", "ours", name],
                               logs / f"{name}_ours.log")}
-    if args.compiled and workload["reference"] == "authors":
+    if args.compiled and workload["compiled"]:
         workers["compiled"] = Worker([sys.executable, me, "worker", "ours", name, "--overrides",
-                                      *COMPILED], logs / f"{name}_compiled.log")
+                                      *workload["compiled"]], logs / f"{name}_compiled.log")
     try:
         for worker in workers.values():
             worker.answer(timeout=1800)  # ready: set up and warmed up (compiled)

@@ -28,6 +28,8 @@ SWITCHES = (
     ("risk.ar.compile=true", "sinusoid_uniform", "risk.ar.compile=false", True),
     ("learner.maml.compile=true", "sinusoid_uniform", "learner.maml.compile=false", True),
     ("learner.maml.compile=true", "pendulum_uniform", "learner.maml.compile=false", True),
+    ("benchmark.collector.compile=true", "acrobot_uniform_paper",
+     "benchmark.collector.compile=false", True),
 )
 """(switch, benchmark, the default it replaces, whether it compiles)."""
 WARMUP = 5

@@ -19,13 +19,15 @@ Device-side assumptions (``benchmarks/gpu_check.sh`` sets them up and calls ``ru
 background, one after the other, then times, one part after the other: a meta-iteration of the
 benchmark families (``DEFAULT_BENCHMARKS``; ``--benchmarks`` for others) on the CPU (one thread)
 and on CUDA, eager (and, with ``--compiled``, compiled where the code offers it:
-``learner.maml.compile``, ``risk.ar.compile``), then the Ant with MuJoCo Warp in one process that
-writes each figure as soon as it has it: a tiny env first (it compiles the warp kernels), the env
-steps/s of a collection of 40 tasks × 20 episodes × 200 steps with the policy acting on the env's
-device, and MAML-TRPO meta-iterations at that size on CUDA. Every part runs in its own process
-under its own time limit, never stops the others, and all of them together stay within ``--budget``
-seconds (default 230): a part that would start with too little time left is skipped and says so.
-Without CUDA the CUDA rows and parts are skipped with that reason, and the rest runs.
+``learner.maml.compile``, ``risk.ar.compile``), the point robot on CUDA once more with its rollout
+launched step by step instead of replayed as a CUDA graph (``--no-graphs``), then the Ant with
+MuJoCo Warp in one process that writes each figure as soon as it has it: a tiny env first (it
+compiles the warp kernels), the env steps/s of a collection of 40 tasks × 20 episodes × 200 steps
+with the policy acting on the env's device, the same env's physics alone (its ceiling), and
+MAML-TRPO meta-iterations at that size on CUDA. Every part runs in its own process under its own
+time limit, never stops the others, and all of them together stay within ``--budget`` seconds
+(default 320): a part that would start with too little time left is skipped and says so. Without
+CUDA the CUDA rows and parts are skipped with that reason, and the rest runs.
 
 Each timing row reports the peak RSS of its process (``ru_maxrss``) and, on CUDA, the peak of
 ``torch.cuda.max_memory_allocated``. ``report`` turns ``results.jsonl`` into the GPU section of
@@ -61,7 +63,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BENCHMARKS_DIR = ROOT / "benchmarks"
-BUDGET_S = 230
+BUDGET_S = 320
 REPORT_RESERVE_S = 25
 MIN_PART_S = 15
 
@@ -92,9 +94,11 @@ def peak_rss_mib() -> float:
 
 
 def append_row(path: Path, row: dict) -> None:
-    """Append one JSON row to ``path`` at once, so a part killed later keeps its earlier rows."""
+    """Append one JSON row to ``path`` at once, so a part killed later keeps its earlier rows,
+    and print it to the part's log."""
     with path.open("a") as handle:
         handle.write(json.dumps(row) + "\n")
+    print(json.dumps(row), flush=True)
 
 
 def cuda_state(device: str) -> tuple[bool, str]:
@@ -182,8 +186,10 @@ def meta(args: argparse.Namespace) -> None:
     torch.set_num_threads(1)
     keep_freed_memory()  # as armeta-train does
     out = Path(args.results)
+    graphs = ["benchmark.collector.graphs=false"] if args.no_graphs else []
     for device in args.devices:
-        variant = "compiled" if args.compile else "eager"
+        variant = ("compiled" if args.compile else "eager") + (
+            ", no CUDA graphs" if args.no_graphs else "")
         row = {"part": "meta", "benchmark": args.benchmark, "method": args.method,
                "device": device, "variant": variant}
         ok, reason = cuda_state(device)
@@ -192,7 +198,7 @@ def meta(args: argparse.Namespace) -> None:
             continue
         try:
             overrides = [f"benchmark={args.benchmark}", f"method={args.method}",
-                         f"device={device}", *args.overrides]
+                         f"device={device}", *graphs, *args.overrides]
             if args.compile:
                 overrides += COMPILE_OVERRIDES
             sync, gpu_peak = device_tools(device)
@@ -206,7 +212,6 @@ def meta(args: argparse.Namespace) -> None:
         except Exception as error:  # one failed row must not stop the others
             row = failure(row, error)
         append_row(out, row)
-        print(json.dumps(row), flush=True)
 
 
 def ant_overrides(args: argparse.Namespace) -> list[str]:
@@ -217,12 +222,27 @@ def ant_overrides(args: argparse.Namespace) -> list[str]:
             f"benchmark.collector.max_steps={args.steps}", *args.overrides]
 
 
+def physics_seconds(env, steps: int, sync: Callable[[], None]) -> float:
+    """Seconds for ``steps`` env steps of ``env``'s physics alone (its batch's ``step``: the
+    ``frame_skip`` MuJoCo Warp steps and the forward pass, a CUDA graph replayed, with the same
+    synchronization as in the env's step), without the policy or TorchRL: what no change outside
+    the physics can undercut, so ``tasks × episodes × steps`` over it bounds the env steps/s."""
+    env.sim.step(env.frame_skip)
+    sync()
+    start = time.perf_counter()
+    for _ in range(steps):
+        env.sim.step(env.frame_skip)
+    sync()
+    return time.perf_counter() - start
+
+
 def ant(args: argparse.Namespace) -> None:
     """The Ant with MuJoCo Warp, in one process, each figure written as soon as it is measured
     (a part killed at its time limit keeps what it measured): a tiny env first (it compiles the
     warp kernels), then env steps/s of one collection of ``tasks × episodes`` worlds with the
-    leader's policy acting on the env's device, as training collects (part ``ant-steps``), then
-    MAML-TRPO meta-iterations on ant_goal_warp (part ``ant-meta``)."""
+    leader's policy acting on the env's device, as training collects (part ``ant-steps``), the
+    same env's physics alone (part ``ant-physics``, :func:`physics_seconds`: the ceiling of
+    ``ant-steps``), then MAML-TRPO meta-iterations on ant_goal_warp (part ``ant-meta``)."""
     import torch
 
     from armeta_rl.allocator import keep_freed_memory
@@ -233,7 +253,7 @@ def ant(args: argparse.Namespace) -> None:
     for device in (args.device, args.warp_device):
         ok, reason = cuda_state(device)
         if not ok:
-            for part in ("ant-steps", "ant-meta"):
+            for part in ("ant-steps", "ant-physics", "ant-meta"):
                 append_row(out, {"part": part, **size, "status": "skipped", "reason": reason})
             return
     torch.set_num_threads(1)
@@ -270,7 +290,10 @@ def ant(args: argparse.Namespace) -> None:
                        steps_per_s=steps / median, peak_gpu_mib=gpu_peak(),
                        peak_rss_mib=peak_rss_mib())
             append_row(out, row)
-            print(json.dumps(row), flush=True)
+        row = {"part": "ant-physics", **size}
+        seconds = physics_seconds(env, args.steps, sync)
+        row.update(status="ok", seconds=seconds, steps_per_s=steps / seconds)
+        append_row(out, row)
         row = {"part": "ant-meta", **size}
         start = time.perf_counter()
         trainer.train_iteration()
@@ -285,11 +308,9 @@ def ant(args: argparse.Namespace) -> None:
             row.update(status="ok", iterations=len(times), median_s=statistics.median(times),
                        min_s=min(times), peak_gpu_mib=gpu_peak(), peak_rss_mib=peak_rss_mib())
             append_row(out, row)
-            print(json.dumps(row), flush=True)
     except Exception as error:
         row = failure(row, error)
         append_row(out, row)
-        print(json.dumps(row), flush=True)
 
 
 def preflight(args: argparse.Namespace) -> None:
@@ -481,6 +502,11 @@ def run(args: argparse.Namespace) -> None:
         part(f"meta-{benchmark}", [*me, "meta", *res, "--benchmark", benchmark, "--method",
                                    method, "--devices", "cpu", args.device, *iterations],
              45).run(clock)
+    if any(benchmark == "point_nav" for benchmark, _ in families):  # the CUDA graph's gain
+        part("meta-point_nav-no-graphs", [*me, "meta", *res, "--benchmark", "point_nav",
+                                          "--method", "maml", "--devices", args.device,
+                                          "--no-graphs", "--iterations", str(args.iterations),
+                                          "--seconds", "5"], 45).run(clock)
     # The Ant last, with whatever the budget has left: it writes each figure as it measures it.
     size = ["--tasks", str(args.ant_tasks), "--episodes", str(args.ant_episodes),
             "--steps", str(args.ant_steps), "--device", args.device,
@@ -570,7 +596,7 @@ def report(args: argparse.Namespace) -> None:
          for r in test_rows])
     ant_rows = []
     last = {r["part"]: r for r in rows if r.get("part", "").startswith("ant")}
-    for part in ("ant-warmup", "ant-steps", "ant-meta"):
+    for part in ("ant-warmup", "ant-steps", "ant-physics", "ant-meta"):
         r = last.get(part)
         if r is None:
             continue
@@ -587,6 +613,10 @@ def report(args: argparse.Namespace) -> None:
                              fmt(r["peak_gpu_mib"], 0),
                              f"{r['env']} on {r['env_device']}, policy on {r['policy_device']}, "
                              f"median of {r['collects']} collections ({r['median_s']:.2f} s)"))
+        elif part == "ant-physics":
+            ant_rows.append((part, size, f"{r['steps_per_s']:,.0f} env steps/s", "–", "–", "–",
+                             f"the physics alone ({r['seconds']:.2f} s): the env's step graph "
+                             "replayed, no policy, no TorchRL; the ceiling of ant-steps"))
         else:
             ant_rows.append((part, size, f"{r['median_s']:.2f} s / iteration",
                              f"{r['first_iteration_s']:.1f}", fmt(r["peak_rss_mib"], 0),
@@ -658,9 +688,11 @@ def summarize_targets(rows: list[dict], point_reference: dict | None) -> list[st
     lines = []
     steps = ok_row("ant-steps")
     target = TARGETS["ant_steps_per_s"]
+    physics = ok_row("ant-physics")
     lines.append(f"Ant env steps/s >= {target:,}: " + (
         f"{steps['steps_per_s']:,.0f} ({verdict(steps['steps_per_s'] >= target, steps)})"
-        if steps else missing("ant-steps")))
+        if steps else missing("ant-steps")) + (
+        f"; the physics alone: {physics['steps_per_s']:,.0f}" if physics else ""))
     meta_ant = ok_row("ant-meta")
     target = TARGETS["ant_meta_s"]
     lines.append(f"Ant meta-iteration <= {target} s: " + (
@@ -730,6 +762,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     timing.add_argument("--method", default="ar_maml")
     timing.add_argument("--devices", nargs="+", default=["cpu", "cuda"])
     timing.add_argument("--compile", action="store_true")
+    timing.add_argument("--no-graphs", action="store_true",
+                        help="point_nav only: its rollout launched step by step, not replayed "
+                             "as a CUDA graph (benchmark.collector.graphs=false)")
     timing.add_argument("--warmup", type=int, default=2)
     timing.add_argument("--iterations", type=int, default=5)
     timing.add_argument("--seconds", type=float, default=8.0,

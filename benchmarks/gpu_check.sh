@@ -14,8 +14,8 @@
 #     first part, preflight, names any module that is missing);
 #   * no network; results go to ${OUT:-/tmp/gpu_check}: gpu_check.log, tests.log, results.jsonl,
 #     summary.txt and benchmarks.md (a copy of docs/benchmarks.md with the GPU section);
-#   * the whole check is bounded: --budget seconds (default 230) for the parts, each with its own
-#     time limit, and a hard stop at 270 s for the lot (past --budget + 40 s if one is given).
+#   * the whole check is bounded: --budget seconds (default 320) for the parts, each with its own
+#     time limit, and a hard stop at 360 s for the lot (past --budget + 40 s if one is given).
 #     Extra arguments go to
 #     `gpu_check.py run` (e.g. --budget 300, --benchmarks point_nav).
 # Without CUDA the CUDA parts are skipped with that reason and the rest runs.
@@ -29,7 +29,7 @@ export PYTHONPATH="$ROOT:$ROOT/benchmarks${PYTHONPATH:+:$PYTHONPATH}"
 export OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true PYTHONUNBUFFERED=1
 PYTHON="${PYTHON:-python}"
 echo "gpu_check: repo $ROOT, out $OUT, python $(command -v "$PYTHON"), PYTHONPATH=$PYTHONPATH"
-LIMIT=270
+LIMIT=360
 for ((i = 1; i <= $#; i++)); do
     if [ "${!i}" = "--budget" ]; then j=$((i + 1)); LIMIT=$(( ${!j%.*} + 40 )); fi
 done

@@ -13,6 +13,7 @@ from torch._dynamo.utils import counters
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.collectors.regression import SinusoidCollector
+from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.compiling import compile_backend
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader, MamlOptions
@@ -103,3 +104,23 @@ def test_compiled_adversary_updates_equal_eager_updates():
         torch.testing.assert_close(got, expected, rtol=1e-9, atol=1e-10)
     moved = eager.adversary.log_prob(eager_tasks[0]) - eager_tasks[1]
     assert moved.abs().max() > 1e-3
+
+
+@pytest.mark.parametrize("env", ["pendulum", "acrobot"])
+def test_compiled_physics_collects_what_the_eager_physics_collects(env):
+    """``benchmark.collector.compile``: the compiled equations of motion give the eager
+    transitions, and follow each collection's new identifiers (none is baked into the graph);
+    the acrobot's 200-step episodes go through its partial resets."""
+    box = TaskSpace(["m1", "m2"] if env == "acrobot" else ["m", "l"], [0.4, 0.4], [1.6, 1.6])
+    collected = {}
+    for backend in (False, "aot_eager"):
+        torch.manual_seed(0)
+        collector = SysIdCollector(env, n_transitions=200, episodes=1, compile=backend)
+        counters.clear()
+        collected[backend] = [collector.collect(BoxUniform(box).sample(4)) for _ in range(3)]
+        if backend:
+            assert counters["stats"]["unique_graphs"] == 1
+    for eager, compiled in zip(collected[False], collected["aot_eager"], strict=True):
+        torch.testing.assert_close(compiled.to_dict(), eager.to_dict(), rtol=1e-6, atol=1e-6)
+    first, second = (data["query", "y"] for data in collected[False][:2])
+    assert (first - second).abs().max() > 1e-2

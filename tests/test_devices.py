@@ -9,10 +9,14 @@ import sys
 import pytest
 import torch
 from conftest import SMALL_RUN, compose_train
+from tensordict import TensorDict
 from torchrl.checkpoint import GlobalRNGState
 
 from armeta_rl.devices import resolve_device
+from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianMLP
+from armeta_rl.tasks import TASK_KEY
 from armeta_rl.trainers.checkpoint import PortableRNGState
 from armeta_rl.trainers.players import Players, load_players
 from armeta_rl.trainers.report import cross_evaluate
@@ -170,3 +174,38 @@ def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, metho
     assert resumed.returncode == 0, resumed.stderr
     again = run_training(compose_train(*small, "device=cuda"), tmp_path / "again")
     assert json.loads((run / "eval.json").read_text()) == again
+
+
+@needs_cuda
+@pytest.mark.parametrize("per_task", [False, True])
+def test_the_point_robots_cuda_graph_replays_its_eager_rollout_bit_for_bit(per_task):
+    """On CUDA the collectors' point-robot rollout is replayed as a CUDA graph: three rollouts in
+    a row (new goals and parameters each time, so the graph's inputs change) equal the eager ones
+    bit for bit, and leave torch's CUDA RNG where the eager ones leave it."""
+    batch = (4, 5)
+    runs = []
+    for graphs in (False, True):
+        torch.manual_seed(0)
+        net = GaussianMLP().cuda()
+        env = PointNavigationEnv(batch, max_steps=7, seed=4, device="cuda", graphs=graphs,
+                                 sparse_regions=PAPER_SPARSE_REGIONS)
+        assert env.graphs is graphs
+        rollouts = []
+        for _ in range(3):
+            params = None
+            if per_task:
+                params = TensorDict.from_module(net).detach().expand(batch[0]).clone()
+                params.apply_(lambda p: p + 0.1 * torch.randn_like(p))
+            goals = torch.rand(*batch, 2, device="cuda") - 0.5
+            env.reset(TensorDict({TASK_KEY: goals}, batch, device="cuda"))
+            rollouts.append(env.gaussian_transitions(20, net, params))
+            with torch.no_grad():  # as TRPO updates the policy: in place
+                for parameter in net.parameters():
+                    parameter.add_(0.01)
+        runs.append((rollouts, torch.rand(2, device="cuda")))
+    (eager, eager_next), (graphed, graphed_next) = runs
+    assert eager[0]["next", "truncated"].any()
+    for expected, replayed in zip(eager, graphed):
+        for key in expected.keys(True, True):
+            assert torch.equal(replayed[key], expected[key]), key
+    assert torch.equal(graphed_next, eager_next)

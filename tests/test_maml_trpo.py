@@ -12,6 +12,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor
 from torch.func import functional_call
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
@@ -25,10 +26,12 @@ from armeta_rl.rl.baseline import (
     gae_advantages,
 )
 from armeta_rl.rl.policy import (
+    GaussianActor,
     GaussianMLP,
     kl_divergence,
     loc_scale,
     log_prob,
+    make_actor,
 )
 from armeta_rl.rl.trpo import (
     backtracking_line_search,
@@ -232,8 +235,9 @@ def test_batched_inner_step_equals_per_task_loop() -> None:
         torch.testing.assert_close(batched, looped, rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("batch", [(), (4, 5)])
+@pytest.mark.parametrize("batch", [(), (4,), (4, 5)])
 def test_per_task_policy_equals_each_tasks_network(batch: tuple[int, ...]) -> None:
+    """``loc_scale``'s batched products are task ``k``'s network with ``params[k]``."""
     torch.manual_seed(3)
     net = GaussianMLP()
     params = TensorDict.from_module(net).detach().expand(3).clone()
@@ -245,6 +249,31 @@ def test_per_task_policy_equals_each_tasks_network(batch: tuple[int, ...]) -> No
         expected = functional_call(net, task, (observation[k],))
         torch.testing.assert_close(loc[k], expected[0])
         torch.testing.assert_close(scale[k], expected[1])
+
+
+@pytest.mark.parametrize("batch", [(3,), (3, 4), (3, 4, 5)])
+@pytest.mark.parametrize("per_task", [False, True])
+def test_gaussian_actor_equals_the_probabilistic_actor(batch, per_task) -> None:
+    """The collectors' actor writes what ``make_actor``'s ProbabilisticActor writes, acting at
+    random: the same keys, the same values bit for bit from the same draws, and the same RNG
+    state after."""
+    net = GaussianMLP()
+    params = None
+    if per_task:
+        params = TensorDict.from_module(net).detach().expand(batch[0]).clone()
+        params.apply_(lambda p: p + 0.1 * torch.randn_like(p))
+    observation = torch.randn(*batch, 2)
+    outputs = []
+    for actor in (make_actor(net, params), GaussianActor(net, params)):
+        torch.manual_seed(5)
+        with set_exploration_type(ExplorationType.RANDOM):
+            acted = actor(TensorDict({"observation": observation}, batch))
+        outputs.append((acted, torch.rand(3)))
+    (expected, expected_next), (acted, acted_next) = outputs
+    assert set(acted.keys(True, True)) == set(expected.keys(True, True))
+    for key in expected.keys(True, True):
+        assert torch.equal(acted[key], expected[key]), key
+    assert torch.equal(acted_next, expected_next)
 
 
 def meta_hvp_pair(dtype: torch.dtype, hidden: tuple[int, ...] = (8, 8)):

@@ -297,10 +297,12 @@ def test_a_scaled_region_changes_the_return_not_the_adaptation() -> None:
 
 
 def _rollouts(batch: tuple[int, ...], goals: torch.Tensor, policy, steps: int,
-              regions: dict | None = None) -> list:
-    """``env.rollout`` and ``env.transitions`` from the same seeds and reset, each with the env's
-    position and step count after it and the next draw of torch's global RNG; ``regions``: the
-    env's reward regions (default the paper's scaled ones)."""
+              regions: dict | None = None, fast_path=None) -> list:
+    """``env.rollout`` and ``env.transitions`` (or ``fast_path(env, steps)``) from the same seeds
+    and reset, each with the env's position and step count after it and the next draw of
+    torch's global RNG; ``regions``: the env's reward regions (default the paper's scaled
+    ones)."""
+    fast_path = fast_path or (lambda env, steps: env.transitions(steps, policy))
     results = []
     for fast in (False, True):
         torch.manual_seed(2)
@@ -308,7 +310,7 @@ def _rollouts(batch: tuple[int, ...], goals: torch.Tensor, policy, steps: int,
                                  **(regions or {"sparse_regions": PAPER_SPARSE_REGIONS}))
         start = env.reset(TensorDict({"params": goals}, batch))
         with set_exploration_type(ExplorationType.RANDOM):
-            rollout = env.transitions(steps, policy) if fast else env.rollout(
+            rollout = fast_path(env, steps) if fast else env.rollout(
                 steps, policy, tensordict=start, auto_reset=False, break_when_any_done=False)
         results.append([rollout, env._position, env._steps, torch.rand(2)])
     return results
@@ -316,18 +318,24 @@ def _rollouts(batch: tuple[int, ...], goals: torch.Tensor, policy, steps: int,
 
 @pytest.mark.parametrize("batch", [(4, 5), (3,), (2, 3, 2)])
 @pytest.mark.parametrize("per_task", [False, True])
-def test_transitions_equal_env_rollout_bit_for_bit(batch, per_task):
-    """The episode collector's fast rollout is ``env.rollout`` with the same stochastic actor
-    (shared or per-task parameters): every key it writes at every step, through the automatic
-    resets of truncated episodes (7-step limit in 20 steps), the env state and the RNG stream
-    left behind."""
+@pytest.mark.parametrize("path", ["transitions", "gaussian_transitions"])
+def test_transitions_equal_env_rollout_bit_for_bit(batch, per_task, path):
+    """The fast rollouts are ``env.rollout`` with the same stochastic actor (shared or per-task
+    parameters): ``transitions`` with the actor itself, and the collectors'
+    ``gaussian_transitions``, a function of tensors alone (what a CUDA graph replays). Every key
+    they write at every step, through the automatic resets of truncated episodes (7-step limit in
+    20 steps), the env state and the RNG stream left behind."""
     goals = torch.rand(*batch, 2, generator=torch.Generator().manual_seed(0)) - 0.5
     net = GaussianMLP()
     params = None
     if per_task:
         params = TensorDict.from_module(net).detach().expand(batch[0]).clone()
         params.apply_(lambda p: p + 0.1 * torch.randn_like(p))
-    slow, fast = _rollouts(batch, goals, make_actor(net, params), 20)
+    actor = make_actor(net, params)
+    fast_paths = {"transitions": lambda env, steps: env.transitions(steps, actor),
+                  "gaussian_transitions": lambda env, steps: env.gaussian_transitions(
+                      steps, net, params)}
+    slow, fast = _rollouts(batch, goals, actor, 20, fast_path=fast_paths[path])
     assert fast[0]["next", "truncated"].any()
     for key in fast[0].keys(True, True):
         assert torch.equal(fast[0][key], slow[0][key]), key
@@ -360,3 +368,12 @@ def test_transitions_equal_env_rollout_with_truncated_regions():
         assert torch.equal(fast[0][key], slow[0][key]), key
     for a, b in zip(fast[1:], slow[1:]):
         assert torch.equal(a, b)
+
+
+def test_cuda_graphs_are_a_switch_for_cuda_only() -> None:
+    """``graphs`` takes true, false or null (one line naming the key otherwise); a CPU env never
+    replays graphs, whatever it is asked."""
+    with pytest.raises(ConfigError, match=r"benchmark\.collector\.graphs.*true, false or null"):
+        PointNavigationCollector(graphs="maybe")
+    assert not PointNavigationCollector(episodes=1, graphs=True).env(1).graphs
+    assert not PointNavigationEnv((1, 1), graphs=None).graphs

@@ -342,6 +342,7 @@ def test_collected_data_can_be_differentiated_through(target, normalize):
         ("episodes", {"episodes": 7}),
         ("target", {"target": "state"}),
         ("normalize", {"normalize": "zscore"}),
+        ("compile", {"compile": "fast"}),
     ],
 )
 def test_collector_rejects_bad_options(key, kwargs):

@@ -278,7 +278,8 @@ def doubled_navigation(batch_size, max_steps) -> TransformedEnv:
 def test_an_episode_collector_steps_a_transformed_env_through_its_transforms():
     """The point robot's fast transitions serve the bare env only: behind a transform (doubling
     the rewards) the collector steps env.rollout, so the rewards are exactly twice the bare env's
-    (TransformedEnv forwards ``transitions`` to the env inside, which skipped the transform)."""
+    (TransformedEnv forwards ``gaussian_transitions`` to the env inside, which skipped the
+    transform)."""
     tasks = TensorDict({TASK_KEY: torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
     rewards = []
     for make_env in (plain_navigation, doubled_navigation):

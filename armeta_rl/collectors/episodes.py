@@ -3,12 +3,15 @@
 ``collect(tasks, policy_params, policy)`` runs ``episodes`` episodes per task in a task-conditioned
 env (point navigation, Ant goal, any env taking its identifiers under
 :data:`~armeta_rl.tasks.TASK_KEY`) of batch size ``[K, episodes]`` with
-``env.rollout`` and a TorchRL ``ProbabilisticActor`` that acts with task ``k``'s parameters on row
-``k``. Each batch entry runs exactly one episode: the rollout lasts ``max_steps`` steps, and the
-steps after an entry's first ``done`` (where TorchRL has automatically reset it) are masked out.
-An env whose class offers ``transitions(steps, policy)`` (point navigation) is stepped with it
-instead: ``env.rollout``'s rollout bit for bit, without TorchRL's per-step env machinery. The same
-env behind transforms or in a batched env is stepped by ``env.rollout``, transforms and all.
+``env.rollout`` and a :class:`~armeta_rl.rl.policy.GaussianActor` (the TorchRL
+``ProbabilisticActor`` of :func:`~armeta_rl.rl.policy.make_actor`, written out) that acts with
+task ``k``'s parameters on row ``k``. Each batch entry runs exactly one episode: the rollout lasts
+``max_steps`` steps, and the steps after an entry's first ``done`` (where TorchRL has
+automatically reset it) are masked out.
+An env whose class offers ``gaussian_transitions(steps, net, params)`` (point navigation) is
+stepped with it instead: ``env.rollout``'s rollout bit for bit, without TorchRL's per-step env
+machinery (and on CUDA replayed as one CUDA graph). The same env behind transforms or in a
+batched env is stepped by ``env.rollout``, transforms and all.
 
 Devices: the policy acts on the env's device (a torch-native env runs wherever it was built; a
 MuJoCo env on the CPU), and the trajectories are returned on the collector's ``device``, where the
@@ -25,7 +28,6 @@ from functools import partial
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from armeta_rl.envs.point_navigation import (
     TRUNCATED_KEY,
@@ -35,7 +37,7 @@ from armeta_rl.envs.point_navigation import (
     reference_return,
 )
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.rl.policy import GaussianMLP, make_actor
+from armeta_rl.rl.policy import GaussianActor, GaussianMLP
 from armeta_rl.tasks.protocol import TASK_KEY, reset_with_identifiers
 from armeta_rl.tasks.space import TaskSpace
 
@@ -159,14 +161,13 @@ class EpisodeCollector:
         if next(policy.parameters()).device != env_device:
             policy = copy.deepcopy(policy).to(env_device)
             policy_params = None if policy_params is None else policy_params.to(env_device)
-        actor = make_actor(policy, policy_params)
         # the env's own method only: TransformedEnv and batched envs forward unknown attributes
         # to the env(s) inside, whose transitions would skip the transforms (or fail)
-        fast = env.transitions if callable(getattr(type(env), "transitions", None)) else None
-        with set_exploration_type(ExplorationType.RANDOM):
-            rollout = fast(self.max_steps, actor) if fast is not None else env.rollout(
-                self.max_steps, actor, tensordict=start, auto_reset=False, break_when_any_done=False
-            )
+        if callable(getattr(type(env), "gaussian_transitions", None)):
+            rollout = env.gaussian_transitions(self.max_steps, policy, policy_params)
+        else:
+            rollout = env.rollout(self.max_steps, GaussianActor(policy, policy_params),
+                                  tensordict=start, auto_reset=False, break_when_any_done=False)
         done = rollout["next", "done"].squeeze(-1)
         trajectories = TensorDict(
             {
@@ -196,18 +197,22 @@ class PointNavigationCollector(EpisodeCollector):
         seed: seed of the env (used only for goals that are never set).
         device: where the env steps and the trajectories are returned.
         truncated_regions: goal regions with the truncated (sparse) reward −min(dist, ρ).
+        graphs: replay the rollouts as CUDA graphs (``None``: on CUDA;
+            :class:`~armeta_rl.envs.point_navigation.PointNavigationEnv`).
     """
 
     def __init__(self, episodes: int = 20, max_steps: int = 100,
                  sparse_regions: Sequence[Region] = (), squared_distance: bool = False,
                  seed: int | None = None, device: torch.device | str = "cpu",
-                 truncated_regions: Sequence[Region] = ()) -> None:
+                 truncated_regions: Sequence[Region] = (), graphs: bool | None = None) -> None:
+        if graphs is not None and not isinstance(graphs, bool):
+            raise ConfigError("benchmark.collector.graphs", graphs, "true, false or null")
         self.sparse_regions = check_regions(sparse_regions)
         self.truncated_regions = check_regions(truncated_regions, TRUNCATED_KEY, "radius")
         self.squared_distance = bool(squared_distance)
         make_env = partial(PointNavigationEnv, sparse_regions=self.sparse_regions,
                            squared_distance=self.squared_distance, seed=seed, device=device,
-                           truncated_regions=self.truncated_regions)
+                           truncated_regions=self.truncated_regions, graphs=graphs)
         super().__init__(make_env, episodes, max_steps, device)
 
     def reference_loss(self, params: torch.Tensor) -> torch.Tensor:

@@ -9,6 +9,7 @@ import torch
 from tensordict import TensorDict
 from torch import Tensor
 
+from armeta_rl.compiling import compile_backend
 from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
@@ -69,11 +70,17 @@ class SysIdCollector:
             env's :attr:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.param_names`, e.g.
             ``[m, l]``; the pendulum also takes ``g``). A benchmark sets it to
             ``${benchmark.space.names}``.
+        compile: the envs' physics step through ``torch.compile`` (``false``: eager; ``true``:
+            inductor; or a backend name, :func:`~armeta_rl.compiling.compile_backend`). It pays
+            where the physics is long and sequential (the acrobot's Runge–Kutta step in the
+            paper protocol's 200-step episodes), on long runs: the first collection of each
+            batch shape waits for the compiler (docs/speed-options.md).
     """
 
     def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
                  episodes: int = 20, target: str = "delta", normalize: str = "none",
-                 device: str = "cpu", identifiers: Sequence[str] | None = None) -> None:
+                 device: str = "cpu", identifiers: Sequence[str] | None = None,
+                 compile: bool | str | None = False) -> None:
         if env not in ENVIRONMENTS:
             raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
         if not isinstance(n_transitions, int) or n_transitions < 2:
@@ -101,6 +108,7 @@ class SysIdCollector:
         self.identifiers = tuple(self.env_cls.param_names if identifiers is None else identifiers)
         self.n_transitions, self.n_support, self.episodes = n_transitions, n_support, episodes
         self.target, self.normalize, self.device = target, normalize, torch.device(device)
+        self.backend = compile_backend("benchmark.collector.compile", compile)
         self._envs: dict[int, IdentifiedSystemEnv] = {}
         x_scale, y_scale = self._scales()
         self.x_scale, self.y_scale = x_scale.to(self.device), y_scale.to(self.device)
@@ -125,7 +133,8 @@ class SysIdCollector:
     def _env(self, n_tasks: int) -> IdentifiedSystemEnv:
         if n_tasks not in self._envs:
             self._envs[n_tasks] = self.env_cls(batch_size=(n_tasks, self.episodes), seed=0,
-                                               device=self.device, identifiers=self.identifiers)
+                                               device=self.device, identifiers=self.identifiers,
+                                               compile_dynamics=self.backend)
         return self._envs[n_tasks]
 
     def check_space(self, space: TaskSpace) -> None:

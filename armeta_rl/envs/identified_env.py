@@ -20,7 +20,9 @@ of the simulator. Subclasses write the batched physics; this base class owns wha
   transforms may drop or cast ``"state"``. ``env.reset(td, set_state=True)`` starts from
   ``td["state"]`` instead of a random one;
 * a ``torch.Generator`` owned by the env draws the random initial states (``set_seed``);
-* one step's physics is a pure function of the states and the actions (:meth:`_transition`);
+* one step's physics is a pure function of the states and the actions (:meth:`_transition`),
+  whose equations of motion (:meth:`_dynamics`) may run through ``torch.compile``
+  (``compile_dynamics``; TorchRL's own ``compile`` compiles its per-step machinery instead);
   ``_step`` wraps it for TorchRL, and :meth:`transitions` steps it without TorchRL's per-step
   machinery: the rollout of ``env.rollout``, transition for transition and bit for bit
   (``tests/test_sysid_envs.py``), at a fraction of its cost.
@@ -45,6 +47,7 @@ from torch import Tensor
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
 
@@ -72,6 +75,11 @@ class IdentifiedSystemEnv(EnvBase):
         identifiers: the names of the task identifiers, in the order of ``"params"``'s last
             dimension, among :attr:`identifier_defaults` (default :attr:`param_names`); the
             others stay at their defaults.
+        compile_dynamics: step the equations of motion (:meth:`_dynamics`) through
+            ``torch.compile`` (``None`` or ``False``: eagerly; ``True``: inductor; or a backend
+            name, :func:`~armeta_rl.compiling.compile_backend`), in ``env.rollout`` and
+            :meth:`transitions` alike. The compiled step rounds differently from the eager one;
+            the env is then no longer picklable.
     """
 
     param_names: tuple[str, ...] = ()
@@ -84,7 +92,8 @@ class IdentifiedSystemEnv(EnvBase):
 
     def __init__(self, batch_size: Sequence[int] = (1, 1), seed: int | None = None,
                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
-                 identifiers: Sequence[str] | None = None) -> None:
+                 identifiers: Sequence[str] | None = None,
+                 compile_dynamics: bool | str | None = None) -> None:
         batch_size = torch.Size(batch_size)
         if any(n < 1 for n in batch_size):
             raise ConfigError("env.batch_size", list(batch_size), "every dimension must be >= 1")
@@ -98,6 +107,8 @@ class IdentifiedSystemEnv(EnvBase):
         super().__init__(device=device, batch_size=batch_size)
         self.dtype = dtype
         self.n_envs = batch_size.numel()
+        self._physics = maybe_compile(self._dynamics,
+                                      compile_backend("env.compile_dynamics", compile_dynamics))
         # Scalars of the physics are 0-dim tensors: an op with a Python number costs about twice
         # one with a tensor.
         self.pi = torch.tensor(math.pi, dtype=dtype, device=self.device)
@@ -246,7 +257,7 @@ class IdentifiedSystemEnv(EnvBase):
         identifiers: the new states, their feature-major observations
         ``[observation_dim, n_envs]``, the rewards ``[n_envs]`` and the terminations
         ``[n_envs, 1]`` (bool)."""
-        new_state = self._dynamics(state, action)
+        new_state = self._physics(state, action)
         terminated = self._terminated(new_state)
         if terminated is None:
             terminated = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
@@ -291,7 +302,7 @@ class IdentifiedSystemEnv(EnvBase):
                                            device=self.device)).get("action")
             else:
                 action = random[t]
-            new_state = self._dynamics(state, action)
+            new_state = self._physics(state, action)
             starts.append(state)
             ends.append(new_state)
             actions.append(action)

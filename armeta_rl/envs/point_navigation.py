@@ -30,13 +30,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from functools import partial
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
+from armeta_rl.cuda_graphs import GraphedCall
 from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianMLP
+from armeta_rl.rl.policy import act as policy_act
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
 
 Region = tuple[tuple[float, float], tuple[float, float], float]
@@ -108,6 +112,66 @@ def step_reward(offset: torch.Tensor, scale: torch.Tensor, cap: torch.Tensor,
     return -scale * torch.minimum(distance, cap)
 
 
+def move(position: torch.Tensor, steps: torch.Tensor, action: torch.Tensor, goal: torch.Tensor,
+         scale: torch.Tensor, cap: torch.Tensor, squared_distance: bool, max_steps: int
+         ) -> tuple[torch.Tensor, ...]:
+    """One step from ``position`` ``[*batch, 2]`` after ``steps`` ``[*batch, 1]`` steps toward
+    ``goal`` with reward ``scale`` and ``cap`` (:func:`step_reward`): the new position and step
+    count, the reward, and whether the episode terminates (goal reached) or is truncated (time
+    limit)."""
+    position = position + action.clamp(-MAX_SPEED, MAX_SPEED)
+    steps = steps + 1
+    offset = position - goal
+    reward = step_reward(offset, scale, cap, squared_distance)
+    terminated = (offset.abs() < GOAL_TOLERANCE).all(-1, keepdim=True)
+    return position, steps, reward, terminated, steps >= max_steps
+
+
+def roll(act: Callable[[torch.Tensor], dict], n_steps: int, position: torch.Tensor,
+         counts: torch.Tensor, goal: torch.Tensor, scale: torch.Tensor, cap: torch.Tensor,
+         squared_distance: bool, max_steps: int) -> dict:
+    """``n_steps`` steps of :func:`move` from ``position`` and ``counts`` ``[*batch, ...]``,
+    ``act(observation)`` choosing each step's ``"action"`` (with whatever else it returns).
+    Finished episodes restart from the origin between steps, as TorchRL's automatic partial
+    reset restarts them (never after the last step).
+
+    Returns the steps stacked along a time dimension after the batch ``[*batch, n_steps, ...]``:
+    ``"observation"`` and ``act``'s outputs, and ``("next", key)`` for ``"observation"``,
+    ``"reward"``, ``"done"``, ``"terminated"``, ``"truncated"``; and ``"position"``,
+    ``"counts"``, the state after the last step.
+    """
+    acted, moved = [], []
+    for t in range(n_steps):
+        observation = position.clone()
+        acted.append({"observation": observation, **act(observation)})
+        new_position, counts, reward, terminated, truncated = move(
+            position, counts, acted[-1]["action"], goal, scale, cap, squared_distance, max_steps)
+        done = terminated | truncated
+        moved.append({"observation": new_position.clone(), "reward": reward, "done": done,
+                      "terminated": terminated, "truncated": truncated})
+        position = new_position
+        if t < n_steps - 1:  # unconditionally: asking whether any is done would wait for a GPU
+            position = torch.where(done, torch.zeros_like(position), position)
+            counts = torch.where(done, torch.zeros_like(counts), counts)
+    dim = position.dim() - 1
+    arrays = {key: torch.stack([step[key] for step in acted], dim) for key in acted[0]}
+    arrays.update({("next", key): torch.stack([step[key] for step in moved], dim)
+                   for key in moved[0]})
+    return {**arrays, "position": new_position, "counts": counts}
+
+
+def gaussian_episode(net: GaussianMLP, names: tuple[str, ...], per_task: bool, n_steps: int,
+                     squared_distance: bool, max_steps: int, position: torch.Tensor,
+                     counts: torch.Tensor, goal: torch.Tensor, scale: torch.Tensor,
+                     cap: torch.Tensor, *values: torch.Tensor) -> dict:
+    """:func:`roll` with the Gaussian policy ``net`` acting under the parameters ``values``
+    (named ``names``; per task or shared, :func:`~armeta_rl.rl.policy.act`): a function of
+    tensors alone, what a CUDA graph of the rollout replays."""
+    params = dict(zip(names, values))
+    return roll(lambda observation: policy_act(net, params, observation, per_task), n_steps,
+                position, counts, goal, scale, cap, squared_distance, max_steps)
+
+
 def reference_return(goal: torch.Tensor, max_steps: int, sparse_regions: Sequence[Region] = (),
                      truncated_regions: Sequence[Region] = (),
                      squared_distance: bool = False) -> torch.Tensor:
@@ -150,6 +214,7 @@ class PointNavigationEnv(EnvBase):
         squared_distance: reward ``-‖p - g‖²`` instead of ``-‖p - g‖``.
         seed: seed of the generator that draws default goals.
         device: torch device.
+        graphs: replay :meth:`gaussian_transitions` as CUDA graphs (``None``: on CUDA).
     """
 
     def __init__(
@@ -161,6 +226,7 @@ class PointNavigationEnv(EnvBase):
         seed: int | None = None,
         device: torch.device | str = "cpu",
         truncated_regions: Sequence[Region] = (),
+        graphs: bool | None = None,
     ) -> None:
         if int(max_steps) < 1:
             raise ConfigError("benchmark.collector.max_steps", max_steps, "must be >= 1")
@@ -198,6 +264,8 @@ class PointNavigationEnv(EnvBase):
         self._goal = self._draw_goals(shape, dtype)
         self._set_goal_rewards()
         self._steps = torch.zeros(*shape, 1, dtype=torch.long, device=self.device)
+        self.graphs = self.device.type == "cuda" and (graphs is None or bool(graphs))
+        self._graphed: dict[tuple, tuple[GaussianMLP, Callable[..., dict]]] = {}
 
     def _set_goal_rewards(self) -> None:
         """Each entry's reward scale and distance cap ``[*batch, 1]`` from its goal."""
@@ -240,21 +308,10 @@ class PointNavigationEnv(EnvBase):
             device=self.device,
         )
 
-    def _move(self, position: torch.Tensor, steps: torch.Tensor, action: torch.Tensor
-              ) -> tuple[torch.Tensor, ...]:
-        """One step from ``position`` ``[*batch, 2]`` after ``steps`` ``[*batch, 1]`` steps, a pure
-        function under the env's goals: the new position and step count, the reward, and
-        whether the episode terminates (goal reached) or is truncated (time limit)."""
-        position = position + action.clamp(-MAX_SPEED, MAX_SPEED)
-        steps = steps + 1
-        offset = position - self._goal
-        reward = step_reward(offset, self._scale, self._cap, self.squared_distance)
-        terminated = (offset.abs() < GOAL_TOLERANCE).all(-1, keepdim=True)
-        return position, steps, reward, terminated, steps >= self.max_steps
-
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        self._position, self._steps, reward, terminated, truncated = self._move(
-            self._position, self._steps, tensordict.get("action"))
+        self._position, self._steps, reward, terminated, truncated = move(
+            self._position, self._steps, tensordict.get("action"), self._goal, self._scale,
+            self._cap, self.squared_distance, self.max_steps)
         return TensorDict(
             {
                 "observation": self._position.clone(),
@@ -277,33 +334,51 @@ class PointNavigationEnv(EnvBase):
         ``policy`` reads ``"observation"`` from a TensorDict and writes ``"action"`` and whatever
         else it writes (a TorchRL actor: ``"action_log_prob"``, ``"loc"``, ...); it is called once
         a step, as ``env.rollout`` calls it, so it draws the same random actions. Finished
-        episodes restart from the origin between steps, as TorchRL's automatic partial reset
-        restarts them (never after the last step). Equal to ``env.rollout`` transition for
-        transition, bit for bit (``tests/test_point_navigation.py``).
+        episodes restart from the origin between steps (:func:`roll`). Equal to ``env.rollout``
+        transition for transition, bit for bit (``tests/test_point_navigation.py``).
 
         Returns a TensorDict ``[*batch, steps]`` with ``"observation"``, ``"params"``, the
         policy's outputs, and ``"next"``: ``"observation"``, ``"params"``, ``"reward"``,
         ``"done"``, ``"terminated"``, ``"truncated"``.
         """
-        batch, n_steps = self.batch_size, int(steps)
-        position, counts = self._position, self._steps
-        acted, moved = [], []
-        for t in range(n_steps):
-            observed = TensorDict({"observation": position.clone()}, batch, device=self.device)
-            acted.append(policy(observed))
-            new_position, counts, reward, terminated, truncated = self._move(
-                position, counts, acted[-1].get("action"))
-            done = terminated | truncated
-            moved.append({"observation": new_position.clone(), "reward": reward, "done": done,
-                          "terminated": terminated, "truncated": truncated})
-            position = new_position
-            if t < n_steps - 1 and bool(done.any()):
-                position = torch.where(done, torch.zeros_like(position), position)
-                counts = torch.where(done, torch.zeros_like(counts), counts)
-        self._position, self._steps = new_position, counts
-        dim = len(batch)
-        rollout = torch.stack(acted, dim)
-        goal = self._goal.unsqueeze(dim).expand(*batch, n_steps, 2)
-        after = {key: torch.stack([step[key] for step in moved], dim) for key in moved[0]}
-        rollout.update({TASK_KEY: goal.clone(), "next": {**after, TASK_KEY: goal.clone()}})
+        batch = self.batch_size
+
+        def act(observation: torch.Tensor) -> dict:
+            acted = policy(TensorDict({"observation": observation}, batch, device=self.device))
+            return dict(acted.exclude("observation").items(True, True))
+
+        n_steps = int(steps)
+        return self._rollout(roll(act, n_steps, self._position, self._steps, self._goal,
+                                  self._scale, self._cap, self.squared_distance,
+                                  self.max_steps), n_steps)
+
+    def gaussian_transitions(self, steps: int, net: GaussianMLP,
+                             params: TensorDictBase | None = None) -> TensorDict:
+        """:meth:`transitions` with :class:`~armeta_rl.rl.policy.GaussianActor` ``(net,
+        params)``, the same rollout bit for bit, computed by a function of tensors alone (the
+        env's state, the policy's parameters) that the env replays as a CUDA graph when its
+        ``graphs`` is on (:class:`~armeta_rl.cuda_graphs.GraphedCall`): the rollout's thousands
+        of small kernels cost one launch."""
+        per_task = params is not None
+        named = params.flatten_keys(".").to_dict() if per_task else {
+            name: value.detach() for name, value in net.named_parameters()}
+        key = (int(steps), per_task, tuple(named))
+        kept = self._graphed.get(key)
+        if kept is None or kept[0] is not net:  # a new net replaces the old one's graph
+            episode = partial(gaussian_episode, net, tuple(named), per_task, int(steps),
+                              self.squared_distance, self.max_steps)
+            kept = self._graphed[key] = (net, GraphedCall(episode) if self.graphs else episode)
+        arrays = kept[1](self._position, self._steps, self._goal, self._scale, self._cap,
+                         *named.values())
+        return self._rollout(arrays, int(steps))
+
+    def _rollout(self, arrays: dict, n_steps: int) -> TensorDict:
+        """The TensorDict of :func:`roll`'s ``arrays``, with the goals; the env's state moves to
+        where the rollout left it."""
+        arrays = dict(arrays)
+        self._position, self._steps = arrays.pop("position"), arrays.pop("counts")
+        batch = self.batch_size
+        goal = self._goal.unsqueeze(len(batch)).expand(*batch, n_steps, 2)
+        rollout = TensorDict(arrays, [*batch, n_steps], device=self.device)
+        rollout.update({TASK_KEY: goal.clone(), ("next", TASK_KEY): goal.clone()})
         return rollout

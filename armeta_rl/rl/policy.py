@@ -1,13 +1,15 @@
 """Gaussian MLP policy of MAML-TRPO (MAML paper, Sec. 5.3; pytorch-maml-rl's NormalMLPPolicy).
 
 π_θ(a|s) = N(μ_θ(s), diag(σ²)) with μ an MLP (two hidden layers of 64, tanh) and a
-state-independent log σ initialized at 0 (σ = 1). The same network serves two uses:
+state-independent log σ initialized at 0 (σ = 1). The same network serves three uses:
 
-* as a TorchRL ``ProbabilisticActor`` (``make_actor``), for ``env.rollout`` and collectors;
+* as a TorchRL ``ProbabilisticActor`` (``make_actor``), for ``env.rollout`` and TorchRL's losses;
 * functionally, under per-task parameters with a leading task dimension ``K`` (``loc_scale``):
-  the pure :meth:`GaussianMLP.forward_with` vmapped over tasks, so the ``K`` adapted policies of
-  MAML run together, in rollouts and in the differentiable losses alike. Sampling stays outside
-  ``vmap``.
+  each layer one batched product over tasks, so the ``K`` adapted policies of MAML run together,
+  in rollouts and in the differentiable losses alike;
+* as :class:`GaussianActor`, the collectors' actor: the ``ProbabilisticActor``'s draws and
+  outputs, without its per-call distribution machinery, which costs more than this network at
+  every env step of a rollout.
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import InteractionType, TensorDictModuleBase
 from torch import Tensor, nn
-from torch.func import vmap
 from torch.nn import functional as F
 from torchrl.modules import MLP, IndependentNormal, ProbabilisticActor
 
@@ -49,19 +50,12 @@ class GaussianMLP(nn.Module):
         self.log_std = nn.Parameter(torch.zeros(action_dim))
 
     def forward(self, observation: Tensor) -> tuple[Tensor, Tensor]:
-        loc = self.mean(observation)
-        scale = self.log_std.clamp_min(MIN_LOG_STD).exp().expand_as(loc)
-        return loc, scale
+        return self.forward_with(dict(self.named_parameters()), observation)
 
-    def forward_with(
-        self, params: dict[str, Tensor], observation: Tensor
-    ) -> tuple[Tensor, Tensor]:
-        """:meth:`forward` with the parameters ``params`` (named as in ``named_parameters``).
-
-        The pure function that ``vmap`` batches over tasks: it walks the MLP's layers with
-        ``F.linear`` instead of ``functional_call``, whose per-call swapping of the module's
-        tensors costs as much as this small network's arithmetic.
-        """
+    def forward_with(self, params: dict[str, Tensor], observation: Tensor
+                     ) -> tuple[Tensor, Tensor]:
+        """:meth:`forward` with the parameters ``params`` (named as in ``named_parameters``), as
+        arguments: what a CUDA graph of a rollout reads (:func:`act`)."""
         hidden = observation
         for name, layer in self.mean.named_children():
             if isinstance(layer, nn.Linear):
@@ -76,7 +70,10 @@ class GaussianMLP(nn.Module):
 def loc_scale(
     net: GaussianMLP, params: dict[str, Tensor], observation: Tensor
 ) -> tuple[Tensor, Tensor]:
-    """(loc, scale) of π under per-task parameters.
+    """(loc, scale) of π under per-task parameters: task ``k``'s :meth:`GaussianMLP.forward`
+    with ``params[k]``, every layer one batched product ``x Wₖᵀ + bₖ`` over the tasks (per-call
+    overhead, not arithmetic, is what this small network costs, in rollouts and under double
+    backward alike).
 
     Args:
         net: the policy network (its own parameters are ignored).
@@ -84,7 +81,17 @@ def loc_scale(
             in ``net.named_parameters()``.
         observation: ``[K, ...batch, obs_dim]``; task ``k`` is evaluated with ``params[k]``.
     """
-    return vmap(net.forward_with)(params, observation)
+    hidden = observation.reshape(observation.shape[0], -1, observation.shape[-1])
+    for name, layer in net.mean.named_children():
+        if isinstance(layer, nn.Linear):
+            weight, bias = params[f"mean.{name}.weight"], params[f"mean.{name}.bias"]
+            hidden = torch.matmul(hidden, weight.transpose(-1, -2)) + bias.unsqueeze(-2)
+        else:
+            hidden = layer(hidden)
+    loc = hidden.reshape(*observation.shape[:-1], hidden.shape[-1])
+    log_std = params["log_std"].clamp_min(MIN_LOG_STD)
+    scale = log_std.exp().reshape(log_std.shape[0], *[1] * (loc.dim() - 2), -1).expand_as(loc)
+    return loc, scale
 
 
 class PerTaskLocScale(TensorDictModuleBase):
@@ -125,6 +132,37 @@ def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> Probab
         return_log_prob=True,
         default_interaction_type=InteractionType.RANDOM,
     )
+
+
+def act(net: GaussianMLP, params: dict[str, Tensor], observation: Tensor, per_task: bool
+        ) -> dict[str, Tensor]:
+    """π's outputs at ``observation``, acting at random: ``"loc"``, ``"scale"``, ``"action"``
+    (drawn as ``loc + scale · ε``, ε from torch's RNG) and ``"action_log_prob"``, under per-task
+    ``params`` ``[K]`` (``per_task``, :func:`loc_scale`) or one set of parameters for all
+    (:meth:`GaussianMLP.forward_with`)."""
+    loc, scale = (loc_scale(net, params, observation) if per_task
+                  else net.forward_with(params, observation))
+    normal = torch.distributions.Normal(loc, scale, validate_args=False)
+    action = normal.rsample()
+    return {"loc": loc, "scale": scale, "action": action,
+            "action_log_prob": normal.log_prob(action).sum(-1)}
+
+
+class GaussianActor(PerTaskLocScale):
+    """:func:`make_actor`'s ``ProbabilisticActor`` acting at random, written out (:func:`act`):
+    it reads ``"observation"`` and writes ``"loc"``, ``"scale"``, ``"action"`` and
+    ``"action_log_prob"``, the same values from the same draws (``tests/test_maml_trpo.py``),
+    without the actor's per-call distribution machinery, which costs more than this network at
+    each env step of a rollout. It acts at random whatever the exploration type, as a collector's
+    actor should. Its network and parameters are held as :class:`PerTaskLocScale` holds them.
+    """
+
+    out_keys = ["loc", "scale", "action", "action_log_prob"]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        per_task = self.params is not None
+        params = self.params if per_task else dict(self.net.named_parameters())
+        return tensordict.update(act(self.net, params, tensordict.get("observation"), per_task))
 
 
 def log_prob(loc: Tensor, scale: Tensor, action: Tensor) -> Tensor:
