@@ -88,6 +88,10 @@ class TrainerConfig(Section):
     # meta-RL: the follower's loss of a task is the mean of this many fresh rollouts at θ_{t+1}
     # (1: the paper's single rollout; docs/meta-rl.md)
     follower_rollouts: int = at_least(1, 1)
+    # which losses a follower of the game (AR, TR, DRO) reads: "next", L(τ; θ_{t+1}) after the
+    # leader's step (paper Algorithm 1; a fresh collection in meta-RL), or "step", the step's
+    # own L(τ; θ_t), which cost nothing more (as MPTS and PDTS read theirs; docs/meta-rl.md)
+    follower_at: str = one_of("next", "step", default="next")
     # on these signals (and SIGINT) a run finishes its iteration, writes a checkpoint and exits
     # 75 (SIGINT: 130) for resume= to continue (armeta_rl/preemption.py; docs/configuration.md)
     stop_signals: list[str] = key(f"every element must be one of {', '.join(STOP_SIGNALS)}",

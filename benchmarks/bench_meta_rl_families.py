@@ -38,7 +38,7 @@ import time
 
 import torch
 from hydra import compose, initialize_config_dir
-from timing import markdown_table, reference_product_ms, write_section
+from timing import alternating_ratios, markdown_table, reference_product_ms, write_section
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
@@ -54,18 +54,20 @@ ITERATIONS = 500
 
 
 def trainer_for(benchmark: str, method: str, tasks: int, episodes: int,
-                steps: int) -> GameTrainer:
-    """The run's trainer as armeta-train builds it, at the row's size on one MuJoCo thread."""
-    overrides = [f"benchmark={benchmark}", f"method={method}", f"trainer.meta_batch={tasks}",
-                 f"benchmark.collector.episodes={episodes}",
-                 f"benchmark.collector.max_steps={steps}",
-                 "benchmark.collector.make_env.threads=1", "logger=none"]
+                steps: int, *overrides: str) -> GameTrainer:
+    """The run's trainer as armeta-train builds it, at the row's size on one MuJoCo thread, with
+    ``overrides`` of ``trainer.*`` and the rest."""
+    composed = [f"benchmark={benchmark}", f"method={method}", f"trainer.meta_batch={tasks}",
+                f"benchmark.collector.episodes={episodes}",
+                f"benchmark.collector.max_steps={steps}",
+                "benchmark.collector.make_env.threads=1", "logger=none", *overrides]
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=overrides)
-    players = build_players(validate(cfg))
+        cfg = compose("train", overrides=composed)
+    config = validate(cfg)
+    players = build_players(config)
     players.leader.collector.env(tasks)  # built before the timed iterations
     return GameTrainer(players.leader, players.principle, iterations=10**9, meta_batch=tasks,
-                       progress=False)
+                       progress=False, follower_at=config.trainer.follower_at)
 
 
 def seconds(fn, repeats: int) -> tuple[float, float]:
@@ -95,6 +97,51 @@ def row(benchmark: str, size: str, repeats: int) -> tuple[str, ...]:
             f"{maml_wall:.0f} / {ar_wall:.0f}")
 
 
+OVERHEAD_VARIANTS = {
+    "ar_maml (follower at θ_{t+1}, paper)": ("ar_maml", "trainer.follower_at=next"),
+    "ar_maml (follower on the step's losses)": ("ar_maml", "trainer.follower_at=step"),
+    "mpts_maml": ("mpts_maml",),
+}
+"""The methods whose meta-iteration :func:`overhead_rows` times against MAML's."""
+
+
+def overhead_rows(benchmark: str, size: str, calls: int, rounds: int,
+                  budget: tuple[str, ...]) -> list[tuple[str, ...]]:
+    """Each of :data:`OVERHEAD_VARIANTS`' meta-iteration time against MAML's at ``size`` (with
+    ``budget`` overrides), timed in alternating turns of ``calls`` iterations
+    (``timing.alternating_ratios``): median seconds of both and the ratio, with its range over
+    the ``rounds``."""
+    tasks, episodes, steps = (int(n) for n in size.split("x"))
+    maml = trainer_for(benchmark, "maml", tasks, episodes, steps, *budget)
+    rows = []
+    for label, (method, *overrides) in OVERHEAD_VARIANTS.items():
+        other = trainer_for(benchmark, method, tasks, episodes, steps, *budget, *overrides)
+        ours, theirs = alternating_ratios(maml.train_iteration, other.train_iteration, calls,
+                                          rounds)
+        ratios = [t / o for o, t in zip(ours, theirs)]
+        rows.append((benchmark, f"{tasks} × {episodes} × {steps}", label,
+                     f"{statistics.median(ours):.2f}", f"{statistics.median(theirs):.2f}",
+                     f"**{statistics.median(ratios):.2f}×** ({min(ratios):.2f}–"
+                     f"{max(ratios):.2f})"))
+        print(" | ".join(rows[-1]), flush=True)
+    return rows
+
+
+def write_overhead(rows: list[tuple[str, ...]], calls: int, rounds: int) -> None:
+    """The overhead table into its section of docs/benchmarks.md."""
+    table = markdown_table(("benchmark", "tasks × episodes × steps", "method", "maml s",
+                            "method s", "ratio to maml (range over rounds)"), rows)
+    body = (f"Seconds per meta-iteration on one torch and one MuJoCo thread, each method "
+            f"against MAML in alternating turns of {calls} iterations ({rounds} rounds, "
+            f"medians), so that the machine's load falls on both alike. AR-MAML's follower at "
+            "θ_{t+1} collects its tasks afresh after the leader's step (two more rollouts); on "
+            "the step's losses it costs only the flow's update (`trainer.follower_at=step`, "
+            f"docs/meta-rl.md).\n\n{table}")
+    print(body)
+    write_section("bench_ar_overhead", "AR-MAML's cost against MAML's (bench_meta_rl_families.py "
+                  "--overhead)", body)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--benchmarks", nargs="+", default=list(BENCHMARKS), choices=BENCHMARKS)
@@ -102,10 +149,21 @@ def main() -> None:
                         help="tasks x episodes x steps per meta-iteration, e.g. 40x20x200 "
                              "(default: six sizes for half_cheetah_vel, two for the others)")
     parser.add_argument("--repeats", type=int, default=1, help="timed iterations per cell")
+    parser.add_argument("--overhead", action="store_true",
+                        help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's, in "
+                             "alternating turns, at the first of --sizes (default 20x10x100)")
+    parser.add_argument("--calls", type=int, default=3, help="--overhead: iterations a turn")
+    parser.add_argument("--rounds", type=int, default=3, help="--overhead: turns of each")
     args = parser.parse_args()
     torch.set_num_threads(1)
     keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
     torch.manual_seed(0)
+    if args.overhead:
+        size = (args.sizes or ["20x10x100"])[0]
+        rows = [row for benchmark in args.benchmarks for row in overhead_rows(
+            benchmark, size, args.calls, args.rounds, ("learner.maml_trpo.hvp_episodes=5",))]
+        write_overhead(rows, args.calls, args.rounds)
+        return
     before = reference_product_ms()
     rows = []
     for benchmark in args.benchmarks:

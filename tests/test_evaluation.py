@@ -9,10 +9,15 @@ import torch
 from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
+from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.config import validate
 from armeta_rl.tasks import BoxUniform, TaskSpace
 from armeta_rl.tasks.protocol import repeat_tasks
 from armeta_rl.trainers.evaluation import (
+    ReportInvalid,
+    adaptation_gain,
+    adapts,
+    check_report,
     cvar,
     cvar_influence,
     evaluate_on,
@@ -154,3 +159,51 @@ def test_a_task_scores_the_mean_of_its_rollouts_collected_in_one_batch():
     assert report["rollout_sd"] == pytest.approx(float(returns.var(0).mean().sqrt()))
     assert report["rollout_sd"] > 0  # the rollouts of a task are independent draws
     assert report["mean"] == pytest.approx(float(returns.mean()))
+
+
+def test_adaptation_gain_pairs_each_task_after_averaging_its_rollouts():
+    """Losses [R=2, n=3]: task scores before 2, 2, 2 and after 0, 1.5, 2, so the gains are 2,
+    0.5 and 0 (a lower loss after adaptation is a gain), paired task by task."""
+    before = torch.tensor([[1.0, 2.0, 3.0], [3.0, 2.0, 1.0]])
+    after = torch.tensor([[0.0, 2.0, 1.0], [0.0, 1.0, 3.0]])
+    mse = adaptation_gain(before, after, "mse")
+    assert mse["before"] == pytest.approx(2.0)
+    assert mse["gain"] == pytest.approx(2.5 / 3)
+    assert mse["gain_sem"] == pytest.approx(standard_error(torch.tensor([2.0, 0.5, 0.0])))
+    assert mse["improved"] == 2
+    returns = adaptation_gain(before, after, "return")  # the same losses are −returns
+    assert returns["before"] == pytest.approx(-2.0)
+    assert returns["gain"] == pytest.approx(mse["gain"])
+    assert adapts(1.0, 0.49) and not adapts(1.0, 0.5) and not adapts(-3.0, 0.1)
+    assert not adapts(5.0, None)  # one task: no standard error, no evidence
+
+
+def test_meta_rl_evaluation_reports_the_return_before_adaptation_of_the_same_episodes():
+    """The report's score before adaptation is the return of the very episodes the inner step
+    adapted on, and its gain the paired difference to the adapted return, per task over R."""
+    cfg = compose_train("benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=8")
+    players = players_of(cfg)
+    leader, initial, collector = players.leader, players.initial, players.eval_collector
+    report = evaluate_on(leader, initial, collector, 6, [0.5], seed=3, rollouts=2)
+    torch.manual_seed(3)
+    with torch.no_grad():
+        batch = leader.collect(repeat_tasks(initial.sample(6), 2), collector)
+    before = episode_returns(batch.train).mean(-1).double().reshape(2, 6).mean(0)
+    after = -leader.evaluate(batch).double().reshape(2, 6).mean(0)
+    adaptation = report["adaptation"]
+    assert adaptation["before"] == pytest.approx(float(before.mean()), rel=1e-6)
+    assert adaptation["gain"] == pytest.approx(float((after - before).mean()), rel=1e-6)
+    assert adaptation["improved"] == int((after > before).sum())
+    check_report({"metric": "return", "benchmark": "point_nav", "method": "maml",
+                  "initial": report})
+    with pytest.raises(ReportInvalid, match="adaptation.improved"):
+        check_report({"metric": "return", "benchmark": "point_nav", "method": "maml",
+                      "initial": {**report, "adaptation": {**adaptation, "improved": 7}}})
+
+
+def test_regression_reports_no_adaptation_gain():
+    players = players_of(compose_train("trainer.meta_batch=2"))
+    report = evaluate_on(players.leader, players.initial, players.eval_collector, 4, [0.5],
+                         seed=0)
+    assert "adaptation" not in report

@@ -74,6 +74,13 @@ class Leader(Protocol):
         θ."""
         ...
 
+    def evaluate_before(self, data: Any) -> Tensor | None:
+        """Per-task loss before adaptation ``[K]`` of the same ``data``: θ's own, on the same
+        tasks and random streams as :meth:`evaluate`, so that their difference is the paired
+        adaptation gain (:func:`~armeta_rl.trainers.evaluation.adaptation_gain`); ``None`` for
+        a leader that reports none."""
+        ...
+
     def state_dict(self) -> dict[str, Any]:
         """Parameters and optimizer state, for checkpoints."""
         ...
@@ -98,6 +105,11 @@ class OneNetworkLeader:
         """Support and query data ``[K]`` of ``tasks`` from ``collector`` or the leader's own; they
         do not depend on θ (so ``create_graph`` changes nothing)."""
         return (self.collector if collector is None else collector).collect(tasks)
+
+    def evaluate_before(self, data: TensorDict) -> None:
+        """No loss before adaptation is reported for regression and system identification (the
+        adaptation gain is a meta-RL metric)."""
+        return None
 
     def descend(self, losses: Tensor, weights: TaskWeights) -> None:
         """One optimizer step on Σ_k w_k L_k with ``w = weights(L.detach())``."""

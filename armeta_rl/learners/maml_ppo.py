@@ -31,7 +31,6 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
 
 from armeta_rl.collectors.base import TaskCollector
-from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.fields import Section, above, at_least, each, inside, key, register
 from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, MetaBatch, as_task_params
@@ -129,13 +128,13 @@ class MAMLPPOLeader(MAMLTRPOLeader):
         """Score the episodes of :meth:`collect` before and after adaptation, then ``epochs``
         Adam steps on Σ_k w_k L^out_k with ``w = weights(losses)``.
 
-        Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"`` and
-        ``"return_post"``, and ``"ppo_objective_first"`` / ``"ppo_objective_last"``: the
-        weighted outer loss of the first and the last epoch, before its step.
+        Returns the per-task scores of :meth:`~MAMLTRPOLeader.scores` (``"loss"``, the
+        returns before and after adaptation and their gain) and ``"ppo_objective_first"`` /
+        ``"ppo_objective_last"``: the weighted outer loss of the first and the last epoch,
+        before its step.
         """
-        return_pre = episode_returns(batch.train).mean(-1)
-        losses = self.evaluate(batch)
-        w = weights(losses).to(batch.valid["reward"].dtype)
+        per_task = self.scores(batch)
+        w = weights(per_task["loss"]).to(batch.valid["reward"].dtype)
         objectives = []
         for _ in range(self.epochs):
             objective = weighted_sum(w, self.outer_loss(batch))
@@ -143,10 +142,6 @@ class MAMLPPOLeader(MAMLTRPOLeader):
             objective.backward()
             self.optimizer.step()
             objectives.append(objective.item())
-        per_task = TensorDict(
-            {"loss": losses, "return_pre": return_pre, "return_post": -losses},
-            batch_size=[losses.shape[0]],
-        )
         return per_task, {"ppo_objective_first": objectives[0],
                           "ppo_objective_last": objectives[-1]}
 

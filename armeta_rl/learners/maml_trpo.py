@@ -375,20 +375,14 @@ class MAMLTRPOLeader:
         """Score the episodes of :meth:`collect` before and after adaptation, then one TRPO step
         on Σ_k w_k L^out_k with ``w = weights(losses)``.
 
-        Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"`` and
-        ``"return_post"``, and the step's TRPO diagnostics (:meth:`trpo_update`). ``batch`` must
+        Returns per-task ``"loss"`` (−return after adaptation), ``"return_pre"``,
+        ``"return_post"`` and the adaptation ``"gain"`` (post − pre), and the step's TRPO
+        diagnostics (:meth:`trpo_update`). ``batch`` must
         keep its graph to θ (``collect(tasks, create_graph=True)``) for the second-order
         meta-gradient.
         """
-        return_pre = episode_returns(batch.train).mean(-1)
-        losses = self.evaluate(batch)
-        return_post = -losses
-        diagnostics = self.trpo_update(batch, weights(losses))
-        per_task = TensorDict(
-            {"loss": losses, "return_pre": return_pre, "return_post": return_post},
-            batch_size=[losses.shape[0]],
-        )
-        return per_task, diagnostics
+        per_task = self.scores(batch)
+        return per_task, self.trpo_update(batch, weights(per_task["loss"]))
 
     def evaluate(self, batch: MetaBatch) -> Tensor:
         """Per-task −(mean return after one inner step) ``[K]``: the adapted policies' returns on
@@ -399,6 +393,20 @@ class MAMLTRPOLeader:
         not from the step's batch collected at θ_t.
         """
         return -episode_returns(batch.valid).mean(-1)
+
+    def scores(self, batch: MetaBatch) -> TensorDict:
+        """Per-task ``"loss"`` (:meth:`evaluate`), ``"return_pre"`` and ``"return_post"`` (the
+        mean returns before and after adaptation) and the adaptation ``"gain"`` (post − pre)
+        of ``batch``, ``[K]``."""
+        losses = self.evaluate(batch)
+        return_pre = -self.evaluate_before(batch)
+        return TensorDict({"loss": losses, "return_pre": return_pre, "return_post": -losses,
+                           "gain": -losses - return_pre}, batch_size=[losses.shape[0]])
+
+    def evaluate_before(self, batch: MetaBatch) -> Tensor:
+        """Per-task −(mean return before adaptation) ``[K]``: π_θ's returns on the
+        pre-adaptation episodes of ``batch``, the data the inner step adapts on."""
+        return -episode_returns(batch.train).mean(-1)
 
     def state_dict(self) -> dict[str, Any]:
         return {"policy": self.net.state_dict()}

@@ -25,6 +25,9 @@ from armeta_rl.trainers.run_dir import write_text_atomically
 INITIAL = "initial"
 SHIFT_PREFIX = "shift/"
 NUMBER_COLUMNS = ("mean", "sem", "entropy", "kl_p0", "n_tasks", "rollouts", "rollout_sd", "seed")
+ADAPTATION_COLUMNS = ("before", "before_sem", "gain", "gain_sem", "improved")
+"""A meta-RL section's score before adaptation and adaptation gain (its ``adaptation``,
+:func:`~armeta_rl.trainers.evaluation.adaptation_gain`); empty for other benchmarks."""
 KEPT_OUT_OF_CSV = ("per_task",)
 """Record fields the CSV leaves out: the per-task scores (in the runs' reports)."""
 
@@ -117,6 +120,8 @@ def section_records(report: dict[str, Any], section: str, distribution: str,
     record["task_seed"] = record.pop("seed")
     record.update({f"cvar_{float(a)}": v for a, v in data["cvar"].items()})
     record.update({f"cvar_sem_{float(a)}": v for a, v in data.get("cvar_sem", {}).items()})
+    adaptation = data.get("adaptation") or {}
+    record.update({key: adaptation.get(key) for key in ADAPTATION_COLUMNS})
     record["per_task"] = data.get("per_task")
     return [record]
 

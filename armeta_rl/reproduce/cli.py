@@ -29,6 +29,7 @@ from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.preemption import listening
+from armeta_rl.reproduce import figures
 from armeta_rl.reproduce.aggregate import (
     INITIAL,
     collect,
@@ -37,6 +38,7 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
+from armeta_rl.reproduce.curves import collect_curves, curves_path, read_curves, write_curves
 from armeta_rl.reproduce.launch import (
     LAUNCHERS,
     check_ray_address,
@@ -210,6 +212,7 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
     records = collect(plan, results, seconds)
     write_csv(records, results / f"{plan.experiment}.csv")
     body = LAYOUTS[plan.spec["layout"]](plan, records, results) if records else "No run finished."
+    body += learning_curves_section(plan, results)
     minutes = wall_seconds / 60
     text = (f"# {plan.spec['title']}\n\n{plan.spec.get('description', '').strip()}\n\n"
             f"{progress_note(plan, results)} Wall time of the sweeps so far: {minutes:.1f} min"
@@ -219,6 +222,24 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
     path = results / f"{plan.experiment}.md"
     write_text_atomically(path, text)
     return path
+
+
+def learning_curves_section(plan: Plan, results: Path) -> str:
+    """Every training run's learning curve into ``<experiment>_curves.csv.gz`` (rows of runs
+    whose logs are gone kept from the file as it was) and their figure; the report's section
+    that shows them, empty when no run has logged one."""
+    path = curves_path(results, plan.experiment)
+    rows = collect_curves(plan, results, read_curves(path))
+    if not rows:
+        return ""
+    write_curves(rows, path)
+    names = dict.fromkeys(run.name for run in (*plan.runs, *plan.attacks))
+    labels = {name: plan.spec.get("learner_labels", {}).get(name, display(name)) for name in names}
+    figures.learning_curves(rows, labels, results / f"{plan.experiment}_curves.png")
+    return (f"\n\n## Learning curves\n\n![learning curves]({plan.experiment}_curves.png)\n\n"
+            "Mean over seeds (their number in brackets) of 10-iteration means, band ± one "
+            "standard deviation over seeds. Every run's value at every logged iteration is in "
+            f"`{path.name}`.")
 
 
 def reported_plan(results: Path, experiment: str, profile: str, extra: tuple[str, ...],

@@ -157,3 +157,56 @@ def image_grid(images: dict[tuple[str, str], Path], rows: Sequence[str],
                 ax.imshow(matplotlib.image.imread(images[(row, col)]))
                 ax.set_title(f"{display(row)}, {col}", fontsize=8)
     _save(figure, path, 110)
+
+
+CURVE_PANELS = {"gain": "adaptation gain", "return_post": "return after adaptation",
+                "task_loss_mean": "task loss", "adversary_kl_p0": "adversary KL(p0 ‖ p_φ)"}
+"""The learning-curve panels: a curve file's column and its axis label."""
+
+
+def learning_curves(rows: Sequence[dict[str, Any]], labels: dict[str, str], path: Path,
+                    window: int = 10) -> None:
+    """Training curves per iteration (:mod:`armeta_rl.reproduce.curves` rows): per benchmark
+    (rows of panels), the adaptation gain, the return after adaptation (or the task loss where
+    there is no return) and the adversary's KL from p0, each the mean over seeds of
+    ``window``-iteration means with a band of ± one standard deviation over seeds, one line per
+    run name in ``labels`` (name → legend)."""
+    from armeta_rl.reproduce.aggregate import over_seeds
+    from armeta_rl.reproduce.curves import windowed
+
+    benchmarks = list(dict.fromkeys(r["benchmark"] for r in rows))
+    panels = {b: [c for c in CURVE_PANELS
+                  if any(r[c] is not None for r in rows if r["benchmark"] == b)
+                  and not (c == "task_loss_mean" and any(
+                      r["return_post"] is not None for r in rows if r["benchmark"] == b))]
+              for b in benchmarks}
+    columns = max(len(p) for p in panels.values())
+    figure = _figure(len(benchmarks), columns)
+    axes = figure.subplots(len(benchmarks), columns, squeeze=False)
+    for row, benchmark in enumerate(benchmarks):
+        for col, column in enumerate(panels[benchmark]):
+            ax = axes[row][col]
+            for name, label in labels.items():
+                seeds: dict[int, list[tuple[int, float]]] = {}
+                for r in rows:
+                    if (r["benchmark"], r["run"]) == (benchmark, name) and r[column] is not None:
+                        seeds.setdefault(r["seed"], []).append((r["iteration"], r[column]))
+                if not seeds:
+                    continue
+                curves = [dict(windowed(sorted(v), window)) for v in seeds.values()]
+                shared = sorted(set.intersection(*(set(c) for c in curves)))
+                spread = [over_seeds([c[i] for c in curves]) for i in shared]
+                mean = [s.mean for s in spread]
+                std = [0.0 if s.n < 2 else s.std for s in spread]
+                ax.plot(shared, mean, label=f"{label} ({len(curves)})")
+                ax.fill_between(shared, [m - s for m, s in zip(mean, std)],
+                                [m + s for m, s in zip(mean, std)], alpha=0.2)
+            if column == "gain":
+                ax.axhline(0.0, color="black", linewidth=0.6)
+            ax.set_title(f"{display(benchmark)}: {CURVE_PANELS[column]}", fontsize=9)
+            ax.set_xlabel("meta-iteration")
+        axes[row][0].legend(fontsize=7)
+    for row, benchmark in enumerate(benchmarks):
+        for col in range(len(panels[benchmark]), columns):
+            axes[row][col].set_visible(False)
+    _save(figure, path, 90)

@@ -325,6 +325,57 @@ def _difference(pairs: list[dict[str, Any]], column: str, higher_better: bool) -
     return f"**{text}**" if beyond else text
 
 
+def _gain(records: list[dict[str, Any]], **where: Any) -> tuple[str, int, int]:
+    """The adaptation gain over seeds, ``+mean ± std [RMS s.e. over tasks] (k/S adapt)``, with k
+    the seeds whose gain is beyond twice its standard error over tasks
+    (:func:`~armeta_rl.trainers.evaluation.adapts`); and k and S."""
+    from armeta_rl.trainers.evaluation import adapts
+
+    chosen = [r for r in select(records, **where) if r.get("gain") is not None]
+    if not chosen:
+        return "–", 0, 0
+    spread = over_seeds([r["gain"] for r in chosen])
+    places = decimals(spread.mean)
+    text = f"{spread.mean:+.{places}f}" + (f" ± {spread.std:.{places}f}" if spread.n > 1 else "")
+    sems = [r["gain_sem"] for r in chosen if r.get("gain_sem") is not None]
+    if sems:
+        text += f" [{(sum(e * e for e in sems) / len(sems)) ** 0.5:.{places}f}]"
+    adapting = sum(adapts(r["gain"], r.get("gain_sem")) for r in chosen)
+    return f"{text} ({adapting}/{len(chosen)} adapt)", adapting, len(chosen)
+
+
+def adaptation_section(plan: Plan, records: list[dict[str, Any]]) -> str:
+    """Meta-RL: every learner's adaptation gain (return after the inner step − before, paired on
+    the same episodes) per distribution, and which learners do not adapt on p0: a learner with
+    a seed whose gain is not beyond twice its standard error over tasks is marked, since a
+    comparison between learners that do not adapt says nothing about robust meta-learning.
+    Empty where no record holds a gain."""
+    if not any(r.get("gain") is not None for r in records):
+        return ""
+    learners = _learners(plan)
+    rows, idle = [], []
+    for benchmark in _benchmarks(plan):
+        for distribution, label in _distributions(plan, records, benchmark).items():
+            cells = [_gain(records, benchmark=benchmark, method=m, variant=v,
+                           distribution=distribution, noisy=False) for m, v in learners]
+            rows.append([display(benchmark), label, *(cell for cell, _, _ in cells)])
+            if distribution == INITIAL:
+                idle += [f"{_learner_label(plan, learner)} on {display(benchmark)} "
+                         f"({k}/{n} seeds adapt)"
+                         for learner, (_, k, n) in zip(learners, cells) if n and k < n]
+    header = ["Benchmark", "Distribution", *(_learner_label(plan, lr) for lr in learners)]
+    verdict = ("**Every learner adapts on p0** at every seed (its gain beyond twice its "
+               "standard error over tasks)." if not idle else
+               "**Not adapting on p0** (a seed adapts when its gain is beyond twice its "
+               "standard error over tasks): " + "; ".join(idle) + ". A comparison between "
+               "learners that do not adapt compares policies, not meta-learners: it is no "
+               "robustness result.")
+    return ("**Adaptation gain**: return after the inner step minus return before it, on the "
+            "same episodes, mean ± std over seeds [root-mean-square over seeds of its "
+            "standard error over tasks] (seeds whose gain is beyond twice that error / "
+            "seeds).\n\n" + markdown_table(header, rows) + "\n\n" + verdict)
+
+
 def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     """Meta-RL reports (docs/meta-rl.md): every learner's average and CVaR_α on p0, the
     adversaries and the shift suite (mean ± std over seeds [standard error over tasks]), then
@@ -363,7 +414,9 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
                  records[0]["metric"])
     reference_label = _learner_label(plan, reference)
     better = "higher" if higher else "lower"
-    return (markdown_table(level_header, level_rows)
+    adaptation = adaptation_section(plan, records)
+    return ((adaptation + "\n\n" if adaptation else "")
+            + markdown_table(level_header, level_rows)
             + f"\n\n![{plan.experiment}]({plan.experiment}.png)\n\nBars: mean over seeds, "
             "standard-error bars over seeds.\n\n"
             f"**Paired differences against {reference_label}**, on the same tasks and random "

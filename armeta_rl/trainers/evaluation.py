@@ -118,6 +118,38 @@ def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str,
     }
 
 
+def adaptation_gain(before: Tensor, after: Tensor, metric: str) -> dict[str, Any]:
+    """The score before adaptation and the adaptation gain, paired task by task, from per-task
+    losses before and after adaptation on the same data, ``[n]`` or with R rollouts per task
+    ``[R, n]`` (a task's score is the mean of its rollouts):
+    ``{"before", "before_sem", "gain", "gain_sem", "improved"}``.
+
+    ``before`` is in the units of ``metric`` (a return for ``"return"``); the gain is the
+    improvement the inner step makes, after − before for returns and before − after for
+    errors, so it is positive when adaptation helps; ``gain_sem`` is its standard error over
+    tasks (what the tasks share cancels in the per-task difference) and ``improved`` counts the
+    tasks it improved. A learner whose gain on p0 is not beyond twice ``gain_sem`` does not
+    adapt (:func:`adapts`).
+    """
+    pre = before.detach().to(torch.float64).reshape(-1, before.shape[-1]).mean(0)
+    post = after.detach().to(torch.float64).reshape(-1, after.shape[-1]).mean(0)
+    sign = -1.0 if higher_is_better(metric) else 1.0
+    gains = pre - post  # in losses: lower after adaptation is a gain
+    return {
+        "before": float(sign * pre.mean()),
+        "before_sem": standard_error(pre),
+        "gain": float(gains.mean()),
+        "gain_sem": standard_error(gains),
+        "improved": int((gains > 0).sum()),
+    }
+
+
+def adapts(gain: float, gain_sem: float | None) -> bool:
+    """Whether an adaptation gain is beyond twice its standard error over tasks: the learner's
+    inner step measurably improves it (docs/meta-rl.md, "Does the learner adapt")."""
+    return gain_sem is not None and gain > 2.0 * gain_sem
+
+
 def paired_difference(first: Sequence[float], second: Sequence[float], metric: str,
                       alphas: Sequence[float]) -> dict[str, Any]:
     """First learner minus second on the same tasks (their reports' ``per_task`` scores, in
@@ -154,7 +186,9 @@ def evaluate_on(
     """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``, each
     task on ``rollouts`` independent rollouts (R: adaptation from fresh data, then the adapted
     learner's loss), all on ``device``: with ``distribution`` the trained adversary p_φ*, the mean
-    is the estimate of E_{p_φ*}[L] of paper Eq. (48).
+    is the estimate of E_{p_φ*}[L] of paper Eq. (48). Where the leader reports its loss before
+    adaptation (meta-RL), the report's ``"adaptation"`` holds the score before adaptation and the
+    paired gain on the same data (:func:`adaptation_gain`).
 
     The R copies of every task are collected and adapted in one batch (rollout-major,
     :func:`~armeta_rl.tasks.protocol.repeat_tasks`). Runs under its own seed inside a forked RNG
@@ -165,8 +199,13 @@ def evaluate_on(
         torch.manual_seed(seed)
         tasks = distribution.sample(n_tasks)
         with torch.no_grad():
-            losses = leader.evaluate(leader.collect(repeat_tasks(tasks, rollouts), collector))
-    return summarize(per_rollout(losses, rollouts), leader.metric, alphas)
+            data = leader.collect(repeat_tasks(tasks, rollouts), collector)
+            losses, before = leader.evaluate(data), leader.evaluate_before(data)
+    report = summarize(per_rollout(losses, rollouts), leader.metric, alphas)
+    if before is not None:
+        report["adaptation"] = adaptation_gain(per_rollout(before, rollouts),
+                                               per_rollout(losses, rollouts), leader.metric)
+    return report
 
 
 def format_table(report: dict[str, Any]) -> str:
@@ -181,11 +220,22 @@ def format_table(report: dict[str, Any]) -> str:
         cells = [_with_sem(section["mean"], section.get("sem"))] + [
             _with_sem(section["cvar"][a], section.get("cvar_sem", {}).get(a)) for a in alphas]
         lines.append(f"{name:<32}" + "".join(f"{c:>20}" for c in cells)
-                     + f"{section['n_tasks']:>7d}{section.get('rollouts', 1):>4d}")
+                     + f"{section['n_tasks']:>7d}{section.get('rollouts', 1):>4d}"
+                     + _gain_cell(section.get("adaptation")))
     header = f"{'distribution':<32}{'mean ± sem':>20}" + "".join(
         f"{'cvar_' + a + ' ± sem':>20}" for a in alphas or [])
-    return "\n".join([f"metric: {report.get('metric')}", header + f"{'tasks':>7}{'R':>4}",
-                      *lines])
+    header += f"{'tasks':>7}{'R':>4}"
+    if any(isinstance(v, dict) and "adaptation" in v for v in report.values()):
+        header += f"{'gain ± sem':>20}"
+    return "\n".join([f"metric: {report.get('metric')}", header, *lines])
+
+
+def _gain_cell(adaptation: dict[str, Any] | None) -> str:
+    """The adaptation gain ± its standard error, marked where the learner does not adapt."""
+    if adaptation is None:
+        return ""
+    gain, sem = adaptation["gain"], adaptation["gain_sem"]
+    return f"{_with_sem(gain, sem):>20}" + ("" if adapts(gain, sem) else "  not adapting")
 
 
 def _with_sem(value: float, sem: float | None) -> str:
@@ -237,6 +287,8 @@ def _check_section(name: str, section: dict[str, Any], higher: bool) -> None:
     for key in ("entropy", "kl_p0"):  # null where undefined (a shift's support is not p0's)
         if section.get(key) is not None and not _number(section[key]):
             raise ReportInvalid(f"'{name}.{key}' = {section[key]!r} is not a finite number")
+    if "adaptation" in section:
+        _check_adaptation(name, section["adaptation"], n)
     if not isinstance(cvar, dict) or not cvar:
         raise ReportInvalid(f"'{name}.cvar' is missing or empty")
     try:
@@ -258,6 +310,26 @@ def _check_section(name: str, section: dict[str, Any], higher: bool) -> None:
                 f"'{name}.sem' = {sem!r} is smaller than '{name}.mean' = {mean!r} and "
                 f"'{name}.cvar.{alpha}' = {value!r} allow")
         worse = value
+
+
+def _check_adaptation(name: str, adaptation: Any, n: int) -> None:
+    """The ``adaptation`` of a section must be what :func:`adaptation_gain` makes of ``n``
+    tasks."""
+    if not isinstance(adaptation, dict):
+        raise ReportInvalid(f"'{name}.adaptation' is not an object")
+    for key in ("before", "gain"):
+        if not _number(adaptation.get(key)):
+            raise ReportInvalid(f"'{name}.adaptation.{key}' = {adaptation.get(key)!r} is not a "
+                                "finite number")
+    for key in ("before_sem", "gain_sem"):
+        sem = adaptation.get(key)
+        if (sem is None) != (n == 1) or (sem is not None and not (_number(sem) and sem >= 0)):
+            raise ReportInvalid(f"'{name}.adaptation.{key}' = {sem!r} is not a standard error "
+                                f"of {n} tasks")
+    improved = adaptation.get("improved")
+    if not isinstance(improved, int) or isinstance(improved, bool) or not 0 <= improved <= n:
+        raise ReportInvalid(f"'{name}.adaptation.improved' = {improved!r} is not a count of "
+                            f"tasks in [0, {n}]")
 
 
 def _slack(a: float, b: float) -> float:

@@ -53,6 +53,9 @@ class GameTrainer:
         follower_rollouts: for an on-policy leader, the follower's loss of a task is the mean
             of this many independent rollouts at θ_{t+1} (1: one, the paper's), collected in one
             batch: less noise in the follower's signal for that many more rollouts.
+        follower_at: ``"next"``: a follower of the game reads its tasks' losses at θ_{t+1}
+            (paper Algorithm 1); ``"step"``: it reads the step's own losses at θ_t, which cost
+            nothing more, where θ_{t+1} would take a fresh collection (meta-RL).
     """
 
     def __init__(
@@ -71,6 +74,7 @@ class GameTrainer:
         after_iteration: Callable[[int], None] | None = None,
         train_leader: bool = True,
         follower_rollouts: int = 1,
+        follower_at: str = "next",
     ) -> None:
         self.leader, self.principle = leader, principle
         self.iterations, self.meta_batch = iterations, meta_batch
@@ -80,6 +84,7 @@ class GameTrainer:
         self.after_iteration = after_iteration
         self.train_leader = train_leader
         self.follower_rollouts = follower_rollouts
+        self.follower_at = follower_at
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
@@ -127,10 +132,10 @@ class GameTrainer:
         A follower of the game (``needs_next_losses``) reads L at θ_{t+1} (paper Algorithms 1
         and 2): on the step's own data, or, for an on-policy leader whose data are θ_t's rollouts,
         on data collected afresh for the same tasks (the mean of ``follower_rollouts`` of them).
-        A principle that only reports statistics of the step reads the step's losses at θ_t,
-        which cost nothing more.
+        A principle that only reports statistics of the step, or any principle with
+        ``follower_at="step"``, reads the step's losses at θ_t, which cost nothing more.
         """
-        if not self.principle.needs_next_losses:
+        if not self.principle.needs_next_losses or self.follower_at == "step":
             return step_losses
         if not self.leader.on_policy:
             with torch.no_grad():

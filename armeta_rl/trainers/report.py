@@ -88,7 +88,8 @@ def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
-    """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``."""
+    """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``; in meta-RL
+    also ``…/before`` (the score before adaptation) and ``…/gain`` (the adaptation gain)."""
     scalars = {}
     for name, section in report.items():
         if isinstance(section, dict) and "mean" in section:
@@ -96,6 +97,9 @@ def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
             if section.get("sem") is not None:
                 scalars[f"eval/{name}/sem"] = section["sem"]
             scalars.update({f"eval/{name}/cvar_{a}": v for a, v in section["cvar"].items()})
+            if "adaptation" in section:
+                scalars[f"eval/{name}/before"] = section["adaptation"]["before"]
+                scalars[f"eval/{name}/gain"] = section["adaptation"]["gain"]
     return scalars
 
 

@@ -137,6 +137,10 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
                           f"must be 1 on {config.benchmark.name}: its learner scores the "
                           "follower's tasks on the step's own data, not on fresh rollouts")
+    if config.trainer.follower_rollouts > 1 and config.trainer.follower_at == "step":
+        raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
+                          "must be 1 with trainer.follower_at=step: the follower reads the "
+                          "step's own losses, not fresh rollouts")
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
                                device=players.device)
     trainer_options = config.trainer
@@ -172,6 +176,7 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
             after_iteration=frames,
             train_leader=trainer_options.frozen_leader is None,
             follower_rollouts=trainer_options.follower_rollouts,
+            follower_at=trainer_options.follower_at,
         )
         trainer.iteration = start
         reached = trainer.run(stop_at=trainer_options.stop_at, stop=stop)

@@ -1,0 +1,133 @@
+"""Learning curves of an experiment: every training run's per-iteration scalars in one compact
+file, ``<experiment>_curves.csv.gz``, committed with the results, so that any claim about
+training (does the learner adapt, when, how the adversary moves) can be re-derived; and their
+figure, ``<experiment>_curves.png``.
+
+A run's curve is read from its CSV log (``logs/scalars``, :data:`CURVES`); a run whose log is
+gone (a results directory checked out without its runs' logs) keeps its rows from the file
+already there.
+"""
+
+from __future__ import annotations
+
+import csv
+import gzip
+import io
+import math
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+from armeta_rl.reproduce.plan import Plan
+from armeta_rl.trainers.run_dir import CSV_LOG_DIR, write_atomically
+
+CURVES = {
+    "return_pre": "train/return_pre",
+    "return_post": "train/return_post",
+    "gain": "train/gain",
+    "task_loss_mean": "train/task_loss_mean",
+    "adversary_entropy": "adversary/entropy",
+    "adversary_kl_p0": "adversary/kl_p0",
+}
+"""A curve file's columns and the scalars they hold (absent scalars are left empty: the
+returns and gain are meta-RL's, the adversary's entropy and KL from p0 AR methods')."""
+KEYS = ("benchmark", "run", "seed", "iteration")
+"""A row's run: its benchmark, its name (``<method>[-<variant>]``, ``<method>-vs-<target>`` for
+an attack run: :attr:`~armeta_rl.reproduce.plan.TrainRun.name`), seed and iteration."""
+DIGITS = 6
+"""Significant digits kept of every value."""
+
+
+def curves_path(results: Path, experiment: str) -> Path:
+    """``<results>/<experiment>_curves.csv.gz``."""
+    return results / f"{experiment}_curves.csv.gz"
+
+
+def run_curve(run_dir: Path) -> dict[int, dict[str, float]]:
+    """Iteration → the run's logged scalars of :data:`CURVES` at that iteration; empty when the
+    run has no CSV log. The gain of runs logged before it was a scalar is return_post −
+    return_pre."""
+    scalars = run_dir / CSV_LOG_DIR / "scalars"
+    rows: dict[int, dict[str, float]] = {}
+    for column, name in CURVES.items():
+        path = scalars / f"{name}.csv"
+        if not path.is_file():
+            continue
+        for line in csv.reader(path.read_text().splitlines()):
+            if len(line) == 2 and line[0].isdigit():
+                rows.setdefault(int(line[0]), {})[column] = float(line[1])
+    for row in rows.values():
+        if "gain" not in row and {"return_pre", "return_post"} <= row.keys():
+            row["gain"] = row["return_post"] - row["return_pre"]
+    return rows
+
+
+def read_curves(path: Path) -> list[dict[str, Any]]:
+    """The rows of a curve file (numbers parsed, empty cells ``None``); none if it is absent."""
+    if not path.is_file():
+        return []
+    with gzip.open(path, "rt", newline="") as text:
+        return [{key: _parse(key, value) for key, value in row.items()}
+                for row in csv.DictReader(text)]
+
+
+def _parse(key: str, value: str) -> Any:
+    if key in ("benchmark", "run"):
+        return value
+    if value == "":
+        return None
+    return int(value) if key in ("seed", "iteration") else float(value)
+
+
+def collect_curves(plan: Plan, results: Path, kept: Sequence[dict[str, Any]] = ()
+                   ) -> list[dict[str, Any]]:
+    """One row per iteration of every training run of ``plan`` (attack runs included): from the
+    run's log where it has one, else its rows in ``kept`` (the experiment's file as it was)."""
+    old: dict[tuple, list[dict[str, Any]]] = {}
+    for row in kept:
+        old.setdefault(_identity(row), []).append(row)
+    rows = []
+    for run in (*plan.runs, *plan.attacks):
+        identity = (run.benchmark, run.name, run.seed)
+        curve = run_curve(results / run.subdir)
+        if not curve:
+            rows += old.get(identity, [])
+            continue
+        for iteration in sorted(curve):
+            rows.append({**dict(zip(KEYS, (*identity, iteration))),
+                         **{column: curve[iteration].get(column) for column in CURVES}})
+    return rows
+
+
+def _identity(row: dict[str, Any]) -> tuple:
+    return row["benchmark"], row["run"], row["seed"]
+
+
+def write_curves(rows: Iterable[dict[str, Any]], path: Path) -> None:
+    """The rows as a gzipped CSV (no timestamp in the header: the same rows give the same
+    bytes), written atomically."""
+    text = io.StringIO(newline="")
+    writer = csv.DictWriter(text, fieldnames=[*KEYS, *CURVES], restval="")
+    writer.writeheader()
+    for row in rows:
+        writer.writerow({key: _format(row.get(key)) for key in (*KEYS, *CURVES)})
+    data = gzip.compress(text.getvalue().encode(), mtime=0)
+    write_atomically(path, lambda staged: staged.write_bytes(data))
+
+
+def _format(value: Any) -> Any:
+    if value is None:
+        return ""
+    if isinstance(value, float):
+        return f"{value:.{DIGITS}g}"
+    return value
+
+
+def windowed(values: Sequence[tuple[int, float]], window: int) -> list[tuple[int, float]]:
+    """Means of consecutive windows of ``window`` iterations: (the window's last iteration, the
+    mean of its values), for curves whose per-iteration noise hides their trend."""
+    by_window: dict[int, list[float]] = {}
+    for iteration, value in values:
+        by_window.setdefault((iteration - 1) // window, []).append(value)
+    return [(min((k + 1) * window, max(i for i, _ in values)), math.fsum(v) / len(v))
+            for k, v in sorted(by_window.items())]
