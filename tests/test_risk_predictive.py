@@ -32,7 +32,12 @@ from armeta_rl.risk.pdts import (
     posterior_sample_risks,
     subset_objective,
 )
-from armeta_rl.risk.predictive import RiskPredictiveModel, negative_elbo, pearson
+from armeta_rl.risk.predictive import (
+    RiskPredictiveModel,
+    negative_elbo,
+    pearson,
+    reconstruction_error,
+)
 from armeta_rl.risk.sampling import PrincipleSampler
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -493,3 +498,35 @@ def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
     report = run_training(cfg, tmp_path)
     assert report["metric"] == "return" and report["method"] == f"{kind}_maml"
     assert (tmp_path / "logs" / "scalars" / "risk" / "pcc.csv").is_file()
+
+
+def test_the_two_reconstruction_terms_differ_by_the_variance_over_z():
+    """E_z[(ℓ − ℓ̂)²] = (ℓ − E_z[ℓ̂])² + Var_z[ℓ̂], task by task: the authors' term
+    (``mean_prediction``) is ours less the predictions' spread over the z samples."""
+    torch.manual_seed(4)
+    labels, predictions = torch.randn(6, dtype=torch.float64), torch.randn(9, 6,
+                                                                           dtype=torch.float64)
+    expected = reconstruction_error(labels, predictions, "expected")
+    averaged = reconstruction_error(labels, predictions, "mean_prediction")
+    spread = predictions.var(0, unbiased=False).sum()
+    assert float(expected) == pytest.approx(float(averaged + spread), rel=1e-12)
+    assert float(averaged) == pytest.approx(float((labels - predictions.mean(0)).square().sum()))
+
+
+def test_label_scale_divides_the_losses_before_standardizing():
+    losses = torch.tensor([1.0, 3.0, 8.0])
+    scaled = MPTSPrinciple(BoxUniform(SPACE), MptsOptions(label_scale=10.0))
+    assert torch.allclose(scaled.labels(losses), losses / 10)
+    standardized = MPTSPrinciple(BoxUniform(SPACE), MptsOptions(label_scale=10.0,
+                                                                standardize=True))
+    plain = MPTSPrinciple(BoxUniform(SPACE), MptsOptions(standardize=True))
+    assert torch.allclose(standardized.labels(losses), plain.labels(losses), atol=1e-6)
+
+
+def test_with_the_authors_reconstruction_term_mpts_still_runs_the_worst_tasks():
+    torch.manual_seed(0)
+    principle = MPTSPrinciple(BoxUniform(SPACE), MptsOptions(
+        **FAST, reconstruction="mean_prediction"))
+    proposals = train_on_landscape(principle, 300)
+    p0_share = float(near_peak(BoxUniform(SPACE).sample_params(100_000)).double().mean())
+    assert float(near_peak(torch.cat(proposals[-100:])).double().mean()) > 1.6 * p0_share

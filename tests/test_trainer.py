@@ -125,3 +125,28 @@ def test_the_followers_loss_averages_independent_rollouts():
         torch.manual_seed(rollouts)
         variances.append(float(trainer.fresh_losses(tasks).double().var()))
     assert 4 / 1.6 < variances[0] / variances[1] < 4 * 1.6
+
+
+def test_a_follower_on_the_steps_losses_reads_them_and_collects_nothing_more():
+    """trainer.follower_at: at θ_{t+1} (``next``) an on-policy iteration collects twice more for
+    the follower (pre- and post-adaptation episodes afresh); on the step's own losses
+    (``step``) it collects only the leader's two rollouts and hands the step's losses on."""
+    cfg = compose_train("benchmark=point_nav", "method=ar_maml", "trainer.meta_batch=2",
+                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10")
+    players = players_of(cfg)
+    collector, calls = players.leader.collector, []
+    collect = collector.collect
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return collect(*args, **kwargs)
+
+    collector.collect = counted
+    for follower_at, rollouts in (("next", 4), ("step", 2)):
+        trainer = GameTrainer(players.leader, players.principle, iterations=1, meta_batch=2,
+                              progress=False, follower_at=follower_at)
+        calls.clear()
+        trainer.train_iteration()
+        assert len(calls) == rollouts
+    step_losses = torch.tensor([1.0, 2.0])
+    assert trainer.follower_losses(None, None, step_losses) is step_losses

@@ -35,7 +35,7 @@ from torch import Tensor, nn
 from torch.distributions import Normal, kl_divergence
 
 from armeta_rl.errors import ConfigError, TrainingDiverged
-from armeta_rl.fields import Section, above, at_least, key
+from armeta_rl.fields import Section, above, at_least, key, one_of
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.risk.tail import exact_ceil
 from armeta_rl.tasks.distributions import TaskDistribution
@@ -45,6 +45,10 @@ MIN_SCALE = 0.1
 """The floor of the posterior's standard deviation, σ_z = 0.1 + 0.9·sigmoid(·) (both papers'
 code): it keeps q_φ(z | H) from collapsing onto a point, so the KL term and the sampled
 predictions stay finite."""
+
+
+RECONSTRUCTIONS = ("expected", "mean_prediction")
+"""The reconstruction terms of Eq. (5) (:func:`reconstruction_error`)."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +73,13 @@ class PredictiveOptions(Section):
         standardize: train on the batch's losses standardized to mean 0 and standard deviation 1
             (the papers' RL code) rather than on the losses themselves (their sinusoid code).
         warmup: iterations whose tasks come straight from p0 while the model starts learning.
+        reconstruction: Eq. (5)'s reconstruction term: ``"expected"``, the expected squared
+            error over z, E_q[Σ_i (ℓ_i − ℓ̂_ψ(τ_i, z))²] (ours: the ELBO of a Gaussian decoder),
+            or ``"mean_prediction"``, the squared error of the prediction averaged over z,
+            Σ_i (ℓ_i − E_q[ℓ̂_ψ(τ_i, z)])² (the authors' code), which lacks the expected term's
+            Var_z[ℓ̂] and so lets q_φ keep a wider posterior.
+        label_scale: the losses are divided by it before anything else (the authors' sinusoid
+            code divides them by k = 10, which weighs their KL term about 100 times more).
     """
 
     candidate_ratio: float = key()  # each principle's options: candidate_ratio(default)
@@ -80,6 +91,8 @@ class PredictiveOptions(Section):
     latent: int = at_least(1, default=10)
     standardize: bool = key(default=False)
     warmup: int = at_least(0, default=0)
+    reconstruction: str = one_of(*RECONSTRUCTIONS, default="expected")
+    label_scale: float = above(0, default=1.0)
 
 
 def candidate_ratio(default: float) -> Any:
@@ -133,6 +146,16 @@ def sample_latent(loc: Tensor, scale: Tensor, samples: int) -> Tensor:
     return Normal(loc, scale).rsample((samples,))
 
 
+def reconstruction_error(labels: Tensor, predictions: Tensor, kind: str = "expected") -> Tensor:
+    """The reconstruction term of PDTS Eq. (5) from losses ``[B]`` and predictions ``[S, B]``
+    under ``S`` samples of z: ``"expected"``, E_q[Σ_i (ℓ_i − ℓ̂_ψ(τ_i, z))²] (the ELBO's own
+    term for a Gaussian decoder of fixed variance), or ``"mean_prediction"``,
+    Σ_i (ℓ_i − E_q[ℓ̂_ψ(τ_i, z)])² (the papers' code). They differ by Σ_i Var_z[ℓ̂_ψ(τ_i, z)]."""
+    if kind == "mean_prediction":
+        return (labels - predictions.mean(0)).square().sum(-1)
+    return (labels - predictions).square().sum(-1).mean(0)
+
+
 def negative_elbo(
     model: RiskPredictiveModel,
     unit: Tensor,
@@ -140,16 +163,17 @@ def negative_elbo(
     prior: tuple[Tensor, Tensor],
     kl_weight: float,
     samples: int,
+    reconstruction: str = "expected",
 ) -> tuple[Tensor, Tensor, Tensor]:
     """−G_ELBO(ψ, φ) of PDTS Eq. (5) on one batch H_t (identifiers ``[B, d]`` in the unit box,
     losses ``[B]``) under the fixed prior ``(loc, scale)`` = q_φ̄(z | H_{t−1}); returns it with
-    its two terms, the expected reconstruction error E_q[Σ_i (ℓ_i − ℓ̂_ψ(τ_i, z))²] (Monte
-    Carlo over ``samples`` z) and the KL."""
+    its two terms, the reconstruction error of ``reconstruction``'s kind
+    (:func:`reconstruction_error`, Monte Carlo over ``samples`` z) and the KL."""
     loc, scale = model.posterior(unit, labels)
     predictions = model.predict(unit, sample_latent(loc, scale, samples))
-    reconstruction = (labels - predictions).square().sum(-1).mean(0)
+    error = reconstruction_error(labels, predictions, reconstruction)
     kl = kl_divergence(Normal(loc, scale), Normal(*prior)).sum(-1)
-    return reconstruction + kl_weight * kl, reconstruction, kl
+    return error + kl_weight * kl, error, kl
 
 
 def standardized(losses: Tensor) -> Tensor:
@@ -232,6 +256,7 @@ class PredictivePrinciple(nn.Module):
         self.steps, self.kl_weight = options.steps, float(options.kl_weight)
         self.elbo_samples, self.standardize = options.elbo_samples, options.standardize
         self.warmup = options.warmup
+        self.reconstruction, self.label_scale = options.reconstruction, float(options.label_scale)
         self.model = RiskPredictiveModel(initial.space.dim, options.hidden, options.latent)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=options.lr)
         self.register_buffer("posterior_loc", torch.zeros(options.latent))
@@ -267,8 +292,10 @@ class PredictivePrinciple(nn.Module):
         return uniform_weights(losses)
 
     def labels(self, losses: Tensor) -> Tensor:
-        """The model's training targets: the losses, or standardized (``standardize``)."""
-        return standardized(losses) if self.standardize else losses
+        """The model's training targets: the losses divided by ``label_scale``, then
+        standardized (``standardize``)."""
+        scaled = losses / self.label_scale if self.label_scale != 1.0 else losses
+        return standardized(scaled) if self.standardize else scaled
 
     def update(self, tasks: TensorDictBase | Tensor, losses: Tensor) -> dict[str, float]:
         """K Adam steps on −G_ELBO (:func:`negative_elbo`) for H_t = (``tasks``, ``losses``)
@@ -295,7 +322,8 @@ class PredictivePrinciple(nn.Module):
         backup = copy.deepcopy((self.model.state_dict(), self.optimizer.state_dict()))
         for _ in range(self.steps):
             loss, reconstruction, kl = negative_elbo(self.model, unit, labels, prior,
-                                                     self.kl_weight, self.elbo_samples)
+                                                     self.kl_weight, self.elbo_samples,
+                                                     self.reconstruction)
             if not torch.isfinite(loss):
                 self._restore(backup)
                 raise TrainingDiverged(f"{self.section}: the risk model's ELBO is not finite")
