@@ -168,3 +168,25 @@ def test_adversary_diagnostics_bad_input_exits_2(tmp_path, capsys, tiny_maml_run
     captured = capsys.readouterr()
     err = captured.err.strip().splitlines()
     assert len(err) == 1 and words in err[0] and captured.out == ""
+
+
+def test_budget_pilot_trains_in_stages_and_reports_each(tmp_path):
+    """Two stages of a tiny point-robot MAML run: each is scored on p0 with its adaptation gain,
+    the table reads the gains of the stages' reports, and the curve holds every iteration."""
+    from armeta_rl.reproduce.curves import read_curves
+
+    example = load_example("budget_pilot")
+    run, out = tmp_path / "pilot", tmp_path / "report"
+    assert example.main(["--run", str(run), "--out", str(out), "--stages", "1", "2", "--",
+                         "benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
+                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=5",
+                         "eval.n_tasks=3"]) == 0
+    rows = example.stage_rows(run)
+    assert [r["iteration"] for r in rows] == [1, 2]
+    for row in rows:
+        gain = json.loads((run / f"eval_at_{row['iteration']}.json").read_text())
+        assert row["gain"] == gain["initial"]["adaptation"]["gain"]
+    table = (out / "pilot.md").read_text()
+    assert f"{rows[1]['gain']:+.1f} ± {rows[1]['gain_sem']:.1f}" in table
+    assert [r["iteration"] for r in read_curves(out / "pilot_curves.csv.gz")] == [1, 2]
+    assert (out / "pilot.png").stat().st_size > 0
