@@ -44,6 +44,7 @@ FIRST_BENCHMARK = {
     "meta_rl_point": "point_nav",
     "meta_rl_point_validation": "point_nav",
     "meta_rl_cheetah": "half_cheetah_vel",
+    "meta_rl_cheetah_mass": "half_cheetah_mass_vel",
     "ant_pos": "ant_goal",
 }
 
@@ -600,3 +601,30 @@ def test_an_attack_by_a_method_without_an_adversary_is_refused(monkeypatch):
     monkeypatch.setattr(plan_module, "load_spec", lambda experiment: spec)
     with pytest.raises(ConfigError, match="'attacks' = 'dr_maml': an attack trains a flow"):
         check_runs(make_plan("table1", "tiny"))
+
+
+def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_path):
+    """With CSV logs, the report's curve file holds one row per run and logged iteration, the
+    gain is return after − before (an attack run trains no leader: no returns), and a run whose
+    logs are gone keeps its rows."""
+    from armeta_rl.reproduce.curves import curves_path, read_curves
+
+    experiment, extra = "meta_rl_cheetah_mass", ("logger=csv", "trainer.iterations=2",
+                                                 "trainer.log_every=1")
+    assert reproduce(experiment, "tiny", tmp_path, launcher="basic", extra=extra) == 0
+    plan = make_plan(experiment, "tiny", extra)
+    rows = read_curves(curves_path(tmp_path, experiment))
+    assert sorted((r["run"], r["iteration"]) for r in rows) == sorted(
+        (run.name, i) for run in (*plan.runs, *plan.attacks) for i in (1, 2))
+    for row in rows:
+        attack = "-vs-" in row["run"]
+        assert (row["return_pre"] is None) == attack
+        if not attack:
+            assert row["gain"] == pytest.approx(row["return_post"] - row["return_pre"],
+                                                abs=1e-4)
+        assert (row["adversary_entropy"] is None) == (not row["run"].startswith("ar_maml"))
+    assert (tmp_path / f"{experiment}_curves.png").stat().st_size > 0
+    assert "## Learning curves" in (tmp_path / f"{experiment}.md").read_text()
+    shutil.rmtree(tmp_path / plan.runs[0].subdir / "logs")
+    assert reproduce(experiment, "tiny", tmp_path, launcher="none", extra=extra) == 0
+    assert read_curves(curves_path(tmp_path, experiment)) == rows
