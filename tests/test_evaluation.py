@@ -140,13 +140,18 @@ def test_paired_difference_by_hand():
         paired_difference(first, second[:3], "return", [0.5])
 
 
+def point_robot():
+    """A small point-robot MAML-TRPO leader, p0 and its evaluation collector."""
+    players = players_of(compose_train(
+        "benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
+        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=8"))
+    return players.leader, players.initial, players.eval_collector
+
+
 def test_a_task_scores_the_mean_of_its_rollouts_collected_in_one_batch():
     """With R rollouts, entry r·n + k of the one batch is task k's r-th rollout; the report's
     task score is the mean over r, its noise rollout_sd the pooled within-task spread."""
-    cfg = compose_train("benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
-                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=8")
-    players = players_of(cfg)
-    leader, initial, collector = players.leader, players.initial, players.eval_collector
+    leader, initial, collector = point_robot()
     report = evaluate_on(leader, initial, collector, 6, [0.5], seed=3, rollouts=4)
     torch.manual_seed(3)
     tasks = initial.sample(6)
@@ -181,10 +186,7 @@ def test_adaptation_gain_pairs_each_task_after_averaging_its_rollouts():
 def test_meta_rl_evaluation_reports_the_return_before_adaptation_of_the_same_episodes():
     """The report's score before adaptation is the return of the very episodes the inner step
     adapted on, and its gain the paired difference to the adapted return, per task over R."""
-    cfg = compose_train("benchmark=point_nav", "method=maml", "trainer.meta_batch=2",
-                        "benchmark.collector.episodes=2", "benchmark.collector.max_steps=8")
-    players = players_of(cfg)
-    leader, initial, collector = players.leader, players.initial, players.eval_collector
+    leader, initial, collector = point_robot()
     report = evaluate_on(leader, initial, collector, 6, [0.5], seed=3, rollouts=2)
     torch.manual_seed(3)
     with torch.no_grad():

@@ -33,14 +33,16 @@ TASKS = {"half_cheetah_vel": [0.0, 0.5, 1.25, 2.0], "half_cheetah_dir": [-1.0, -
 
 
 def hand_reward(name: str, task: float, x_before: float, data: mujoco.MjData,
-                action: np.ndarray, dt: float) -> float:
-    """The family's reward written out from the references (module docstring)."""
+                action: np.ndarray, dt: float) -> tuple[float, float]:
+    """The family's reward and its forward term (the references' ``reward_forward``) written
+    out from the references (module docstring)."""
     velocity = (data.qpos[0] - x_before) / dt
     cost = 0.05 * float(np.sum(action**2))
     if name == "half_cheetah_dir":
-        return (1.0 if task >= 0 else -1.0) * velocity - cost
+        forward = (1.0 if task >= 0 else -1.0) * velocity
+        return forward - cost, forward
     bonus = 1.0 if name == "walker2d_vel" else 0.0
-    return -abs(velocity - task) - cost + bonus
+    return -abs(velocity - task) - cost + bonus, -abs(velocity - task)
 
 
 def test_gym_model_is_the_xml_compiled_to_the_bit_without_the_settotalmass_warning(capfd):
@@ -95,8 +97,10 @@ def test_every_simulation_equals_a_hand_computation_with_its_own_task(name):
             obs = td["next", "observation"].reshape(8, -1)[i].double().numpy()
             np.testing.assert_allclose(obs, expected_obs, rtol=1e-6, atol=1e-6)
             reward = td["next", "reward"].reshape(8)[i].item()
-            expected = hand_reward(name, per_sim[i], x_before, data, a, dt)
+            forward = td["next", "reward_forward"].reshape(8)[i].item()
+            expected, expected_forward = hand_reward(name, per_sim[i], x_before, data, a, dt)
             assert reward == pytest.approx(expected, rel=1e-6, abs=1e-5)
+            assert forward == pytest.approx(expected_forward, rel=1e-6, abs=1e-5)
         assert not td["next", "terminated"].any()
         assert td["next", "truncated"].all() == (step == 11)
         td = step_mdp(td)

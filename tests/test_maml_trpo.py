@@ -9,6 +9,7 @@ from collections.abc import Callable, Sequence
 
 import pytest
 import torch
+from conftest import compose_train, players_of
 from tensordict import TensorDict
 from torch import Tensor
 from torch.func import functional_call
@@ -16,7 +17,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
-from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions
+from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, last_step_loss
 from armeta_rl.rl.baseline import (
     baseline_features,
     baseline_values,
@@ -506,3 +507,33 @@ def test_trpo_surrogate_at_the_sampling_policy_is_the_policy_gradient_and_the_kl
         torch.testing.assert_close(g, torch.zeros_like(g))
     moved = mean_kl(loc.detach() + 0.1, scale.detach(), loc.detach(), scale.detach(), mask)
     assert (moved > 0).all()
+
+
+def test_last_step_loss_reads_each_episodes_last_step():
+    """−(the forward reward at each episode's last step), averaged over a task's episodes: an
+    episode that ended early (mask) is read at its own last step."""
+    forward = torch.arange(2 * 2 * 4, dtype=torch.float32).reshape(2, 2, 4, 1)
+    mask = torch.ones(2, 2, 4, dtype=torch.bool)
+    mask[1, 0, 2:] = False  # task 1's first episode ends after 2 steps
+    trajectories = TensorDict({"reward_forward": forward, "mask": mask}, [2, 2, 4])
+    # task 0: steps 3 and 7; task 1: steps 9 (episode 0, step 1) and 15
+    assert torch.equal(last_step_loss(trajectories), -torch.tensor([5.0, 12.0]))
+
+
+def test_mpts_with_the_authors_label_learns_from_the_last_step_loss():
+    """risk.mpts.label=last_step: the principle's update reads the step's ``last_step_loss``,
+    not its task loss."""
+    from armeta_rl.trainers.game import GameTrainer
+
+    players = players_of(compose_train(
+        "benchmark=half_cheetah_vel", "method=mpts_maml", "risk.mpts.label=last_step",
+        "trainer.meta_batch=3", "benchmark.collector.episodes=2",
+        "benchmark.collector.max_steps=5", "risk.mpts.warmup=0"))
+    principle, leader, seen, scored = players.principle, players.leader, [], []
+    update, scores = principle.update, leader.scores
+    principle.update = lambda tasks, losses: seen.append(losses) or update(tasks, losses)
+    leader.scores = lambda batch: scored.append(scores(batch)) or scored[-1]
+    GameTrainer(leader, principle, iterations=1, meta_batch=3, progress=False).train_iteration()
+    assert principle.label == "last_step_loss"
+    assert torch.equal(seen[0], scored[0]["last_step_loss"])
+    assert not torch.equal(seen[0], scored[0]["loss"])

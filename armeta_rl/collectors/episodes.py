@@ -38,7 +38,7 @@ from armeta_rl.envs.point_navigation import (
 )
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianActor, GaussianMLP
-from armeta_rl.tasks.protocol import TASK_KEY, reset_with_identifiers
+from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY, reset_with_identifiers
 from armeta_rl.tasks.space import TaskSpace
 
 
@@ -65,7 +65,8 @@ class EpisodeCollector:
     The returned TensorDict has batch ``[K, episodes, max_steps]`` and keys ``"observation"``,
     ``"action"``, ``"log_prob"`` (of the action under the collecting policy), ``"reward"``,
     ``"done"``, ``"terminated"``, ``"truncated"`` (``[..., 1]``), ``"mask"`` (bool, the step is part
-    of the episode) and ``"params"`` (the task identifiers). The env is reseeded from torch's
+    of the episode) and ``"params"`` (the task identifiers); and ``"reward_forward"`` where the
+    env reports it (``FORWARD_REWARD``). The env is reseeded from torch's
     global RNG at every call, so ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes
     the whole collection.
     """
@@ -93,6 +94,17 @@ class EpisodeCollector:
             env = self.probe_env()
             try:
                 return env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+            finally:
+                env.close()
+
+    @property
+    def reports_forward_reward(self) -> bool:
+        """Whether the env reports its forward reward after every step (``FORWARD_REWARD`` among
+        its observation specs), so that the episodes carry it."""
+        with torch.random.fork_rng(devices=[]):
+            env = self.probe_env()
+            try:
+                return env.observation_spec.get(FORWARD_REWARD, None) is not None
             finally:
                 env.close()
 
@@ -180,6 +192,8 @@ class EpisodeCollector:
                 "truncated": rollout["next", "truncated"],
                 "mask": valid_mask(done),
                 TASK_KEY: rollout[TASK_KEY],
+                **({FORWARD_REWARD: rollout["next", FORWARD_REWARD]}
+                   if ("next", FORWARD_REWARD) in rollout.keys(True) else {}),
             },
             batch_size=rollout.batch_size,
         )

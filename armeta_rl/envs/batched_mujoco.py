@@ -45,7 +45,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY, read_identifiers
 
 KEY = "benchmark.collector"
 GYM_ASSETS = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
@@ -175,6 +175,19 @@ class BatchedMujocoEnv(EnvBase):
         ``self._generator``."""
         raise NotImplementedError
 
+    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray | None:
+        """The task's own term of the reward ``[n_sims]`` (the references'
+        ``info["reward_forward"]``: HalfCheetah-Vel's −|v − goal_velocity|), reported after
+        every step as ``"reward_forward"``; ``None`` (the default) for an env that reports
+        none. It reads what :meth:`_reward` reads."""
+        return None
+
+    @property
+    def reports_forward_reward(self) -> bool:
+        """Whether the env's steps carry ``"reward_forward"`` (its class defines
+        :meth:`_forward_reward`)."""
+        return type(self)._forward_reward is not BatchedMujocoEnv._forward_reward
+
     def _healthy(self) -> np.ndarray:
         """Boolean ``[n_sims]``: the simulation goes on (else the episode terminates). Default: a
         finite state."""
@@ -230,7 +243,9 @@ class BatchedMujocoEnv(EnvBase):
         low, high = self.model.actuator_ctrlrange.T
         self.observation_spec = Composite(
             {"observation": Unbounded(shape=(*shape, self._obs.shape[1]), dtype=dtype),
-             TASK_KEY: Unbounded(shape=(*shape, width), dtype=dtype)},
+             TASK_KEY: Unbounded(shape=(*shape, width), dtype=dtype),
+             **({FORWARD_REWARD: Unbounded(shape=(*shape, 1), dtype=dtype)}
+                if self.reports_forward_reward else {})},
             shape=shape,
         )
         # The identifiers are also a state entry, so that TransformedEnv (which passes only reset
@@ -287,8 +302,10 @@ class BatchedMujocoEnv(EnvBase):
             self._reset_sims(ids)
         self._observe()
         false = torch.zeros(*shape, 1, dtype=torch.bool)
+        forward = ({FORWARD_REWARD: torch.zeros(*shape, 1, dtype=torch.get_default_dtype())}
+                   if self.reports_forward_reward else {})
         return self._output(
-            {"done": false, "terminated": false.clone(), "truncated": false.clone()}
+            {"done": false, "terminated": false.clone(), "truncated": false.clone(), **forward}
         )
 
     def _reset_sims(self, ids: np.ndarray) -> None:
@@ -311,14 +328,18 @@ class BatchedMujocoEnv(EnvBase):
         self._observe()
         task = self._as_sim(self._task.reshape(self.n_sims, -1))
         reward = self._as_torch(self._reward(action, qpos_before, task))
+        forward = self._forward_reward(qpos_before, task)
         terminated = self._as_torch(~self._healthy()).reshape(*shape, 1)
         self._steps = self._steps + 1
         truncated = self._steps >= self.max_steps
+        dtype = torch.get_default_dtype()
         return self._output(
             {
-                "reward": reward.to(torch.get_default_dtype()).reshape(*shape, 1),
+                "reward": reward.to(dtype).reshape(*shape, 1),
                 "done": terminated | truncated,
                 "terminated": terminated,
                 "truncated": truncated,
+                **({} if forward is None else
+                   {FORWARD_REWARD: self._as_torch(forward).to(dtype).reshape(*shape, 1)}),
             }
         )

@@ -167,9 +167,13 @@ class HalfCheetahVelEnv(HalfCheetahTaskEnv):
     def _default_identifiers(self) -> torch.Tensor:
         return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
 
+    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
+        """−|v − goal_velocity| ``[n_sims]``."""
+        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0])
+
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
-        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0]) - self.ctrl_cost(action)
+        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action)
 
 
 class HalfCheetahDirEnv(HalfCheetahTaskEnv):
@@ -184,10 +188,13 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
         unit = torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
         return torch.where(unit < 0.5, -1.0, 1.0).to(torch.float64)
 
+    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
+        """``d·v`` ``[n_sims]``."""
+        return np.where(task[:, 0] >= 0, 1.0, -1.0) * self.forward_velocity(qpos_before)
+
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
-        direction = np.where(task[:, 0] >= 0, 1.0, -1.0)
-        return direction * self.forward_velocity(qpos_before) - self.ctrl_cost(action)
+        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action)
 
 
 class Walker2dVelEnv(PlanarRunnerEnv):
@@ -238,7 +245,10 @@ class Walker2dVelEnv(PlanarRunnerEnv):
         qvel = scale * (2 * torch.rand(n, self.model.nv, generator=gen, dtype=torch.float64) - 1)
         return qpos, qvel
 
+    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
+        """−|v − goal_velocity| ``[n_sims]``."""
+        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0])
+
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
-        velocity_error = np.abs(self.forward_velocity(qpos_before) - task[:, 0])
-        return -velocity_error - self.ctrl_cost(action) + self.alive_bonus
+        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action) + self.alive_bonus

@@ -47,6 +47,7 @@ from armeta_rl.rl.trpo import (
     trust_region_step,
     unflatten,
 )
+from armeta_rl.tasks.protocol import FORWARD_REWARD
 
 Params = dict[str, Tensor]
 
@@ -397,11 +398,15 @@ class MAMLTRPOLeader:
     def scores(self, batch: MetaBatch) -> TensorDict:
         """Per-task ``"loss"`` (:meth:`evaluate`), ``"return_pre"`` and ``"return_post"`` (the
         mean returns before and after adaptation) and the adaptation ``"gain"`` (post − pre)
-        of ``batch``, ``[K]``."""
+        of ``batch``, ``[K]``; where the env reports its forward reward, also
+        ``"last_step_loss"`` (:func:`last_step_loss`)."""
         losses = self.evaluate(batch)
         return_pre = -self.evaluate_before(batch)
-        return TensorDict({"loss": losses, "return_pre": return_pre, "return_post": -losses,
-                           "gain": -losses - return_pre}, batch_size=[losses.shape[0]])
+        scores = {"loss": losses, "return_pre": return_pre, "return_post": -losses,
+                  "gain": -losses - return_pre}
+        if batch.valid.get(FORWARD_REWARD, None) is not None:
+            scores["last_step_loss"] = last_step_loss(batch.valid)
+        return TensorDict(scores, batch_size=[losses.shape[0]])
 
     def evaluate_before(self, batch: MetaBatch) -> Tensor:
         """Per-task −(mean return before adaptation) ``[K]``: π_θ's returns on the
@@ -413,6 +418,15 @@ class MAMLTRPOLeader:
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.net.load_state_dict(state["policy"])
+
+
+def last_step_loss(trajectories: TensorDictBase) -> Tensor:
+    """Per-task −(the forward reward at the last step of each episode), averaged over the
+    episodes ``[K]``: the MPTS authors' meta-RL label of a task (``risk.mpts.label=last_step``),
+    from episodes ``[K, E, T]`` whose env reports ``"reward_forward"``."""
+    last = trajectories["mask"].sum(-1, keepdim=True) - 1  # each episode's last step
+    forward = trajectories[FORWARD_REWARD].squeeze(-1).gather(-1, last.clamp(min=0))
+    return -forward.squeeze(-1).mean(-1)
 
 
 def build_maml_trpo(options: MamlTrpoOptions, collector: TaskCollector, device: torch.device,

@@ -99,6 +99,7 @@ class AdversarialPrinciple(nn.Module):
     """
 
     needs_next_losses = True
+    label = "loss"
 
     def __init__(
         self,

@@ -16,11 +16,15 @@ class RiskPrinciple(Protocol):
     never needs :meth:`update` (plain ERM). ``needs_next_losses`` says which losses :meth:`update`
     reads: ``True`` for a follower of the game, the losses of the step's tasks at θ_{t+1} (the
     trainer evaluates the leader again for them); ``False`` for the step's own losses at θ_t,
-    which cost nothing more (DR reports their tail statistics).
+    which cost nothing more (DR reports their tail statistics). ``label`` names the per-task
+    output of the leader's step that :meth:`update` reads: ``"loss"``, the task loss, for every
+    principle but MPTS's and PDTS's meta-RL option ``label=last_step``
+    (``"last_step_loss"``, :meth:`~armeta_rl.learners.maml_trpo.MAMLTRPOLeader.scores`).
     """
 
     update_every: int
     needs_next_losses: bool
+    label: str
 
     def propose(self, n: int) -> TensorDict:
         """``n`` tasks ``{"params": [n, d], "log_prob": [n]}`` for the next leader step."""

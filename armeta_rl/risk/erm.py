@@ -26,6 +26,7 @@ class ERMPrinciple(nn.Module):
 
     update_every = 0
     needs_next_losses = False
+    label = "loss"
 
     def __init__(self, initial: TaskDistribution) -> None:
         super().__init__()

@@ -81,6 +81,7 @@ class _GroupPrinciple(nn.Module):
 
     update_every = 1
     needs_next_losses = True
+    label = "loss"
 
     def __init__(self, initial: TaskDistribution, options: _GroupOptions) -> None:
         super().__init__()

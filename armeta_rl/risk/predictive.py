@@ -49,6 +49,9 @@ predictions stay finite."""
 
 RECONSTRUCTIONS = ("expected", "mean_prediction")
 """The reconstruction terms of Eq. (5) (:func:`reconstruction_error`)."""
+LABELS = {"loss": "loss", "last_step": "last_step_loss"}
+"""A ``label`` option → the per-task output of the leader's step it reads
+(:attr:`~armeta_rl.risk.base.RiskPrinciple.label`)."""
 
 
 @dataclass(frozen=True)
@@ -80,6 +83,11 @@ class PredictiveOptions(Section):
             Var_z[ℓ̂] and so lets q_φ keep a wider posterior.
         label_scale: the losses are divided by it before anything else (the authors' sinusoid
             code divides them by k = 10, which weighs their KL term about 100 times more).
+        label: what a task's label is in meta-RL: ``"loss"``, its loss, −(the mean return of
+            its adapted episodes), as the learner and the evaluation read it; or
+            ``"last_step"``, −(the forward reward at the last step of each adapted episode),
+            averaged, the MPTS authors' meta-RL label (an env that reports
+            ``"reward_forward"``: the locomotion families).
     """
 
     candidate_ratio: float = key()  # each principle's options: candidate_ratio(default)
@@ -93,6 +101,7 @@ class PredictiveOptions(Section):
     warmup: int = at_least(0, default=0)
     reconstruction: str = one_of(*RECONSTRUCTIONS, default="expected")
     label_scale: float = above(0, default=1.0)
+    label: str = one_of(*LABELS, default="loss")
 
 
 def candidate_ratio(default: float) -> Any:
@@ -257,6 +266,7 @@ class PredictivePrinciple(nn.Module):
         self.elbo_samples, self.standardize = options.elbo_samples, options.standardize
         self.warmup = options.warmup
         self.reconstruction, self.label_scale = options.reconstruction, float(options.label_scale)
+        self.label = LABELS[options.label]
         self.model = RiskPredictiveModel(initial.space.dim, options.hidden, options.latent)
         self.optimizer = torch.optim.Adam(self.model.parameters(), lr=options.lr)
         self.register_buffer("posterior_loc", torch.zeros(options.latent))

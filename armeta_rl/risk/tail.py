@@ -94,6 +94,7 @@ class TailRiskPrinciple(nn.Module):
 
     update_every = 1
     needs_next_losses = False
+    label = "loss"
 
     def __init__(self, initial: TaskDistribution, options: DrOptions = DrOptions()) -> None:
         super().__init__()

@@ -32,6 +32,10 @@ if TYPE_CHECKING:
 
 TASK_KEY = "params"
 """TensorDict key of the task identifiers, a float tensor ``[..., task_dim]``."""
+FORWARD_REWARD = "reward_forward"
+"""The key under which a task env may report, after every step, the task's own term of its
+reward (the references' ``info["reward_forward"]``; the locomotion families'), read by the MPTS
+authors' meta-RL label (``risk.mpts.label=last_step``)."""
 
 MISPLACED_TASK_KEYS = ("goal", "goals", "task", "tasks", "task_params", "identifiers")
 """Keys under which identifiers are commonly (and here wrongly) passed; an env refuses them."""

@@ -120,8 +120,8 @@ class GameTrainer:
         self.iteration += 1
         every = self.principle.update_every
         if every and self.iteration % every == 0:
-            follower = (self.follower_losses(tasks, data, losses) if self.train_leader
-                        else losses)
+            follower = (self.follower_losses(tasks, data, out[self.principle.label])
+                        if self.train_leader else losses)
             logs.update(self.principle.update(tasks, follower))
         logs["time/iteration_ms"] = 1000.0 * (time.perf_counter() - start)
         return logs

@@ -137,6 +137,12 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
                           f"must be 1 on {config.benchmark.name}: its learner scores the "
                           "follower's tasks on the step's own data, not on fresh rollouts")
+    label = players.principle.label
+    if label != "loss" and not getattr(players.leader.collector, "reports_forward_reward", False):
+        section = f"risk.{config.method.risk}.label"
+        raise ConfigError(section, "last_step", f"needs an env that reports its forward reward "
+                          f"after every step (the locomotion families), not "
+                          f"{config.benchmark.name}'s")
     if config.trainer.follower_rollouts > 1 and config.trainer.follower_at == "step":
         raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
                           "must be 1 with trainer.follower_at=step: the follower reads the "
