@@ -18,7 +18,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
-from armeta_rl.reproduce.plan import Plan
+from armeta_rl.reproduce.plan import Plan, finished
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, write_atomically
 
 CURVES = {
@@ -81,14 +81,17 @@ def _parse(key: str, value: str) -> Any:
 
 def collect_curves(plan: Plan, results: Path, kept: Sequence[dict[str, Any]] = ()
                    ) -> list[dict[str, Any]]:
-    """One row per iteration of every training run of ``plan`` (attack runs included): from the
-    run's log where it has one, else its rows in ``kept`` (the experiment's file as it was)."""
+    """One row per iteration of every finished training run of ``plan`` (attack runs included;
+    a run still training is left out): from the run's log where it has one, else its rows in
+    ``kept`` (the experiment's file as it was)."""
     old: dict[tuple, list[dict[str, Any]]] = {}
     for row in kept:
         old.setdefault(_identity(row), []).append(row)
     rows = []
     for run in (*plan.runs, *plan.attacks):
         identity = (run.benchmark, run.name, run.seed)
+        if not finished(results, run):
+            continue
         curve = run_curve(results / run.subdir)
         if not curve:
             rows += old.get(identity, [])

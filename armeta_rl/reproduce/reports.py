@@ -364,8 +364,8 @@ def adaptation_section(plan: Plan, records: list[dict[str, Any]]) -> str:
                          f"({k}/{n} seeds adapt)"
                          for learner, (_, k, n) in zip(learners, cells) if n and k < n]
     header = ["Benchmark", "Distribution", *(_learner_label(plan, lr) for lr in learners)]
-    verdict = ("**Every learner adapts on p0** at every seed (its gain beyond twice its "
-               "standard error over tasks)." if not idle else
+    verdict = ("**Every learner adapts on p0** at every finished seed (its gain beyond twice "
+               "its standard error over tasks)." if not idle else
                "**Not adapting on p0** (a seed adapts when its gain is beyond twice its "
                "standard error over tasks): " + "; ".join(idle) + ". A comparison between "
                "learners that do not adapt compares policies, not meta-learners: it is no "
