@@ -29,6 +29,8 @@ BOXES = {
     "sinusoid": TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi]),
     "pendulum": TaskSpace(["m", "l"], [0.4, 0.4], [1.6, 1.6]),
     "half_cheetah_vel": TaskSpace(["goal_velocity"], [0.0], [2.0]),
+    "half_cheetah_mass_vel": TaskSpace(["goal_velocity", "mass_scale"], [0.0, 0.75],
+                                       [2.0, 1.25]),
     "acrobot": TaskSpace(["m1", "m2"], [0.4, 0.4], [1.6, 1.6]),
 }
 
