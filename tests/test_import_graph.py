@@ -58,5 +58,6 @@ def test_no_import_circle():
     try:
         order = list(graphlib.TopologicalSorter(import_graph()).static_order())
     except graphlib.CycleError as error:
-        raise AssertionError(f"import circle: {' imports '.join(reversed(error.args[1]))}") from None
+        circle = " imports ".join(reversed(error.args[1]))
+        raise AssertionError(f"import circle: {circle}") from None
     assert order.index("armeta_rl.config_files") < order.index("armeta_rl.cli")

@@ -58,8 +58,8 @@ class PendulumEnv(IdentifiedSystemEnv):
         ones = params.new_ones(params.shape[0])
         mass, length, g = (named.get(name, ones * self.identifier_defaults[name])
                            for name in ("m", "l", "g"))
-        # reciprocal then product, as ``3 * 10.0 / tensor`` computes it (Tensor.__rtruediv__):
-        # the same rounding as before gravity became an identifier
+        # reciprocal then product, the rounding of ``3 * 10.0 / tensor`` (Tensor.__rtruediv__),
+        # which the seeded pendulum results are computed with
         gravity = (2 * length).reciprocal() * (3 * g) * self.dt
         inertia = 3.0 / (mass * length**2) * self.dt
         return torch.stack([gravity, inertia], -1)

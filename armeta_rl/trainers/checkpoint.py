@@ -294,9 +294,7 @@ class RunCheckpoint:
         except CheckpointError as error:
             raise ConfigError(
                 key, str(self.directory.parent),
-                f"its checkpoint does not fit the players its config.yaml builds ({error}); runs "
-                "saved before one spline coupling became the default on 2-D boxes need "
-                "'layers: 2' under risk.ar.flow_kwargs there",
+                f"its checkpoint does not fit the players its config.yaml builds ({error})",
             ) from error
 
 
