@@ -193,8 +193,8 @@ def finished_episodes(
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace, TaskTransform, finished_episodes
         >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
-        >>> env = TransformedEnv(PointNavigationEnv(batch_size=(4,), seed=0),
-        ...                      Compose(TaskTransform(BoxUniform(space)), StepCounter(5), RewardSum()))
+        >>> transforms = Compose(TaskTransform(BoxUniform(space)), StepCounter(5), RewardSum())
+        >>> env = TransformedEnv(PointNavigationEnv(batch_size=(4,), seed=0), transforms)
         >>> episodes = finished_episodes(env.rollout(5))
         >>> episodes["params"].shape, episodes["return"].shape
         (torch.Size([4, 2]), torch.Size([4]))
