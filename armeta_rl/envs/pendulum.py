@@ -27,6 +27,18 @@ class PendulumEnv(IdentifiedSystemEnv):
     Entries: ``"observation"`` (cos θ, sin θ, θ̇), ``"state"`` (θ, θ̇), ``"params"`` (m, l by
     default; ``identifiers=("m", "l", "g")`` adds gravity, any subset of the three may be
     chosen), ``"action"`` ``[*batch, 1]`` (the torque).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import PendulumEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = PendulumEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # mass, length
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 3]), True)
     """
 
     param_names = ("m", "l")
