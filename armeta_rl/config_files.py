@@ -13,6 +13,7 @@ def config_files() -> Path:
     """Where the config files are: packaged in a wheel, or the repository's ``configs/``.
 
     Examples:
+        >>> from armeta_rl.config_files import config_files
         >>> (config_files() / "train.yaml").is_file()
         True
     """
@@ -24,6 +25,7 @@ def group_choices(group: str) -> list[str]:
     """Names of the configs available for a config group, e.g. the benchmarks.
 
     Examples:
+        >>> from armeta_rl.config_files import group_choices
         >>> "point_nav" in group_choices("benchmark")
         True
     """

@@ -38,6 +38,7 @@ class FlowAdversary(TaskDistribution):
             planar: ``layers``, ``activation``, ``eps``).
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.adversary import FlowAdversary
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
         >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])

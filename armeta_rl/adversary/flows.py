@@ -113,6 +113,7 @@ class SplineBoxFlow(BoxFlow):
         blocks: residual blocks of each coupling's network.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.adversary import SplineBoxFlow
         >>> from armeta_rl.tasks import TaskSpace
         >>> flow = SplineBoxFlow(TaskSpace(["m", "l"], low=[0.4, 0.4], high=[1.6, 1.6]))
@@ -239,6 +240,7 @@ class PlanarBoxFlow(BoxFlow):
         eps: clamp of the unit-box coordinate before the logit.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.adversary import PlanarBoxFlow
         >>> from armeta_rl.tasks import TaskSpace
         >>> flow = PlanarBoxFlow(TaskSpace(["x"], low=[0.0], high=[2.0]), layers=2)

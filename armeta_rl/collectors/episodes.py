@@ -46,6 +46,7 @@ def valid_mask(done: torch.Tensor) -> torch.Tensor:
     """``[..., T]`` bool: step ``t`` belongs to the first episode (no ``done`` before ``t``).
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.collectors.episodes import valid_mask
         >>> valid_mask(torch.tensor([[False, True, False, True]]))
         tensor([[ True,  True, False, False]])
@@ -77,6 +78,7 @@ class EpisodeCollector:
     the whole collection.
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors.episodes import EpisodeCollector
         >>> from armeta_rl.envs import PointNavigationEnv
@@ -232,6 +234,7 @@ class PointNavigationCollector(EpisodeCollector):
             :class:`~armeta_rl.envs.point_navigation.PointNavigationEnv`).
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.collectors.episodes import PointNavigationCollector
         >>> collector = PointNavigationCollector(episodes=2, max_steps=100)
         >>> collector.reference_loss(torch.tensor([[0.5, 0.0], [0.0, 0.3]]))  # 0.4+0.3+0.2+0.1
@@ -264,6 +267,7 @@ def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:
     """Undiscounted return of every episode ``[K, episodes]``.
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors.episodes import episode_returns
         >>> reward = torch.tensor([[[-1.0, -0.5, -9.0]]]).unsqueeze(-1)  # [K=1, episodes=1, T=3, 1]

@@ -18,6 +18,7 @@ class SinusoidCollector:
     device.
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SinusoidCollector
         >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0], [2.0, 1.5]])}, [2])
@@ -70,6 +71,7 @@ class NoisySupport:
     query set that scores it stays clean.
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import NoisySupport, SinusoidCollector
         >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0]])}, [1])

@@ -77,6 +77,7 @@ class SysIdCollector:
             batch shape waits for the compiler (docs/speed-options.md).
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SysIdCollector
         >>> collector = SysIdCollector("pendulum", n_transitions=40, n_support=10, episodes=4)

@@ -561,6 +561,7 @@ def gym_env(env_id: str, **gym_kwargs: Any) -> GymEnv:
     restored.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.envs.mujoco_tasks import gym_env
         >>> env = gym_env("InvertedPendulum-v5")
         >>> env.batch_size, env.action_spec.shape
@@ -641,6 +642,7 @@ def physics_task_env(
         ConfigError: bad parameters, or a box that does not match them.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.envs import AntGoalEnv
         >>> from armeta_rl.envs.mujoco_tasks import physics_task_env
         >>> friction = {"name": "friction", "kind": "geom_friction_scale", "target": "all",

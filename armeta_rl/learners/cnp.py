@@ -104,6 +104,7 @@ class CNPLeader(OneNetworkLeader):
     like MAML, whichever likelihood trains the network.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.collectors import SinusoidCollector
         >>> from armeta_rl.learners import CNPLeader
         >>> from armeta_rl.learners.cnp import CnpOptions

@@ -158,6 +158,7 @@ def gae_advantages(trajectories: TensorDictBase, gamma: float = 0.99, lmbda: flo
     next step's value, and episodes ending at ``done`` (goal reached or time limit).
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors.episodes import PointNavigationCollector
         >>> from armeta_rl.rl import GaussianMLP

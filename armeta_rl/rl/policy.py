@@ -135,6 +135,7 @@ def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> Probab
     ``k``'s parameters on batch entries ``[k, ...]``.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.rl import GaussianMLP, make_actor
         >>> actor = make_actor(GaussianMLP(obs_dim=2, action_dim=2))

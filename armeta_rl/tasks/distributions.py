@@ -39,6 +39,7 @@ class TaskDistribution(nn.Module):
     """Base class: a distribution over the task box with an exact log-density.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
         >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[2.0]))
         >>> tasks = p0.sample(3)
@@ -114,6 +115,7 @@ class BoxUniform(TaskDistribution):
     """Uniform distribution on the box: ln p(τ) = -ln vol(box).
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
         >>> p0 = BoxUniform(TaskSpace(["m", "l"], low=[0.4, 0.4], high=[1.6, 1.6]))
         >>> bool(p0.space.contains(p0.sample_params(100)).all())
@@ -151,6 +153,7 @@ class TruncatedNormal(TaskDistribution):
     α_i, β_i the standardized box edges.
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.tasks import TaskSpace, TruncatedNormal
         >>> space = TaskSpace(["amplitude"], low=[0.1], high=[5.0])
         >>> p0 = TruncatedNormal(space, loc=[1.0], scale=[2.0])

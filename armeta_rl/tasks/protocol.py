@@ -121,6 +121,7 @@ def reset_with_identifiers(env: EnvBase, tensordict: TensorDictBase) -> TensorDi
     0.15 a reset not asking for its state ignores it, which would silently keep the old tasks.
 
     Examples:
+        >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import PendulumEnv
         >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers

@@ -29,6 +29,8 @@ class TaskSpace:
             are rounded to float32 (the dtype of the identifiers tasks carry).
 
     Examples:
+        >>> import torch
+        >>> from armeta_rl.tasks import TaskSpace
         >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
         >>> space.dim
         2

@@ -65,6 +65,7 @@ class TaskTransform(Transform):
     transform drops them from the data with consistent specs.
 
     Examples:
+        >>> import torch
         >>> from torchrl.envs import Compose, StepCounter, TransformedEnv
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.tasks import TASK_KEY, BoxUniform, TaskSpace, TaskTransform
@@ -189,6 +190,7 @@ def finished_episodes(
     the episode's task and ``return_key`` (what ``torchrl.envs.RewardSum`` writes) its return.
 
     Examples:
+        >>> import torch
         >>> from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace, TaskTransform, finished_episodes
