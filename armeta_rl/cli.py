@@ -21,6 +21,8 @@ from typing import Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from armeta_rl.config_files import config_files, group_choices
+
 GROUPS = ("benchmark", "method", "logger")
 """The config groups a command line chooses from (``benchmark=point_nav``)."""
 _ABSENT = object()
@@ -40,23 +42,12 @@ def config_dir() -> Path:
     return config_files()
 
 
-def config_files() -> Path:
-    """Where the config files are: packaged in a wheel, or the repository's ``configs/``."""
-    packaged = Path(__file__).parent / "configs"
-    return packaged if packaged.is_dir() else Path(__file__).resolve().parents[1] / "configs"
-
-
 class Refused(ValueError):
     """A command refused with one line (``message``) and an exit code."""
 
     def __init__(self, message: str, code: int = 2) -> None:
         super().__init__(message)
         self.code = code
-
-
-def group_choices(group: str) -> list[str]:
-    """Names of the configs available for a config group, e.g. the benchmarks."""
-    return sorted(path.stem for path in (config_files() / group).glob("*.yaml"))
 
 
 def _has_key(cfg: DictConfig, key: str) -> bool:

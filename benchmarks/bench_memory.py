@@ -1,5 +1,5 @@
 """Memory of a training run: peak RSS per benchmark, and whether the resident set stays flat over
-a long run (issue 37 item 5).
+a long run.
 
 Each row trains one benchmark in a fresh process, as ``armeta-train`` builds it (glibc keeps freed
 memory, ``trainer.keep_freed_memory``; one torch thread), for its number of meta-iterations, and

@@ -1,4 +1,4 @@
-"""The fault campaign of issue 35: preemption signals, damaged artefacts, bad inputs and resume
+"""The fault campaign: preemption signals, damaged artefacts, bad inputs and resume
 keys, each case run through the command-line tools exactly as a user types it, on this checkout
 and on an earlier revision (``--before``), written as a table into docs/configuration.md (the
 ``fault_campaign`` section) and its raw outcomes into ``benchmarks/fault_campaign.json``.
@@ -594,7 +594,7 @@ def run_cases(tree: Tree, names: list[str]) -> dict[str, str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--before", default="075b143",
-                        help="the revision of the 'before' column (default: issue 35's main)")
+                        help="the revision of the 'before' column")
     parser.add_argument("--rerun-before", action="store_true")
     parser.add_argument("--only", default="", help="comma-separated cases (default: all)")
     parser.add_argument("--skip-now", action="store_true",

@@ -1,4 +1,4 @@
-"""One GPU check, ready to run on a lent GPU machine (issue 37 item 3; issue 36 item 6).
+"""One GPU check, ready to run on a lent GPU machine.
 
 Device-side assumptions (``benchmarks/gpu_check.sh`` sets them up and calls ``run``):
 
@@ -633,7 +633,7 @@ def report(args: argparse.Namespace) -> None:
                                 [(name, outcome, f"{wall:.0f}") for name, outcome, wall in parts])
     body = "\n\n".join([
         " ".join(lines),
-        "Targets (issue 37, one H100-class GPU):\n\n" + "\n".join(f"- {t}" for t in targets),
+        "Targets (one H100-class GPU):\n\n" + "\n".join(f"- {t}" for t in targets),
         test_table, ant_table,
         "Meta-iterations, one torch thread, the CPU and CUDA rows of a benchmark in one process "
         "(its peak RSS covers both; peak GPU memory is `torch.cuda.max_memory_allocated`):\n\n"

@@ -1,4 +1,4 @@
-"""The adversary visible while it trains (issue 26): p_φ drawn every N iterations into PNG frames
+"""The adversary visible while it trains: p_φ drawn every N iterations into PNG frames
 and an animated GIF, with exact marginals for boxes of three or more identifiers; colour scales
 chosen from the densities' range, one per animation and one per pair of identifiers."""
 

@@ -1,4 +1,4 @@
-"""System-identification environments and collector (issue 3).
+"""System-identification environments and collector.
 
 The batched torch dynamics are checked against gymnasium's own Pendulum-v1 / Acrobot-v1 with the
 same identifiers, state and actions; the identifiers must survive TorchRL's automatic resets.

@@ -1,4 +1,4 @@
-"""The one task protocol (issue 26): every env takes its identifiers under ``TASK_KEY``, keeps
+"""The one task protocol: every env takes its identifiers under ``TASK_KEY``, keeps
 them, and *uses* them, under TorchRL transforms, batched envs, automatic resets and collectors.
 
 Two kinds of checks, each against a reference that does not go through the machinery under test:

@@ -36,6 +36,17 @@ class FlowAdversary(TaskDistribution):
             leaky-ReLU planar flow); see :mod:`armeta_rl.adversary.flows`.
         **flow_kwargs: options of the flow (spline: ``layers``, ``bins``, ``hidden``, ``blocks``;
             planar: ``layers``, ``activation``, ``eps``).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.adversary import FlowAdversary
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
+        >>> p0 = BoxUniform(space)
+        >>> adversary = FlowAdversary(space, p0)  # p_φ = p0 at initialization
+        >>> params, log_prob = adversary.sample_with_log_prob(4)
+        >>> torch.allclose(log_prob, p0.log_prob(params)), bool(space.contains(params).all())
+        (True, True)
     """
 
     def __init__(

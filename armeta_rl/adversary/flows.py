@@ -111,6 +111,18 @@ class SplineBoxFlow(BoxFlow):
         bins: spline bins per coordinate.
         hidden: hidden units of each coupling's residual network.
         blocks: residual blocks of each coupling's network.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.adversary import SplineBoxFlow
+        >>> from armeta_rl.tasks import TaskSpace
+        >>> flow = SplineBoxFlow(TaskSpace(["m", "l"], low=[0.4, 0.4], high=[1.6, 1.6]))
+        >>> len(flow.layers)  # one coupling on a 2-D box
+        1
+        >>> points = torch.tensor([[0.5, 1.0], [1.5, 0.7]], dtype=torch.float64)
+        >>> image, log_det = flow(points)  # the identity at initialization
+        >>> torch.allclose(image, points), log_det.shape
+        (True, torch.Size([2]))
     """
 
     def __init__(self, space: TaskSpace, layers: int | None = None, bins: int = 8,
@@ -226,6 +238,16 @@ class PlanarBoxFlow(BoxFlow):
         layers: number of planar layers (the paper uses 2).
         activation: ``"tanh"`` or ``"leaky_relu"``.
         eps: clamp of the unit-box coordinate before the logit.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.adversary import PlanarBoxFlow
+        >>> from armeta_rl.tasks import TaskSpace
+        >>> flow = PlanarBoxFlow(TaskSpace(["x"], low=[0.0], high=[2.0]), layers=2)
+        >>> points = torch.tensor([[0.5], [1.5]], dtype=torch.float64)
+        >>> back, _ = flow.inverse(flow(points)[0])
+        >>> torch.allclose(back, points)
+        True
     """
 
     def __init__(self, space: TaskSpace, layers: int = 2, activation: str = "tanh",
@@ -256,7 +278,19 @@ class PlanarBoxFlow(BoxFlow):
 def make_box_flow(
     space: TaskSpace, kind: str = DEFAULT_FLOW, **kwargs: int | float | str
 ) -> BoxFlow:
-    """Build the box flow named ``kind`` (``spline`` or ``planar``) with its keyword options."""
+    """Build the box flow named ``kind`` (``spline`` or ``planar``) with its keyword options.
+
+    Examples:
+        >>> from armeta_rl.adversary import make_box_flow
+        >>> from armeta_rl.tasks import TaskSpace
+        >>> space = TaskSpace(["x", "y", "z"], low=[0, 0, 0], high=[1, 1, 1])
+        >>> type(make_box_flow(space, "spline", bins=4)).__name__
+        'SplineBoxFlow'
+        >>> make_box_flow(space, "planar", bins=4)
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.ConfigError: config key 'risk.ar.flow_kwargs' = ['bins']: the planar ...
+    """
     flows = {"spline": SplineBoxFlow, "planar": PlanarBoxFlow}
     if kind not in flows:
         raise ConfigError("risk.ar.flow", kind, "allowed: " + ", ".join(FLOW_KINDS))

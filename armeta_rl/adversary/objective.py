@@ -113,6 +113,19 @@ def adversary_surrogate(
         current φ that reuse the log-densities the surrogate needs: ``objective`` mean(L) +
         λ·mean ln p_φ(τ^0) of J, ``loss_mean``, ``entropy`` −mean ln p_φ(τ_k) (the τ_k are
         samples of p_φ) and ``kl_p0`` mean[ln p0(τ^0) − ln p_φ(τ^0)].
+
+    Examples:
+        >>> from armeta_rl.adversary import FlowAdversary, adversary_surrogate
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> space = TaskSpace(["x"], low=[0.0], high=[1.0])
+        >>> adversary = FlowAdversary(space, BoxUniform(space))
+        >>> tasks = adversary.sample(8)
+        >>> losses = tasks["params"][:, 0] ** 2  # larger losses on the right
+        >>> surrogate, stats = adversary_surrogate(adversary, tasks, losses, lam=0.0,
+        ...                                        initial_params=adversary.base.sample_params(16))
+        >>> surrogate.backward()  # ascend it: p_φ moves towards the high losses
+        >>> sorted(stats)
+        ['entropy', 'kl_p0', 'loss_mean', 'objective']
     """
     params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
     losses = losses.detach().to(torch.float64)

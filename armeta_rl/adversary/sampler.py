@@ -36,6 +36,16 @@ class TaskSampler:
         grad_clip: maximum gradient norm, or ``None`` for no clipping.
         baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
         initial_samples: M, the fresh p0 samples of the λ term's gradient (≥ 1).
+
+    Examples:
+        >>> from armeta_rl.adversary import FlowAdversary, TaskSampler
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> space = TaskSpace(["x"], low=[0.0], high=[1.0])
+        >>> sampler = TaskSampler(FlowAdversary(space, BoxUniform(space)), lam=0.0, lr=1e-2)
+        >>> tasks = sampler.sample(16)
+        >>> stats = sampler.update(tasks, losses=tasks["params"][:, 0])  # one ascent step of φ
+        >>> sorted(stats)
+        ['entropy', 'grad_norm', 'kl_p0', 'loss_mean', 'lr', 'objective']
     """
 
     def __init__(

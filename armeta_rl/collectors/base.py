@@ -20,6 +20,11 @@ class TaskCollector(Protocol):
 
     A collector is built with a ``device`` keyword (the run's ``device``, passed by
     :func:`armeta_rl.factory.build_collector`) and returns its data there.
+
+    Examples:
+        >>> from armeta_rl.collectors import SinusoidCollector, TaskCollector
+        >>> isinstance(SinusoidCollector(), TaskCollector)  # anything with collect(tasks)
+        True
     """
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:

@@ -43,7 +43,14 @@ from armeta_rl.tasks.space import TaskSpace
 
 
 def valid_mask(done: torch.Tensor) -> torch.Tensor:
-    """``[..., T]`` bool: step ``t`` belongs to the first episode (no ``done`` before ``t``)."""
+    """``[..., T]`` bool: step ``t`` belongs to the first episode (no ``done`` before ``t``).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors.episodes import valid_mask
+        >>> valid_mask(torch.tensor([[False, True, False, True]]))
+        tensor([[ True,  True, False, False]])
+    """
     ended_before = done.cumsum(-1) - done.long()
     return ended_before == 0
 
@@ -69,6 +76,18 @@ class EpisodeCollector:
     env reports it (``FORWARD_REWARD``). The env is reseeded from torch's
     global RNG at every call, so ``torch.manual_seed`` (and a resumed checkpoint's RNG state) fixes
     the whole collection.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors.episodes import EpisodeCollector
+        >>> from armeta_rl.envs import PointNavigationEnv
+        >>> from armeta_rl.rl import GaussianMLP
+        >>> collector = EpisodeCollector(PointNavigationEnv, episodes=3, max_steps=5)
+        >>> tasks = TensorDict({"params": torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
+        >>> trajectories = collector.collect(tasks, policy=GaussianMLP(obs_dim=2, action_dim=2))
+        >>> trajectories.batch_size, trajectories["action"].shape
+        (torch.Size([2, 3, 5]), torch.Size([2, 3, 5, 2]))
     """
 
     def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,
@@ -213,6 +232,13 @@ class PointNavigationCollector(EpisodeCollector):
         truncated_regions: goal regions with the truncated (sparse) reward −min(dist, ρ).
         graphs: replay the rollouts as CUDA graphs (``None``: on CUDA;
             :class:`~armeta_rl.envs.point_navigation.PointNavigationEnv`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors.episodes import PointNavigationCollector
+        >>> collector = PointNavigationCollector(episodes=2, max_steps=100)
+        >>> collector.reference_loss(torch.tensor([[0.5, 0.0], [0.0, 0.3]]))  # 0.4+0.3+0.2+0.1
+        tensor([1.0000, 0.3000])
     """
 
     def __init__(self, episodes: int = 20, max_steps: int = 100,
@@ -238,6 +264,16 @@ class PointNavigationCollector(EpisodeCollector):
 
 
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:
-    """Undiscounted return of every episode ``[K, episodes]``."""
+    """Undiscounted return of every episode ``[K, episodes]``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors.episodes import episode_returns
+        >>> reward = torch.tensor([[[-1.0, -0.5, -9.0]]]).unsqueeze(-1)  # [K=1, episodes=1, T=3, 1]
+        >>> mask = torch.tensor([[[True, True, False]]])  # the episode ended after two steps
+        >>> episode_returns(TensorDict({"reward": reward, "mask": mask}, [1, 1, 3]))
+        tensor([[-1.5000]])
+    """
     reward = trajectories["reward"].squeeze(-1)
     return (reward * trajectories["mask"]).sum(-1)

@@ -16,6 +16,15 @@ class SinusoidCollector:
     ``[K]`` ``{"support": {"x", "y"}, "query": {"x", "y"}}`` of shapes ``[K, points, 1]`` on
     ``device``. All K tasks are drawn in one batched call from torch's global generator of that
     device.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0], [2.0, 1.5]])}, [2])
+        >>> data = SinusoidCollector(n_support=5, n_query=10).collect(tasks)
+        >>> data["support", "x"].shape, data["query", "y"].shape
+        (torch.Size([2, 5, 1]), torch.Size([2, 10, 1]))
     """
 
     def __init__(
@@ -60,6 +69,16 @@ class NoisySupport:
 
     The paper's "Random Perturbation Robustness" test (σ = 0.1): adaptation sees noisy labels, the
     query set that scores it stays clean.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors import NoisySupport, SinusoidCollector
+        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0]])}, [1])
+        >>> data = NoisySupport(SinusoidCollector(), sigma=0.1).collect(tasks)
+        >>> clean = torch.sin(data["query", "x"])  # a = 1, b = 0: the query labels stay clean
+        >>> bool(torch.allclose(data["query", "y"], clean))
+        True
     """
 
     def __init__(self, collector, sigma: float) -> None:

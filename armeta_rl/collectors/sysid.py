@@ -75,6 +75,16 @@ class SysIdCollector:
             where the physics is long and sequential (the acrobot's Runge–Kutta step in the
             paper protocol's 200-step episodes), on long runs: the first collection of each
             batch shape waits for the compiler (docs/speed-options.md).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors import SysIdCollector
+        >>> collector = SysIdCollector("pendulum", n_transitions=40, n_support=10, episodes=4)
+        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 1.0], [0.5, 1.5]])}, [2])
+        >>> data = collector.collect(tasks)  # x = (cos θ, sin θ, θ̇, torque), y = Δ observation
+        >>> data["support", "x"].shape, data["query", "y"].shape
+        (torch.Size([2, 10, 4]), torch.Size([2, 30, 3]))
     """
 
     def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,

@@ -29,6 +29,18 @@ class AcrobotEnv(IdentifiedSystemEnv):
     ``"params"`` (m1, m2) = gymnasium's ``LINK_MASS_1``, ``LINK_MASS_2``, and ``"action"``
     ``[*batch]``: a categorical index in {0, 1, 2} applying torque ``action - 1`` ∈ {-1, 0, +1}
     (gymnasium's ``AVAIL_TORQUE[action]``).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import AcrobotEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = AcrobotEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # masses (m1, m2)
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 6]), True)
     """
 
     param_names = ("m1", "m2")

@@ -51,6 +51,18 @@ class AntDirEnv(AntTaskEnv):
             ``None``: one per CPU core).
         seed: seed of the generator for reset noise and default angles (U[-π, π]).
         device: torch device of the outputs (the physics runs on the CPU).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import AntDirEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = AntDirEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([1.57]).expand(2, 3, -1)  # direction (radians)
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 119]), True)
     """
 
     identifier_names = ("direction_angle",)

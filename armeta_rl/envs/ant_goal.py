@@ -200,6 +200,18 @@ class AntGoalEnv(AntTaskEnv):
             ``None``: one per CPU core).
         seed: seed of the generator for reset noise and default goals.
         device: torch device of the outputs (the physics runs on the CPU).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import AntGoalEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = AntGoalEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([1.0, -2.0]).expand(2, 3, -1)  # goal (x, y)
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 119]), True)
     """
 
     identifier_names = GOAL_NAMES

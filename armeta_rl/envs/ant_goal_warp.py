@@ -123,7 +123,7 @@ class WarpBatch:
         """Run ``launch`` (warp kernels) after torch's pending work and before torch's next; as a
         CUDA graph captured at its first call when ``graphs``. Resets are replayed too: some of
         the batch's worlds end at nearly every step, and mujoco_warp's ``reset_data`` builds and
-        hashes its kernels anew at each call (22 ms a call on an H100), while the replay reads
+        hashes its kernels anew at each call, while the replay reads
         the reset mask as the env last wrote it."""
         if self.device.is_cuda:
             torch.cuda.synchronize(self.torch_device)

@@ -80,6 +80,13 @@ class IdentifiedSystemEnv(EnvBase):
             name, :func:`~armeta_rl.compiling.compile_backend`), in ``env.rollout`` and
             :meth:`transitions` alike. The compiled step rounds differently from the eager one;
             the env is then no longer picklable.
+
+    Examples:
+        >>> from armeta_rl.envs import IdentifiedSystemEnv, PendulumEnv
+        >>> issubclass(PendulumEnv, IdentifiedSystemEnv)
+        True
+        >>> PendulumEnv(batch_size=(2, 3), identifiers=["m", "l", "g"]).param_names
+        ('m', 'l', 'g')
     """
 
     param_names: tuple[str, ...] = ()

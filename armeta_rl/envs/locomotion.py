@@ -160,7 +160,20 @@ class HalfCheetahTaskEnv(PlanarRunnerEnv):
 class HalfCheetahVelEnv(HalfCheetahTaskEnv):
     """HalfCheetah-Vel: run at a hidden target velocity; reward ``−|v − goal_velocity| −
     ctrl_cost_weight·‖a‖²`` (module docstring). Arguments as :class:`HalfCheetahTaskEnv`;
-    velocities never set are drawn from U(0, 2)."""
+    velocities never set are drawn from U(0, 2).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import HalfCheetahVelEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = HalfCheetahVelEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([1.5]).expand(2, 3, -1)  # target velocity
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 20]), True)
+    """
 
     identifier_names = ("goal_velocity",)
 
@@ -179,7 +192,20 @@ class HalfCheetahVelEnv(HalfCheetahTaskEnv):
 class HalfCheetahDirEnv(HalfCheetahTaskEnv):
     """HalfCheetah-Dir: run forward or backward; reward ``d·v − ctrl_cost_weight·‖a‖²`` with
     ``d = +1`` where the identifier ``direction ≥ 0``, else ``−1`` (module docstring). Arguments
-    as :class:`HalfCheetahTaskEnv`; directions never set are ±1 with probability ½ each."""
+    as :class:`HalfCheetahTaskEnv`; directions never set are ±1 with probability ½ each.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import HalfCheetahDirEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = HalfCheetahDirEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([-1.0]).expand(2, 3, -1)  # backward
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 20]), True)
+    """
 
     identifier_names = ("direction",)
     identifier_low, identifier_high = -1.0, 1.0
@@ -213,6 +239,18 @@ class Walker2dVelEnv(PlanarRunnerEnv):
             ``None``: one per CPU core).
         seed: seed of the generator for reset noise and default velocities (U(0, 2)).
         device: torch device of the outputs (the physics runs on the CPU).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import Walker2dVelEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = Walker2dVelEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([1.5]).expand(2, 3, -1)  # target velocity
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 20]), True)
     """
 
     xml = "walker2d_v5.xml"

@@ -98,7 +98,13 @@ _OBJECTS = {
 @dataclass(frozen=True)
 class PhysicsParameter:
     """One identifier dimension: the model parameter ``kind`` of ``target``, ranging in
-    ``[low, high]`` (see the module docstring for the kinds)."""
+    ``[low, high]`` (see the module docstring for the kinds).
+
+    Examples:
+        >>> from armeta_rl.envs.mujoco_tasks import PhysicsParameter
+        >>> PhysicsParameter("pole_mass", "body_mass_scale", target="pole", low=0.5, high=2.0).kind
+        'body_mass_scale'
+    """
 
     name: str
     kind: str
@@ -115,6 +121,15 @@ def parse_parameters(
     Raises:
         ConfigError: an unknown kind or field, a missing target, a target given to ``gravity_z``,
             or a range that is not ``low < high`` (finite).
+
+    Examples:
+        >>> from armeta_rl.envs.mujoco_tasks import parse_parameters
+        >>> parse_parameters([{"name": "g", "kind": "gravity_z", "low": -12.0, "high": -8.0}])
+        [PhysicsParameter(name='g', kind='gravity_z', target=None, low=-12.0, high=-8.0)]
+        >>> parse_parameters([{"kind": "body_mass_scale", "low": 0.5, "high": 2.0}])
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.ConfigError: config key 'task_family.parameters[0].target' = None: ...
     """
     if not entries:
         raise ConfigError(key, list(entries), "needs at least one {name, kind, target, low, high}")
@@ -151,14 +166,29 @@ def parse_parameters(
 
 
 def task_space(parameters: Sequence[PhysicsParameter]) -> TaskSpace:
-    """The task box of the parameters' ranges."""
+    """The task box of the parameters' ranges.
+
+    Examples:
+        >>> from armeta_rl.envs.mujoco_tasks import parse_parameters, task_space
+        >>> gravity = {"name": "g", "kind": "gravity_z", "low": -12, "high": -8}
+        >>> task_space(parse_parameters([gravity]))
+        TaskSpace(names=('g',), low=(-12.0,), high=(-8.0,))
+    """
     return TaskSpace([p.name for p in parameters], [p.low for p in parameters],
                      [p.high for p in parameters])
 
 
 @dataclass(frozen=True)
 class TaskFamily:
-    """A task family read from YAML: the gymnasium env id (or ``None``), its parameters and box."""
+    """A task family read from YAML: the gymnasium env id (or ``None``), its parameters and box.
+
+    Examples:
+        >>> from armeta_rl.config_files import config_files
+        >>> from armeta_rl.envs.mujoco_tasks import load_task_family
+        >>> family = load_task_family(config_files() / "task_family" / "hopper.yaml")
+        >>> family.env, family.space.dim == len(family.parameters)
+        ('Hopper-v5', True)
+    """
 
     env: str | None
     parameters: tuple[PhysicsParameter, ...]
@@ -166,7 +196,16 @@ class TaskFamily:
 
 
 def load_task_family(source: str | os.PathLike | Mapping[str, Any]) -> TaskFamily:
-    """Read a task family (``{env, parameters}``) from a YAML file or a mapping."""
+    """Read a task family (``{env, parameters}``) from a YAML file or a mapping.
+
+    Examples:
+        >>> from armeta_rl.envs.mujoco_tasks import load_task_family
+        >>> pole = {"name": "pole_mass", "kind": "body_mass_scale", "target": "pole",
+        ...         "low": 0.5, "high": 2}
+        >>> family = load_task_family({"env": "InvertedPendulum-v5", "parameters": [pole]})
+        >>> family.space
+        TaskSpace(names=('pole_mass',), low=(0.5,), high=(2.0,))
+    """
     if isinstance(source, Mapping):
         config = dict(source)
     else:
@@ -342,6 +381,18 @@ class PhysicsTaskTransform(Transform):
             transform first meets its env), or an env whose MjModel it cannot reach.
         IdentifierError (a ValueError): identifiers of the wrong width or batch shape,
             non-finite, or outside the box.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.envs import TransformedEnv
+        >>> from armeta_rl.envs.mujoco_tasks import PhysicsTaskTransform, gym_env
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> gravity = {"name": "g", "kind": "gravity_z", "low": -12.0, "high": -8.0}
+        >>> env = TransformedEnv(gym_env("InvertedPendulum-v5"), PhysicsTaskTransform([gravity]))
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: torch.tensor([-9.0])}, []))
+        >>> env.rollout(3, tensordict=start, auto_reset=False)[TASK_KEY].squeeze(-1)
+        tensor([-9., -9., -9.])
     """
 
     def __init__(
@@ -484,7 +535,15 @@ class PhysicsTaskTransform(Transform):
 
 class MujocoWarning(UserWarning):
     """A warning MuJoCo's C library raised (through ``mju_warning``), e.g. the compiler's
-    deprecation of ``settotalmass`` in gymnasium's HalfCheetah model."""
+    deprecation of ``settotalmass`` in gymnasium's HalfCheetah model.
+
+    Examples:
+        >>> import warnings
+        >>> from armeta_rl.envs.mujoco_tasks import MujocoWarning, gym_env
+        >>> with warnings.catch_warnings():
+        ...     warnings.simplefilter("ignore", MujocoWarning)  # MuJoCo's compiler warnings
+        ...     env = gym_env("InvertedPendulum-v5")
+    """
 
 
 _ISSUED: set[str] = set()
@@ -499,7 +558,15 @@ def gym_env(env_id: str, **gym_kwargs: Any) -> GymEnv:
     times for the 24 envs of the PPO example); each is issued once per process. They are
     collected during construction (TorchRL's ``GymEnv`` records and drops
     the Python warnings raised inside ``gym.make``) and issued after it; MuJoCo's own handler is
-    restored."""
+    restored.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.envs.mujoco_tasks import gym_env
+        >>> env = gym_env("InvertedPendulum-v5")
+        >>> env.batch_size, env.action_spec.shape
+        (torch.Size([]), torch.Size([1]))
+    """
     messages: list[str] = []
     previous = mujoco.get_mju_user_warning()
     mujoco.set_mju_user_warning(messages.append)
@@ -523,7 +590,22 @@ def make_gym_task_env(
     """A TorchRL env of the family's gymnasium env whose physics follow ``"params"``: one
     ``GymEnv`` (batch ``[]``) if ``num_tasks`` is ``None``, else a ``SerialEnv`` of ``num_tasks``
     of them (batch ``[num_tasks]``, one task each). ``max_steps`` adds a ``StepCounter`` that
-    truncates episodes after that many steps."""
+    truncates episodes after that many steps.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs.mujoco_tasks import load_task_family, make_gym_task_env
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> pole = {"name": "pole_mass", "kind": "body_mass_scale", "target": "pole",
+        ...         "low": 0.5, "high": 2}
+        >>> family = load_task_family({"env": "InvertedPendulum-v5", "parameters": [pole]})
+        >>> env = make_gym_task_env(family, num_tasks=2, max_steps=50)  # a SerialEnv, one task each
+        >>> tasks = TensorDict({TASK_KEY: torch.tensor([[0.5], [2.0]])}, [2])
+        >>> start = reset_with_identifiers(env, tasks)
+        >>> env.rollout(3, tensordict=start, auto_reset=False).batch_size
+        torch.Size([2, 3])
+    """
     if family.env is None:
         raise ConfigError("task_family.env", None, "a gymnasium MuJoCo env id, e.g. HalfCheetah-v5")
     if num_tasks is None:
@@ -558,6 +640,16 @@ def physics_task_env(
 
     Raises:
         ConfigError: bad parameters, or a box that does not match them.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.envs import AntGoalEnv
+        >>> from armeta_rl.envs.mujoco_tasks import physics_task_env
+        >>> friction = {"name": "friction", "kind": "geom_friction_scale", "target": "all",
+        ...             "low": 0.5, "high": 1.5}
+        >>> env = physics_task_env(AntGoalEnv, [friction], batch_size=(2, 3))
+        >>> env.state_spec["params"].shape  # [goal_x, goal_y, friction]
+        torch.Size([2, 3, 3])
     """
     if isinstance(parameters, (DictConfig, ListConfig)):
         parameters = OmegaConf.to_container(parameters, resolve=True)

@@ -27,6 +27,18 @@ class PendulumEnv(IdentifiedSystemEnv):
     Entries: ``"observation"`` (cos θ, sin θ, θ̇), ``"state"`` (θ, θ̇), ``"params"`` (m, l by
     default; ``identifiers=("m", "l", "g")`` adds gravity, any subset of the three may be
     chosen), ``"action"`` ``[*batch, 1]`` (the torque).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import PendulumEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = PendulumEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # mass, length
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 3]), True)
     """
 
     param_names = ("m", "l")
@@ -58,8 +70,8 @@ class PendulumEnv(IdentifiedSystemEnv):
         ones = params.new_ones(params.shape[0])
         mass, length, g = (named.get(name, ones * self.identifier_defaults[name])
                            for name in ("m", "l", "g"))
-        # reciprocal then product, as ``3 * 10.0 / tensor`` computes it (Tensor.__rtruediv__):
-        # the same rounding as before gravity became an identifier
+        # reciprocal then product, the rounding of ``3 * 10.0 / tensor`` (Tensor.__rtruediv__),
+        # which the seeded pendulum results are computed with
         gravity = (2 * length).reciprocal() * (3 * g) * self.dt
         inertia = 3.0 / (mass * length**2) * self.dt
         return torch.stack([gravity, inertia], -1)

@@ -215,6 +215,18 @@ class PointNavigationEnv(EnvBase):
         seed: seed of the generator that draws default goals.
         device: torch device.
         graphs: replay :meth:`gaussian_transitions` as CUDA graphs (``None``: on CUDA).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import PointNavigationEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = PointNavigationEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([0.3, -0.2]).expand(2, 3, -1)  # goal (x, y)
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 2]), True)
     """
 
     def __init__(

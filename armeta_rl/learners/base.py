@@ -45,6 +45,20 @@ class Leader(Protocol):
     a fresh :meth:`collect`; otherwise (regression, system identification) they are scored on the
     step's own data, as the follower update of paper Algorithms 1 and 2 does
     (L(D^Q_τ; θ_{t+1}) on the same D^S, D^Q).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import Leader, MAMLLeader, make_mlp
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector())
+        >>> isinstance(leader, Leader)
+        True
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> data = leader.collect(BoxUniform(space).sample(4))  # the loop's three verbs
+        >>> per_task, stats = leader.step(data, weights=lambda losses: losses / losses.sum())
+        >>> leader.evaluate(data).shape  # per-task loss after adaptation at the new θ
+        torch.Size([4])
     """
 
     metric: str

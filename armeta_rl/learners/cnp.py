@@ -102,6 +102,19 @@ class CNPLeader(OneNetworkLeader):
 
     :meth:`evaluate` always reports the mean squared error of the predicted mean (``metric="mse"``),
     like MAML, whichever likelihood trains the network.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import CNPLeader
+        >>> from armeta_rl.learners.cnp import CnpOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> leader = CNPLeader(1, 1, SinusoidCollector(), CnpOptions(hidden=16))
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> data = leader.collect(BoxUniform(space).sample(4))
+        >>> per_task, _ = leader.step(data, weights=lambda losses: losses / losses.sum())
+        >>> per_task["loss"].shape
+        torch.Size([4])
     """
 
     metric = "mse"

@@ -84,6 +84,20 @@ class MAMLLeader(OneNetworkLeader):
         model: the network; its parameters are θ.
         collector: produces support/query data for a batch of tasks.
         options: the keys of ``learner.maml`` (:class:`MamlOptions`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import MAMLLeader, make_mlp
+        >>> from armeta_rl.learners.maml import MamlOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> options = MamlOptions(inner_lr=0.01, inner_steps=1)
+        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector(), options)
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> data = leader.collect(BoxUniform(space).sample(4))
+        >>> per_task, _ = leader.step(data, weights=lambda losses: torch.full_like(losses, 0.25))
+        >>> per_task["loss"].shape, leader.metric
+        (torch.Size([4]), 'mse')
     """
 
     metric = "mse"

@@ -137,6 +137,20 @@ class MAMLTRPOLeader:
         inner_loss: builds the inner objective, a TorchRL loss module, from the policy's actor
             (:func:`~armeta_rl.rl.losses.reinforce_loss`, TorchRL's ``A2CLoss``, by default; see
             :func:`~armeta_rl.rl.losses.check_loss_module` for what it must be).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors.episodes import PointNavigationCollector
+        >>> from armeta_rl.learners import MAMLTRPOLeader
+        >>> from armeta_rl.learners.maml_trpo import MamlTrpoOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> collector = PointNavigationCollector(episodes=2, max_steps=5)
+        >>> leader = MAMLTRPOLeader(collector, MamlTrpoOptions(hidden_sizes=[8]))
+        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
+        >>> data = leader.collect(BoxUniform(space).sample(3), create_graph=True)
+        >>> per_task, stats = leader.step(data, weights=lambda losses: torch.full((3,), 1 / 3))
+        >>> per_task["loss"].shape, leader.metric  # the loss is minus the return after adaptation
+        (torch.Size([3]), 'return')
     """
 
     metric = "return"

@@ -99,7 +99,15 @@ def make_mlp(in_features: int, out_features: int, hidden: Sequence[int] = (128, 
              head: str = "none") -> MLP | TiedAngleHead:
     """MLP ``in → hidden… → out`` with ReLU between layers (paper: 3×128, ReLU); with
     ``head="tied_angle"`` the paper's system-identification head on an MLP with ``out / 3``
-    outputs (:class:`TiedAngleHead`)."""
+    outputs (:class:`TiedAngleHead`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.learners import make_mlp
+        >>> net = make_mlp(1, 1, hidden=[32, 32])
+        >>> net(torch.zeros(5, 1)).shape
+        torch.Size([5, 1])
+    """
     if not hidden or any(int(h) < 1 for h in hidden):
         raise ConfigError("learner.maml.hidden", list(hidden), "needs one or more sizes >= 1")
     if head not in HEADS:

@@ -45,8 +45,7 @@ def curves_path(results: Path, experiment: str) -> Path:
 
 def run_curve(run_dir: Path) -> dict[int, dict[str, float]]:
     """Iteration → the run's logged scalars of :data:`CURVES` at that iteration; empty when the
-    run has no CSV log. The gain of runs logged before it was a scalar is return_post −
-    return_pre."""
+    run has no CSV log. A run whose log has no gain scalar gets return_post − return_pre."""
     scalars = run_dir / CSV_LOG_DIR / "scalars"
     rows: dict[int, dict[str, float]] = {}
     for column, name in CURVES.items():

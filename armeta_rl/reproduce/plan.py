@@ -20,8 +20,8 @@ from typing import Any
 
 from omegaconf import OmegaConf
 
-from armeta_rl.cli import config_files
 from armeta_rl.config import CONFIG_FILE
+from armeta_rl.config_files import config_files
 from armeta_rl.errors import ConfigError
 
 PROFILES_FILE = "profiles.yaml"

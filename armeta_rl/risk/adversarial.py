@@ -96,6 +96,18 @@ class AdversarialPrinciple(nn.Module):
             follower updates (the builder: ``trainer.iterations // update_every``).
         reference_loss: the benchmark's reference loss L*(τ) ``[K]`` of identifiers ``[K, d]``,
             needed by ``signal="regret"`` (the builder: the collector's ``reference_loss``).
+
+    Examples:
+        >>> from armeta_rl.adversary import FlowAdversary
+        >>> from armeta_rl.risk import AdversarialPrinciple
+        >>> from armeta_rl.risk.adversarial import ArOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> space = TaskSpace(["x"], low=[0.0], high=[1.0])
+        >>> adversary = FlowAdversary(space, BoxUniform(space))
+        >>> principle = AdversarialPrinciple(adversary, ArOptions(lam=0.0), total_updates=10)
+        >>> tasks = principle.propose(8)
+        >>> sorted(principle.update(tasks, losses=tasks["params"][:, 0]))  # one step of p_φ
+        ['adversary/entropy', 'adversary/grad_norm', 'adversary/kl_p0', 'adversary/lr', ...]
     """
 
     needs_next_losses = True

@@ -20,6 +20,17 @@ class RiskPrinciple(Protocol):
     output of the leader's step that :meth:`update` reads: ``"loss"``, the task loss, for every
     principle but MPTS's and PDTS's meta-RL option ``label=last_step``
     (``"last_step_loss"``, :meth:`~armeta_rl.learners.maml_trpo.MAMLTRPOLeader.scores`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import ERMPrinciple, RiskPrinciple
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> principle = ERMPrinciple(BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0])))
+        >>> isinstance(principle, RiskPrinciple)
+        True
+        >>> tasks = principle.propose(4)  # where tasks come from
+        >>> principle.weights(torch.tensor([1.0, 2.0, 3.0, 4.0]), tasks)  # how losses weigh
+        tensor([0.2500, 0.2500, 0.2500, 0.2500])
     """
 
     update_every: int

@@ -22,6 +22,14 @@ class ERMPrinciple(nn.Module):
 
     Args:
         initial: p0.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import ERMPrinciple
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> principle = ERMPrinciple(BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0])))
+        >>> principle.propose(3)["params"].shape, principle.update_every  # never updated
+        (torch.Size([3, 1]), 0)
     """
 
     update_every = 0

@@ -161,6 +161,19 @@ class WorstCasePrinciple(_GroupPrinciple):
     Args:
         initial: p0, where every task comes from.
         options: the keys of ``risk.tr`` (:class:`TrOptions`): the grid and η of the ascent step.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import WorstCasePrinciple
+        >>> from armeta_rl.risk.groups import TrOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
+        >>> principle = WorstCasePrinciple(p0, TrOptions(groups_per_axis=3, step_size=0.1))
+        >>> tasks = principle.propose(3)
+        >>> tasks["params"] = torch.tensor([[0.1], [0.5], [0.9]])  # one task per group
+        >>> _ = principle.update(tasks, torch.tensor([1.0, 2.0, 3.0]))
+        >>> principle.weights(torch.tensor([1.0, 2.0, 3.0]), tasks)  # q moved to the worst group
+        tensor([0.2333, 0.3333, 0.4333])
     """
 
     def __init__(self, initial: TaskDistribution, options: TrOptions = TrOptions()) -> None:
@@ -181,6 +194,19 @@ class GroupDROPrinciple(_GroupPrinciple):
         initial: p0, where every task comes from.
         options: the keys of ``risk.dro`` (:class:`DroOptions`): the grid and η of the
             exponentiated-gradient step.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import GroupDROPrinciple
+        >>> from armeta_rl.risk.groups import DroOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
+        >>> principle = GroupDROPrinciple(p0, DroOptions(groups_per_axis=3, step_size=0.1))
+        >>> tasks = principle.propose(3)
+        >>> tasks["params"] = torch.tensor([[0.1], [0.5], [0.9]])  # one task per group
+        >>> _ = principle.update(tasks, torch.tensor([1.0, 2.0, 3.0]))
+        >>> principle.weights(torch.tensor([1.0, 2.0, 3.0]), tasks)  # q ∝ exp(η · group loss)
+        tensor([0.3006, 0.3322, 0.3672])
     """
 
     def __init__(self, initial: TaskDistribution, options: DroOptions = DroOptions()) -> None:

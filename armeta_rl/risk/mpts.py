@@ -100,6 +100,18 @@ class MPTSPrinciple(PredictivePrinciple):
     Args:
         initial: p0.
         options: the keys of ``risk.mpts`` (:class:`MptsOptions`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import MPTSPrinciple
+        >>> from armeta_rl.risk.mpts import MptsOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
+        >>> principle = MPTSPrinciple(p0, MptsOptions(candidate_ratio=4.0))
+        >>> tasks = principle.propose(4)  # the 4 of 16 candidates the predictor scores highest
+        >>> stats = principle.update(tasks, losses=tasks["params"][:, 0])  # trains the predictor
+        >>> tasks.batch_size, sorted(stats)
+        (torch.Size([4]), ['risk/elbo', 'risk/kl', 'risk/pcc', 'risk/reconstruction', ...])
     """
 
     def __init__(self, initial: TaskDistribution, options: MptsOptions = MptsOptions()) -> None:

@@ -112,6 +112,18 @@ class PDTSPrinciple(PredictivePrinciple):
     Args:
         initial: p0.
         options: the keys of ``risk.pdts`` (:class:`PdtsOptions`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import PDTSPrinciple
+        >>> from armeta_rl.risk.pdts import PdtsOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
+        >>> principle = PDTSPrinciple(p0, PdtsOptions(candidate_ratio=8.0))
+        >>> tasks = principle.propose(4)  # 4 diverse, high-risk tasks of 32 candidates
+        >>> stats = principle.update(tasks, losses=tasks["params"][:, 0])
+        >>> tasks.batch_size, "risk/elbo" in stats
+        (torch.Size([4]), True)
     """
 
     def __init__(self, initial: TaskDistribution, options: PdtsOptions = PdtsOptions()) -> None:

@@ -28,6 +28,16 @@ class PrincipleSampler:
         principle: any :class:`~armeta_rl.risk.base.RiskPrinciple` (e.g.
             ``MPTSPrinciple(BoxUniform(space))``); it is updated every ``update_every`` calls of
             :meth:`update`, as in the trainer.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import PrincipleSampler, TailRiskPrinciple
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
+        >>> sampler = PrincipleSampler(TailRiskPrinciple(p0))
+        >>> tasks = sampler.sample(4)
+        >>> sorted(sampler.update(tasks, torch.tensor([1.0, 2.0, 3.0, 4.0])))
+        ['risk/cvar', 'risk/var']
     """
 
     def __init__(self, principle: RiskPrinciple) -> None:

@@ -90,6 +90,19 @@ class TailRiskPrinciple(nn.Module):
     It has no follower; its :meth:`update` reports VaR_α and CVaR_α of each step's own losses
     (``update_every = 1`` on the step's losses, ``needs_next_losses = False``: no extra
     evaluation).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.risk import TailRiskPrinciple
+        >>> from armeta_rl.risk.tail import DrOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
+        >>> principle = TailRiskPrinciple(p0, DrOptions(alpha=0.5))
+        >>> tasks, losses = principle.propose(4), torch.tensor([1.0, 2.0, 3.0, 4.0])
+        >>> principle.weights(losses, tasks)  # the worst half of the batch
+        tensor([0.0000, 0.0000, 0.5000, 0.5000])
+        >>> principle.update(tasks, losses)
+        {'risk/var': 3.0, 'risk/cvar': 3.5}
     """
 
     update_every = 1

@@ -20,6 +20,16 @@ def discounted_returns(trajectories: TensorDictBase, gamma: float) -> Tensor:
 
     With λ = 1 and zero values, GAE's advantage is exactly Σ_{l≥0} γ^l r_{t+l} up to the episode's
     end, so torchrl's ``generalized_advantage_estimate`` computes it.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.rl.baseline import discounted_returns
+        >>> done = torch.tensor([False, False, True]).reshape(1, 1, 3, 1)
+        >>> steps = TensorDict({"reward": torch.ones(1, 1, 3, 1), "done": done,
+        ...                     "mask": torch.ones(1, 1, 3).bool()}, [1, 1, 3])  # 1 episode
+        >>> discounted_returns(steps, gamma=0.5).flatten()
+        tensor([1.7500, 1.5000, 1.0000])
     """
     reward = trajectories["reward"] * trajectories["mask"].unsqueeze(-1)
     done = trajectories["done"]
@@ -30,7 +40,17 @@ def discounted_returns(trajectories: TensorDictBase, gamma: float) -> Tensor:
 
 def baseline_features(trajectories: TensorDictBase) -> Tensor:
     """Features ``[K, E, T, 2·obs_dim + 4]``: [s, s², t/100, (t/100)², (t/100)³, 1], zero on
-    masked steps."""
+    masked steps.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.rl.baseline import baseline_features
+        >>> steps = TensorDict({"observation": torch.zeros(1, 1, 3, 2),
+        ...                     "mask": torch.ones(1, 1, 3).bool()}, [1, 1, 3])
+        >>> baseline_features(steps).shape  # 2 · obs_dim + 4
+        torch.Size([1, 1, 3, 8])
+    """
     observation = trajectories["observation"]
     mask = trajectories["mask"].unsqueeze(-1).to(observation.dtype)
     steps = trajectories.batch_size[-1]
@@ -49,6 +69,13 @@ def fit_linear_baseline(features: Tensor, targets: Tensor, reg: float = 1e-5) ->
 
     Solves the normal equations (X_kᵀX_k + reg·I) c_k = X_kᵀ y_k for all tasks at once with
     ``torch.linalg.solve`` on ``[K, f, f]`` (in float64).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.baseline import fit_linear_baseline
+        >>> features = torch.tensor([[[1.0], [2.0], [3.0]]])  # [K=1, 3 points, 1 feature]
+        >>> fit_linear_baseline(features, targets=2 * features[..., 0], reg=0.0)
+        tensor([[2.]])
     """
     n_tasks, n_features = features.shape[0], features.shape[-1]
     design = features.reshape(n_tasks, -1, n_features).double()
@@ -60,7 +87,19 @@ def fit_linear_baseline(features: Tensor, targets: Tensor, reg: float = 1e-5) ->
 
 
 def baseline_values(trajectories: TensorDictBase, gamma: float, reg: float = 1e-5) -> Tensor:
-    """Values ``[K, E, T, 1]`` of the linear baseline refit on each task's own episodes."""
+    """Values ``[K, E, T, 1]`` of the linear baseline refit on each task's own episodes.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.rl.baseline import baseline_values
+        >>> steps = TensorDict({"observation": torch.randn(2, 4, 3, 2),
+        ...                     "reward": torch.randn(2, 4, 3, 1),
+        ...                     "done": torch.zeros(2, 4, 3, 1).bool(),
+        ...                     "mask": torch.ones(2, 4, 3).bool()}, [2, 4, 3])
+        >>> baseline_values(steps, gamma=0.99).shape
+        torch.Size([2, 4, 3, 1])
+    """
     features = baseline_features(trajectories)
     coefficients = fit_linear_baseline(features, discounted_returns(trajectories, gamma), reg)
     flat = features.reshape(features.shape[0], -1, features.shape[-1])
@@ -70,7 +109,16 @@ def baseline_values(trajectories: TensorDictBase, gamma: float, reg: float = 1e-
 
 def episode_mean(values: Tensor, mask: Tensor) -> Tensor:
     """Per-task mean ``[K]`` over episodes of each episode's time-average over its valid steps
-    (pytorch-maml-rl's ``weighted_mean``); ``values`` and ``mask`` are ``[K, E, T]``."""
+    (pytorch-maml-rl's ``weighted_mean``); ``values`` and ``mask`` are ``[K, E, T]``.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.baseline import episode_mean
+        >>> values = torch.tensor([[[1.0, 2.0, 3.0], [4.0, 9.0, 9.0]]])
+        >>> mask = torch.tensor([[[True, True, True], [True, False, False]]])
+        >>> episode_mean(values, mask)  # the mean of the episodes' means, 2 and 4
+        tensor([3.])
+    """
     weights = mask.to(values.dtype)
     per_episode = (values * weights).sum(-1) / weights.sum(-1).clamp_min(1.0)
     return per_episode.mean(-1)
@@ -87,6 +135,12 @@ def normalize_per_task(advantages: Tensor, mask: Tensor, eps: float = 1e-8) -> T
     episode dominate the inner step.
 
     ``advantages`` ``[K, E, T]`` and bool ``mask`` ``[K, E, T]``.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.baseline import normalize_per_task
+        >>> normalize_per_task(torch.tensor([[[1.0, 2.0, 3.0]]]), torch.ones(1, 1, 3).bool())
+        tensor([[[-1.2247,  0.0000,  1.2247]]])
     """
     weights = mask.to(advantages.dtype)
     mean = episode_mean(advantages, mask)[:, None, None]
@@ -102,6 +156,18 @@ def gae_advantages(trajectories: TensorDictBase, gamma: float = 0.99, lmbda: flo
 
     torchrl's ``generalized_advantage_estimate`` with V(s_t) from the baseline, V(s_{t+1}) the
     next step's value, and episodes ending at ``done`` (goal reached or time limit).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors.episodes import PointNavigationCollector
+        >>> from armeta_rl.rl import GaussianMLP
+        >>> from armeta_rl.rl.baseline import gae_advantages
+        >>> tasks = TensorDict({"params": torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
+        >>> collector = PointNavigationCollector(episodes=4, max_steps=5)
+        >>> steps = collector.collect(tasks, policy=GaussianMLP())
+        >>> gae_advantages(steps, gamma=0.99, lmbda=1.0).shape  # [tasks, episodes, steps]
+        torch.Size([2, 4, 5])
     """
     mask = trajectories["mask"]
     values = baseline_values(trajectories, gamma, reg) * mask.unsqueeze(-1)

@@ -31,6 +31,14 @@ class GaussianMLP(nn.Module):
     """Observation ``[..., obs_dim]`` -> (loc, scale) ``[..., action_dim]`` each.
 
     Weights use Xavier-uniform and biases zero, as in pytorch-maml-rl; ``log_std`` starts at 0.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl import GaussianMLP
+        >>> net = GaussianMLP(obs_dim=2, action_dim=2, hidden=(16, 16))
+        >>> loc, scale = net(torch.zeros(5, 2))
+        >>> loc.shape, scale[0]  # log_std starts at 0
+        (torch.Size([5, 2]), tensor([1., 1.], grad_fn=<SelectBackward0>))
     """
 
     def __init__(
@@ -124,7 +132,17 @@ class PerTaskLocScale(TensorDictModuleBase):
 def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> ProbabilisticActor:
     """A TorchRL ``ProbabilisticActor`` reading ``"observation"`` and writing ``"loc"``,
     ``"scale"``, ``"action"`` and ``"action_log_prob"``; with ``params`` ``[K]`` it acts with task
-    ``k``'s parameters on batch entries ``[k, ...]``."""
+    ``k``'s parameters on batch entries ``[k, ...]``.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.envs import PointNavigationEnv
+        >>> from armeta_rl.rl import GaussianMLP, make_actor
+        >>> actor = make_actor(GaussianMLP(obs_dim=2, action_dim=2))
+        >>> steps = PointNavigationEnv(batch_size=(4,), seed=0).rollout(3, policy=actor)
+        >>> steps["action"].shape, steps["action_log_prob"].shape
+        (torch.Size([4, 3, 2]), torch.Size([4, 3]))
+    """
     return ProbabilisticActor(
         PerTaskLocScale(net, params),
         in_keys=["loc", "scale"],

@@ -18,12 +18,27 @@ from armeta_rl.rl.policy import kl_divergence
 
 
 def flatten(tensors: Sequence[Tensor]) -> Tensor:
-    """Concatenate tensors into one flat vector."""
+    """Concatenate tensors into one flat vector.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import flatten
+        >>> flatten([torch.ones(2, 2), torch.zeros(3)])
+        tensor([1., 1., 1., 1., 0., 0., 0.])
+    """
     return torch.cat([t.reshape(-1) for t in tensors])
 
 
 def unflatten(vector: Tensor, like: Sequence[Tensor]) -> list[Tensor]:
-    """Split a flat vector back into tensors shaped like ``like``."""
+    """Split a flat vector back into tensors shaped like ``like``.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import flatten, unflatten
+        >>> like = [torch.ones(2, 2), torch.zeros(3)]
+        >>> [t.shape for t in unflatten(flatten(like), like)]
+        [torch.Size([2, 2]), torch.Size([3])]
+    """
     out, start = [], 0
     for t in like:
         out.append(vector[start : start + t.numel()].view_as(t))
@@ -37,7 +52,16 @@ def surrogate_loss(
     """Per-task TRPO surrogate loss ``[K]``, −mean(π_θ(a|s)/q(a|s)·Â) over each task's episodes
     (Schulman et al. 2015, Eq. (14), negated to be minimized): ``log_prob`` is ln π_θ(a|s) of the
     policy being optimized and ``data_log_prob`` ln q(a|s) of the policy that sampled the actions,
-    all ``[K, E, T]`` with the valid steps in ``mask``."""
+    all ``[K, E, T]`` with the valid steps in ``mask``.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import surrogate_loss
+        >>> log_prob = torch.zeros(1, 1, 3)  # the sampling policy itself: ratio 1
+        >>> advantages, mask = torch.tensor([[[1.0, 2.0, 3.0]]]), torch.ones(1, 1, 3).bool()
+        >>> surrogate_loss(log_prob, log_prob, advantages, mask)
+        tensor([-2.])
+    """
     ratio = (log_prob - data_log_prob).exp()
     return -episode_mean(ratio * advantages, mask)
 
@@ -48,7 +72,15 @@ def mean_kl(
     """Per-task mean KL ``[K]`` over each task's episodes of the diagonal Gaussian policy
     (``loc``, ``scale``) from the old one, the trust-region constraint's divergence (Schulman et
     al. 2015, Eq. (14); measured as KL(π ‖ π_old), pytorch-maml-rl's direction: both directions
-    have the same Hessian, the Fisher matrix, at π = π_old)."""
+    have the same Hessian, the Fisher matrix, at π = π_old).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import mean_kl
+        >>> ones, mask = torch.ones(1, 1, 3, 2), torch.ones(1, 1, 3).bool()
+        >>> mean_kl(ones, ones, 0 * ones, ones, mask)  # loc moved by one σ on both action axes
+        tensor([1.])
+    """
     return episode_mean(kl_divergence(loc, scale, old_loc, old_scale), mask)
 
 
@@ -60,6 +92,13 @@ def conjugate_gradient(
 
     Returns (x, A x). CG keeps the residual r = b − A x up to date, so A x = b − r costs no extra
     product (TRPO needs it for the step size, Schulman et al. 2015, App. C).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import conjugate_gradient
+        >>> matrix = torch.diag(torch.tensor([2.0, 4.0]))
+        >>> conjugate_gradient(lambda v: matrix @ v, torch.tensor([2.0, 4.0]))
+        (tensor([1.0000, 1.0000]), tensor([2.0000, 4.0000]))
     """
     x = torch.zeros_like(b)
     r = b.clone()
@@ -102,6 +141,22 @@ def meta_kl_hessian_vector_product(
     recomputing a forward pass: ``J v`` (through the inner step, w.r.t. the broadcast θ),
     ``J_out (J v)`` (the reverse-over-reverse trick: differentiate the pullback of the outputs
     w.r.t. its cotangent), ``H_out (·)``, ``J_outᵀ (·)`` and ``Σ_k J_k (·)`` (to θ).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import meta_kl_hessian_vector_product
+        >>> theta = torch.tensor([0.5], requires_grad=True)
+        >>> broadcast = theta.expand(2, 1)  # K = 2 tasks
+        >>> adapted = broadcast * 1.0  # θ'_k = θ: no inner step, J_k = I
+        >>> leaf = adapted.detach().requires_grad_(True)
+        >>> x = torch.tensor([[1.0], [2.0]])
+        >>> loc = leaf * x  # the policy's output on each task's data
+        >>> def kl(outs):  # a KL with unit curvature in loc
+        ...     return 0.5 * ((outs[0] - loc.detach()) ** 2).sum()
+        >>> hvp = meta_kl_hessian_vector_product(kl, [loc], [leaf], [broadcast], [adapted], [theta],
+        ...                                      damping=0.0)
+        >>> hvp(torch.tensor([1.0]))  # Σ_k x_k² · v
+        tensor([5.])
     """
     outputs = list(outputs)
     output_leaves = [o.detach().requires_grad_(True) for o in outputs]
@@ -132,7 +187,15 @@ def trust_region_step(
     """The full natural-gradient step s = √(2δ / gᵀF⁻¹g)·F⁻¹g (Schulman et al. 2015, App. C;
     to be *subtracted* from θ), with
     F⁻¹g from conjugate gradient; its quadratic KL model ½ sᵀFs equals δ = ``max_kl`` (F s from
-    conjugate gradient's residual: ``cg_iterations`` products in all)."""
+    conjugate gradient's residual: ``cg_iterations`` products in all).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import trust_region_step
+        >>> step = trust_region_step(torch.tensor([1.0, 0.0]), hvp=lambda v: 2 * v, max_kl=0.01)
+        >>> step, 0.5 * step @ (2 * step)  # its quadratic KL is max_kl
+        (tensor([0.1000, 0.0000]), tensor(0.0100))
+    """
     direction, product = conjugate_gradient(hvp, gradient, cg_iterations)
     half_curvature = 0.5 * (direction @ product)
     multiplier = torch.sqrt(half_curvature.clamp_min(1e-12) / max_kl)
@@ -153,6 +216,17 @@ def backtracking_line_search(
 
     ``evaluate(θ)`` returns (loss, KL) at θ. Returns (new θ, accepted i, loss and KL at the new
     θ), or (θ, None, ``old_loss``, 0) when no step qualifies, in which case θ is unchanged.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.rl.trpo import backtracking_line_search
+        >>> theta = torch.tensor([1.0, 1.0])
+        >>> def evaluate(t):  # (loss, KL from theta)
+        ...     return (t**2).sum(), ((t - theta) ** 2).sum()
+        >>> new, tried, loss, kl = backtracking_line_search(evaluate, theta, torch.ones(2),
+        ...                                                 old_loss=torch.tensor(2.0), max_kl=1.0)
+        >>> new, tried  # 0.8² · step: the first within the KL bound
+        (tensor([0.3600, 0.3600]), 2)
     """
     fraction = 1.0
     for i in range(max_steps):

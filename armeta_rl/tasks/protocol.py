@@ -119,6 +119,17 @@ def reset_with_identifiers(env: EnvBase, tensordict: TensorDictBase) -> TensorDi
     envs forward them), so torchrl counts such a reset as one carrying a state: a batched env of
     the system-identification envs honors it in torchrl 0.14 with a ``FutureWarning`` that from
     0.15 a reset not asking for its state ignores it, which would silently keep the old tasks.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import PendulumEnv
+        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> env = PendulumEnv(batch_size=(2, 3), seed=0)
+        >>> identifiers = torch.tensor([0.5, 1.5]).expand(2, 3, 2)
+        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: identifiers}, [2, 3]))
+        >>> bool((start[TASK_KEY] == identifiers).all())
+        True
     """
     if env._supports_set_state:
         return env.reset(tensordict, set_state=True)

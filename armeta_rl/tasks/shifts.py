@@ -28,6 +28,7 @@ import torch
 from omegaconf import OmegaConf
 from torch import Tensor
 
+from armeta_rl.config_files import config_files, group_choices
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.space import TaskSpace
@@ -100,14 +101,11 @@ def shift_seed(seed: int, name: str) -> int:
 
 def suite_names() -> list[str]:
     """The suites in ``configs/shift_suites/``."""
-    from armeta_rl.cli import config_files
-
-    return sorted(path.stem for path in (config_files() / "shift_suites").glob("*.yaml"))
+    return group_choices("shift_suites")
 
 
 def suite_path(suite: str) -> Path:
-    from armeta_rl.cli import config_files
-
+    """The file of suite ``suite``: ``configs/shift_suites/<suite>.yaml``."""
     return config_files() / "shift_suites" / f"{suite}.yaml"
 
 

@@ -27,6 +27,15 @@ class TaskSpace:
         low: lower corner of the box.
         high: upper corner of the box; every ``high[i]`` must exceed ``low[i]``, also once both
             are rounded to float32 (the dtype of the identifiers tasks carry).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.tasks import TaskSpace
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> space.dim
+        2
+        >>> space.contains(torch.tensor([[1.0, 1.0], [6.0, 1.0]]))
+        tensor([ True, False])
     """
 
     names: tuple[str, ...]

@@ -63,6 +63,18 @@ class TaskTransform(Transform):
     ``"_reset"``) get fresh draws, one task per episode; the other entries keep theirs. The env
     reports its identifiers in every output as before, so ``ExcludeTransform(key)`` after this
     transform drops them from the data with consistent specs.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs import Compose, StepCounter, TransformedEnv
+        >>> from armeta_rl.envs import PointNavigationEnv
+        >>> from armeta_rl.tasks import TASK_KEY, BoxUniform, TaskSpace, TaskTransform
+        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
+        >>> env = TransformedEnv(PointNavigationEnv(batch_size=(4,), seed=0),
+        ...                      Compose(TaskTransform(BoxUniform(space)), StepCounter(5)))
+        >>> goals = env.rollout(5)[TASK_KEY]  # one goal per episode, kept over its steps
+        >>> goals.shape, bool((goals == goals[:, :1]).all())
+        (torch.Size([4, 5, 2]), True)
     """
 
     def __init__(self, tasks: Any = None, key: str = TASK_KEY) -> None:
@@ -176,6 +188,18 @@ def finished_episodes(
 
     An episode ends at a step whose ``("next", "done")`` is set; there the data's identifiers are
     the episode's task and ``return_key`` (what ``torchrl.envs.RewardSum`` writes) its return.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
+        >>> from armeta_rl.envs import PointNavigationEnv
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace, TaskTransform, finished_episodes
+        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
+        >>> transforms = Compose(TaskTransform(BoxUniform(space)), StepCounter(5), RewardSum())
+        >>> env = TransformedEnv(PointNavigationEnv(batch_size=(4,), seed=0), transforms)
+        >>> episodes = finished_episodes(env.rollout(5))
+        >>> episodes["params"].shape, episodes["return"].shape
+        (torch.Size([4, 2]), torch.Size([4]))
     """
     done = batch.get(("next", "done")).squeeze(-1)
     returns = batch.get(return_key)[done].squeeze(-1)

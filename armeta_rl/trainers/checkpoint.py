@@ -175,6 +175,23 @@ class RunCheckpoint:
     completed iterations; they are loaded onto ``device``. Payloads are ``torch.save`` files
     loaded with ``weights_only=True`` (no arbitrary pickle); the ``keep_last`` newest checkpoints
     are kept.
+
+    Examples:
+        >>> import tempfile
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import MAMLLeader, make_mlp
+        >>> from armeta_rl.risk import ERMPrinciple
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> from armeta_rl.trainers import RunCheckpoint
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector())
+        >>> run_dir = tempfile.TemporaryDirectory()
+        >>> checkpoint = RunCheckpoint(run_dir.name, leader, ERMPrinciple(BoxUniform(space)))
+        >>> checkpoint.save(3).name
+        'checkpoint-000000000003'
+        >>> checkpoint.restore("resume")  # the iteration it continues from
+        3
+        >>> run_dir.cleanup()
     """
 
     def __init__(
@@ -294,9 +311,7 @@ class RunCheckpoint:
         except CheckpointError as error:
             raise ConfigError(
                 key, str(self.directory.parent),
-                f"its checkpoint does not fit the players its config.yaml builds ({error}); runs "
-                "saved before one spline coupling became the default on 2-D boxes need "
-                "'layers: 2' under risk.ar.flow_kwargs there",
+                f"its checkpoint does not fit the players its config.yaml builds ({error})",
             ) from error
 
 

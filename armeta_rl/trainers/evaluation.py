@@ -38,6 +38,15 @@ def cvar(values: Tensor, alpha: float, higher_better: bool = False) -> float:
     return. The tail holds ``ceil((1 − α)·n)`` values (at least one; :func:`tail_size`). For a
     loss it is the number Σ_k ω_k L_k of Eq. (21) that the DR principle logs in training
     (:func:`~armeta_rl.risk.tail.tail_risk`), here summed in float64 for reports.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.trainers import cvar
+        >>> losses = torch.tensor([1.0, 2.0, 3.0, 4.0])
+        >>> cvar(losses, alpha=0.5)  # the mean of the worst half
+        3.5
+        >>> cvar(losses, alpha=0.5, higher_better=True)  # as returns: the lowest half
+        1.5
     """
     if not 0.0 < alpha < 1.0:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
@@ -100,6 +109,13 @@ def summarize(losses: Tensor, metric: str, alphas: Sequence[float]) -> dict[str,
     ``per_task`` holds the task scores (:data:`PER_TASK_DIGITS` significant digits) for paired
     differences (:func:`paired_difference`). For ``metric == "return"`` the per-task loss is the
     negative return, so the summary reports returns and CVaR over the lowest returns.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.trainers import summarize
+        >>> report = summarize(torch.tensor([1.0, 2.0, 3.0, 4.0]), "mse", alphas=[0.5])
+        >>> report["mean"], report["cvar"], report["n_tasks"]
+        (2.5, {'0.5': 3.5}, 4)
     """
     higher_better = higher_is_better(metric)
     rollouts = losses.detach().to(torch.float64).reshape(-1, losses.shape[-1])
@@ -194,6 +210,19 @@ def evaluate_on(
     :func:`~armeta_rl.tasks.protocol.repeat_tasks`). Runs under its own seed inside a forked RNG
     (the CPU's and ``device``'s), so every method (and a resumed run) is scored on the same tasks
     and random streams, and training's random stream is left untouched.
+
+    Examples:
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import MAMLLeader, make_mlp
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> from armeta_rl.trainers import evaluate_on
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector())
+        >>> collector = SinusoidCollector(n_query=20)  # the evaluation's collector
+        >>> report = evaluate_on(leader, BoxUniform(space), collector, n_tasks=50, alphas=[0.9],
+        ...                      seed=0)
+        >>> report["n_tasks"], list(report["cvar"])
+        (50, ['0.9'])
     """
     with forked_rng(device):
         torch.manual_seed(seed)

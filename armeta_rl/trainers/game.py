@@ -56,6 +56,23 @@ class GameTrainer:
         follower_at: ``"next"``: a follower of the game reads its tasks' losses at θ_{t+1}
             (paper Algorithm 1); ``"step"``: it reads the step's own losses at θ_t, which cost
             nothing more, where θ_{t+1} would take a fresh collection (meta-RL).
+
+    Examples:
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import MAMLLeader, make_mlp
+        >>> from armeta_rl.risk import TailRiskPrinciple
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> from armeta_rl.trainers import GameTrainer
+        >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
+        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector())
+        >>> logged = []
+        >>> trainer = GameTrainer(leader, TailRiskPrinciple(BoxUniform(space)), iterations=4,
+        ...                       meta_batch=8, log=lambda scalars, i: logged.append(i),
+        ...                       log_every=2, progress=False)
+        >>> trainer.run()  # the iteration reached
+        4
+        >>> logged
+        [2, 4]
     """
 
     def __init__(

@@ -124,8 +124,7 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
     names = ("benchmark", "method.learner", "learner")
     theirs = {k: v for name in names for k, v in _leaves(saved, name).items()}
     ours = {k: v for name in names for k, v in _leaves(cfg, name).items()}
-    # keys only one side has come from another version of the package (a size that moved to
-    # the collector, a learner it did not have); a real mismatch of shapes fails the load below
+    # only the keys both configs have are compared; a real mismatch of shapes fails the load
     differing = sorted(k for k in theirs.keys() & ours.keys()
                        if theirs.get(k) != ours.get(k) and k.rsplit(".", 1)[-1] not in SAME_MATHS)
     if differing:
