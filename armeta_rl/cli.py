@@ -559,6 +559,9 @@ def check_writable(path: Path, key: str) -> None:
 
     if path.is_dir():
         raise ConfigError(key, str(path), "is a directory, not a file")
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise ConfigError(key, str(path), "is not a regular file (a link, a device, a pipe): "
+                          "allowed: a new name or a regular file, which the report replaces")
     parent = path.parent
     if not parent.is_dir():
         raise ConfigError(key, str(path), f"cannot be written: {parent} is not a directory")

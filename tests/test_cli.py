@@ -4,9 +4,9 @@ import subprocess
 import sys
 
 import pytest
-from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 TRAIN = [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())"]
 EVAL = [sys.executable, "-c",

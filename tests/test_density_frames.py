@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
 from matplotlib.colors import LogNorm
 from PIL import Image
 
@@ -18,6 +17,7 @@ from armeta_rl.plots import density_norm, pairwise_marginals, plot_density
 from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
 from armeta_rl.trainers.density import DensityFrames
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 CUBE = TaskSpace(["m", "l", "g"], [0.4, 0.4, 5.0], [1.6, 1.6, 15.0])
 

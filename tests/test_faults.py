@@ -21,7 +21,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
 from hydra import compose, initialize_config_dir
 from PIL import Image
 
@@ -34,6 +33,7 @@ from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.report import EVAL_FILE, cross_evaluate
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOCK_FILE
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 RUN = (*SMALL_RUN, "method=ar_maml", "trainer.meta_batch=5", "logger=csv",
        "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.density_every=0")
@@ -1004,3 +1004,70 @@ def test_the_memory_bound_is_below_what_an_evaluation_allocates(benchmark):
     units = min(hidden_units(options) for name, options in config.learner.items()
                 if name == config.method.learner or name.startswith(f"{config.method.learner}_"))
     assert 0 < task_batch_bytes(3, config.benchmark.eval_collector, units) <= allocated
+
+
+def test_a_checkpoint_of_another_run_is_refused_on_resume_and_eval(tmp_path, stopped):
+    """A seed-4 run's checkpoints copied into a seed-0 run's directory: resuming it, evaluating
+    it, or loading it as a frozen leader refuses them as another run's (its seed differs), and
+    nothing is trained or written."""
+    other = tmp_path / "other"
+    run_training(compose_train(*RUN, "seed=4", "trainer.stop_at=2"), other, progress=False)
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    shutil.rmtree(run_dir / "checkpoints")
+    shutil.copytree(other / "checkpoints", run_dir / "checkpoints")
+    with pytest.raises(ConfigError, match="is another run's: seed 4 \\(this run: 0\\)"):
+        finish(run_dir)
+    with pytest.raises(ConfigError, match="is another run's: seed 4"):
+        load_players(run_dir, "learner")
+    assert not (run_dir / EVAL_FILE).exists()
+    assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == [
+        "checkpoint-000000000002"]
+
+
+def test_a_lock_file_that_is_a_link_is_refused_and_its_target_untouched(tmp_path, stopped):
+    """run.lock replaced by a link to another file: resume refuses it in one line and neither
+    writes into the target nor removes the link."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    target = tmp_path / "precious.txt"
+    target.write_text("keep me\n")
+    (run_dir / LOCK_FILE).symlink_to(target)
+    with pytest.raises(ConfigError, match="its run.lock is a link, not a lock file a run made"):
+        finish(run_dir)
+    assert target.read_text() == "keep me\n" and (run_dir / LOCK_FILE).is_symlink()
+
+
+@pytest.mark.parametrize(("how", "words"), [
+    ("dangling link", "is a link to nothing"),
+    ("link loop", "cannot be used (Too many levels of symbolic links)"),
+    ("long component", "cannot be used (File name too long)"),
+])
+def test_a_run_directory_the_file_system_cannot_use_is_one_line(tmp_path, capsys, how, words):
+    run_dir = tmp_path / ("x" * 300 if how == "long component" else "run")
+    if how == "dangling link":
+        run_dir.symlink_to(tmp_path / "nowhere")
+    elif how == "link loop":
+        run_dir.symlink_to(run_dir)
+    assert train([*SMALL_RUN, f"hydra.run.dir={run_dir}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0], err
+
+
+@pytest.mark.parametrize("kind", ["fifo", "link to /dev/zero"])
+def test_a_report_or_out_that_is_no_regular_file_is_refused(tmp_path, whole, capsys, kind):
+    """An eval.json that is a pipe or a link to /dev/zero is refused without being read, and
+    armeta-eval's out= refuses a target that is not a regular file, leaving it as it was."""
+    from armeta_rl.cli import evaluate
+    from armeta_rl.trainers.evaluation import ReportInvalid, read_report
+
+    path = tmp_path / "eval.json"
+    if kind == "fifo":
+        os.mkfifo(path)
+    else:
+        path.symlink_to("/dev/zero")
+    with pytest.raises(ReportInvalid, match="it is not a regular file"):
+        read_report(path)
+    assert evaluate([f"learner={whole}", f"out={path}"]) == 2
+    assert "is not a regular file" in capsys.readouterr().err
+    assert path.is_symlink() or path.is_fifo()

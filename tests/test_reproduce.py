@@ -104,9 +104,8 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
 
 
 def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
-    from conftest import compose_train
-
     from armeta_rl.trainers.training import run_training
+    from conftest import compose_train
 
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
     run = next(r for r in plan.runs if r.method == "ar_maml" and r.seed == 1)
@@ -628,3 +627,31 @@ def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_pa
     shutil.rmtree(tmp_path / plan.runs[0].subdir / "logs")
     assert reproduce(experiment, "tiny", tmp_path, launcher="none", extra=extra) == 0
     assert read_curves(curves_path(tmp_path, experiment)) == rows
+
+
+@pytest.mark.parametrize(("edit", "words"), [
+    ("another method", "it is the report of method 'dr_maml', not this run's 'maml'"),
+    ("another seed", "it is the report of seed 1, not this run's 0"),
+    ("a section that is a string", "'initial' = 'str' is not a distribution's section"),
+])
+def test_a_report_that_is_not_this_runs_is_unfinished_and_left_out(tmp_path, table1_dir, edit,
+                                                                   words):
+    """An eval.json copied from another run's directory (another method or seed) or with a
+    section of the wrong type marks its run unfinished, and the aggregate leaves it out."""
+    from armeta_rl.reproduce.aggregate import collect
+    from armeta_rl.reproduce.plan import report_problem
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
+    source = {"another method": "dr_maml/seed0", "another seed": "maml/seed1",
+              "a section that is a string": "maml/seed0"}[edit]
+    report = json.loads((results / "runs/sinusoid_uniform" / source / "eval.json").read_text())
+    if edit == "a section that is a string":
+        report["initial"] = "str"
+    (results / maml.subdir / "eval.json").write_text(json.dumps(report))
+    assert report_problem(results, maml) == words
+    records = collect(plan, results, {})
+    assert not [r for r in records if (r["method"], r["seed"], r["distribution"]) == (
+        "maml", 0, "initial")]

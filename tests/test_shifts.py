@@ -9,7 +9,6 @@ import sys
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskSpace
@@ -22,6 +21,7 @@ from armeta_rl.tasks.shifts import (
     suite_shifts,
 )
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
 BOXES = {

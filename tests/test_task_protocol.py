@@ -20,7 +20,6 @@ from functools import partial
 
 import pytest
 import torch
-from conftest import collector_of, compose_train
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import (
@@ -51,6 +50,7 @@ from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.tasks import TASK_KEY
 from armeta_rl.tasks.protocol import read_identifiers
+from conftest import collector_of, compose_train
 
 BATCH = (2, 1)
 STEPS = 6

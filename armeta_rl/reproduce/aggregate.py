@@ -18,7 +18,13 @@ from pathlib import Path
 from typing import Any
 
 from armeta_rl.config import CONFIG_FILE
-from armeta_rl.reproduce.plan import EVAL_FILE, Plan, finished, report_sections
+from armeta_rl.reproduce.plan import (
+    EVAL_FILE,
+    Plan,
+    finished,
+    identity_problem,
+    report_sections,
+)
 from armeta_rl.trainers.evaluation import ReportInvalid, read_report
 from armeta_rl.trainers.run_dir import write_text_atomically
 
@@ -169,6 +175,8 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
         try:
             report = read_report(results / run.subdir / file, report_sections(file))
         except ReportInvalid:
+            continue
+        if identity_problem(report, run) is not None:
             continue
         run_time = seconds.get(run.subdir) if file == EVAL_FILE else None
         for noisy in (False, True):

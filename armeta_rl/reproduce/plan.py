@@ -295,15 +295,27 @@ def report_problem(results: Path, run: TrainRun | EvalJob) -> str | None:
 
     path = report_path(results, run)
     try:
-        read_report(path, report_sections(path.name))
+        return identity_problem(read_report(path, report_sections(path.name)), run)
     except ReportInvalid as error:
         return str(error)
+
+
+def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob) -> str | None:
+    """Why ``report``, found where ``run`` keeps its report, is another run's (its benchmark,
+    method or seed differ from the run's, or an evaluation job's learner's), or ``None``: a
+    report copied from another run's directory is not this run's result."""
+    learner = run.learner if isinstance(run, EvalJob) else run
+    expected = {"benchmark": learner.config, "method": learner.method, "seed": learner.seed}
+    for key, value in expected.items():
+        if key in report and report[key] != value:
+            return f"it is the report of {key} {report[key]!r}, not this run's {value!r}"
     return None
 
 
 def finished(results: Path, run: TrainRun | EvalJob) -> bool:
     """Whether a run has its ``eval.json`` (an evaluation job: its report), passing the schema
-    of a report; a damaged or hand-edited one counts as unfinished, so it is made again."""
+    of a report and being this run's (:func:`identity_problem`); a damaged, hand-edited or
+    copied one counts as unfinished, so it is made again."""
     return report_problem(results, run) is None
 
 

@@ -46,6 +46,10 @@ log = logging.getLogger(__name__)
 
 PREFIX = "checkpoint"
 MANIFEST = "manifest.json"
+IDENTITY_KEYS = ("seed", "benchmark", "method", "learner", "risk", "trainer.meta_batch",
+                 "trainer.follower_rollouts", "trainer.follower_at", "trainer.frozen_leader")
+"""The config keys whose values make a run's results what they are (:func:`run_identity`);
+those a resume may change (iterations, device, logging) are not among them."""
 BROKEN_SUFFIX = ".broken"
 _NAME = re.compile(rf"{PREFIX}-(\d{{12}})")
 
@@ -98,11 +102,29 @@ class TorchPayload(StateDictCheckpointAdapter):
         return state
 
 
-def seal(stage: Path) -> None:
+def run_identity(cfg: Any) -> dict[str, Any]:
+    """What makes a run this run: its benchmark, method and seed, and the SHA-256 of the values
+    of :data:`IDENTITY_KEYS` in its resolved config ``cfg`` (a DictConfig). A checkpoint records
+    it, and a resume or an evaluation refuses a checkpoint of another run
+    (:meth:`RunCheckpoint.restore`)."""
+    from omegaconf import OmegaConf
+
+    resolved = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
+    values = {key: OmegaConf.select(resolved, key) for key in IDENTITY_KEYS}
+    text = json.dumps({key: OmegaConf.to_container(value) if OmegaConf.is_config(value)
+                       else value for key, value in values.items()}, sort_keys=True, default=str)
+    return {"benchmark": str(resolved.benchmark.name), "method": str(resolved.method.name),
+            "seed": int(resolved.seed), "config_sha256": _sha256(text.encode())}
+
+
+def seal(stage: Path, identity: Mapping[str, Any] | None = None) -> None:
     """Add the size and SHA-256 of every file below ``stage`` and the manifest's own SHA-256 to
-    its manifest, then fsync every file and directory there."""
+    its manifest (and the run's ``identity``, :func:`run_identity`), then fsync every file and
+    directory there."""
     manifest_path = stage / MANIFEST
     manifest = json.loads(manifest_path.read_text(encoding="utf-8"))
+    if identity is not None:
+        manifest["metadata"]["identity"] = dict(identity)
     files = {}
     for path in sorted(stage.rglob("*")):
         if path.is_file() and path != manifest_path:
@@ -196,10 +218,11 @@ class RunCheckpoint:
 
     def __init__(
         self, directory: str | Path, leader: Leader, principle: RiskPrinciple, keep_last: int = 2,
-        device: torch.device = CPU,
+        device: torch.device = CPU, identity: Mapping[str, Any] | None = None,
     ) -> None:
         self.directory = Path(directory)
         self.device = device
+        self.identity = None if identity is None else dict(identity)
         self.progress = {"iteration": 0}
         payload = TorchPayload()
         self.checkpoint = Checkpoint()
@@ -244,7 +267,7 @@ class RunCheckpoint:
             self.directory.mkdir(parents=True, exist_ok=True)
             remove_tree(stage)
             self.checkpoint.save(stage)
-            seal(stage)
+            seal(stage, self.identity)
             if final.exists():
                 replaced = self.directory / f".{final.name}.replaced-{os.getpid()}"
                 os.replace(final, replaced)
@@ -282,6 +305,7 @@ class RunCheckpoint:
         for path in reversed(self.checkpoints()):
             reason = verify(path)
             if reason is None:
+                self._check_identity(path, key)
                 self._load(path, key, components)
                 return int(self.progress["iteration"])
             if not fallback:
@@ -304,6 +328,17 @@ class RunCheckpoint:
         if not self.directory.is_dir():
             return []
         return sorted(p for p in self.directory.glob(f"{PREFIX}-*{BROKEN_SUFFIX}") if p.is_dir())
+
+    def _check_identity(self, path: Path, key: str) -> None:
+        """Refuse a checkpoint whose recorded identity is another run's (one copied from another
+        run's directory); a checkpoint that records none is taken as this run's."""
+        saved = Checkpoint.manifest(path).get("metadata", {}).get("identity")
+        if self.identity is None or saved is None or saved == self.identity:
+            return
+        differ = [f"{name} {saved.get(name)!r} (this run: {value!r})"
+                  for name, value in self.identity.items() if saved.get(name) != value]
+        raise ConfigError(key, str(self.directory.parent),
+                          f"its checkpoint {path.name} is another run's: {'; '.join(differ)}")
 
     def _load(self, path: Path, key: str, components: Collection[str] | None) -> None:
         try:

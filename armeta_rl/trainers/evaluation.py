@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -20,6 +22,10 @@ from armeta_rl.risk.tail import tail_size
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.protocol import per_rollout, repeat_tasks
 
+REPORT_BYTES = 64 * 2**20
+"""The most an evaluation report is read (its per-task scores of 500 tasks × every section
+take well under a MiB): a link to ``/dev/zero`` or a huge file is refused, not read into
+memory."""
 PER_TASK_DIGITS = 6
 """Significant digits of the per-task scores an evaluation report keeps (for paired
 differences between reports)."""
@@ -292,8 +298,12 @@ def check_report(report: Any, sections: tuple[str, ...] = ("initial",)) -> None:
         if not isinstance(report.get(name), str):
             raise ReportInvalid(f"'{name}' is missing or not a string")
     for name in sections:
-        if name not in report:
-            raise ReportInvalid(f"it has no '{name}' distribution")
+        if not isinstance(report.get(name), dict):
+            raise ReportInvalid(f"it has no '{name}' distribution" if name not in report else
+                                f"'{name}' = {report[name]!r} is not a distribution's section")
+    if "seed" in report and (not isinstance(report["seed"], int)
+                             or isinstance(report["seed"], bool)):
+        raise ReportInvalid(f"'seed' = {report['seed']!r} is not an integer")
     higher = higher_is_better(report["metric"])
     for name, section in report.items():
         if isinstance(section, dict):
@@ -318,6 +328,10 @@ def _check_section(name: str, section: dict[str, Any], higher: bool) -> None:
             raise ReportInvalid(f"'{name}.{key}' = {section[key]!r} is not a finite number")
     if "adaptation" in section:
         _check_adaptation(name, section["adaptation"], n)
+    per_task = section.get("per_task")
+    if per_task is not None and not (isinstance(per_task, list) and len(per_task) == n
+                                     and all(_number(v) for v in per_task)):
+        raise ReportInvalid(f"'{name}.per_task' is not {n} finite task scores")
     if not isinstance(cvar, dict) or not cvar:
         raise ReportInvalid(f"'{name}.cvar' is missing or empty")
     try:
@@ -377,13 +391,22 @@ def spread_bound(mean: float, tail_mean: float, n: int, k: int) -> float:
 
 
 def read_report(path: Path, sections: tuple[str, ...] = ("initial",)) -> dict[str, Any]:
-    """The evaluation report at ``path`` if it passes :func:`check_report`.
+    """The evaluation report at ``path`` if it passes :func:`check_report`; at most
+    :data:`REPORT_BYTES` are read, from a regular file only.
 
     Raises:
-        ReportInvalid: ``path`` is missing, unreadable, not UTF-8 JSON, or fails the schema.
+        ReportInvalid: ``path`` is missing, not a regular file (a device, a pipe), larger than
+            a report can be, unreadable, not UTF-8 JSON, or fails the schema.
     """
     try:
-        report = json.loads(Path(path).read_text(encoding="utf-8"))
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a pipe does not block the open
+        with os.fdopen(fd, "rb") as file:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise ReportInvalid("it is not a regular file")
+            data = file.read(REPORT_BYTES + 1)
+        if len(data) > REPORT_BYTES:
+            raise ReportInvalid(f"it is larger than a report can be ({REPORT_BYTES} bytes)")
+        report = json.loads(data.decode("utf-8"))
     except FileNotFoundError:
         raise ReportInvalid("it does not exist") from None
     except (OSError, UnicodeDecodeError, ValueError) as error:

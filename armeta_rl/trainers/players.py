@@ -28,7 +28,7 @@ from armeta_rl.fields import config_error
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
-from armeta_rl.trainers.checkpoint import RunCheckpoint
+from armeta_rl.trainers.checkpoint import RunCheckpoint, run_identity
 
 
 @dataclass
@@ -135,7 +135,7 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
             "the learner attacked must have this run's benchmark and learner settings",
         )
     checkpoint = RunCheckpoint(Path(source) / "checkpoints", players.leader, players.principle,
-                               device=players.device)
+                               device=players.device, identity=run_identity(saved))
     checkpoint.restore(FROZEN_KEY, ("leader",), fallback=False)
 
 
@@ -154,7 +154,7 @@ def load_players(
     config = validate(cfg)
     players = build_players(config)
     checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle,
-                               device=players.device)
+                               device=players.device, identity=run_identity(cfg))
     if not checkpoint.checkpoints():
         raise ConfigError(key, str(run_dir), "has no checkpoint")
     checkpoint.restore(key, ("leader", "principle"), fallback=False)

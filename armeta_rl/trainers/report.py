@@ -54,6 +54,7 @@ def evaluate_players(
         "metric": players.leader.metric,
         "benchmark": config.benchmark.name,
         "method": config.method.name,
+        "seed": config.seed,
     }
     for name, (distribution, seed) in distributions.items():
         report[name] = evaluate_on(

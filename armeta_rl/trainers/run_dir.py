@@ -9,6 +9,7 @@ from __future__ import annotations
 import errno
 import fcntl
 import os
+import stat
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -24,9 +25,18 @@ CSV_LOG_DIR = "logs"
 
 
 def check_run_dir(run_dir: Path, key: str) -> None:
-    """Refuse, before anything is written, a run directory that is an existing file, or that
-    cannot be created or written (a read-only file system or directory: tried by creating and
-    removing a hidden file, which also holds for root and for special file systems)."""
+    """Refuse, before anything is written, a run directory that is an existing file, a link to
+    nothing or a link loop, a path the file system cannot name (a component over 255 bytes, a
+    path over 4,096), or that cannot be created or written (a read-only file system or
+    directory: tried by creating and removing a hidden file, which also holds for root and for
+    special file systems)."""
+    try:
+        os.stat(run_dir)
+    except FileNotFoundError:
+        if run_dir.is_symlink():
+            raise ConfigError(key, str(run_dir), "is a link to nothing") from None
+    except OSError as error:
+        raise ConfigError(key, _shown(run_dir), f"cannot be used ({error.strerror})") from None
     if run_dir.exists() and not run_dir.is_dir():
         raise ConfigError(key, str(run_dir), "is an existing file, not a directory")
     existing = next(p for p in (run_dir, *run_dir.parents) if p.exists())
@@ -35,6 +45,12 @@ def check_run_dir(run_dir: Path, key: str) -> None:
     problem = unwritable(existing)
     if problem is not None:
         raise ConfigError(key, str(run_dir), f"cannot be written in {existing} ({problem})")
+
+
+def _shown(path: Path, most: int = 120) -> str:
+    """``path`` as an error line shows it: its end, where it is over ``most`` characters."""
+    text = str(path)
+    return text if len(text) <= most else "…" + text[-most:]
 
 
 def unwritable(directory: Path) -> str | None:
@@ -67,7 +83,17 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
     path = run_dir / LOCK_FILE
     held_here = False
     while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:  # never through a link: the lock file is the run's own
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as error:
+            if error.errno != errno.ELOOP:
+                raise
+            raise ConfigError(key, str(run_dir), f"its {LOCK_FILE} is a link, not a lock file "
+                              "a run made: remove it") from None
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            os.close(fd)
+            raise ConfigError(key, str(run_dir), f"its {LOCK_FILE} is not a regular file: "
+                              "remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:

@@ -22,7 +22,7 @@ from armeta_rl.errors import (
     TrainingDiverged,
 )
 from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
-from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact
+from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, run_identity
 from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames
 from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
@@ -148,7 +148,7 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
                           "must be 1 with trainer.follower_at=step: the follower reads the "
                           "step's own losses, not fresh rollouts")
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
-                               device=players.device)
+                               device=players.device, identity=run_identity(cfg))
     trainer_options = config.trainer
     if trainer_options.frozen_leader is not None and not (
         config.resume and checkpoint.checkpoints()
