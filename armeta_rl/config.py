@@ -27,6 +27,7 @@ from armeta_rl.errors import ConfigError
 from armeta_rl.fields import Section, above, at_least, config_error, each, inside, key, one_of
 from armeta_rl.preemption import STOP_SIGNALS
 from armeta_rl.resources import (
+    FLOAT32_BYTES,
     hidden_units,
     machine_memory,
     sample_bytes,
@@ -237,6 +238,8 @@ class TrainConfig(Section):
                     f"needs at least {size_words(need)} ({samples_per_task(collector)} samples "
                     f"x {units} hidden units x 4 bytes per task) of this device's "
                     f"{size_words(memory)}: allowed: at most {memory // each}"))
+        for options in sections:
+            self.check_learner_sizes(options, memory)
         adversary = self.risk.get(self.method.risk) if self.method.risk == "ar" else None
         samples = getattr(adversary, "initial_samples", None)
         if samples is not None and self.benchmark.space.names != MISSING:
@@ -245,6 +248,37 @@ class TrainConfig(Section):
                 raise ConfigError(f"risk.{self.method.risk}.initial_samples", samples, (
                     f"needs at least {size_words(sample_bytes(samples, dim))} of this device's "
                     f"{size_words(memory)}: allowed: at most {memory // sample_bytes(1, dim)}"))
+            layers = adversary.flow_kwargs.get("layers")
+            each = sample_bytes(samples + self.trainer.meta_batch, dim)
+            if isinstance(layers, int) and not isinstance(layers, bool) and (
+                    layers * each > memory):
+                raise ConfigError("risk.ar.flow_kwargs.layers", layers, (
+                    f"needs at least {size_words(layers * each)} (every layer keeps its "
+                    f"{samples + self.trainer.meta_batch} samples for the gradient) of this "
+                    f"device's {size_words(memory)}: allowed: at most {memory // each}"))
+
+    def check_learner_sizes(self, options: Any, memory: int) -> None:
+        """A learner section's sizes within the device's memory: its hidden widths' weights
+        (float32, between consecutive hidden layers) and its inner steps, each of which keeps a
+        forward pass's activations over the meta-batch for the meta-gradient."""
+        section = options.section
+        widths = [int(w) for name in ("hidden", "hidden_sizes")
+                  for w in getattr(options, name, None) or []]
+        weights = FLOAT32_BYTES * sum(a * b for a, b in zip(widths, widths[1:]))
+        if weights > memory:
+            name = "hidden" if hasattr(options, "hidden") else "hidden_sizes"
+            raise ConfigError(f"{section}.{name}", widths, (
+                f"its weights need at least {size_words(weights)} of this device's "
+                f"{size_words(memory)}"))
+        steps = getattr(options, "inner_steps", None)
+        if steps is not None:
+            each = task_batch_bytes(self.trainer.meta_batch, self.benchmark.collector,
+                                    hidden_units(options))
+            if steps * each > memory:
+                raise ConfigError(f"{section}.inner_steps", steps, (
+                    f"needs at least {size_words(steps * each)} (every step keeps a forward "
+                    f"pass over the meta-batch) of this device's {size_words(memory)}: "
+                    f"allowed: at most {memory // each}"))
 
     def check_task_split(self) -> None:
         """A collector that splits the tasks over ``benchmark.collector.workers`` processes needs

@@ -218,7 +218,10 @@ def follower_step(follower: Follower, tasks: TensorDictBase | Tensor, losses: Te
     optimizer.zero_grad(set_to_none=True)
     largest = torch.nn.utils.get_total_norm(phi, norm_type=math.inf, foreach=True)
     with torch.no_grad():
-        new_log_prob = log_prob(params)
+        try:
+            new_log_prob = log_prob(params)
+        except AssertionError:  # normflows' spline asserts its bins are well formed
+            new_log_prob = torch.full((1,), math.nan)
     if not (torch.isfinite(largest) and torch.isfinite(new_log_prob).all()):
         raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
     return {**stats, "lr": float(lr), "grad_norm": float(grad_norm)}

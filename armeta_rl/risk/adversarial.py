@@ -22,7 +22,7 @@ from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
 from armeta_rl.adversary.objective import BASELINES, SIGNALS, Follower, follower_step, regret
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
-from armeta_rl.fields import Section, above, at_least, key, one_of, register
+from armeta_rl.fields import Section, above, at_least, inside, key, one_of, register
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.tasks.protocol import TASK_KEY
@@ -69,7 +69,7 @@ class ArOptions(Section):
     update_every: int = at_least(1, default=1)
     # the follower's step size, cosine-annealed over the run (docs/notes/history.md: the
     # authors' code's schedule and this default)
-    lr: float = above(0, default=0.001)
+    lr: float = inside(0, 1, "(]", default=0.001)
     # clips φ's gradient norm (null: off); it acts in nearly every update
     # (docs/notes/history.md)
     grad_clip: float | None = above(0, default=1.0)
