@@ -331,7 +331,25 @@ def _run_task(task: Callable[[DictConfig], None], cfg: DictConfig) -> tuple[int,
         return 1, f"error: {error}"
     except OSError as error:
         return 1, "error: " + f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
+    except MemoryError:
+        return 2, f"error: {OUT_OF_MEMORY}"
+    except RuntimeError as error:  # torch's allocators
+        if not out_of_memory(error):
+            raise
+        return 2, f"error: {OUT_OF_MEMORY}"
     return 0, ""
+
+
+OUT_OF_MEMORY = ("out of memory: this process may not allocate what the run needs (a memory "
+                 "limit, or sizes too large for this machine): smaller sizes, or more memory")
+
+
+def out_of_memory(error: BaseException) -> bool:
+    """Whether ``error`` is an allocation that failed (Python's ``MemoryError``, torch's CPU or
+    CUDA allocator)."""
+    text = str(error)
+    return isinstance(error, MemoryError) or "can't allocate memory" in text or (
+        "out of memory" in text.lower())
 
 
 def _in_run_list_sweep() -> bool:
@@ -412,6 +430,11 @@ def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str]) ->
     except KeyboardInterrupt:  # Ctrl-C where no run stops cleanly (armeta_rl.preemption)
         print(f"{prog}: interrupted (SIGINT)", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except (MemoryError, RuntimeError) as error:  # e.g. importing torch under a memory limit
+        if not out_of_memory(error):
+            raise
+        print(f"{prog}: error: {OUT_OF_MEMORY}", file=sys.stderr)
+        return 2
     except SystemExit as stop:
         return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
     return 0

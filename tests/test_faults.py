@@ -1071,3 +1071,38 @@ def test_a_report_or_out_that_is_no_regular_file_is_refused(tmp_path, whole, cap
     assert evaluate([f"learner={whole}", f"out={path}"]) == 2
     assert "is not a regular file" in capsys.readouterr().err
     assert path.is_symlink() or path.is_fifo()
+
+
+@pytest.mark.parametrize("lost", [("iter_000004.png",), ("iter_000004.png", "iter_000004.pt")])
+def test_a_frame_a_kill_cut_off_after_its_checkpoint_is_drawn_on_resume(tmp_path, framed, lost):
+    """A kill just after the checkpoint of iteration 4, before its density frame was drawn (or
+    its numbers saved): the resumed run draws it from the checkpoint's p_φ, so its animation
+    equals the uninterrupted run's frame for frame."""
+    run_dir = tmp_path / "run"
+    run_training(compose_train(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
+    for name in lost:
+        (run_dir / "density" / name).unlink()
+    run_training(compose_train(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
+    ours, theirs = Image.open(run_dir / "density.gif"), Image.open(framed / "density.gif")
+    assert ours.n_frames == theirs.n_frames
+    for index in range(ours.n_frames):
+        ours.seek(index)
+        theirs.seek(index)
+        assert list(ours.getdata()) == list(theirs.getdata())
+
+
+def test_a_memory_limit_at_start_is_one_line_and_exit_code_2(tmp_path):
+    """Under a 600 MB address-space limit torch cannot even be imported: one line, exit 2."""
+    import resource
+
+    def limited():
+        resource.setrlimit(resource.RLIMIT_AS, (600 * 2**20, 600 * 2**20))
+
+    done = subprocess.run(
+        [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())",
+         *SMALL_RUN, f"hydra.run.dir={tmp_path / 'run'}"], preexec_fn=limited,
+        capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.strip().splitlines() == [
+        "armeta-train: error: out of memory: this process may not allocate what the run needs (a "
+        "memory limit, or sizes too large for this machine): smaller sizes, or more memory"]

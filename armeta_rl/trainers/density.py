@@ -19,6 +19,7 @@ is bit-identical to one without.
 
 from __future__ import annotations
 
+import io
 import logging
 import pickle
 from pathlib import Path
@@ -35,6 +36,7 @@ from armeta_rl.plots import (
     write_animation,
 )
 from armeta_rl.tasks.distributions import TaskDistribution
+from armeta_rl.trainers.checkpoint import write_file
 from armeta_rl.trainers.run_dir import write_atomically
 
 log = logging.getLogger(__name__)
@@ -77,8 +79,10 @@ class DensityFrames:
         self.frames_dir.mkdir(parents=True, exist_ok=True)
         path = self.frame_path(iteration)
         picture = density_picture(self.adversary, self.initial, self.points_per_axis)
+        numbers = io.BytesIO()
+        torch.save(picture.state_dict(), numbers)  # in memory: a file size limit is an OSError
         write_atomically(path.with_suffix(".pt"),
-                         lambda staged: torch.save(picture.state_dict(), staged))
+                         lambda staged: write_file(staged, numbers.getvalue()))
         self._draw(picture, iteration)
         if isinstance(self.logger, WandbLogger):
             import wandb

@@ -23,7 +23,7 @@ from armeta_rl.errors import (
 )
 from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, run_identity
-from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames
+from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames, readable
 from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.loggers import run_logger
@@ -166,8 +166,9 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         if players.adversary is not None and trainer_options.density_every > 0:
             frames = DensityFrames(players.adversary, players.initial, run_dir,
                                    trainer_options.density_every, logger)
-            if start == 0:
-                frames.draw(0)  # p_φ = p0
+            if start == 0 or (start % trainer_options.density_every == 0
+                               and not readable(frames.frame_path(start))):
+                frames.draw(start)  # p0; or the checkpoint's p_φ, whose frame a kill cut off
         trainer = GameTrainer(
             players.leader,
             players.principle,
