@@ -506,8 +506,9 @@ def _train(args: list[str]) -> None:
         if multirun:
             raise Refused(f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
         resume_config(resume, [a for a in args if not a.startswith("-")])
-        if not any(a.startswith("hydra.run.dir=") for a in args):
-            args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
+        # the run's job log stays in its own directory, whatever hydra.run.dir says
+        args = [a for a in args if not a.startswith(("hydra.run.dir=", "hydra.output_subdir="))]
+        args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     else:
         check_jobs(args)
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):

@@ -1106,3 +1106,38 @@ def test_a_memory_limit_at_start_is_one_line_and_exit_code_2(tmp_path):
     assert done.stderr.strip().splitlines() == [
         "armeta-train: error: out of memory: this process may not allocate what the run needs (a "
         "memory limit, or sizes too large for this machine): smaller sizes, or more memory"]
+
+
+def test_a_resume_into_another_hydra_run_dir_logs_into_its_own_directory(tmp_path, stopped):
+    run_dir, elsewhere = tmp_path / "run", tmp_path / "elsewhere"
+    shutil.copytree(stopped, run_dir)
+    assert train([f"resume={run_dir}", f"hydra.run.dir={elsewhere}"]) == 0
+    assert "iteration 6" in (run_dir / "armeta-train.log").read_text()
+    assert not elsewhere.exists()
+
+
+def test_checkpoints_that_are_a_file_are_refused_before_training(tmp_path, stopped):
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    shutil.rmtree(run_dir / "checkpoints")
+    (run_dir / "checkpoints").write_text("not a directory\n")
+    with pytest.raises(ConfigError, match="its checkpoints is not a directory"):
+        finish(run_dir)
+    assert not (run_dir / EVAL_FILE).exists()
+
+
+def test_an_unreadable_newest_checkpoint_falls_back_with_one_warning(tmp_path, whole, stopped,
+                                                                     caplog):
+    """The newest checkpoint's leader payload replaced by a directory (it cannot be read): the
+    resume falls back to the previous one and still ends as the uninterrupted run."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    payload = run_dir / "checkpoints" / "checkpoint-000000000004" / FILES["leader"]
+    payload.unlink()
+    payload.mkdir()
+    with caplog.at_level(logging.WARNING):
+        finish(run_dir)
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING and "broken" in
+                r.getMessage()]
+    assert len(warnings) == 1 and "checkpoint-000000000004" in warnings[0].getMessage()
+    assert outcome(run_dir) == outcome(whole)

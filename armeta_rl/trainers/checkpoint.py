@@ -172,7 +172,11 @@ def verify(path: Path) -> str | None:
         size = file.stat().st_size
         if size != record["size"]:
             return f"{name} has {size} bytes, {record['size']} expected"
-        if _sha256(file.read_bytes()) != record["sha256"]:
+        try:
+            data = file.read_bytes()
+        except OSError as error:
+            return f"{name} cannot be read ({error.strerror or error})"
+        if _sha256(data) != record["sha256"]:
             return f"{name} does not match its SHA-256"
     return None
 

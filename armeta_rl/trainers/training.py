@@ -213,6 +213,9 @@ def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
     or save the config of a fresh run; returns the iteration training starts from.
     ``evaluated``: the run's ``eval.json`` holds the evaluation at the iteration it resumes
     from (a finished run resumed to train longer)."""
+    if checkpoint.directory.exists() and not checkpoint.directory.is_dir():
+        raise ConfigError("resume" if cfg.resume else "hydra.run.dir", str(run_dir),
+                          f"its {checkpoint.directory.name} is not a directory: move it away")
     checkpoint.clean_staging()
     for path in staged_leftovers(run_dir, (".", CSV_LOG_DIR, FRAMES_DIR)):
         path.unlink()  # what an atomic write left when a crash interrupted it
