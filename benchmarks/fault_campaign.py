@@ -69,10 +69,11 @@ class Tree:
                    HYDRA_FULL_ERROR="0")
         return env
 
-    def start(self, tool: str, *args: str, cwd: Path, limit: bool = False) -> subprocess.Popen:
-        """Start ``tool``; its output goes to files (a pipe would stay open as long as any
-        process it started lives, e.g. a sweep's workers)."""
-        preexec = (lambda: resource.setrlimit(resource.RLIMIT_AS, (ADDRESS_SPACE,) * 2)
+    def start(self, tool: str, *args: str, cwd: Path, limit: int = 0) -> subprocess.Popen:
+        """Start ``tool`` (under an address-space limit of ``limit`` bytes, if any); its output
+        goes to files (a pipe would stay open as long as any process it started lives, e.g. a
+        sweep's workers)."""
+        preexec = (lambda: resource.setrlimit(resource.RLIMIT_AS, (limit,) * 2)
                    ) if limit else None
         out, err = (tempfile.TemporaryFile("w+", errors="replace")  # noqa: SIM115 (closed
                     for _ in range(2))                                # by Result.wait)
@@ -83,7 +84,7 @@ class Tree:
         return process
 
     def run(self, tool: str, *args: str, cwd: Path, timeout: float = 600,
-            limit: bool = False) -> Result:
+            limit: int = 0) -> Result:
         process = self.start(tool, *args, cwd=cwd, limit=limit)
         return Result.wait(process, timeout)
 
@@ -368,7 +369,7 @@ class Campaign:
 
     def huge(self, name: str, override: str) -> str:
         run_dir = self.fresh(name) / "run"
-        result = self.train(*TINY, override, f"hydra.run.dir={run_dir}", limit=True)
+        result = self.train(*TINY, override, f"hydra.run.dir={run_dir}", limit=ADDRESS_SPACE)
         return f"{result.describe()} after {result.seconds:.0f} s"
 
     def case_eval_n_tasks_huge(self) -> str:
@@ -490,6 +491,115 @@ class Campaign:
     def case_resume_density_every(self) -> str:
         return self.resumed_with("resume_density_every", "trainer.density_every=3")
 
+    # the run directory as a trust boundary ---------------------------------------------------
+
+    def case_checkpoint_other_seed(self) -> str:
+        run_dir = self.stopped_tiny("other_seed")
+        other = self.fresh("other_seed_4") / "run"
+        self._ok(self.train(*TINY, "seed=4", "trainer.stop_at=4", f"hydra.run.dir={other}"))
+        shutil.rmtree(run_dir / "checkpoints")
+        shutil.copytree(other / "checkpoints", run_dir / "checkpoints")
+        result = self.train(f"resume={run_dir}")
+        written = (run_dir / "eval.json").is_file()
+        return f"{result.describe()}; {'wrote' if written else 'no'} eval.json under seed 0"
+
+    def case_eval_json_other_method(self) -> str:
+        return self.damaged_report("other_method", lambda run: shutil.copy(
+            run.parent.parent / "dr_maml" / "seed0" / "eval.json", run / "eval.json"))
+
+    def case_eval_json_initial_str(self) -> str:
+        return self.damaged_report("initial_str", lambda run: self.edit_eval(
+            run, lambda r: r.update(initial="str")))
+
+    def case_eval_json_dev_zero(self) -> str:
+        results = self.reproduced("dev_zero")
+        report = results / "runs" / "sinusoid_uniform" / "maml" / "seed0" / "eval.json"
+        report.unlink()
+        report.symlink_to("/dev/zero")
+        return self.tree.run("armeta-reproduce", *REPRODUCE, "launcher=none",
+                             f"results={results}", cwd=self.work, limit=2 * 2**30,
+                             timeout=120).describe()
+
+    def case_lock_symlink(self) -> str:
+        run_dir = self.stopped_tiny("lock_symlink")
+        target = self.work / "lock_target.txt"
+        target.write_text("keep me\n")
+        (run_dir / "run.lock").symlink_to(target)
+        result = self.train(f"resume={run_dir}")
+        kept = target.read_text() == "keep me\n" and (run_dir / "run.lock").is_symlink()
+        return (f"{result.describe()}; the link's target "
+                f"{'untouched' if kept else 'WRITTEN or the link removed'}")
+
+    def odd_run_dir(self, name: str, make: Callable[[Path], Path]) -> str:
+        return self.train(*TINY, f"hydra.run.dir={make(self.fresh(name))}").describe()
+
+    def case_run_dir_dangling_link(self) -> str:
+        def make(home: Path) -> Path:
+            (home / "run").symlink_to(home / "nowhere")
+            return home / "run"
+        return self.odd_run_dir("dangling", make)
+
+    def case_run_dir_link_loop(self) -> str:
+        def make(home: Path) -> Path:
+            (home / "run").symlink_to(home / "run")
+            return home / "run"
+        return self.odd_run_dir("loop", make)
+
+    def case_run_dir_long_component(self) -> str:
+        return self.odd_run_dir("long", lambda home: home / ("x" * 300))
+
+    def case_ar_lr_huge(self) -> str:
+        run_dir = self.fresh("lr_huge") / "run"
+        return self.train(*TINY, "risk.ar.lr=1e30", f"hydra.run.dir={run_dir}").describe()
+
+    def bounded(self, name: str, override: str) -> str:
+        run_dir = self.fresh(name) / "run"
+        result = self.train(*TINY, override, f"hydra.run.dir={run_dir}", limit=4 * 2**30,
+                            timeout=120)
+        return f"{result.describe()} after {result.seconds:.0f} s"
+
+    def case_inner_steps_huge(self) -> str:
+        return self.bounded("inner_steps", "learner.maml.inner_steps=1000000")
+
+    def case_flow_layers_huge(self) -> str:
+        return self.bounded("flow_layers", "+risk.ar.flow_kwargs.layers=100000000")
+
+    def case_hidden_huge(self) -> str:
+        return self.bounded("hidden", "learner.maml.hidden=[1000000,1000000]")
+
+    def case_eval_out_fifo(self) -> str:
+        run_dir = self.finished_tiny("out_fifo")
+        fifo = self.work / "out.fifo"
+        os.mkfifo(fifo)
+        result = self.tree.run("armeta-eval", f"learner={run_dir}", f"out={fifo}",
+                               cwd=self.work, timeout=300)
+        return f"{result.describe()}; out {'still a pipe' if fifo.is_fifo() else 'REPLACED'}"
+
+    def case_resume_other_run_dir(self) -> str:
+        run_dir = self.stopped_tiny("other_run_dir")
+        elsewhere = self.work / "elsewhere"
+        result = self.train(f"resume={run_dir}", f"hydra.run.dir={elsewhere}")
+        where = "elsewhere" if (elsewhere / "armeta-train.log").is_file() else "the run's own"
+        return f"{result.describe()}; the job log in {where} directory"
+
+    def case_checkpoints_a_file(self) -> str:
+        run_dir = self.stopped_tiny("checkpoints_file")
+        shutil.rmtree(run_dir / "checkpoints")
+        (run_dir / "checkpoints").write_text("not a directory\n")
+        result = self.train(f"resume={run_dir}")
+        trained = eval_rows(run_dir) if (run_dir / "logs").is_dir() else 0
+        return f"{result.describe()}; {trained} row(s) in eval/initial/mean.csv"
+
+    def case_frame_cut_off(self) -> str:
+        run_dir = self.stopped_tiny("frame_cut_off")
+        for name in ("iter_000004.png", "iter_000004.pt"):
+            (run_dir / "density" / name).unlink()
+        result = self.train(f"resume={run_dir}")
+        same = (run_dir / "density.gif").read_bytes() == (
+            self.whole_tiny() / "density.gif").read_bytes()
+        return (f"{result.describe()}; density.gif "
+                f"{'equal to' if same else 'DIFFERS from'} the uninterrupted run's")
+
 
 CASES = {
     "sigterm": "SIGTERM to `armeta-train` after its first checkpoint (100 of 400 iterations)",
@@ -530,6 +640,24 @@ CASES = {
     "resume_threads": "`resume=` with `threads=2` (the run had 1)",
     "resume_log_every": "`resume=` with `trainer.log_every=3`",
     "resume_density_every": "`resume=` with `trainer.density_every=3`",
+    "checkpoint_other_seed": "a seed-4 run's checkpoints copied into a seed-0 run: `resume=`",
+    "eval_json_other_method": "`dr_maml`'s `eval.json` copied into `maml/seed0`: "
+                              "`armeta-reproduce launcher=none`",
+    "eval_json_initial_str": "`eval.json` edited to `\"initial\": \"str\"`, likewise",
+    "eval_json_dev_zero": "`eval.json` a link to `/dev/zero`, likewise",
+    "lock_symlink": "`run.lock` a link to another file: `resume=`",
+    "run_dir_dangling_link": "`hydra.run.dir=` a link to nothing",
+    "run_dir_link_loop": "`hydra.run.dir=` a link to itself",
+    "run_dir_long_component": "`hydra.run.dir=` with a 300-byte name",
+    "ar_lr_huge": "`risk.ar.lr=1e30`",
+    "inner_steps_huge": "`learner.maml.inner_steps=1000000` (cut after 120 s)",
+    "flow_layers_huge": "`+risk.ar.flow_kwargs.layers=100000000` (cut after 120 s)",
+    "hidden_huge": "`learner.maml.hidden=[1000000,1000000]` (cut after 120 s)",
+    "eval_out_fifo": "`armeta-eval out=` a named pipe",
+    "resume_other_run_dir": "`resume=` with another `hydra.run.dir=`",
+    "checkpoints_a_file": "`checkpoints` a file: `resume=`",
+    "frame_cut_off": "the density frame (picture and numbers) of the newest checkpoint lost, "
+                     "as a kill just after the checkpoint leaves it: `resume=`",
 }
 
 
