@@ -13,6 +13,7 @@ docs/configuration.md.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -225,9 +226,9 @@ class TrainConfig(Section):
             self.refuse("threads", f"must be <= {cpus}, the CPUs this process may run on (a "
                                    "resumed run may set threads= too)")
         memory = machine_memory(self.device)
-        sections = [options for name, options in self.learner.items()
-                    if name == self.method.learner or name.startswith(f"{self.method.learner}_")]
-        units = min((hidden_units(options) for options in sections), default=1)
+        sections = {f"learner.{name}": options for name, options in self.learner.items()
+                    if name == self.method.learner or name.startswith(f"{self.method.learner}_")}
+        units = min((hidden_units(options) for options in sections.values()), default=1)
         for name, tasks, collector in (
                 ("trainer.meta_batch", self.trainer.meta_batch, self.benchmark.collector),
                 ("eval.n_tasks", self.eval.n_tasks, self.benchmark.eval_collector)):
@@ -238,8 +239,8 @@ class TrainConfig(Section):
                     f"needs at least {size_words(need)} ({samples_per_task(collector)} samples "
                     f"x {units} hidden units x 4 bytes per task) of this device's "
                     f"{size_words(memory)}: allowed: at most {memory // each}"))
-        for options in sections:
-            self.check_learner_sizes(options, memory)
+        for section, options in sections.items():
+            self.check_learner_sizes(section, options, memory)
         adversary = self.risk.get(self.method.risk) if self.method.risk == "ar" else None
         samples = getattr(adversary, "initial_samples", None)
         if samples is not None and self.benchmark.space.names != MISSING:
@@ -257,20 +258,19 @@ class TrainConfig(Section):
                     f"{samples + self.trainer.meta_batch} samples for the gradient) of this "
                     f"device's {size_words(memory)}: allowed: at most {memory // each}"))
 
-    def check_learner_sizes(self, options: Any, memory: int) -> None:
+    def check_learner_sizes(self, section: str, options: Any, memory: int) -> None:
         """A learner section's sizes within the device's memory: its hidden widths' weights
         (float32, between consecutive hidden layers) and its inner steps, each of which keeps a
         forward pass's activations over the meta-batch for the meta-gradient."""
-        section = options.section
-        widths = [int(w) for name in ("hidden", "hidden_sizes")
-                  for w in getattr(options, name, None) or []]
+        fields = options if isinstance(options, Mapping) else vars(options)
+        name = "hidden" if "hidden" in fields else "hidden_sizes"
+        widths = [int(w) for w in fields.get(name) or []]
         weights = FLOAT32_BYTES * sum(a * b for a, b in zip(widths, widths[1:]))
         if weights > memory:
-            name = "hidden" if hasattr(options, "hidden") else "hidden_sizes"
             raise ConfigError(f"{section}.{name}", widths, (
                 f"its weights need at least {size_words(weights)} of this device's "
                 f"{size_words(memory)}"))
-        steps = getattr(options, "inner_steps", None)
+        steps = fields.get("inner_steps")
         if steps is not None:
             each = task_batch_bytes(self.trainer.meta_batch, self.benchmark.collector,
                                     hidden_units(options))

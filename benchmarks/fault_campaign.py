@@ -524,6 +524,7 @@ class Campaign:
         run_dir = self.stopped_tiny("lock_symlink")
         target = self.work / "lock_target.txt"
         target.write_text("keep me\n")
+        (run_dir / "run.lock").unlink(missing_ok=True)
         (run_dir / "run.lock").symlink_to(target)
         result = self.train(f"resume={run_dir}")
         kept = target.read_text() == "keep me\n" and (run_dir / "run.lock").is_symlink()
@@ -593,7 +594,7 @@ class Campaign:
     def case_frame_cut_off(self) -> str:
         run_dir = self.stopped_tiny("frame_cut_off")
         for name in ("iter_000004.png", "iter_000004.pt"):
-            (run_dir / "density" / name).unlink()
+            (run_dir / "density" / name).unlink(missing_ok=True)
         result = self.train(f"resume={run_dir}")
         same = (run_dir / "density.gif").read_bytes() == (
             self.whole_tiny() / "density.gif").read_bytes()
