@@ -1141,3 +1141,16 @@ def test_an_unreadable_newest_checkpoint_falls_back_with_one_warning(tmp_path, w
                 r.getMessage()]
     assert len(warnings) == 1 and "checkpoint-000000000004" in warnings[0].getMessage()
     assert outcome(run_dir) == outcome(whole)
+
+
+def test_a_manifest_that_is_a_link_to_dev_zero_is_a_broken_checkpoint(tmp_path, whole, stopped):
+    """Read without bound, a manifest linked to /dev/zero would never end: it is broken, and the
+    resume falls back to the previous checkpoint."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    manifest = run_dir / "checkpoints" / "checkpoint-000000000004" / MANIFEST
+    manifest.unlink()
+    manifest.symlink_to("/dev/zero")
+    assert "is not a regular file" in verify(manifest.parent)
+    finish(run_dir)
+    assert outcome(run_dir) == outcome(whole)

@@ -24,6 +24,7 @@ import logging
 import os
 import re
 import shutil
+import stat
 from collections.abc import Collection, Mapping
 from pathlib import Path
 from typing import Any
@@ -46,6 +47,10 @@ log = logging.getLogger(__name__)
 
 PREFIX = "checkpoint"
 MANIFEST = "manifest.json"
+MANIFEST_BYTES = 2**20
+"""The most a checkpoint's manifest may hold (a few KiB in practice): a link to ``/dev/zero`` or
+a huge file there is a broken checkpoint, not a read without end; the payloads are read only
+after their sizes matched the manifest's records."""
 IDENTITY_KEYS = ("seed", "benchmark", "method", "learner", "risk", "trainer.meta_batch",
                  "trainer.follower_rollouts", "trainer.follower_at", "trainer.frozen_leader")
 """The config keys whose values make a run's results what they are (:func:`run_identity`);
@@ -146,6 +151,9 @@ def verify(path: Path) -> str | None:
     Checkpoints written before integrity records existed (no ``metadata.integrity``) are only
     checked for their listed files being present."""
     try:
+        info = os.stat(path / MANIFEST)
+        if not stat.S_ISREG(info.st_mode) or info.st_size > MANIFEST_BYTES:
+            return f"{MANIFEST} is not a regular file of at most {MANIFEST_BYTES} bytes"
         manifest = Checkpoint.manifest(path)
     except (CheckpointError, OSError, ValueError) as error:
         return f"unreadable manifest: {error}"
