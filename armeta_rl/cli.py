@@ -12,6 +12,7 @@ docs/configuration.md.
 from __future__ import annotations
 
 import difflib
+import errno
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -347,6 +348,8 @@ OUT_OF_MEMORY = ("out of memory: this process may not allocate what the run need
 def out_of_memory(error: BaseException) -> bool:
     """Whether ``error`` is an allocation that failed (Python's ``MemoryError``, torch's CPU or
     CUDA allocator)."""
+    if isinstance(error, OSError):
+        return error.errno == errno.ENOMEM
     text = str(error)
     return isinstance(error, MemoryError) or "can't allocate memory" in text or (
         "out of memory" in text.lower())
@@ -430,7 +433,7 @@ def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str]) ->
     except KeyboardInterrupt:  # Ctrl-C where no run stops cleanly (armeta_rl.preemption)
         print(f"{prog}: interrupted (SIGINT)", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except (MemoryError, RuntimeError) as error:  # e.g. importing torch under a memory limit
+    except (MemoryError, RuntimeError, OSError) as error:  # e.g. importing under a memory limit
         if not out_of_memory(error):
             raise
         print(f"{prog}: error: {OUT_OF_MEMORY}", file=sys.stderr)

@@ -264,7 +264,8 @@ class TrainConfig(Section):
         forward pass's activations over the meta-batch for the meta-gradient."""
         fields = options if isinstance(options, Mapping) else vars(options)
         name = "hidden" if "hidden" in fields else "hidden_sizes"
-        widths = [int(w) for w in fields.get(name) or []]
+        value = fields.get(name) or []
+        widths = [int(w) for w in ([value] if isinstance(value, int) else value)]
         weights = FLOAT32_BYTES * sum(a * b for a, b in zip(widths, widths[1:]))
         if weights > memory:
             raise ConfigError(f"{section}.{name}", widths, (

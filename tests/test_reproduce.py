@@ -270,9 +270,9 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
     for (method, seed), (mean, cvar) in numbers.items():
         run = tmp_path / f"runs/sinusoid_uniform/{method}/seed{seed}"
         run.mkdir(parents=True)
-        (run / "eval.json").write_text(json.dumps(_report(mean, cvar)))
+        (run / "eval.json").write_text(_of(plan, run, _report(mean, cvar)))
         (run / "eval_vs_same_seed.json").write_text(
-            json.dumps(_report(mean, cvar, adversarial=(2 * mean, 2 * cvar))))
+            _of(plan, run, _report(mean, cvar, adversarial=(2 * mean, 2 * cvar))))
     records = collect(plan, tmp_path, {})
     assert len(records) == 8
     write_csv(records, tmp_path / "t.csv")
@@ -298,14 +298,21 @@ def test_each_benchmark_lists_only_its_own_shift_suite(tmp_path):
                              ("pendulum_uniform", "shift/rim")):
         run = tmp_path / f"runs/{benchmark}/maml/seed0"
         run.mkdir(parents=True)
-        (run / "eval.json").write_text(json.dumps(_report(0.5, 1.0)))
+        (run / "eval.json").write_text(_of(plan, run, _report(0.5, 1.0)))
         shifts = _report(0.5, 1.0)
         shifts[shift] = shifts.pop("initial")
-        (run / "eval_shifts.json").write_text(json.dumps(shifts))
+        (run / "eval_shifts.json").write_text(_of(plan, run, shifts))
     text = table(plan, collect(plan, tmp_path, {}), tmp_path)
     shift_rows = [line.split("|")[1:3] for line in text.splitlines() if "| shift: " in line]
     assert [[cell.strip() for cell in row] for row in shift_rows] == [
         ["Sinusoid-U", "shift: high_amplitude"], ["Pendulum-U", "shift: rim"]]
+
+
+def _of(plan, run_dir: Path, report: dict) -> str:
+    """``report`` as JSON, naming the benchmark config and method of the plan's run in
+    ``run_dir`` (a report is taken only where it is that run's)."""
+    run = next(r for r in (*plan.runs, *plan.attacks) if run_dir.as_posix().endswith(r.subdir))
+    return json.dumps({**report, "benchmark": run.config, "method": run.method})
 
 
 def _paired_report(per_task: list[float], section: str = "initial", seed: int = 1234) -> dict:
@@ -326,10 +333,10 @@ def test_paired_differences_over_seeds_by_hand(tmp_path):
     for (method, seed), per_task in scores.items():
         run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
         run.mkdir(parents=True)
-        (run / "eval.json").write_text(json.dumps(_paired_report(per_task)))
+        (run / "eval.json").write_text(_of(plan, run, _paired_report(per_task)))
         shifted = [v - 1 for v in per_task]
-        (run / "eval_shifts.json").write_text(json.dumps(
-            _paired_report(shifted, "shift/rim", seed=7)))
+        (run / "eval_shifts.json").write_text(_of(
+            plan, run, _paired_report(shifted, "shift/rim", seed=7)))
     records = collect(plan, tmp_path, {})
     assert {r["distribution"] for r in records} == {"initial", "shift/rim"}
     text = paired(plan, records, tmp_path)
@@ -492,7 +499,8 @@ def test_a_profile_entry_may_train_another_config_for_a_row(tmp_path):
     plain = make_plan("table1", "paper", benchmarks=("sinusoid_uniform",)).runs[0]
     assert plain.config == plain.benchmark == "sinusoid_uniform"
     (tmp_path / run.subdir).mkdir(parents=True)
-    (tmp_path / run.subdir / "eval.json").write_text(json.dumps(_report(0.5, 0.9)))
+    (tmp_path / run.subdir / "eval.json").write_text(
+        _of(plan, tmp_path / run.subdir, _report(0.5, 0.9)))
     text = table(plan, collect(plan, tmp_path, {}), tmp_path)
     ours = next(line for line in text.splitlines() if line.startswith("| Sinusoid-N | Initial"))
     assert "**0.500**" not in ours and "0.500" in ours  # one method: nothing to bold

@@ -51,8 +51,9 @@ MANIFEST_BYTES = 2**20
 """The most a checkpoint's manifest may hold (a few KiB in practice): a link to ``/dev/zero`` or
 a huge file there is a broken checkpoint, not a read without end; the payloads are read only
 after their sizes matched the manifest's records."""
-IDENTITY_KEYS = ("seed", "benchmark", "method", "learner", "risk", "trainer.meta_batch",
-                 "trainer.follower_rollouts", "trainer.follower_at", "trainer.frozen_leader")
+IDENTITY_KEYS = ("seed", "benchmark.name", "benchmark.space", "benchmark.initial", "method",
+                 "learner", "risk", "trainer.meta_batch", "trainer.follower_rollouts",
+                 "trainer.follower_at")
 """The config keys whose values make a run's results what they are (:func:`run_identity`);
 those a resume may change (iterations, device, logging) are not among them."""
 BROKEN_SUFFIX = ".broken"

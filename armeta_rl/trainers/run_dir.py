@@ -35,6 +35,8 @@ def check_run_dir(run_dir: Path, key: str) -> None:
     except FileNotFoundError:
         if run_dir.is_symlink():
             raise ConfigError(key, str(run_dir), "is a link to nothing") from None
+    except NotADirectoryError:
+        pass  # a file where a parent should be: named below
     except OSError as error:
         raise ConfigError(key, _shown(run_dir), f"cannot be used ({error.strerror})") from None
     if run_dir.exists() and not run_dir.is_dir():
