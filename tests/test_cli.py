@@ -187,9 +187,25 @@ def test_help_lists_the_groups_a_command_line_chooses_from_and_exits_0(capsys):
     groups = text.split("Configuration groups (group=option):\n")[1].split("\n\n")[0]
     assert [line.split(":")[0].strip() for line in groups.splitlines()] == [
         "benchmark", "method", "logger"]
-    assert "sinusoid_uniform" in groups and "trainer:" in text
+    assert "sinusoid_uniform" in groups and "armeta-train [overrides] --cfg job" in text
     assert evaluate(["--help"]) == 0
-    assert "learner: ???" in capsys.readouterr().out
+    assert "armeta-eval learner=<run dir>" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("script", ["armeta-train", "armeta-eval", "armeta-reproduce"])
+def test_help_imports_neither_torch_nor_mujoco_nor_ray(script):
+    """--help of each console script (its entry point, as installed) answers from the config
+    folder alone: torch, TorchRL, MuJoCo and Ray stay unimported (benchmarks/bench_help.py)."""
+    probe = ("import sys; from importlib.metadata import entry_points; "
+             f"(e,) = [e for e in entry_points(group='console_scripts') if e.name == '{script}']; "
+             f"sys.argv = ['{script}', '--help']\n"
+             "try:\n    e.load()()\nexcept SystemExit as stop:\n    assert not stop.code\n"
+             "print(sorted({m.split('.')[0] for m in sys.modules} "
+             "& {'torch', 'torchrl', 'mujoco', 'ray'}))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert "usage" in done.stdout or "--cfg job" in done.stdout
+    assert done.stdout.strip().splitlines()[-1] == "[]"
 
 
 def test_reproduce_help_and_shell_completion_exit_0():
