@@ -111,6 +111,8 @@ class BatchedMujocoEnv(EnvBase):
             ``None``: one per CPU core).
         seed: seed of the generator for reset noise and default identifiers.
         device: torch device of the outputs (the physics runs on the CPU).
+        require_identifiers: refuse a full reset without identifiers under ``"params"`` (by
+            default it keeps the stored ones; :func:`~armeta_rl.tasks.protocol.read_identifiers`).
     """
 
     identifier_names: tuple[str, ...] = ()
@@ -129,8 +131,10 @@ class BatchedMujocoEnv(EnvBase):
         threads: int | None,
         seed: int | None,
         device: torch.device | str,
+        require_identifiers: bool = False,
     ) -> None:
         super().__init__(device=device, batch_size=torch.Size(batch_size))
+        self.require_identifiers = bool(require_identifiers)
         self.max_steps, self.frame_skip = int(max_steps), int(frame_skip)
         self.reset_noise_scale = float(reset_noise_scale)
         self.model = model
@@ -276,7 +280,7 @@ class BatchedMujocoEnv(EnvBase):
             else reset.reshape(*shape, 1).cpu()
         )
         task = read_identifiers(tensordict, self.identifier_names, self.identifier_low,
-                                self.identifier_high, shape)
+                                self.identifier_high, shape, required=self.require_identifiers)
         if task is not None:
             task = task.to("cpu", torch.float64)
             self._task = torch.where(mask, task, self._task)

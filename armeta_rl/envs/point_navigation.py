@@ -227,11 +227,13 @@ class PointNavigationEnv(EnvBase):
         device: torch.device | str = "cpu",
         truncated_regions: Sequence[Region] = (),
         graphs: bool | None = None,
+        require_identifiers: bool = False,
     ) -> None:
         if int(max_steps) < 1:
             raise ConfigError("benchmark.collector.max_steps", max_steps, "must be >= 1")
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         self.max_steps = int(max_steps)
+        self.require_identifiers = bool(require_identifiers)
         self.sparse_regions = check_regions(sparse_regions)
         self.truncated_regions = check_regions(truncated_regions, TRUNCATED_KEY, "radius")
         self.squared_distance = bool(squared_distance)
@@ -288,7 +290,8 @@ class PointNavigationEnv(EnvBase):
         if reset is None:
             reset = torch.ones(*shape, 1, dtype=torch.bool, device=self.device)
         mask = reset.reshape(*shape, 1)
-        goal = read_identifiers(tensordict, GOAL_NAMES, GOAL_LOW, GOAL_HIGH, shape)
+        goal = read_identifiers(tensordict, GOAL_NAMES, GOAL_LOW, GOAL_HIGH, shape,
+                                required=self.require_identifiers)
         if goal is not None:
             goal = goal.to(self._goal.dtype).expand_as(self._goal)
             self._goal = torch.where(mask, goal, self._goal)
