@@ -32,7 +32,15 @@ from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.adversary import FlowAdversary, TaskSampler
 from armeta_rl.collectors.episodes import EpisodeCollector
-from armeta_rl.envs import AcrobotEnv, HalfCheetahVelEnv, PendulumEnv, PointNavigationEnv
+from armeta_rl.envs import (
+    AcrobotEnv,
+    AntDirEnv,
+    AntGoalEnv,
+    HalfCheetahDirEnv,
+    HalfCheetahVelEnv,
+    PendulumEnv,
+    PointNavigationEnv,
+)
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import (
@@ -363,3 +371,37 @@ def test_an_episode_collector_steps_a_transformed_env_through_its_transforms():
         rewards.append(EpisodeCollector(make_env, episodes=3, max_steps=8)
                        .collect(tasks, policy=policy)["reward"])
     assert torch.equal(rewards[1], 2 * rewards[0])
+
+
+TASK_ENVS = {
+    "pendulum_uniform": PendulumEnv,
+    "pendulum_gravity": partial(PendulumEnv, identifiers=("m", "l", "g")),
+    "acrobot_uniform": AcrobotEnv,
+    "half_cheetah_vel": HalfCheetahVelEnv,
+    "half_cheetah_dir": HalfCheetahDirEnv,
+    "ant_dir": AntDirEnv,
+    "ant_goal": AntGoalEnv,
+    "point_nav": PointNavigationEnv,
+}
+
+
+@pytest.mark.parametrize("benchmark", sorted(TASK_ENVS))
+def test_every_task_env_states_its_task_space_and_a_sampler_is_built_from_the_env_alone(
+        benchmark):
+    """env.task_space is the box of the benchmark config that trains on the env, and a
+    TaskSampler over it (p_φ on env.p0) draws the tasks of a TaskTransform on the same env,
+    whose specs hold with the identifiers left out of the data."""
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.load(Path(__file__).parents[1] / "configs" / "benchmark"
+                            / f"{benchmark}.yaml")
+    space = OmegaConf.select(config, "space") or OmegaConf.select(config, "benchmark.space")
+    env = TASK_ENVS[benchmark](batch_size=(2, 2), seed=0)
+    assert env.task_space == TaskSpace(space.names, space.low, space.high)
+    sampler = TaskSampler(FlowAdversary(env.task_space, env.p0))
+    drawn = TransformedEnv(TASK_ENVS[benchmark](batch_size=(2, 2), seed=0),
+                           Compose(TaskTransform(sampler), ExcludeTransform(TASK_KEY)))
+    check_env_specs(drawn)
+    tasks = TransformedEnv(TASK_ENVS[benchmark](batch_size=(2, 2), seed=0),
+                           TaskTransform(env.p0)).reset()[TASK_KEY]
+    assert env.task_space.contains(tasks.reshape(-1, env.task_space.dim)).all()

@@ -33,6 +33,7 @@ class AcrobotEnv(IdentifiedSystemEnv):
 
     param_names = ("m1", "m2")
     identifier_defaults = {"m1": 1.0, "m2": 1.0}
+    task_boxes = {"m1": (0.4, 1.6), "m2": (0.4, 1.6)}
     state_dim = 4
     observation_dim = 6
     dt = 0.2

@@ -204,6 +204,7 @@ class AntGoalEnv(AntTaskEnv):
     """
 
     identifier_names = GOAL_NAMES
+    task_boxes = {name: (-3.0, 3.0) for name in GOAL_NAMES}
 
     def __init__(
         self,

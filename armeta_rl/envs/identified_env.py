@@ -54,7 +54,9 @@ from torchrl.envs import EnvBase
 
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.distributions import BoxUniform
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 
 class UniformBounded(Bounded):
@@ -91,6 +93,7 @@ class IdentifiedSystemEnv(EnvBase):
 
     param_names: tuple[str, ...] = ()
     identifier_defaults: dict[str, float] = {}
+    task_boxes: dict[str, tuple[float, float]] = {}
     state_dim: int = 0
     observation_dim: int = 0
     observation_high: tuple[float, ...] = ()
@@ -131,6 +134,18 @@ class IdentifiedSystemEnv(EnvBase):
         if seed is None:
             seed = int(torch.randint(0, 2**62, ()))
         self.set_seed(seed)
+
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of this env's identifiers, in the order of ``"params"``: the references' task
+        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
+        ``TaskTransform`` are built from the env alone."""
+        return task_space_of(self.param_names, self.task_boxes)
+
+    @property
+    def p0(self) -> BoxUniform:
+        """The references' initial task distribution: uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
 
     def _make_specs(self) -> None:
         batch, kwargs = self.batch_size, {"dtype": self.dtype, "device": self.device}

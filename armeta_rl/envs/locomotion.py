@@ -74,6 +74,7 @@ Model, dynamics, observation (119 values, torso position included; ProMP's leave
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -192,6 +193,7 @@ class HalfCheetahVelEnv(HalfCheetahTaskEnv):
     velocities never set are drawn from U(0, 2)."""
 
     identifier_names = ("goal_velocity",)
+    task_boxes = {"goal_velocity": (0.0, 2.0)}
 
     def _default_identifiers(self) -> torch.Tensor:
         return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
@@ -208,6 +210,7 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
 
     identifier_names = ("direction",)
     identifier_low, identifier_high = -1.0, 1.0
+    task_boxes = {"direction": (-1.0, 1.0)}
 
     def _default_identifiers(self) -> torch.Tensor:
         unit = torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
@@ -239,6 +242,7 @@ class Walker2dVelEnv(PlanarRunnerEnv):
 
     xml = "walker2d_v5.xml"
     identifier_names = ("goal_velocity",)
+    task_boxes = {"goal_velocity": (0.0, 2.0)}
     velocity_clip = 10.0
 
     def __init__(
@@ -296,6 +300,7 @@ class AntDirEnv(AntTaskEnv):
     """
 
     identifier_names = ("direction_angle",)
+    task_boxes = {"direction_angle": (-math.pi, math.pi)}
 
     def __init__(
         self,

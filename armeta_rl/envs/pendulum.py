@@ -31,6 +31,7 @@ class PendulumEnv(IdentifiedSystemEnv):
 
     param_names = ("m", "l")
     identifier_defaults = {"m": 1.0, "l": 1.0, "g": 10.0}
+    task_boxes = {"m": (0.4, 1.6), "l": (0.4, 1.6), "g": (5.0, 15.0)}
     state_dim = 2
     observation_dim = 3
     dt = 0.05

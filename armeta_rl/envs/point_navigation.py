@@ -41,7 +41,9 @@ from armeta_rl.cuda_graphs import GraphedCall
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.rl.policy import act as policy_act
+from armeta_rl.tasks.distributions import BoxUniform
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 Region = tuple[tuple[float, float], tuple[float, float], float]
 """((x_low, x_high), (y_low, y_high), reward_scale)."""
@@ -217,6 +219,8 @@ class PointNavigationEnv(EnvBase):
         graphs: replay :meth:`gaussian_transitions` as CUDA graphs (``None``: on CUDA).
     """
 
+    task_boxes = {name: (GOAL_LOW, GOAL_HIGH) for name in GOAL_NAMES}
+
     def __init__(
         self,
         batch_size: Sequence[int] = (1, 1),
@@ -283,6 +287,18 @@ class PointNavigationEnv(EnvBase):
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
         self._generator.manual_seed(int(seed))
+
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of this env's identifiers, in the order of ``"params"``: the references' task
+        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
+        ``TaskTransform`` are built from the env alone."""
+        return task_space_of(GOAL_NAMES, self.task_boxes)
+
+    @property
+    def p0(self) -> BoxUniform:
+        """The references' initial task distribution: uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = self.batch_size
