@@ -465,15 +465,15 @@ def _without_checks(args: list[str], prog: str, config_name: str,
 
 
 def _print_help(prog: str, config_name: str, groups: tuple[str, ...], usage: str) -> None:
-    """``--help``: the usage, the groups a command line chooses from and the composed config."""
-    from hydra import initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        cfg = compose_job([], config_name)
+    """``--help``: the usage, the groups a command line chooses from and where to see the
+    composed config. It reads only the config folder: composing the config would import every
+    learner (torch, TorchRL, MuJoCo) for a page of text, which ``--cfg job`` prints instead."""
     lines = [f"{prog}: {usage}", "", "Configuration groups (group=option):"]
     lines += [f"  {group}: {', '.join(group_choices(group))}" for group in groups] or ["  none"]
-    lines += ["", "Config (override any key: key=value; add one: +key=value):", "",
-              OmegaConf.to_yaml(cfg).rstrip(), "",
+    lines += ["", f"Config: configs/{config_name}.yaml and the dataclasses it lists; override any "
+              "key with key=value, add one with +key=value (docs/configuration.md).",
+              f"The composed config of a command line, every key with its value: {prog} "
+              "[overrides] --cfg job",
               "Hydra's own flags (-m, --cfg job, -sc install=bash, ...): --hydra-help"]
     print("\n".join(lines))
 
@@ -492,13 +492,13 @@ def train(argv: list[str] | None = None) -> int:
 
 
 def _train(args: list[str]) -> None:
-    from armeta_rl.trainers.run_dir import check_run_dir, run_lock
-
     prog = "armeta-train"
     task = _report_errors(prog, _train_task)
     if _without_checks(args, prog, "train", task, GROUPS, "train a method on a benchmark "
                        "(armeta-train [group=option ...] [key=value ...] [-m])"):
         return
+    from armeta_rl.trainers.run_dir import check_run_dir, run_lock
+
     for arg in args:
         name, _, value = arg.partition("=")
         if name in ("hydra.run.dir", "hydra.sweep.dir") and not value.strip():

@@ -9,7 +9,6 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train, raw_mjdata
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import RewardSum, StepCounter, TransformedEnv
@@ -18,11 +17,12 @@ from torchrl.envs.utils import RandomPolicy, check_env_specs, step_mdp
 from armeta_rl.collectors.episodes import valid_mask
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
 from armeta_rl.config import validate
-from armeta_rl.envs.ant_dir import AntDirEnv
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
+from armeta_rl.envs.locomotion import AntDirEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train, raw_mjdata
 
 CTRL, CONTACT, SURVIVE = 5e-3, 5e-4, 0.05
 

@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -197,9 +198,25 @@ def test_help_lists_the_groups_a_command_line_chooses_from_and_exits_0(capsys):
     groups = text.split("Configuration groups (group=option):\n")[1].split("\n\n")[0]
     assert [line.split(":")[0].strip() for line in groups.splitlines()] == [
         "benchmark", "method", "logger"]
-    assert "sinusoid_uniform" in groups and "trainer:" in text
+    assert "sinusoid_uniform" in groups and "armeta-train [overrides] --cfg job" in text
     assert evaluate(["--help"]) == 0
-    assert "learner: ???" in capsys.readouterr().out
+    assert "armeta-eval learner=<run dir>" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("script", ["armeta-train", "armeta-eval", "armeta-reproduce"])
+def test_help_imports_neither_torch_nor_mujoco_nor_ray(script):
+    """--help of each console script (its entry point, as installed) answers from the config
+    folder alone: torch, TorchRL, MuJoCo and Ray stay unimported (benchmarks/bench_help.py)."""
+    probe = ("import sys; from importlib.metadata import entry_points; "
+             f"(e,) = [e for e in entry_points(group='console_scripts') if e.name == '{script}']; "
+             f"sys.argv = ['{script}', '--help']\n"
+             "try:\n    e.load()()\nexcept SystemExit as stop:\n    assert not stop.code\n"
+             "print(sorted({m.split('.')[0] for m in sys.modules} "
+             "& {'torch', 'torchrl', 'mujoco', 'ray'}))")
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                          timeout=120, check=True)
+    assert "usage" in done.stdout or "--cfg job" in done.stdout
+    assert done.stdout.strip().splitlines()[-1] == "[]"
 
 
 def test_reproduce_help_and_shell_completion_exit_0():
@@ -210,3 +227,69 @@ def test_reproduce_help_and_shell_completion_exit_0():
                                 timeout=120)
     assert completion.returncode == 0, completion.stderr
     assert "hydra_bash_completion" in completion.stdout
+
+
+def wandb_records(path: Path) -> list[bytes]:
+    """The records of a wandb transaction log (``run-*.wandb``): a 7-byte wandb header, then the
+    LevelDB log format wandb writes (32 KiB blocks of chunks, each with a 7-byte header: CRC,
+    length, type FULL=1, FIRST=2, MIDDLE=3, LAST=4)."""
+    data, block, records, pending = path.read_bytes(), 32768, [], b""
+    assert data[:4] == b":W&B"
+    offset = 7
+    while offset + 7 <= len(data):
+        if block - offset % block < 7:  # a block's tail too short for a header is padding
+            offset += block - offset % block
+            continue
+        length, kind = int.from_bytes(data[offset + 4:offset + 6], "little"), data[offset + 6]
+        chunk = data[offset + 7:offset + 7 + length]
+        offset += 7 + length
+        if kind == 0:
+            break
+        pending = chunk if kind in (1, 2) else pending + chunk
+        if kind in (1, 4):
+            records.append(pending)
+    return records
+
+
+def wandb_history(run: Path) -> list[dict]:
+    """The history rows an offline wandb run wrote, parsed with wandb's own protobuf record."""
+    import json
+
+    from wandb.proto import wandb_internal_pb2
+
+    rows = []
+    for data in wandb_records(next(run.glob("run-*.wandb"))):
+        record = wandb_internal_pb2.Record()
+        record.ParseFromString(data)
+        if record.WhichOneof("record_type") == "history":
+            rows.append({"/".join(item.nested_key) or item.key: json.loads(item.value_json)
+                         for item in record.history.item})
+    return rows
+
+
+def test_an_offline_rl_run_logs_the_density_animation_and_the_adaptation(tmp_path, monkeypatch):
+    """A MAML-TRPO run on the point robot with wandb: the density animation as a video, the
+    pre- and post-adaptation returns and their gain every logged iteration, and the frames and
+    the final density.png (titled) as images."""
+    monkeypatch.setenv("WANDB_MODE", "offline")
+    run_dir = tmp_path / "run"
+    run_training(compose_train("benchmark=point_nav", "method=ar_maml", "trainer.iterations=4",
+                               "trainer.log_every=1", "trainer.meta_batch=2",
+                               "trainer.checkpoint_every=2", "trainer.density_every=2",
+                               "benchmark.collector.episodes=2",
+                               "benchmark.collector.max_steps=8", "eval.n_tasks=2",
+                               "trainer.progress=false", "logger=wandb"), run_dir)
+    (run,) = (run_dir / "wandb").glob("offline-run-*")
+    rows = wandb_history(run)
+    gains = [r["train/adaptation_gain"] for r in rows if "train/adaptation_gain" in r]
+    assert len(gains) == 4
+    for row in rows:
+        if "train/adaptation_gain" in row:
+            assert row["train/adaptation_gain"] == pytest.approx(
+                row["train/return_post"] - row["train/return_pre"], abs=1e-4)
+    (video,) = [r for r in rows if "adversary/density_animation/_type" in r]
+    assert video["adversary/density_animation/_type"] == "video-file"
+    path = video["adversary/density_animation/path"]
+    assert path.endswith(".gif") and (run / "files" / path).stat().st_size > 0
+    images = list((run / "files" / "media" / "images" / "adversary").glob("density_*.png"))
+    assert len(images) == 4  # iterations 0, 2 and 4, and the final density.png

@@ -139,9 +139,8 @@ def test_each_pair_of_identifiers_gets_its_own_colour_scale(tmp_path):
 
 
 
-def test_the_readme_figure_script_draws_a_finished_run_and_refuses_another(tmp_path):
-    """docs/figures/density.py draws the final p_φ of the default run; a run of other settings
-    is refused with one line (exit code 2), and draws when asked to take any run."""
+def figure_script():
+    """docs/figures/density.py as a module."""
     import importlib.util
     from pathlib import Path
 
@@ -149,10 +148,39 @@ def test_the_readme_figure_script_draws_a_finished_run_and_refuses_another(tmp_p
     spec = importlib.util.spec_from_file_location("density_figure", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    return script
+
+
+def test_the_readme_figure_script_draws_a_finished_run_and_refuses_another(tmp_path):
+    """docs/figures/density.py draws the final p_φ of the default run; a run of other settings
+    is refused with one line (exit code 2), and draws when asked to take any run, keeping the
+    numbers it drew and the machine that computed them."""
+    import json
+
+    script = figure_script()
     run = tmp_path / "run"
     run_training(compose_train(*SMALL_RUN, "trainer.meta_batch=4", "eval.n_tasks=4"), run)
     assert script.main(["--run", str(run), "--out", str(tmp_path / "refused.png")]) == 2
     assert not (tmp_path / "refused.png").exists()
-    out = script.draw(run, tmp_path / "figure.png", check_default=False)
+    numbers, provenance = tmp_path / "numbers.pt", tmp_path / "provenance.json"
+    out = script.draw(run, tmp_path / "figure.png", check_default=False, numbers=numbers,
+                      provenance=provenance)
     with Image.open(out) as image:
         assert image.size[0] > image.size[1] > 100
+    about = json.loads(provenance.read_text())
+    assert about["machine"] == script.this_machine() and "armeta-train" in about["command"]
+    redrawn = script.redraw(tmp_path / "redrawn.png", numbers, provenance)
+    with Image.open(out) as first, Image.open(redrawn) as second:
+        assert np.array_equal(np.asarray(first), np.asarray(second))
+
+
+def test_the_readme_figure_is_redrawn_from_its_committed_numbers(tmp_path):
+    """The README's figure is what its committed numbers draw (docs/figures/density.pt and
+    density.json: the command and machine that computed them, named in its title)."""
+    script = figure_script()
+    redrawn = script.redraw(tmp_path / "density.png")
+    with Image.open(script.FIGURE) as committed, Image.open(redrawn) as again:
+        committed, again = np.asarray(committed, float), np.asarray(again, float)
+    assert committed.shape == again.shape
+    # fonts may rasterize a little differently on another machine; the heat maps may not
+    assert np.abs(committed - again).mean() < 1.0

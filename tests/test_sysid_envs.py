@@ -29,7 +29,7 @@ STEPS = 100
 def _reset_to(env, params: torch.Tensor, state: torch.Tensor) -> TensorDict:
     """Reset a ``[n, 1]`` env to given identifiers ``[n, d]`` and states ``[n, s]``."""
     td = TensorDict({"params": params[:, None], "state": state[:, None]}, env.batch_size)
-    return env.reset(td, set_state=True)
+    return env.reset(td, from_state=True)
 
 
 def gymnasium_envs(env_id: str, attributes: tuple[str, ...], params: list, rng) -> list:
@@ -101,7 +101,7 @@ def test_acrobot_matches_gymnasium():
                 gym_envs[i].reset(seed=int(rng.integers(1 << 30)))
                 td["state"][i, 0] = torch.tensor(gym_envs[i].state, dtype=torch.float64)
             td["_reset"] = terminated[:, None, None]
-            td = env.reset(td, set_state=True)
+            td = env.reset(td, from_state=True)
     assert terminations >= 1
     assert clipped >= 1
 
@@ -117,7 +117,7 @@ def _upright_acrobot(params: torch.Tensor, upright: torch.Tensor) -> tuple[Acrob
     state = torch.zeros(*upright.shape, 4)
     state[..., 0] = torch.where(upright, torch.pi, 0.0)
     td = TensorDict({"params": params, "state": state}, upright.shape)
-    return env, env.reset(td, set_state=True)
+    return env, env.reset(td, from_state=True)
 
 
 def test_identifiers_survive_partial_resets_in_rollout():
@@ -137,7 +137,7 @@ def test_identifiers_survive_partial_resets_in_rollout():
     fresh = AcrobotEnv(batch_size=(3, 2), seed=1)
     for t in range(4):
         start = TensorDict({"params": params, "state": rollout["state"][:, :, t]}, (3, 2))
-        start = fresh.reset(start, set_state=True).set("action", rollout["action"][:, :, t])
+        start = fresh.reset(start, from_state=True).set("action", rollout["action"][:, :, t])
         torch.testing.assert_close(fresh.step(start)["next", "state"],
                                    rollout["next", "state"][:, :, t])
 
@@ -166,7 +166,7 @@ def _both_rollouts(env_cls: type, params: torch.Tensor, steps: int, policy=None,
         start = TensorDict({"params": params}, params.shape[:-1])
         if state is not None:
             start["state"] = state
-        start = env.reset(start, set_state=state is not None)
+        start = env.reset(start, from_state=state is not None)
         if fast:
             rollout = env.transitions(steps, policy)
         else:

@@ -216,7 +216,7 @@ def check_transitions(name: str, data: TensorDictBase, given: torch.Tensor) -> N
     if name in ("pendulum", "acrobot"):
         fresh = CASES[name].make(batch_size=(len(data),), seed=1)
         start = fresh.reset(TensorDict({TASK_KEY: given, "state": data["state"]}, [len(data)]),
-                            set_state=True)
+                            from_state=True)
         expected = fresh.step(start.set("action", data["action"]))["next", "state"]
         torch.testing.assert_close(data["next", "state"], expected)
     elif name == "point_nav":

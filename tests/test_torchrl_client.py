@@ -20,6 +20,7 @@ from torchrl.envs import (
     DoubleToFloat,
     EnvCreator,
     ExcludeTransform,
+    ParallelEnv,
     RewardScaling,
     RewardSum,
     SerialEnv,
@@ -31,7 +32,15 @@ from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.adversary import FlowAdversary, TaskSampler
 from armeta_rl.collectors.episodes import EpisodeCollector
-from armeta_rl.envs import AcrobotEnv, HalfCheetahVelEnv, PendulumEnv, PointNavigationEnv
+from armeta_rl.envs import (
+    AcrobotEnv,
+    AntDirEnv,
+    AntGoalEnv,
+    HalfCheetahDirEnv,
+    HalfCheetahVelEnv,
+    PendulumEnv,
+    PointNavigationEnv,
+)
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import (
@@ -40,7 +49,6 @@ from armeta_rl.tasks import (
     TaskSpace,
     TaskTransform,
     finished_episodes,
-    reset_with_identifiers,
 )
 
 GOALS = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
@@ -202,24 +210,99 @@ def test_an_env_without_identifiers_under_the_key_is_refused():
         TransformedEnv(TorchRLPendulum(), TaskTransform(BoxUniform(MASSES)))
 
 
+def misspelled(env) -> TensorDict:
+    """A reset TensorDict carrying pendulum identifiers under "param" instead of "params"."""
+    return TensorDict({"param": torch.full((*env.batch_size, 2), 2.0)}, env.batch_size)
+
+
+@pytest.mark.parametrize("make", [
+    lambda: PendulumEnv(batch_size=(4,), seed=0),
+    lambda: TransformedEnv(PendulumEnv(batch_size=(4,), seed=0), StepCounter(200)),
+    lambda: SerialEnv(2, lambda: PendulumEnv(batch_size=(3,), seed=0)),
+    lambda: SerialEnv(2, lambda: TransformedEnv(PendulumEnv(batch_size=(3,), seed=0),
+                                                StepCounter(5))),
+    lambda: TransformedEnv(HalfCheetahVelEnv(batch_size=(2,), seed=0), StepCounter(5)),
+    lambda: TransformedEnv(PointNavigationEnv(batch_size=(2,), seed=0), StepCounter(5)),
+], ids=["bare", "step_counter", "serial", "serial_of_transformed", "half_cheetah",
+        "point_nav"])
+def test_a_misspelled_identifier_key_is_refused_wherever_the_env_sits(make):
+    """The issue's reset, `{"param": ...}`: refused with one line naming the key, whether the
+    env sees the key (bare, in a SerialEnv) or only the empty TensorDict TransformedEnv leaves
+    of it; never run on the default identifiers."""
+    env = make()
+    with pytest.raises(IdentifierError) as error:
+        env.reset(misspelled(env))
+    message = str(error.value)
+    assert "\n" not in message
+    assert message.startswith(("tensordict key 'param' = ", "tensordict key 'params' = missing"))
+
+
+def test_a_misspelled_key_is_refused_in_a_parallel_env(capfd):
+    """A ParallelEnv's worker refuses the reset (TorchRL reports the worker's end, the worker
+    the one line)."""
+    env = ParallelEnv(2, partial(PendulumEnv, batch_size=(3,), seed=0), mp_start_method="fork")
+    with pytest.raises(RuntimeError):
+        env.reset(misspelled(env))
+        env.close()
+    assert "tensordict key 'params' = missing" in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("make", [
+    lambda **kw: PendulumEnv(batch_size=(2, 3), seed=0, **kw),
+    lambda **kw: TransformedEnv(PendulumEnv(batch_size=(2, 3), seed=0, **kw), StepCounter(4)),
+    lambda **kw: TransformedEnv(SerialEnv(2, lambda: PendulumEnv(batch_size=(3,), seed=0, **kw)),
+                                StepCounter(4)),
+    lambda **kw: TransformedEnv(HalfCheetahVelEnv(batch_size=(2, 3), seed=0, **kw),
+                                StepCounter(4)),
+    lambda **kw: TransformedEnv(PointNavigationEnv(batch_size=(2, 3), seed=0, **kw),
+                                StepCounter(4)),
+], ids=["bare", "step_counter", "serial_behind_transform", "half_cheetah", "point_nav"])
+def test_identifiers_declared_required_refuse_every_full_reset_without_them(make):
+    """require_identifiers=True: a reset without identifiers (none given, or a misspelled key
+    that a batched env behind a transform turns into none) is refused; with them every episode,
+    after automatic partial resets too, runs them."""
+    assert make().reset()[TASK_KEY].shape[-1] > 0  # by default the stored ones are kept
+    env = make(require_identifiers=True)
+    with pytest.raises(IdentifierError, match="'params' = missing: this env requires"):
+        env.reset()
+    with pytest.raises(IdentifierError):
+        env.reset(TensorDict({"param": torch.ones(*env.batch_size, 2)}, env.batch_size))
+    width = env.observation_spec[TASK_KEY].shape[-1]
+    start = env.reset(TensorDict({TASK_KEY: torch.full((*env.batch_size, width), 0.25)},
+                                 env.batch_size))
+    rollout = env.rollout(10, break_when_any_done=False, auto_reset=False, tensordict=start)
+    assert (rollout[TASK_KEY] == 0.25).all()
+    assert rollout["next", "done"].any() or not isinstance(env, TransformedEnv)
+
+
+@pytest.mark.parametrize("batched", [SerialEnv, partial(ParallelEnv, mp_start_method="fork")],
+                         ids=["serial", "parallel"])
 @pytest.mark.parametrize("env_class", [PendulumEnv, AcrobotEnv])
-def test_a_batched_reset_with_identifiers_is_honored_without_torchrl_s_warning(env_class):
-    """SerialEnv of system-identification envs: reset through reset_with_identifiers, the
-    identifiers reach every worker (its physics runs them) and torchrl's FutureWarning (a reset
-    whose state 0.15 would ignore) is not raised."""
+def test_a_batched_reset_carries_the_identifiers_to_every_worker_without_a_warning(env_class,
+                                                                                   batched):
+    """A plain reset of a batched env, and the automatic partial resets of its rollout behind
+    a StepCounter, with every warning an error (TorchRL's FutureWarning about a reset carrying
+    state that 0.15 would drop included): each worker runs the identifiers it was given, as a
+    single env given them does (the same rewards), so identifiers dropped anywhere fail."""
     names = env_class.param_names
     identifiers = torch.tensor([[0.6, 1.4], [1.3, 0.7]])[:, None].expand(2, 3, len(names))
-    env = SerialEnv(2, lambda: env_class(batch_size=(3,), seed=1))
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", FutureWarning)
-        start = reset_with_identifiers(env, TensorDict({TASK_KEY: identifiers}, [2, 3]))
-    assert (start[TASK_KEY] == identifiers).all()
-    for worker, ids in zip(env._envs, identifiers):
-        assert (worker.task_params == ids).all()
-        reference = env_class(batch_size=(3,), seed=0)
-        reference.reset(TensorDict({TASK_KEY: ids, "state": worker._state.T.clone()}, [3]),
-                        set_state=True)
-        assert torch.equal(reference.constants[0], worker.constants[0])
+    env = TransformedEnv(batched(2, partial(env_class, batch_size=(3,), seed=1)), StepCounter(3))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            env.set_seed(0)
+            start = env.reset(TensorDict({TASK_KEY: identifiers}, [2, 3]))
+            rollout = env.rollout(7, break_when_any_done=False, auto_reset=False,
+                                  tensordict=start)
+    finally:
+        env.close(raise_if_closed=False)
+    assert (rollout[TASK_KEY] == identifiers[:, :, None]).all()
+    single = env_class(batch_size=(3,), seed=1)
+    for ids, worker_run in zip(identifiers, rollout):
+        single.reset(TensorDict({TASK_KEY: ids, "state": worker_run["state"][:, 0]}, [3]),
+                     from_state=True)
+        step = single.step(TensorDict({"action": worker_run["action"][:, 0]}, [3]))
+        torch.testing.assert_close(step["next", "reward"], worker_run["next", "reward"][:, 0])
 
 
 def test_a_float64_env_works_under_double_to_float():
@@ -288,3 +371,37 @@ def test_an_episode_collector_steps_a_transformed_env_through_its_transforms():
         rewards.append(EpisodeCollector(make_env, episodes=3, max_steps=8)
                        .collect(tasks, policy=policy)["reward"])
     assert torch.equal(rewards[1], 2 * rewards[0])
+
+
+TASK_ENVS = {
+    "pendulum_uniform": PendulumEnv,
+    "pendulum_gravity": partial(PendulumEnv, identifiers=("m", "l", "g")),
+    "acrobot_uniform": AcrobotEnv,
+    "half_cheetah_vel": HalfCheetahVelEnv,
+    "half_cheetah_dir": HalfCheetahDirEnv,
+    "ant_dir": AntDirEnv,
+    "ant_goal": AntGoalEnv,
+    "point_nav": PointNavigationEnv,
+}
+
+
+@pytest.mark.parametrize("benchmark", sorted(TASK_ENVS))
+def test_every_task_env_states_its_task_space_and_a_sampler_is_built_from_the_env_alone(
+        benchmark):
+    """env.task_space is the box of the benchmark config that trains on the env, and a
+    TaskSampler over it (p_φ on env.p0) draws the tasks of a TaskTransform on the same env,
+    whose specs hold with the identifiers left out of the data."""
+    from omegaconf import OmegaConf
+
+    config = OmegaConf.load(Path(__file__).parents[1] / "configs" / "benchmark"
+                            / f"{benchmark}.yaml")
+    space = OmegaConf.select(config, "space") or OmegaConf.select(config, "benchmark.space")
+    env = TASK_ENVS[benchmark](batch_size=(2, 2), seed=0)
+    assert env.task_space == TaskSpace(space.names, space.low, space.high)
+    sampler = TaskSampler(FlowAdversary(env.task_space, env.p0))
+    drawn = TransformedEnv(TASK_ENVS[benchmark](batch_size=(2, 2), seed=0),
+                           Compose(TaskTransform(sampler), ExcludeTransform(TASK_KEY)))
+    check_env_specs(drawn)
+    tasks = TransformedEnv(TASK_ENVS[benchmark](batch_size=(2, 2), seed=0),
+                           TaskTransform(env.p0)).reset()[TASK_KEY]
+    assert env.task_space.contains(tasks.reshape(-1, env.task_space.dim)).all()

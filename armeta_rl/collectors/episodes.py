@@ -38,7 +38,7 @@ from armeta_rl.envs.point_navigation import (
 )
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.rl.policy import GaussianActor, GaussianMLP
-from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY, reset_with_identifiers
+from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 
 
@@ -148,7 +148,7 @@ class EpisodeCollector:
             try:
                 for corner in (space.low, space.high):
                     params = torch.tensor([[corner]], dtype=dtype, device=env.device)
-                    reset_with_identifiers(env, TensorDict({TASK_KEY: params}, [1, 1]))
+                    env.reset(TensorDict({TASK_KEY: params}, [1, 1]))
             except IdentifierError as error:
                 box = {"names": list(space.names), "low": list(space.low),
                        "high": list(space.high)}
@@ -187,7 +187,7 @@ class EpisodeCollector:
         env_device = torch.device(env.device or "cpu")  # an env without one returns CPU tensors
         identifiers = tasks[TASK_KEY].to(env_device)
         env.set_seed(int(torch.randint(0, 2**62, ())))
-        start = reset_with_identifiers(env, TensorDict(
+        start = env.reset(TensorDict(
             {TASK_KEY: identifiers[:, None].expand(n_tasks, self.episodes, -1)}, env.batch_size))
         if next(policy.parameters()).device != env_device:
             policy = copy.deepcopy(policy).to(env_device)

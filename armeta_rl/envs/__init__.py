@@ -7,10 +7,14 @@ measurable start-up time.
 """
 
 from armeta_rl.envs.acrobot import AcrobotEnv
-from armeta_rl.envs.ant_dir import AntDirEnv
 from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
-from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
+from armeta_rl.envs.locomotion import (
+    AntDirEnv,
+    HalfCheetahDirEnv,
+    HalfCheetahVelEnv,
+    Walker2dVelEnv,
+)
 from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 

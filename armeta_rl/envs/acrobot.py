@@ -34,10 +34,10 @@ class AcrobotEnv(IdentifiedSystemEnv):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import AcrobotEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = AcrobotEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # masses (m1, m2)
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 6]), True)
@@ -45,6 +45,7 @@ class AcrobotEnv(IdentifiedSystemEnv):
 
     param_names = ("m1", "m2")
     identifier_defaults = {"m1": 1.0, "m2": 1.0}
+    task_boxes = {"m1": (0.4, 1.6), "m2": (0.4, 1.6)}
     state_dim = 4
     observation_dim = 6
     dt = 0.2

@@ -43,7 +43,7 @@ another key (``"goal"``), of another width or not finite raise
 :class:`~armeta_rl.errors.IdentifierError`.
 
 :class:`AntTaskEnv` is the Ant every Ant task shares (model, observation, contact forces,
-termination); :class:`AntGoalEnv` adds the goal, :class:`~armeta_rl.envs.ant_dir.AntDirEnv` a
+termination); :class:`AntGoalEnv` adds the goal, :class:`~armeta_rl.envs.locomotion.AntDirEnv` a
 direction.
 """
 
@@ -121,6 +121,7 @@ class AntTaskEnv(BatchedMujocoEnv):
         seed: int | None,
         device: torch.device | str,
         checks: dict[str, tuple[object, bool, str]] | None = None,
+        require_identifiers: bool = False,
     ) -> None:
         check_arguments({
             **common_checks(max_steps, frame_skip, reset_noise_scale, threads),
@@ -138,7 +139,7 @@ class AntTaskEnv(BatchedMujocoEnv):
         model = load_ant_model()
         self._torso = model.body(TORSO).id
         super().__init__(model, batch_size, max_steps, frame_skip, reset_noise_scale, threads,
-                         seed, device)
+                         seed, device, require_identifiers)
 
     def observation_size(self) -> int:
         return observation_size(self.model)
@@ -205,16 +206,17 @@ class AntGoalEnv(AntTaskEnv):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import AntGoalEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = AntGoalEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([1.0, -2.0]).expand(2, 3, -1)  # goal (x, y)
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 119]), True)
     """
 
     identifier_names = GOAL_NAMES
+    task_boxes = {name: (-3.0, 3.0) for name in GOAL_NAMES}
 
     def __init__(
         self,
@@ -230,11 +232,13 @@ class AntGoalEnv(AntTaskEnv):
         threads: int | None = 1,
         seed: int | None = None,
         device: torch.device | str = "cpu",
+        require_identifiers: bool = False,
     ) -> None:
         self.goal_range = float(goal_range)
         super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, contact_cost_weight,
                          survive_reward, healthy_z_range, reset_noise_scale, threads, seed, device,
-                         checks={"goal_range": (goal_range, goal_range > 0, "must be > 0")})
+                         checks={"goal_range": (goal_range, goal_range > 0, "must be > 0")},
+                         require_identifiers=require_identifiers)
 
     def _default_identifiers(self) -> torch.Tensor:
         unit = torch.rand(*self.batch_size, 2, generator=self._generator, dtype=torch.float64)

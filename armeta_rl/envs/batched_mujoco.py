@@ -45,7 +45,9 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.distributions import BoxUniform
 from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY, read_identifiers
+from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 KEY = "benchmark.collector"
 GYM_ASSETS = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
@@ -111,11 +113,14 @@ class BatchedMujocoEnv(EnvBase):
             ``None``: one per CPU core).
         seed: seed of the generator for reset noise and default identifiers.
         device: torch device of the outputs (the physics runs on the CPU).
+        require_identifiers: refuse a full reset without identifiers under ``"params"`` (by
+            default it keeps the stored ones; :func:`~armeta_rl.tasks.protocol.read_identifiers`).
     """
 
     identifier_names: tuple[str, ...] = ()
     identifier_low: float = -math.inf
     identifier_high: float = math.inf
+    task_boxes: dict[str, tuple[float, float]] = {}
     stage: int = STAGE_ACC
     _has_frame_skip = True  # physics substeps run in ``_step``; no FrameSkipTransform wrapper
 
@@ -129,8 +134,10 @@ class BatchedMujocoEnv(EnvBase):
         threads: int | None,
         seed: int | None,
         device: torch.device | str,
+        require_identifiers: bool = False,
     ) -> None:
         super().__init__(device=device, batch_size=torch.Size(batch_size))
+        self.require_identifiers = bool(require_identifiers)
         self.max_steps, self.frame_skip = int(max_steps), int(frame_skip)
         self.reset_noise_scale = float(reset_noise_scale)
         self.model = model
@@ -147,6 +154,18 @@ class BatchedMujocoEnv(EnvBase):
         self._task = self._default_identifiers()
         self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long, device=self.sim_device)
         self.sim.reset()
+
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of this env's identifiers, in the order of ``"params"``: the references' task
+        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
+        ``TaskTransform`` are built from the env alone."""
+        return task_space_of(self.identifier_names, self.task_boxes)
+
+    @property
+    def p0(self) -> BoxUniform:
+        """The references' initial task distribution: uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
 
     # -- what a subclass states --------------------------------------------------------------
 
@@ -291,7 +310,7 @@ class BatchedMujocoEnv(EnvBase):
             else reset.reshape(*shape, 1).cpu()
         )
         task = read_identifiers(tensordict, self.identifier_names, self.identifier_low,
-                                self.identifier_high, shape)
+                                self.identifier_high, shape, required=self.require_identifiers)
         if task is not None:
             task = task.to("cpu", torch.float64)
             self._task = torch.where(mask, task, self._task)

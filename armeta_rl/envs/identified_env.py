@@ -12,13 +12,18 @@ of the simulator. Subclasses write the batched physics; this base class owns wha
   them. ``"params"`` is declared in the state spec as well as the observation spec, so
   ``TransformedEnv`` (which hands the base env only reset and state keys) and batched envs forward
   it. Steps simulate the stored identifiers and report them under ``"params"`` like an
-  observation. A reset TensorDict without ``"params"`` keeps the stored ones; identifiers under
-  another key, of another width, or not positive and finite raise
-  :class:`~armeta_rl.errors.IdentifierError` (:func:`armeta_rl.tasks.protocol.read_identifiers`);
+  observation. A reset TensorDict without ``"params"`` keeps the stored ones (with
+  ``require_identifiers=True`` a full reset without them is refused); identifiers under another
+  key, an empty reset TensorDict, identifiers of another width, or not positive and finite raise
+  :class:`~armeta_rl.errors.IdentifierError` (the reset contract of
+  :func:`armeta_rl.tasks.protocol.read_identifiers`), bare, behind transforms and in batched envs;
 * the exact simulator state is kept by the env (the observation is a function of it) and reported
   as the observation ``"state"`` ``[*batch, state_dim]``; a step reads only ``"action"``, so
-  transforms may drop or cast ``"state"``. ``env.reset(td, set_state=True)`` starts from
-  ``td["state"]`` instead of a random one;
+  transforms may drop or cast ``"state"``. ``env.reset(td, from_state=True)`` starts from
+  ``td["state"]`` instead of a random one. The env does not declare TorchRL's ``set_state``:
+  TorchRL counts every state-spec entry, the identifiers included, as a state to set, and a
+  batched env would warn (and from TorchRL 0.15 drop the identifiers) at every reset carrying
+  them;
 * a ``torch.Generator`` owned by the env draws the random initial states (``set_seed``);
 * one step's physics is a pure function of the states and the actions (:meth:`_transition`),
   whose equations of motion (:meth:`_dynamics`) may run through ``torch.compile``
@@ -49,7 +54,9 @@ from torchrl.envs import EnvBase
 
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
+from armeta_rl.tasks.distributions import BoxUniform
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 
 class UniformBounded(Bounded):
@@ -80,6 +87,8 @@ class IdentifiedSystemEnv(EnvBase):
             name, :func:`~armeta_rl.compiling.compile_backend`), in ``env.rollout`` and
             :meth:`transitions` alike. The compiled step rounds differently from the eager one;
             the env is then no longer picklable.
+        require_identifiers: refuse a full reset whose TensorDict has no ``"params"`` (by
+            default it keeps the stored identifiers, at first :attr:`identifier_defaults`).
 
     Examples:
         >>> from armeta_rl.envs import IdentifiedSystemEnv, PendulumEnv
@@ -91,16 +100,17 @@ class IdentifiedSystemEnv(EnvBase):
 
     param_names: tuple[str, ...] = ()
     identifier_defaults: dict[str, float] = {}
+    task_boxes: dict[str, tuple[float, float]] = {}
     state_dim: int = 0
     observation_dim: int = 0
     observation_high: tuple[float, ...] = ()
     max_torque: float = 1.0
-    _supports_set_state = True
 
     def __init__(self, batch_size: Sequence[int] = (1, 1), seed: int | None = None,
                  device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32,
                  identifiers: Sequence[str] | None = None,
-                 compile_dynamics: bool | str | None = None) -> None:
+                 compile_dynamics: bool | str | None = None,
+                 require_identifiers: bool = False) -> None:
         batch_size = torch.Size(batch_size)
         if any(n < 1 for n in batch_size):
             raise ConfigError("env.batch_size", list(batch_size), "every dimension must be >= 1")
@@ -112,6 +122,7 @@ class IdentifiedSystemEnv(EnvBase):
                                   f"distinct names among {', '.join(known)}")
             self.param_names = names
         super().__init__(device=device, batch_size=batch_size)
+        self.require_identifiers = bool(require_identifiers)
         self.dtype = dtype
         self.n_envs = batch_size.numel()
         self._physics = maybe_compile(self._dynamics,
@@ -130,6 +141,18 @@ class IdentifiedSystemEnv(EnvBase):
         if seed is None:
             seed = int(torch.randint(0, 2**62, ()))
         self.set_seed(seed)
+
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of this env's identifiers, in the order of ``"params"``: the references' task
+        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
+        ``TaskTransform`` are built from the env alone."""
+        return task_space_of(self.param_names, self.task_boxes)
+
+    @property
+    def p0(self) -> BoxUniform:
+        """The references' initial task distribution: uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
 
     def _make_specs(self) -> None:
         batch, kwargs = self.batch_size, {"dtype": self.dtype, "device": self.device}
@@ -201,27 +224,22 @@ class IdentifiedSystemEnv(EnvBase):
         unit = torch.rand(shape, generator=self.rng, dtype=self.dtype, device=self.device)
         return low + (high - low) * unit
 
-    def _input_td_has_state(self, tensordict: TensorDictBase | None) -> bool:
-        """Whether a reset TensorDict carries a simulator state to start from: ``"state"`` only.
-        TorchRL counts every state-spec entry, and would warn about ``set_state`` on every reset
-        that hands the env its identifiers."""
-        return tensordict is not None and "state" in tensordict
-
-    def _reset(self, tensordict: TensorDictBase | None, set_state: bool = False,
+    def _reset(self, tensordict: TensorDictBase | None, from_state: bool = False,
                **kwargs) -> TensorDictBase:
         """New episodes where ``"_reset"`` is set (all if absent), with the stored identifiers
         updated from ``tensordict["params"]`` when given (checked by
-        :func:`~armeta_rl.tasks.protocol.read_identifiers`: positive and finite)."""
+        :func:`~armeta_rl.tasks.protocol.read_identifiers`: positive and finite), from
+        ``tensordict["state"]`` with ``from_state=True``, else from random states."""
+        params = read_identifiers(tensordict, self.param_names, 0.0, math.inf, self.batch_size,
+                                  open_low=True, required=self.require_identifiers)
         tensordict = tensordict if tensordict is not None else TensorDict({}, self.batch_size)
         reset = tensordict.get("_reset", None)
-        params = read_identifiers(tensordict, self.param_names, 0.0, math.inf, self.batch_size,
-                                  open_low=True)
         if params is not None:
             params = params.to(self.task_params)
             self._identify(params.clone() if reset is None else torch.where(
                 reset, params, self.task_params))
         state = tensordict.get("state", None)
-        if not set_state or state is None:
+        if not from_state or state is None:
             state = self._initial_state()
         rows = self._reset_rows(state, reset, self._state)
         self._state = rows

@@ -1,6 +1,7 @@
-"""Planar locomotion task families, batched over ``[tasks, episodes]`` on gymnasium's v5 MuJoCo
-models: HalfCheetah-Vel and HalfCheetah-Dir (MAML, Finn et al. 2017, Sec. 5.3) and Walker2d-Vel
-(the velocity half of MPTS's Walker2d-MassVel, Wang et al. 2025).
+"""Locomotion task families, batched over ``[tasks, episodes]`` on gymnasium's v5 MuJoCo models:
+the planar HalfCheetah-Vel and HalfCheetah-Dir (MAML, Finn et al. 2017, Sec. 5.3) and
+Walker2d-Vel (the velocity half of MPTS's Walker2d-MassVel, Wang et al. 2025), and the Ant's
+Ant-Dir (ProMP); the Ant's goal family is :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`.
 
 Each robot is planar: its root is an x slider, a z slider and a pitch hinge (``qpos[0:3]``), and
 its forward velocity over an env step is ``v = (x' − x) / dt``, with ``x = qpos[0]`` before and
@@ -44,15 +45,42 @@ One departure from pytorch-maml-rl: its configs wrap the env in a ``NormalizedAc
 of scale 10 (the control is ``clip(a / 10, −1, 1)`` and the cost is on that control), while here,
 as in cbfinn/maml_rl, gymnasium and :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`, the policy's
 action is the control.
+
+Ant-Dir: the MuJoCo Ant must run in a hidden direction of the plane (ProMP's
+``AntRandDirec2DEnv``, Rothfuss et al. 2018, as learn2learn's ``AntDirectionEnv``), batched over
+``[tasks, episodes]``.
+
+The task is an angle θ (identifier ``direction_angle``, radians, any finite value; the references
+draw the direction uniformly on the unit circle, i.e. θ ~ U[-π, π]) and its direction
+``u = (cos θ, sin θ)``. The reward of a step, with ``Δxy`` the torso's displacement over the step,
+``dt = frame_skip · 0.01 s``, ``a`` the action as given and ``F = clip(cfrc_ext, -1, 1)``, is the
+references':
+
+    r = u · Δxy / dt                           velocity along the direction
+        - ctrl_cost_weight · ‖a‖²              default 0.5 (ProMP / learn2learn)
+        - contact_cost_weight · ‖F‖²           default 0.0005 (= 0.5·1e-3)
+        + survive_reward                       default 1.0, every step
+
+and an episode terminates when the state is non-finite or the torso height leaves
+``healthy_z_range`` = [0, 1] (the references' ``1.0 >= z >= 0``). The references take ``Δxy``
+from the torso's ``xpos`` read right after each ``mj_step`` (the start of its last substep); here
+it is the exact displacement of the torso, whose free joint makes ``xpos = qpos[0:3]``.
+
+Model, dynamics, observation (119 values, torso position included; ProMP's leaves out
+``qpos[0:2]``, the xmat and the xpos) and throughput are those of the Ant of
+:class:`~armeta_rl.envs.ant_goal.AntTaskEnv`; pytorch-maml-rl's Ant-Dir is the 1-D case
+(θ ∈ {0, π}) with its Ant-Pos weights.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 import numpy as np
 import torch
 
+from armeta_rl.envs.ant_goal import AntTaskEnv
 from armeta_rl.envs.batched_mujoco import (
     STAGE_POS,
     BatchedMujocoEnv,
@@ -89,6 +117,7 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         threads: int | None,
         seed: int | None,
         device: torch.device | str,
+        require_identifiers: bool,
     ) -> None:
         check_arguments({
             **common_checks(max_steps, frame_skip, reset_noise_scale, threads),
@@ -98,7 +127,7 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         model = load_gym_model(self.xml)
         self._torso = model.body(TORSO).id
         super().__init__(model, batch_size, max_steps, frame_skip, reset_noise_scale, threads,
-                         seed, device)
+                         seed, device, require_identifiers)
 
     def observation_size(self) -> int:
         return self.model.nq - 1 + self.model.nv + 3
@@ -152,9 +181,10 @@ class HalfCheetahTaskEnv(PlanarRunnerEnv):
         threads: int | None = 1,
         seed: int | None = None,
         device: torch.device | str = "cpu",
+        require_identifiers: bool = False,
     ) -> None:
         super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, reset_noise_scale,
-                         threads, seed, device)
+                         threads, seed, device, require_identifiers)
 
 
 class HalfCheetahVelEnv(HalfCheetahTaskEnv):
@@ -166,16 +196,17 @@ class HalfCheetahVelEnv(HalfCheetahTaskEnv):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import HalfCheetahVelEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = HalfCheetahVelEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([1.5]).expand(2, 3, -1)  # target velocity
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 20]), True)
     """
 
     identifier_names = ("goal_velocity",)
+    task_boxes = {"goal_velocity": (0.0, 2.0)}
 
     def _default_identifiers(self) -> torch.Tensor:
         return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
@@ -198,10 +229,10 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import HalfCheetahDirEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = HalfCheetahDirEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([-1.0]).expand(2, 3, -1)  # backward
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 20]), True)
@@ -209,6 +240,7 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
 
     identifier_names = ("direction",)
     identifier_low, identifier_high = -1.0, 1.0
+    task_boxes = {"direction": (-1.0, 1.0)}
 
     def _default_identifiers(self) -> torch.Tensor:
         unit = torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
@@ -244,10 +276,10 @@ class Walker2dVelEnv(PlanarRunnerEnv):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import Walker2dVelEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = Walker2dVelEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([1.5]).expand(2, 3, -1)  # target velocity
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 20]), True)
@@ -255,6 +287,7 @@ class Walker2dVelEnv(PlanarRunnerEnv):
 
     xml = "walker2d_v5.xml"
     identifier_names = ("goal_velocity",)
+    task_boxes = {"goal_velocity": (0.0, 2.0)}
     velocity_clip = 10.0
 
     def __init__(
@@ -268,10 +301,11 @@ class Walker2dVelEnv(PlanarRunnerEnv):
         threads: int | None = 1,
         seed: int | None = None,
         device: torch.device | str = "cpu",
+        require_identifiers: bool = False,
     ) -> None:
         self.alive_bonus = float(alive_bonus)
         super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, reset_noise_scale,
-                         threads, seed, device)
+                         threads, seed, device, require_identifiers)
 
     def _default_identifiers(self) -> torch.Tensor:
         return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
@@ -290,3 +324,70 @@ class Walker2dVelEnv(PlanarRunnerEnv):
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
         return self._forward_reward(qpos_before, task) - self.ctrl_cost(action) + self.alive_bonus
+
+
+class AntDirEnv(AntTaskEnv):
+    """MuJoCo Ant running in the direction ``direction_angle``, batch size ``[tasks, episodes]``;
+    see the module docstring (Ant-Dir).
+
+    Args:
+        batch_size: ``[tasks, episodes]`` (any batch shape works).
+        max_steps: time limit in env steps (200).
+        frame_skip: physics steps per env step (5, as gymnasium's Ant).
+        ctrl_cost_weight: weight of the control cost (module docstring).
+        contact_cost_weight: weight of the contact cost (module docstring).
+        survive_reward: reward per step alive (module docstring).
+        healthy_z_range: torso heights outside this closed interval terminate the episode.
+        reset_noise_scale: initial qpos = model qpos0 + U(±scale), qvel = scale·N(0, 1).
+        threads: threads stepping the MuJoCo batch natively (1: the calling thread only;
+            ``None``: one per CPU core).
+        seed: seed of the generator for reset noise and default angles (U[-π, π]).
+        device: torch device of the outputs (the physics runs on the CPU).
+        require_identifiers: refuse a full reset without identifiers (see
+            :class:`~armeta_rl.envs.batched_mujoco.BatchedMujocoEnv`).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import AntDirEnv
+        >>> from armeta_rl.tasks import TASK_KEY
+        >>> env = AntDirEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
+        >>> task = torch.tensor([1.57]).expand(2, 3, -1)  # direction (radians)
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
+        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
+        (torch.Size([2, 3, 4, 119]), True)
+    """
+
+    identifier_names = ("direction_angle",)
+    task_boxes = {"direction_angle": (-math.pi, math.pi)}
+
+    def __init__(
+        self,
+        batch_size: Sequence[int] = (1, 1),
+        max_steps: int = 200,
+        frame_skip: int = 5,
+        ctrl_cost_weight: float = 0.5,
+        contact_cost_weight: float = 5e-4,
+        survive_reward: float = 1.0,
+        healthy_z_range: Sequence[float] = (0.0, 1.0),
+        reset_noise_scale: float = 0.1,
+        threads: int | None = 1,
+        seed: int | None = None,
+        device: torch.device | str = "cpu",
+        require_identifiers: bool = False,
+    ) -> None:
+        super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, contact_cost_weight,
+                         survive_reward, healthy_z_range, reset_noise_scale, threads, seed, device,
+                         require_identifiers=require_identifiers)
+
+    def _default_identifiers(self) -> torch.Tensor:
+        unit = torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
+        return torch.pi * (2 * unit - 1)
+
+    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
+                task: np.ndarray) -> np.ndarray:
+        """The Ant-Dir reward of the module docstring."""
+        direction = np.stack([np.cos(task[:, 0]), np.sin(task[:, 0])], -1)
+        velocity = (self._qpos[:, :2] - qpos_before[:, :2]) / self.dt
+        return self.ant_reward((direction * velocity).sum(-1), action)

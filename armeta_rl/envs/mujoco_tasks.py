@@ -387,10 +387,10 @@ class PhysicsTaskTransform(Transform):
         >>> from tensordict import TensorDict
         >>> from torchrl.envs import TransformedEnv
         >>> from armeta_rl.envs.mujoco_tasks import PhysicsTaskTransform, gym_env
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> gravity = {"name": "g", "kind": "gravity_z", "low": -12.0, "high": -8.0}
         >>> env = TransformedEnv(gym_env("InvertedPendulum-v5"), PhysicsTaskTransform([gravity]))
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: torch.tensor([-9.0])}, []))
+        >>> start = env.reset(TensorDict({TASK_KEY: torch.tensor([-9.0])}, []))
         >>> env.rollout(3, tensordict=start, auto_reset=False)[TASK_KEY].squeeze(-1)
         tensor([-9., -9., -9.])
     """
@@ -486,9 +486,11 @@ class PhysicsTaskTransform(Transform):
             self._params = torch.where(mask.reshape(*shape[:-1], 1), new, self._params)
         if self._base_width:
             tensordict.set(self.key, params[..., : self._base_width])
-        else:
-            del tensordict[self.key]
-        return tensordict
+            return tensordict
+        del tensordict[self.key]
+        # the key was all the reset carried for this transform: the base env keeps its own
+        # identifiers, as on a reset that names none (an empty TensorDict it would refuse)
+        return None if tensordict.is_empty() else tensordict
 
     def _with_physics(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Set the key to the base env's identifiers (if any) followed by the physics ones."""
@@ -596,13 +598,13 @@ def make_gym_task_env(
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs.mujoco_tasks import load_task_family, make_gym_task_env
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> pole = {"name": "pole_mass", "kind": "body_mass_scale", "target": "pole",
         ...         "low": 0.5, "high": 2}
         >>> family = load_task_family({"env": "InvertedPendulum-v5", "parameters": [pole]})
         >>> env = make_gym_task_env(family, num_tasks=2, max_steps=50)  # a SerialEnv, one task each
         >>> tasks = TensorDict({TASK_KEY: torch.tensor([[0.5], [2.0]])}, [2])
-        >>> start = reset_with_identifiers(env, tasks)
+        >>> start = env.reset(tasks)
         >>> env.rollout(3, tensordict=start, auto_reset=False).batch_size
         torch.Size([2, 3])
     """

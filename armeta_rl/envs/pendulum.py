@@ -32,10 +32,10 @@ class PendulumEnv(IdentifiedSystemEnv):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import PendulumEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = PendulumEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # mass, length
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 3]), True)
@@ -43,6 +43,7 @@ class PendulumEnv(IdentifiedSystemEnv):
 
     param_names = ("m", "l")
     identifier_defaults = {"m": 1.0, "l": 1.0, "g": 10.0}
+    task_boxes = {"m": (0.4, 1.6), "l": (0.4, 1.6), "g": (5.0, 15.0)}
     state_dim = 2
     observation_dim = 3
     dt = 0.05

@@ -41,7 +41,9 @@ from armeta_rl.cuda_graphs import GraphedCall
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.rl.policy import act as policy_act
+from armeta_rl.tasks.distributions import BoxUniform
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 Region = tuple[tuple[float, float], tuple[float, float], float]
 """((x_low, x_high), (y_low, y_high), reward_scale)."""
@@ -220,14 +222,16 @@ class PointNavigationEnv(EnvBase):
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import PointNavigationEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
+        >>> from armeta_rl.tasks import TASK_KEY
         >>> env = PointNavigationEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
         >>> task = torch.tensor([0.3, -0.2]).expand(2, 3, -1)  # goal (x, y)
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: task}, [2, 3]))
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
         >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 2]), True)
     """
+
+    task_boxes = {name: (GOAL_LOW, GOAL_HIGH) for name in GOAL_NAMES}
 
     def __init__(
         self,
@@ -239,11 +243,13 @@ class PointNavigationEnv(EnvBase):
         device: torch.device | str = "cpu",
         truncated_regions: Sequence[Region] = (),
         graphs: bool | None = None,
+        require_identifiers: bool = False,
     ) -> None:
         if int(max_steps) < 1:
             raise ConfigError("benchmark.collector.max_steps", max_steps, "must be >= 1")
         super().__init__(device=device, batch_size=torch.Size(batch_size))
         self.max_steps = int(max_steps)
+        self.require_identifiers = bool(require_identifiers)
         self.sparse_regions = check_regions(sparse_regions)
         self.truncated_regions = check_regions(truncated_regions, TRUNCATED_KEY, "radius")
         self.squared_distance = bool(squared_distance)
@@ -294,13 +300,26 @@ class PointNavigationEnv(EnvBase):
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
         self._generator.manual_seed(int(seed))
 
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of this env's identifiers, in the order of ``"params"``: the references' task
+        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
+        ``TaskTransform`` are built from the env alone."""
+        return task_space_of(GOAL_NAMES, self.task_boxes)
+
+    @property
+    def p0(self) -> BoxUniform:
+        """The references' initial task distribution: uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
+
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = self.batch_size
         reset = None if tensordict is None else tensordict.get("_reset", None)
         if reset is None:
             reset = torch.ones(*shape, 1, dtype=torch.bool, device=self.device)
         mask = reset.reshape(*shape, 1)
-        goal = read_identifiers(tensordict, GOAL_NAMES, GOAL_LOW, GOAL_HIGH, shape)
+        goal = read_identifiers(tensordict, GOAL_NAMES, GOAL_LOW, GOAL_HIGH, shape,
+                                required=self.require_identifiers)
         if goal is not None:
             goal = goal.to(self._goal.dtype).expand_as(self._goal)
             self._goal = torch.where(mask, goal, self._goal)

@@ -3,3 +3,40 @@
 ``armeta-eval`` and aggregated into CSV, Markdown and PNG (``armeta-reproduce``,
 docs/reproducing.md).
 """
+
+from __future__ import annotations
+
+import ast
+import sys
+from importlib.util import find_spec
+from pathlib import Path
+
+from armeta_rl.cli import config_files
+
+PROFILES_FILE = "profiles.yaml"
+"""The profiles shared by the experiments, beside them in ``configs/reproduce/``."""
+
+
+def experiment_names() -> list[str]:
+    """The experiments in ``configs/reproduce/`` (every YAML but the shared profiles)."""
+    folder = config_files() / "reproduce"
+    return sorted(p.stem for p in folder.glob("*.yaml") if p.name != PROFILES_FILE)
+
+
+def help_text() -> str:
+    """``armeta-reproduce --help``: the usage (the docstring of :mod:`armeta_rl.reproduce.cli`,
+    read from its source, so that help imports neither torch nor Ray) and the experiments."""
+    source = Path(find_spec("armeta_rl.reproduce.cli").origin).read_text(encoding="utf-8")
+    usage = ast.get_docstring(ast.parse(source)).replace("``", "").strip()
+    return f"usage: {usage}\n\nexperiments: {', '.join(experiment_names())}"
+
+
+def main() -> None:
+    """``armeta-reproduce``: ``--help`` answered here, every other command line by
+    :func:`armeta_rl.reproduce.cli.main`."""
+    if any(arg in ("--help", "-h") for arg in sys.argv[1:]):
+        print(help_text())
+        sys.exit(0)
+    from armeta_rl.reproduce.cli import main as run
+
+    run()

@@ -29,7 +29,7 @@ from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.preemption import listening
-from armeta_rl.reproduce import figures
+from armeta_rl.reproduce import experiment_names, figures, help_text
 from armeta_rl.reproduce.aggregate import (
     INITIAL,
     collect,
@@ -50,7 +50,6 @@ from armeta_rl.reproduce.launch import (
 )
 from armeta_rl.reproduce.plan import (
     Plan,
-    experiment_names,
     finished,
     make_plan,
     report_path,
@@ -377,8 +376,7 @@ def main() -> None:
     from armeta_rl.cli import Refused
 
     if any(arg in ("--help", "-h") for arg in sys.argv[1:]):
-        print(f"usage: {__doc__.replace('``', '').strip()}\n\n"
-              f"experiments: {', '.join(experiment_names())}")
+        print(help_text())
         sys.exit(0)
     options = parse(sys.argv[1:])
     try:

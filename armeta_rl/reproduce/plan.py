@@ -23,8 +23,8 @@ from omegaconf import OmegaConf
 from armeta_rl.config import CONFIG_FILE
 from armeta_rl.config_files import config_files
 from armeta_rl.errors import ConfigError
+from armeta_rl.reproduce import PROFILES_FILE, experiment_names
 
-PROFILES_FILE = "profiles.yaml"
 EVAL_FILE = "eval.json"
 
 
@@ -114,12 +114,6 @@ class Plan:
     runs: tuple[TrainRun, ...]
     evals: tuple[EvalJob, ...]
     attacks: tuple[TrainRun, ...] = ()
-
-
-def experiment_names() -> list[str]:
-    """The experiments in ``configs/reproduce/`` (every YAML but the shared profiles)."""
-    folder = config_files() / "reproduce"
-    return sorted(p.stem for p in folder.glob("*.yaml") if p.name != PROFILES_FILE)
 
 
 def load_spec(experiment: str) -> dict[str, Any]:

@@ -7,7 +7,7 @@ from armeta_rl.tasks.distributions import (
     TruncatedNormal,
     make_initial,
 )
-from armeta_rl.tasks.protocol import TASK_KEY, reset_with_identifiers
+from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 from armeta_rl.tasks.transform import TaskTransform, finished_episodes
 
@@ -20,5 +20,4 @@ __all__ = [
     "TruncatedNormal",
     "finished_episodes",
     "make_initial",
-    "reset_with_identifiers",
 ]

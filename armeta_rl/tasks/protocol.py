@@ -5,11 +5,17 @@ every collector reads the identifiers of its tasks there, and every env takes th
 key in its reset TensorDict (declared in its state spec, so TorchRL transforms, batched envs and
 collectors forward it) and reports them there with every step.
 
-:func:`read_identifiers` is the one check every env applies to a reset TensorDict:
+:func:`read_identifiers` is the one check every env applies to a reset TensorDict, its reset
+contract:
 
 * a key that looks like task identifiers but is not :data:`TASK_KEY` — one of
-  :data:`MISPLACED_TASK_KEYS` or one of the env's own identifier names (``"m"``, ``"goal_x"``) —
-  is refused rather than ignored;
+  :data:`MISPLACED_TASK_KEYS`, a near-spelling of :data:`TASK_KEY` (``"param"``) or one of the
+  env's own identifier names (``"m"``, ``"goal_x"``) — is refused rather than ignored;
+* a full reset handed a TensorDict with no entry at all is refused: behind a ``TransformedEnv``,
+  which forwards only ``"_reset"`` and state-spec keys, that is what a reset carrying its
+  identifiers under another key leaves (``env.reset()`` without a TensorDict keeps the stored
+  identifiers);
+* an env built with ``require_identifiers=True`` refuses every full reset without them;
 * the identifiers must have the env's width ``d`` in their last dimension and broadcast to its
   batch size;
 * every value must be finite and inside the env's allowed interval.
@@ -17,18 +23,15 @@ collectors forward it) and reports them there with every step.
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import torch
 from tensordict import TensorDictBase
 from torch import Tensor
 
 from armeta_rl.errors import IdentifierError
-
-if TYPE_CHECKING:
-    from torchrl.envs import EnvBase
 
 TASK_KEY = "params"
 """TensorDict key of the task identifiers, a float tensor ``[..., task_dim]``."""
@@ -37,13 +40,24 @@ FORWARD_REWARD = "reward_forward"
 reward (the references' ``info["reward_forward"]``; the locomotion families'), read by the MPTS
 authors' meta-RL label (``risk.mpts.label=last_step``)."""
 
-MISPLACED_TASK_KEYS = ("goal", "goals", "task", "tasks", "task_params", "identifiers")
+MISPLACED_TASK_KEYS = ("goal", "goals", "task", "tasks", "task_params", "identifiers",
+                       "parameters", "task_id")
 """Keys under which identifiers are commonly (and here wrongly) passed; an env refuses them."""
 
 
 def interval(low: float, high: float, open_low: bool = False) -> str:
     """``[low, high]`` (or ``(low, high]``) as text; infinite ends print as ``inf``."""
     return f"{'(' if open_low else '['}{low:g}, {high:g}{')' if math.isinf(high) else ']'}"
+
+
+def misplaced(key: str, names: Sequence[str]) -> bool:
+    """Whether reset key ``key`` looks like task identifiers under another key than
+    :data:`TASK_KEY`: one of :data:`MISPLACED_TASK_KEYS`, an identifier name of the env, or a
+    near-spelling of :data:`TASK_KEY` (``"param"``, ``"Params"``)."""
+    if key == TASK_KEY:
+        return False
+    return (key in MISPLACED_TASK_KEYS or key in names
+            or bool(difflib.get_close_matches(key.lower(), [TASK_KEY], cutoff=0.8)))
 
 
 def read_identifiers(
@@ -53,23 +67,35 @@ def read_identifiers(
     high: float,
     batch_size: torch.Size,
     open_low: bool = False,
+    required: bool = False,
 ) -> Tensor | None:
     """The identifiers ``[*batch_size, d]`` under :data:`TASK_KEY` of a reset TensorDict (expanded
-    to the batch), or ``None`` when it has none; :class:`~armeta_rl.errors.IdentifierError` for a
-    misplaced key, a wrong width or batch shape, or a value outside ``[low, high]`` (``(low,
-    high]`` with ``open_low``) or not finite. ``names`` are the env's identifier names in order."""
-    if tensordict is None:
-        return None
+    to the batch), or ``None`` when it has none; :class:`~armeta_rl.errors.IdentifierError` where
+    the reset breaks the env's reset contract (the module docstring): a misplaced key, a full
+    reset handed an empty TensorDict, a full reset without identifiers when ``required``, a wrong
+    width or batch shape, a value outside ``[low, high]`` (``(low, high]`` with ``open_low``) or
+    not finite. ``names`` are the env's identifier names in order."""
     d, allowed_range = len(names), interval(low, high, open_low)
     spelled = f"{d} value{'s' if d > 1 else ''} ({', '.join(names)})"
+    if tensordict is None:
+        if required:
+            raise IdentifierError(TASK_KEY, "missing", f"this env requires its identifiers at "
+                                  f"every full reset: {spelled} per batch entry")
+        return None
     for key in tensordict.keys(include_nested=False):
-        if key != TASK_KEY and (key in MISPLACED_TASK_KEYS or key in names):
+        if misplaced(key, names):
             raise IdentifierError(
                 key, _describe(tensordict.get(key)),
                 f"task identifiers go under '{TASK_KEY}': {spelled} per batch entry",
             )
     params = tensordict.get(TASK_KEY, None)
     if params is None:
+        if "_reset" not in tensordict and (required or tensordict.is_empty()):
+            reason = ("this env requires its identifiers at every full reset" if required else
+                      "the reset TensorDict reached the env empty (TransformedEnv forwards only "
+                      f"'{TASK_KEY}', '_reset' and state keys; env.reset() without a TensorDict "
+                      "keeps the stored identifiers)")
+            raise IdentifierError(TASK_KEY, "missing", f"{reason}: {spelled} per batch entry")
         return None
     if not torch.is_floating_point(params) or params.shape[-1:] != (d,):
         raise IdentifierError(TASK_KEY, _describe(params),
@@ -109,28 +135,3 @@ def _describe(value: object) -> object:
     if isinstance(value, Tensor):
         return f"tensor of shape {list(value.shape)}, {value.dtype}"
     return value
-
-
-def reset_with_identifiers(env: EnvBase, tensordict: TensorDictBase) -> TensorDictBase:
-    """``env.reset(tensordict)`` for a reset TensorDict carrying identifiers under
-    :data:`TASK_KEY`, with ``set_state=True`` where the env takes a state at reset.
-
-    The identifiers are entries of the env's state spec (so that ``TransformedEnv`` and batched
-    envs forward them), so torchrl counts such a reset as one carrying a state: a batched env of
-    the system-identification envs honors it in torchrl 0.14 with a ``FutureWarning`` that from
-    0.15 a reset not asking for its state ignores it, which would silently keep the old tasks.
-
-    Examples:
-        >>> import torch
-        >>> from tensordict import TensorDict
-        >>> from armeta_rl.envs import PendulumEnv
-        >>> from armeta_rl.tasks import TASK_KEY, reset_with_identifiers
-        >>> env = PendulumEnv(batch_size=(2, 3), seed=0)
-        >>> identifiers = torch.tensor([0.5, 1.5]).expand(2, 3, 2)
-        >>> start = reset_with_identifiers(env, TensorDict({TASK_KEY: identifiers}, [2, 3]))
-        >>> bool((start[TASK_KEY] == identifiers).all())
-        True
-    """
-    if env._supports_set_state:
-        return env.reset(tensordict, set_state=True)
-    return env.reset(tensordict)

@@ -8,10 +8,11 @@ keeps the numbers drawn beside it (``iter_<iteration>.pt``, a
 :class:`~armeta_rl.plots.DensityPicture`) and, with a wandb logger, logs the image
 ``adversary/density`` at that step. :meth:`DensityFrames.finish` draws the last iteration if it
 is not a multiple of ``every``, redraws every frame in the directory on one colour scale (per
-pair of identifiers) chosen from all of them, and writes ``<run>/density.gif``: p0 keeps its
-colour from frame to frame (a resumed run's animation includes the frames written before the
-interruption). Frames, their numbers and the GIF are written atomically; a frame that cannot
-be read (a file damaged outside the run) is left out of the GIF with a warning.
+pair of identifiers) chosen from all of them, and writes ``<run>/density.gif`` (with wandb, also
+the video ``adversary/density_animation``): p0 keeps its colour from frame to frame (a resumed
+run's animation includes the frames written before the interruption). Frames, their numbers
+and the GIF are written atomically; a frame that cannot be read (a file damaged outside the
+run) is left out of the GIF with a warning.
 
 Drawing evaluates the exact density on a grid: it draws no random numbers, so a run with frames
 is bit-identical to one without.
@@ -43,6 +44,8 @@ log = logging.getLogger(__name__)
 
 FRAMES_DIR = "density"
 ANIMATION_FILE = "density.gif"
+ANIMATION_KEY = "adversary/density_animation"
+"""The wandb key of the animation: a video of every frame, logged when the run finishes."""
 
 
 class DensityFrames:
@@ -117,6 +120,11 @@ class DensityFrames:
                 log.warning("density frame %s cannot be read: left out of %s", frame,
                             self.animation.name)
         write_atomically(self.animation, lambda staged: write_animation(kept, staged))
+        if isinstance(self.logger, WandbLogger):
+            import wandb
+
+            self.logger.log_metrics({ANIMATION_KEY: wandb.Video(str(self.animation),
+                                                                format="gif")}, iteration)
         return self.animation
 
     @staticmethod

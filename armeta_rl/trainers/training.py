@@ -249,7 +249,7 @@ def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger
     if logger is not None:
         logger.log_metrics(eval_scalars(report), config.trainer.iterations)
     if players.adversary is not None:
-        _save_density(players, run_dir / DENSITY_FILE, logger)
+        _save_density(players, run_dir / DENSITY_FILE, logger, iteration)
     if frames is not None:
         frames.finish(iteration)
     write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
@@ -257,11 +257,12 @@ def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger
     return report
 
 
-def _save_density(players: Players, path: Path, logger: Logger | None) -> None:
+def _save_density(players: Players, path: Path, logger: Logger | None, iteration: int) -> None:
     from armeta_rl.plots import plot_density
 
+    title = f"p_φ after {iteration} meta-iterations"
     write_atomically(path, lambda staged: plot_density(players.adversary, players.initial,
-                                                       staged))
+                                                       staged, title=title))
     if isinstance(logger, WandbLogger):
         import wandb
 
