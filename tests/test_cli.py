@@ -281,11 +281,11 @@ def test_an_offline_rl_run_logs_the_density_animation_and_the_adaptation(tmp_pat
                                "trainer.progress=false", "logger=wandb"), run_dir)
     (run,) = (run_dir / "wandb").glob("offline-run-*")
     rows = wandb_history(run)
-    gains = [r["train/adaptation_gain"] for r in rows if "train/adaptation_gain" in r]
+    gains = [r["train/gain"] for r in rows if "train/gain" in r]
     assert len(gains) == 4
     for row in rows:
-        if "train/adaptation_gain" in row:
-            assert row["train/adaptation_gain"] == pytest.approx(
+        if "train/gain" in row:
+            assert row["train/gain"] == pytest.approx(
                 row["train/return_post"] - row["train/return_pre"], abs=1e-4)
     (video,) = [r for r in rows if "adversary/density_animation/_type" in r]
     assert video["adversary/density_animation/_type"] == "video-file"

@@ -133,8 +133,6 @@ class GameTrainer:
         logs.update(
             {f"train/{key}": float(value.mean()) for key, value in out.items() if key != "loss"}
         )
-        if "return_pre" in out and "return_post" in out:  # RL: what adaptation gained
-            logs["train/adaptation_gain"] = float((out["return_post"] - out["return_pre"]).mean())
         logs.update({f"train/{key}": value for key, value in scalars.items()})
         self.iteration += 1
         every = self.principle.update_every
