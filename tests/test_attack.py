@@ -8,12 +8,12 @@ import sys
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train, players_of
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 RUN = (*SMALL_RUN, "trainer.meta_batch=5", "trainer.checkpoint_every=2", "logger=csv",

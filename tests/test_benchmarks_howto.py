@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import collector_of, compose_train
 from omegaconf import OmegaConf
 
 from armeta_rl.tasks import TASK_KEY
+from conftest import collector_of, compose_train
 
 ROOT = Path(__file__).resolve().parents[1]
 HOWTO = ROOT / "docs" / "benchmarks_howto.md"

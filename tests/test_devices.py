@@ -8,7 +8,6 @@ import sys
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train
 from tensordict import TensorDict
 from torchrl.checkpoint import GlobalRNGState
 
@@ -21,6 +20,7 @@ from armeta_rl.trainers.checkpoint import PortableRNGState
 from armeta_rl.trainers.players import Players, load_players
 from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]

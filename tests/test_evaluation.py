@@ -6,7 +6,6 @@ import math
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
 from armeta_rl.collectors.episodes import episode_returns
@@ -26,6 +25,7 @@ from armeta_rl.trainers.evaluation import (
     summarize,
 )
 from armeta_rl.trainers.report import evaluate_players
+from conftest import SMALL_RUN, compose_train, players_of
 
 
 def test_cvar_is_mean_of_the_worst_tail_of_losses():

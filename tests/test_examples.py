@@ -10,8 +10,9 @@ from pathlib import Path
 
 import pytest
 import torch
-from conftest import compose_train
 from omegaconf import OmegaConf
+
+from conftest import compose_train
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -16,7 +16,6 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs, step_mdp
 
@@ -24,6 +23,7 @@ from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
 from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
 
 ENVS = {"half_cheetah_vel": HalfCheetahVelEnv, "half_cheetah_dir": HalfCheetahDirEnv,
         "walker2d_vel": Walker2dVelEnv}

@@ -9,7 +9,6 @@ from collections.abc import Callable, Sequence
 
 import pytest
 import torch
-from conftest import compose_train, players_of
 from tensordict import TensorDict
 from torch import Tensor
 from torch.func import functional_call
@@ -44,6 +43,7 @@ from armeta_rl.rl.trpo import (
     unflatten,
 )
 from armeta_rl.tasks import BoxUniform, TaskSpace
+from conftest import compose_train, players_of
 
 SPACE = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
 

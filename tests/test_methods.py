@@ -6,7 +6,6 @@ import subprocess
 import sys
 
 import pytest
-from conftest import SMALL_RUN, compose_train
 from omegaconf import OmegaConf
 
 from armeta_rl.cli import group_choices
@@ -20,6 +19,7 @@ from armeta_rl.factory import (
     build_space,
 )
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 METHODS = [
     "maml",

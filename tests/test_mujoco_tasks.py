@@ -9,7 +9,6 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, collector_of, compose_train
 from tensordict import TensorDict
 from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
@@ -24,6 +23,7 @@ from armeta_rl.envs.mujoco_tasks import (
 )
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, collector_of, compose_train
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CHEETAH_XML = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets",

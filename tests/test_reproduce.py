@@ -641,6 +641,7 @@ def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_pa
     ("another method", "it is the report of method 'dr_maml', not this run's 'maml'"),
     ("another seed", "it is the report of seed 1, not this run's 0"),
     ("a section that is a string", "'initial' = 'str' is not a distribution's section"),
+    ("another config", "it is the report of another config (config_sha256 "),
 ])
 def test_a_report_that_is_not_this_runs_is_unfinished_and_left_out(tmp_path, table1_dir, edit,
                                                                    words):
@@ -654,12 +655,15 @@ def test_a_report_that_is_not_this_runs_is_unfinished_and_left_out(tmp_path, tab
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
     maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
     source = {"another method": "dr_maml/seed0", "another seed": "maml/seed1",
-              "a section that is a string": "maml/seed0"}[edit]
+              "a section that is a string": "maml/seed0", "another config": "maml/seed0"}[edit]
     report = json.loads((results / "runs/sinusoid_uniform" / source / "eval.json").read_text())
     if edit == "a section that is a string":
         report["initial"] = "str"
+    if edit == "another config":  # as a variant's report: same method and seed, other settings
+        config = results / maml.subdir / "config.yaml"
+        config.write_text(config.read_text().replace("inner_lr: 0.01", "inner_lr: 0.02"))
     (results / maml.subdir / "eval.json").write_text(json.dumps(report))
-    assert report_problem(results, maml) == words
+    assert report_problem(results, maml).startswith(words)
     records = collect(plan, results, {})
     assert not [r for r in records if (r["method"], r["seed"], r["distribution"]) == (
         "maml", 0, "initial")]

@@ -10,7 +10,6 @@ from copy import deepcopy
 
 import pytest
 import torch
-from conftest import compose_train, players_of
 
 from armeta_rl.cli import train
 from armeta_rl.errors import ConfigError, TrainingDiverged
@@ -40,6 +39,7 @@ from armeta_rl.risk.predictive import (
 )
 from armeta_rl.risk.sampling import PrincipleSampler
 from armeta_rl.tasks import BoxUniform, TaskSpace
+from conftest import compose_train, players_of
 
 SPACE = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
 HARDEST = torch.tensor([0.85, 0.15])  # the peak of the landscape, in unit-box coordinates
@@ -487,9 +487,8 @@ def test_principle_sampler_updates_every_update_every_calls():
 def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
     """On a meta-RL benchmark the learner is MAML-TRPO; the risk model learns from the
     returns-based losses of each step's tasks."""
-    from conftest import SMALL_RUN
-
     from armeta_rl.trainers.training import run_training
+    from conftest import SMALL_RUN
 
     cfg = compose_train(*SMALL_RUN, "benchmark=point_nav", f"method={kind}_maml",
                         "trainer.iterations=2", "trainer.meta_batch=3", "eval.n_tasks=3",

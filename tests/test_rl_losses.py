@@ -9,7 +9,6 @@ import json
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train, players_of
 from tensordict import TensorDict
 from torch.func import functional_call
 from torchrl.objectives import A2CLoss, ClipPPOLoss
@@ -27,6 +26,7 @@ from armeta_rl.rl.losses import (
 )
 from armeta_rl.rl.policy import GaussianMLP, log_prob, make_actor
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train, players_of
 
 K, E, T = 3, 4, 6
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import shutil
 
 import pytest
-from conftest import SMALL_RUN, compose_train
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train
 
 CSV_RUN = (*SMALL_RUN, "method=ar_maml", "logger=csv", "trainer.log_every=1",
            "trainer.checkpoint_every=2")

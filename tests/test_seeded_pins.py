@@ -19,9 +19,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from conftest import compose_train
 
 from armeta_rl.trainers.training import run_training
+from conftest import compose_train
 
 COMMON = ("trainer.iterations=3", "trainer.checkpoint_every=3", "trainer.progress=false",
           "logger=none", "seed=7", "trainer.density_every=0")

@@ -8,7 +8,6 @@ import gymnasium
 import numpy as np
 import pytest
 import torch
-from conftest import SMALL_RUN, collector_of, compose_train, players_of
 from tensordict import TensorDict
 
 from armeta_rl.errors import ConfigError
@@ -16,6 +15,7 @@ from armeta_rl.learners.maml import MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import TiedAngleHead, make_mlp
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, collector_of, compose_train, players_of
 
 PARAMS = [[0.45, 1.5], [1.0, 1.0], [1.55, 0.6]]
 

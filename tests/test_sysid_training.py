@@ -4,10 +4,10 @@ evaluation collects data with the training collector's options."""
 import json
 
 import pytest
-from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train, players_of
 
 
 @pytest.mark.parametrize(

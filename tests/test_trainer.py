@@ -6,12 +6,12 @@ import sys
 
 import pytest
 import torch
-from conftest import SMALL_RUN, compose_train, players_of
 
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.training import run_training
+from conftest import SMALL_RUN, compose_train, players_of
 
 
 @pytest.mark.parametrize("method", ["maml", "ar_maml"])

@@ -176,7 +176,7 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[s
             report = read_report(results / run.subdir / file, report_sections(file))
         except ReportInvalid:
             continue
-        if identity_problem(report, run) is not None:
+        if identity_problem(report, run, results) is not None:
             continue
         run_time = seconds.get(run.subdir) if file == EVAL_FILE else None
         for noisy in (False, True):

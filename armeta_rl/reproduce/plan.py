@@ -18,7 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.config import CONFIG_FILE
 from armeta_rl.config_files import config_files
@@ -289,20 +291,33 @@ def report_problem(results: Path, run: TrainRun | EvalJob) -> str | None:
 
     path = report_path(results, run)
     try:
-        return identity_problem(read_report(path, report_sections(path.name)), run)
+        return identity_problem(read_report(path, report_sections(path.name)), run, results)
     except ReportInvalid as error:
         return str(error)
 
 
-def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob) -> str | None:
+def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
+                     results: Path) -> str | None:
     """Why ``report``, found where ``run`` keeps its report, is another run's (its benchmark,
-    method or seed differ from the run's, or an evaluation job's learner's), or ``None``: a
-    report copied from another run's directory is not this run's result."""
+    method or seed differ from the run's, or an evaluation job's learner's; or the digest of
+    the result-changing keys it records differs from the run's ``config.yaml``'s, as a variant's
+    does), or ``None``: a report copied from another run's directory is not this run's result."""
+    from armeta_rl.trainers.checkpoint import run_identity
+
     learner = run.learner if isinstance(run, EvalJob) else run
     expected = {"benchmark": learner.config, "method": learner.method, "seed": learner.seed}
     for key, value in expected.items():
         if key in report and report[key] != value:
             return f"it is the report of {key} {report[key]!r}, not this run's {value!r}"
+    config = results / learner.subdir / CONFIG_FILE
+    if "config_sha256" in report and config.is_file():
+        try:
+            ours = run_identity(OmegaConf.load(config))["config_sha256"]
+        except (OSError, ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException):
+            return None  # a damaged config.yaml is its run's own refusal (resume says so)
+        if report["config_sha256"] != ours:
+            return (f"it is the report of another config (config_sha256 "
+                    f"{str(report['config_sha256'])[:12]}…, not this run's {ours[:12]}…)")
     return None
 
 

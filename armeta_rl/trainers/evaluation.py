@@ -304,6 +304,8 @@ def check_report(report: Any, sections: tuple[str, ...] = ("initial",)) -> None:
     if "seed" in report and (not isinstance(report["seed"], int)
                              or isinstance(report["seed"], bool)):
         raise ReportInvalid(f"'seed' = {report['seed']!r} is not an integer")
+    if "config_sha256" in report and not isinstance(report["config_sha256"], str):
+        raise ReportInvalid(f"'config_sha256' = {report['config_sha256']!r} is not a digest")
     higher = higher_is_better(report["metric"])
     for name, section in report.items():
         if isinstance(section, dict):

@@ -12,11 +12,12 @@ from typing import Any
 import torch
 
 from armeta_rl.collectors.regression import NoisySupport
-from armeta_rl.config import TrainConfig
+from armeta_rl.config import TrainConfig, load_run_config
 from armeta_rl.devices import CPU, forked_rng, resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.shifts import shift_seed, suite_shifts
+from armeta_rl.trainers.checkpoint import run_identity
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.players import Players, load_players
 
@@ -140,6 +141,8 @@ def cross_evaluate(
     chosen = None if shifts is None else suite_shifts(
         players.space, config.benchmark.shift_suite, config.benchmark.name, shifts)
     report = evaluate_players(config, players, adversary, chosen, initial)
+    report["config_sha256"] = run_identity(load_run_config(learner_dir, "learner"))[
+        "config_sha256"]
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report

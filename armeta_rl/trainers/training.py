@@ -197,7 +197,7 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
             say(f"stopped at iteration {trainer.iteration}; continue with: "
                 f"armeta-train resume={run_dir}")
             return None
-        return _finish(config, run_dir, players, logger, frames, reached)
+        return _finish(config, run_dir, players, logger, frames, reached, checkpoint.identity)
 
 
 def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> None:
@@ -241,11 +241,11 @@ def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
 
 
 def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger | None,
-            frames: DensityFrames | None, iteration: int) -> dict:
+            frames: DensityFrames | None, iteration: int, identity: dict) -> dict:
     """Evaluate the trained players, log the scores, draw the final p_φ and its animation, and
     write ``eval.json`` last (atomically): a run with an ``eval.json`` has everything. Prints the
     table; returns the report."""
-    report = evaluate_players(config, players)
+    report = {**evaluate_players(config, players), "config_sha256": identity["config_sha256"]}
     if logger is not None:
         logger.log_metrics(eval_scalars(report), config.trainer.iterations)
     if players.adversary is not None:

@@ -36,10 +36,10 @@ def seeded_values() -> dict[str, dict[str, float]]:
     import torch
 
     sys.path.insert(0, str(TESTS))
-    from conftest import compose_train
     from test_seeded_pins import COMMON, RUNS, flatten
 
     from armeta_rl.trainers.training import run_training
+    from conftest import compose_train
 
     torch.set_num_threads(1)
     values = {}
