@@ -7,11 +7,10 @@ docs/reproducing.md).
 from __future__ import annotations
 
 import ast
-import sys
 from importlib.util import find_spec
 from pathlib import Path
 
-from armeta_rl.cli import config_files
+from armeta_rl.config_files import config_files
 
 PROFILES_FILE = "profiles.yaml"
 """The profiles shared by the experiments, beside them in ``configs/reproduce/``."""
@@ -29,14 +28,3 @@ def help_text() -> str:
     source = Path(find_spec("armeta_rl.reproduce.cli").origin).read_text(encoding="utf-8")
     usage = ast.get_docstring(ast.parse(source)).replace("``", "").strip()
     return f"usage: {usage}\n\nexperiments: {', '.join(experiment_names())}"
-
-
-def main() -> None:
-    """``armeta-reproduce``: ``--help`` answered here, every other command line by
-    :func:`armeta_rl.reproduce.cli.main`."""
-    if any(arg in ("--help", "-h") for arg in sys.argv[1:]):
-        print(help_text())
-        sys.exit(0)
-    from armeta_rl.reproduce.cli import main as run
-
-    run()
