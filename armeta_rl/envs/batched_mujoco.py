@@ -45,9 +45,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.tasks.distributions import BoxUniform
+from armeta_rl.tasks.distributions import TaskEnvMixin
 from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY, read_identifiers
-from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 KEY = "benchmark.collector"
 GYM_ASSETS = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
@@ -94,7 +93,7 @@ def common_checks(max_steps: int, frame_skip: int, reset_noise_scale: float,
     }
 
 
-class BatchedMujocoEnv(EnvBase):
+class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
     """Base class of the batched MuJoCo task envs (see the module docstring).
 
     A subclass names its identifiers (:attr:`identifier_names`, their allowed interval
@@ -117,10 +116,8 @@ class BatchedMujocoEnv(EnvBase):
             default it keeps the stored ones; :func:`~armeta_rl.tasks.protocol.read_identifiers`).
     """
 
-    identifier_names: tuple[str, ...] = ()
     identifier_low: float = -math.inf
     identifier_high: float = math.inf
-    task_boxes: dict[str, tuple[float, float]] = {}
     stage: int = STAGE_ACC
     _has_frame_skip = True  # physics substeps run in ``_step``; no FrameSkipTransform wrapper
 
@@ -154,18 +151,6 @@ class BatchedMujocoEnv(EnvBase):
         self._task = self._default_identifiers()
         self._steps = torch.zeros(*self.batch_size, 1, dtype=torch.long, device=self.sim_device)
         self.sim.reset()
-
-    @property
-    def task_space(self) -> TaskSpace:
-        """The box of this env's identifiers, in the order of ``"params"``: the references' task
-        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
-        ``TaskTransform`` are built from the env alone."""
-        return task_space_of(self.identifier_names, self.task_boxes)
-
-    @property
-    def p0(self) -> BoxUniform:
-        """The references' initial task distribution: uniform on :attr:`task_space`."""
-        return BoxUniform(self.task_space)
 
     # -- what a subclass states --------------------------------------------------------------
 

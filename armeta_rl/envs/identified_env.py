@@ -54,9 +54,8 @@ from torchrl.envs import EnvBase
 
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
-from armeta_rl.tasks.distributions import BoxUniform
+from armeta_rl.tasks.distributions import TaskEnvMixin
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
-from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 
 class UniformBounded(Bounded):
@@ -70,7 +69,7 @@ class UniformBounded(Bounded):
         return out.uniform_(low, high)
 
 
-class IdentifiedSystemEnv(EnvBase):
+class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
     """Base class of the batched system-identification environments.
 
     Args:
@@ -100,7 +99,6 @@ class IdentifiedSystemEnv(EnvBase):
 
     param_names: tuple[str, ...] = ()
     identifier_defaults: dict[str, float] = {}
-    task_boxes: dict[str, tuple[float, float]] = {}
     state_dim: int = 0
     observation_dim: int = 0
     observation_high: tuple[float, ...] = ()
@@ -143,16 +141,9 @@ class IdentifiedSystemEnv(EnvBase):
         self.set_seed(seed)
 
     @property
-    def task_space(self) -> TaskSpace:
-        """The box of this env's identifiers, in the order of ``"params"``: the references' task
-        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
-        ``TaskTransform`` are built from the env alone."""
-        return task_space_of(self.param_names, self.task_boxes)
-
-    @property
-    def p0(self) -> BoxUniform:
-        """The references' initial task distribution: uniform on :attr:`task_space`."""
-        return BoxUniform(self.task_space)
+    def identifier_names(self) -> tuple[str, ...]:
+        """The identifiers this env was built with (:attr:`param_names`)."""
+        return self.param_names
 
     def _make_specs(self) -> None:
         batch, kwargs = self.batch_size, {"dtype": self.dtype, "device": self.device}

@@ -106,6 +106,7 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
     xml: str = ""
     velocity_clip: float = np.inf  # |qvel| observed at most (Walker2d: 10)
     stage = STAGE_POS  # forward kinematics at the new state: the torso's xpos
+    alive_bonus: float = 0.0  # reward for every step (Walker2d: 1)
 
     def __init__(
         self,
@@ -152,6 +153,28 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         """``ctrl_cost_weight · ‖a‖²`` ``[n_sims]``."""
         return self.ctrl_cost_weight * np.square(action).sum(-1)
 
+    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
+                task: np.ndarray) -> np.ndarray:
+        """The task's term (the subclass's :meth:`_forward_reward`) − ``ctrl_cost_weight·‖a‖²`` +
+        :attr:`alive_bonus`."""
+        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action) + self.alive_bonus
+
+
+class TargetVelocity:
+    """The velocity task of HalfCheetah-Vel and Walker2d-Vel: a hidden target velocity
+    ``goal_velocity`` ∈ [0, 2] m/s (drawn from U(0, 2) where never set), reward term
+    ``−|v − goal_velocity|``."""
+
+    identifier_names = ("goal_velocity",)
+    task_boxes = {"goal_velocity": (0.0, 2.0)}
+
+    def _default_identifiers(self) -> torch.Tensor:
+        return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
+
+    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
+        """−|v − goal_velocity| ``[n_sims]``."""
+        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0])
+
 
 class HalfCheetahTaskEnv(PlanarRunnerEnv):
     """gymnasium's HalfCheetah as a planar runner with its defaults; :class:`HalfCheetahVelEnv`
@@ -187,7 +210,7 @@ class HalfCheetahTaskEnv(PlanarRunnerEnv):
                          threads, seed, device, require_identifiers)
 
 
-class HalfCheetahVelEnv(HalfCheetahTaskEnv):
+class HalfCheetahVelEnv(TargetVelocity, HalfCheetahTaskEnv):
     """HalfCheetah-Vel: run at a hidden target velocity; reward ``−|v − goal_velocity| −
     ctrl_cost_weight·‖a‖²`` (module docstring). Arguments as :class:`HalfCheetahTaskEnv`;
     velocities never set are drawn from U(0, 2).
@@ -204,20 +227,6 @@ class HalfCheetahVelEnv(HalfCheetahTaskEnv):
         >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
         (torch.Size([2, 3, 4, 20]), True)
     """
-
-    identifier_names = ("goal_velocity",)
-    task_boxes = {"goal_velocity": (0.0, 2.0)}
-
-    def _default_identifiers(self) -> torch.Tensor:
-        return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
-
-    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
-        """−|v − goal_velocity| ``[n_sims]``."""
-        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0])
-
-    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
-                task: np.ndarray) -> np.ndarray:
-        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action)
 
 
 class HalfCheetahDirEnv(HalfCheetahTaskEnv):
@@ -250,12 +259,8 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
         """``d·v`` ``[n_sims]``."""
         return np.where(task[:, 0] >= 0, 1.0, -1.0) * self.forward_velocity(qpos_before)
 
-    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
-                task: np.ndarray) -> np.ndarray:
-        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action)
 
-
-class Walker2dVelEnv(PlanarRunnerEnv):
+class Walker2dVelEnv(TargetVelocity, PlanarRunnerEnv):
     """Walker2d-Vel (MPTS): walk at a hidden target velocity; reward ``−|v − goal_velocity| −
     ctrl_cost_weight·‖a‖² + alive_bonus`` (module docstring), no termination. Batch size
     ``[tasks, episodes]``.
@@ -286,8 +291,6 @@ class Walker2dVelEnv(PlanarRunnerEnv):
     """
 
     xml = "walker2d_v5.xml"
-    identifier_names = ("goal_velocity",)
-    task_boxes = {"goal_velocity": (0.0, 2.0)}
     velocity_clip = 10.0
 
     def __init__(
@@ -307,23 +310,12 @@ class Walker2dVelEnv(PlanarRunnerEnv):
         super().__init__(batch_size, max_steps, frame_skip, ctrl_cost_weight, reset_noise_scale,
                          threads, seed, device, require_identifiers)
 
-    def _default_identifiers(self) -> torch.Tensor:
-        return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)
-
     def _reset_noise(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """gymnasium's Walker2d: U(±s) on both qpos and qvel."""
         scale, gen = self.reset_noise_scale, self._generator
         qpos = scale * (2 * torch.rand(n, self.model.nq, generator=gen, dtype=torch.float64) - 1)
         qvel = scale * (2 * torch.rand(n, self.model.nv, generator=gen, dtype=torch.float64) - 1)
         return qpos, qvel
-
-    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
-        """−|v − goal_velocity| ``[n_sims]``."""
-        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0])
-
-    def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
-                task: np.ndarray) -> np.ndarray:
-        return self._forward_reward(qpos_before, task) - self.ctrl_cost(action) + self.alive_bonus
 
 
 class AntDirEnv(AntTaskEnv):

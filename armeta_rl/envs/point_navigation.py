@@ -41,9 +41,8 @@ from armeta_rl.cuda_graphs import GraphedCall
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.rl.policy import act as policy_act
-from armeta_rl.tasks.distributions import BoxUniform
+from armeta_rl.tasks.distributions import TaskEnvMixin
 from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
-from armeta_rl.tasks.space import TaskSpace, task_space_of
 
 Region = tuple[tuple[float, float], tuple[float, float], float]
 """((x_low, x_high), (y_low, y_high), reward_scale)."""
@@ -195,7 +194,7 @@ def reference_return(goal: torch.Tensor, max_steps: int, sparse_regions: Sequenc
     return (reward * before_end).sum(-1)
 
 
-class PointNavigationEnv(EnvBase):
+class PointNavigationEnv(TaskEnvMixin, EnvBase):
     """Point-robot navigation with batch size ``[tasks, episodes]`` (pure batched torch).
 
     The goal of every batch entry is set through ``"params"`` (:data:`~armeta_rl.tasks.TASK_KEY`,
@@ -231,6 +230,7 @@ class PointNavigationEnv(EnvBase):
         (torch.Size([2, 3, 4, 2]), True)
     """
 
+    identifier_names = GOAL_NAMES
     task_boxes = {name: (GOAL_LOW, GOAL_HIGH) for name in GOAL_NAMES}
 
     def __init__(
@@ -299,18 +299,6 @@ class PointNavigationEnv(EnvBase):
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
         self._generator.manual_seed(int(seed))
-
-    @property
-    def task_space(self) -> TaskSpace:
-        """The box of this env's identifiers, in the order of ``"params"``: the references' task
-        distribution's support (:attr:`task_boxes`), so that ``TaskSampler`` and
-        ``TaskTransform`` are built from the env alone."""
-        return task_space_of(GOAL_NAMES, self.task_boxes)
-
-    @property
-    def p0(self) -> BoxUniform:
-        """The references' initial task distribution: uniform on :attr:`task_space`."""
-        return BoxUniform(self.task_space)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         shape = self.batch_size

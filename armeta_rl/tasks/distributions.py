@@ -140,6 +140,28 @@ class BoxUniform(TaskDistribution):
         return torch.tensor(self.space.log_volume, dtype=torch.float64)
 
 
+
+class TaskEnvMixin:
+    """What every task env of the package tells about its tasks, from two class attributes:
+    ``identifier_names`` (the order of ``"params"``) and ``task_boxes`` (``name: (low, high)``,
+    the references' task distribution's support), so that ``TaskSampler`` and ``TaskTransform``
+    are built from the env alone."""
+
+    identifier_names: tuple[str, ...] = ()
+    task_boxes: dict[str, tuple[float, float]] = {}
+
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of this env's identifiers, in the order of ``"params"``."""
+        boxes = self.task_boxes
+        return TaskSpace(self.identifier_names, [boxes[n][0] for n in self.identifier_names],
+                         [boxes[n][1] for n in self.identifier_names])
+
+    @property
+    def p0(self) -> BoxUniform:
+        """The references' initial task distribution: uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
+
 MIN_BOX_MASS = 1e-6
 """The least mass a truncated normal p0 may have along each axis of the box: its inverse-CDF
 sampler maps ``u`` into ``[Φ(α), Φ(β)]``, and with less mass than this the float64 CDF keeps

@@ -111,8 +111,3 @@ class TaskSpace:
         mesh = torch.stack(torch.meshgrid(*axes, indexing="ij"), -1).reshape(-1, self.dim)
         return mesh, float(width.prod())
 
-
-def task_space_of(names: Sequence[str], boxes: dict[str, tuple[float, float]]) -> TaskSpace:
-    """The box of an env's identifiers ``names`` (in order) from its per-identifier ``boxes``
-    (``name: (low, high)``): what an env reports as its ``task_space``."""
-    return TaskSpace(names, [boxes[n][0] for n in names], [boxes[n][1] for n in names])
