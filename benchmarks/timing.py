@@ -1,12 +1,23 @@
-"""Wall-clock timing shared by the benchmark scripts (run as ``python benchmarks/<name>.py``), and
-the writer of their sections of docs/benchmarks.md: every script replaces its own section, between
-``<!-- name:start -->`` and ``<!-- name:end -->``, with its tables, its command and the date."""
+"""The benchmark harness: every benchmark script (run as ``python benchmarks/<name>.py``) builds
+its workloads here, times them here and writes its tables here.
+
+* workloads: :func:`trainer_for` builds a run's trainer from config overrides, as ``armeta-train``
+  builds it;
+* timing: :func:`wall_times` (calls of one function), :func:`in_turns` (several functions taking
+  turns in one session, so that a shared machine's slow spells fall on all alike: the way two
+  forms are compared) with :func:`ratio_cell` for the ratios of turns, :func:`peak_rss_mib` and
+  :func:`reference_product_ms` (a yardstick of the machine's speed at the moment);
+* tables: :func:`markdown_table` and :func:`write_section`, which replaces the script's section of
+  docs/benchmarks.md (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables,
+  its command, the date and the machine.
+"""
 
 from __future__ import annotations
 
 import datetime
 import os
 import platform
+import resource
 import shlex
 import statistics
 import sys
@@ -16,24 +27,115 @@ from pathlib import Path
 
 import torch
 
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+BENCHMARKS_PAGE = DOCS / "benchmarks.md"
+REFERENCE_ROWS = DOCS / "results" / "reference" / "rows.json"
+"""Each reference workload's latest medians (``bench_reference.py`` writes them; the GPU check's
+point-robot target reads them)."""
+
+
+# -- workloads ----------------------------------------------------------------------------------
+
+def trainer_for(*overrides: str):
+    """A seeded ``GameTrainer`` of the ``armeta-train`` config with ``overrides``, its players
+    built as the CLI builds them (no logger, no progress bar), and the players."""
+    from hydra import compose, initialize_config_dir
+
+    from armeta_rl.cli import config_dir
+    from armeta_rl.config import validate
+    from armeta_rl.trainers.game import GameTrainer
+    from armeta_rl.trainers.players import build_players
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg = compose("train", overrides=[*overrides, "trainer.progress=false", "logger=none"])
+    config = validate(cfg)
+    players, options = build_players(config), config.trainer
+    trainer = GameTrainer(players.leader, players.principle, iterations=10**9,
+                          meta_batch=options.meta_batch, progress=False,
+                          max_loss=options.max_loss, follower_rollouts=options.follower_rollouts,
+                          follower_at=options.follower_at)
+    return trainer, players
+
+
+# -- timing -------------------------------------------------------------------------------------
 
 def wall_times(
     fn: Callable[[], object],
     repeats: int,
     warmup: int = 1,
     clock: Callable[[], float] = time.perf_counter,
+    sync: Callable[[], object] = lambda: None,
+    budget_s: float = float("inf"),
 ) -> list[float]:
     """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls, on
     ``clock`` (wall time; ``time.process_time`` gives this process's CPU time, less sensitive to
-    other processes)."""
+    other processes); ``sync`` waits for queued device work before each reading (e.g.
+    ``torch.cuda.synchronize``); no call starts after ``budget_s`` seconds of timed calls once
+    one has been timed."""
     for _ in range(warmup):
         fn()
-    times = []
-    for _ in range(repeats):
+    sync()
+    times: list[float] = []
+    while len(times) < repeats and (not times or sum(times) < budget_s):
         start = clock()
         fn()
+        sync()
         times.append(clock() - start)
     return times
+
+
+def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, **kwargs) -> float:
+    """Median seconds of ``repeats`` calls of ``fn`` (:func:`wall_times`)."""
+    return statistics.median(wall_times(fn, repeats, warmup, **kwargs))
+
+
+def in_turns(
+    rows: dict[str, Callable[[], object]],
+    calls: int,
+    rounds: int,
+    warmup: int = 1,
+    between: Callable[[], float] | None = None,
+) -> tuple[dict[str, list[list[float]]], dict[str, list[float]]]:
+    """Every row's ``rounds`` turns of ``calls`` timed calls, the rows taking turns (after
+    ``warmup`` untimed calls of each; the first row of a round rotates, so that no row always
+    follows the same one), so that a shared machine's slow spells fall on all rows alike.
+    Returns each row's turns (their calls' seconds) and, where ``between`` is given (a yardstick
+    taken after every turn and once before the first), each turn's mean of the yardsticks taken
+    just before and just after it."""
+    for fn in rows.values():
+        for _ in range(warmup):
+            fn()
+    labels = list(rows)
+    turns: dict[str, list[list[float]]] = {label: [] for label in labels}
+    marks: dict[str, list[float]] = {label: [] for label in labels}
+    before = between() if between else float("nan")
+    for index in range(rounds):
+        for label in labels[index % len(labels):] + labels[:index % len(labels)]:
+            turns[label].append(wall_times(rows[label], calls, warmup=0))
+            after = between() if between else float("nan")
+            marks[label].append((before + after) / 2)
+            before = after
+    return turns, marks
+
+
+def turn_medians(turns: list[list[float]]) -> list[float]:
+    """The median seconds of each turn."""
+    return [statistics.median(turn) for turn in turns]
+
+
+def ratio_cell(numerators: Sequence[float], denominators: Sequence[float],
+               digits: int = 2) -> str:
+    """The median of the per-round ratios and their range, as a table cell: ``**1.23×**
+    (1.10–1.40)``."""
+    ratios = [a / b for a, b in zip(numerators, denominators, strict=True)]
+    return (f"**{statistics.median(ratios):.{digits}f}×** ({min(ratios):.{digits}f}–"
+            f"{max(ratios):.{digits}f})")
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident set size in MiB (Linux reports ``ru_maxrss`` in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def reference_product_ms(repeats: int = 50) -> float:
@@ -42,36 +144,10 @@ def reference_product_ms(repeats: int = 50) -> float:
     (a shared machine has fast and slow spells), so that tables taken at different times can be
     compared."""
     activations, weights = torch.randn(16, 190, 128), torch.randn(16, 128, 128)
-    times = wall_times(lambda: torch.bmm(activations, weights), repeats, warmup=5)
-    return 1000 * statistics.median(times)
+    return 1000 * median_s(lambda: torch.bmm(activations, weights), repeats, warmup=5)
 
 
-def alternating_ratios(
-    reference: Callable[[], object],
-    variant: Callable[[], object],
-    calls: int,
-    rounds: int,
-    use_reference: Callable[[], None] = lambda: None,
-    use_variant: Callable[[], None] = lambda: None,
-) -> tuple[list[float], list[float]]:
-    """Median seconds of ``calls`` calls of ``reference`` and of ``variant``, taking turns
-    ``rounds`` times (after one untimed turn each), so that a shared machine's slow spells fall
-    on both alike; ``use_reference`` / ``use_variant`` switch between them before each turn when
-    both are the same function. Returns the reference's and the variant's turn medians."""
-    def turn(use: Callable[[], None], fn: Callable[[], object]) -> float:
-        use()
-        return statistics.median(wall_times(fn, calls, warmup=0))
-
-    turn(use_reference, reference)
-    turn(use_variant, variant)
-    pairs = [(turn(use_reference, reference), turn(use_variant, variant)) for _ in range(rounds)]
-    use_reference()
-    return [r for r, _ in pairs], [v for _, v in pairs]
-
-
-DOCS = Path(__file__).resolve().parents[1] / "docs"
-BENCHMARKS_PAGE = DOCS / "benchmarks.md"
-
+# -- tables and sections ------------------------------------------------------------------------
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
     """A Markdown table with ``header`` and one line per row (cells as ``str`` gives them)."""
