@@ -35,6 +35,7 @@ from pathlib import Path
 import timing
 import torch
 from tensordict import TensorDict
+from timing import ratio_cell
 
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
 from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray
@@ -62,20 +63,18 @@ def timed_step(leader: MAMLTRPOLeader, tasks: TensorDict, seed: int) -> float:
     return time.perf_counter() - start
 
 
-def table(names: list[str], times: dict[str, list[float]], tasks: int) -> list[str]:
-    """Markdown rows: median seconds, median ratio to the local collector of the same turn,
-    and the paper-size and 500-iteration figures."""
-    local = times[names[0]]
-    rows = ["| collector | s / iteration (median) | × local (median of turns) | "
-            f"s / iteration at {PAPER_TASKS} tasks | {RUN_ITERATIONS} iterations |",
-            "|---|---:|---:|---:|---:|"]
+def table(names: list[str], times: dict[str, list[float]], tasks: int) -> str:
+    """Median seconds, median ratio to the local collector of the same turn, and the paper-size
+    and 500-iteration figures."""
+    rows = []
     for name in names:
         seconds = statistics.median(times[name])
-        ratio = statistics.median(t / ref for t, ref in zip(times[name], local))
         scaled = seconds * PAPER_TASKS / tasks
-        rows.append(f"| {name} | {seconds:.1f} | {ratio:.2f} | {scaled:.0f} | "
-                    f"{RUN_ITERATIONS * scaled / 3600:.1f} h |")
-    return rows
+        rows.append((name, f"{seconds:.1f}", ratio_cell(times[name], times[names[0]]),
+                     f"{scaled:.0f}", f"{RUN_ITERATIONS * scaled / 3600:.1f} h"))
+    return timing.markdown_table(
+        ("collector", "s / iteration (median)", "× local (median of turns, range)",
+         f"s / iteration at {PAPER_TASKS} tasks", f"{RUN_ITERATIONS} iterations"), rows)
 
 
 def main() -> None:
@@ -121,7 +120,7 @@ def main() -> None:
 
     body = (f"{args.tasks} tasks × {args.episodes} episodes × {args.horizon} steps, "
             f"{args.turns} turns, scaled linearly to {PAPER_TASKS} tasks.\n\n"
-            + "\n".join(table(list(leaders), times, args.tasks)))
+            + table(list(leaders), times, args.tasks))
     print(body)
     if not args.no_doc:
         title = "Ant goal-position with Ray workers (bench_ant_ray.py)"

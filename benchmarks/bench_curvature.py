@@ -38,8 +38,7 @@ from collections.abc import Callable
 from functools import partial
 
 import torch
-from bench_meta_iteration import trainer_for
-from timing import DOCS, markdown_table, write_section
+from timing import DOCS, markdown_table, trainer_for, write_section
 from torch import Tensor
 from torch.func import grad, jvp, linearize, vjp
 
@@ -166,7 +165,7 @@ def main() -> None:
     torch.set_num_threads(1)
     keep_freed_memory()  # as armeta-train does
     torch.manual_seed(0)
-    trainer = trainer_for("maml", "benchmark=point_nav")
+    trainer, _ = trainer_for("method=maml", "benchmark=point_nav")
     leader: MAMLTRPOLeader = trainer.leader
     for _ in range(2):
         trainer.train_iteration()

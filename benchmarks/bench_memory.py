@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
@@ -54,14 +53,14 @@ def resident_mib() -> float:
 def child(name: str) -> None:
     """Train row ``name`` and print its memory figures as one JSON line."""
     import torch
-    from gpu_check import trainer_for
+    from timing import peak_rss_mib, trainer_for
 
     from armeta_rl.allocator import keep_freed_memory
 
     torch.set_num_threads(1)
     keep_freed_memory()
     benchmark, method, iterations, overrides = ROWS[name]
-    trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}", *overrides])
+    trainer, _ = trainer_for(f"benchmark={benchmark}", f"method={method}", *overrides)
     # a one-iteration row reads all three marks after its only iteration
     marks = {"tenth": max(1, iterations // 10), "half": max(1, iterations // 2),
              "end": iterations}
@@ -71,7 +70,7 @@ def child(name: str) -> None:
         trainer.train_iteration()
         figures.update({mark: resident_mib() for mark, at in marks.items() if at == iteration})
     figures["seconds_per_iteration"] = (time.perf_counter() - start) / iterations
-    figures["peak"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    figures["peak"] = peak_rss_mib()
     print(json.dumps(figures))
 
 

@@ -33,21 +33,25 @@ import statistics
 from collections.abc import Callable
 
 import torch
-from hydra import compose, initialize_config_dir
-from timing import markdown_table, reference_product_ms, wall_times, write_section
+from timing import (
+    in_turns,
+    markdown_table,
+    reference_product_ms,
+    trainer_for,
+    wall_times,
+    write_section,
+)
 
 from armeta_rl.allocator import keep_freed_memory
-from armeta_rl.cli import config_dir
-from armeta_rl.config import validate
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.players import build_players
 
 BENCHMARKS = ("sinusoid_uniform", "pendulum_uniform", "acrobot_uniform")
 WARMUP = 10
 TURN = 10
 
 Turn = tuple[float, list[float]]
-"""One turn of a row: its yardstick in ms and the wall times in seconds of its iterations."""
+"""One turn of a row: its yardstick in ms and the wall times in seconds of its iterations
+(``timing.in_turns`` with the yardstick between turns)."""
 
 
 def summary(turns: list[Turn], fast_yardstick: float
@@ -60,34 +64,6 @@ def summary(turns: list[Turn], fast_yardstick: float
     fast = [1000 * t for yardstick, turn in turns if yardstick <= fast_yardstick for t in turn]
     q1, median, q3 = statistics.quantiles(times, n=4)
     return median, q3 - q1, min(times), statistics.median(fast) if fast else None
-
-
-def taking_turns(rows: dict[str, Callable[[], object]], turns: int) -> dict[str, list[Turn]]:
-    """Every row's ``turns`` turns of ``TURN`` calls of its function, the rows taking turns, each
-    turn with the mean of the yardsticks measured just before and just after it."""
-    turns_of: dict[str, list[Turn]] = {label: [] for label in rows}
-    before = reference_product_ms(repeats=5)
-    for _ in range(turns):
-        for label, fn in rows.items():
-            times = wall_times(fn, TURN, warmup=0)
-            after = reference_product_ms(repeats=5)
-            turns_of[label].append(((before + after) / 2, times))
-            before = after
-    return turns_of
-
-
-def trainer_for(method: str, *overrides: str) -> GameTrainer:
-    """A trainer for ``method`` on the default benchmark with config ``overrides``."""
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=[f"method={method}", *overrides])
-    players = build_players(validate(cfg))
-    return GameTrainer(
-        players.leader,
-        players.principle,
-        iterations=10**9,
-        meta_batch=cfg.trainer.meta_batch,
-        progress=False,
-    )
 
 
 def looped_meta_gradient(trainer: GameTrainer) -> Callable[[], None]:
@@ -145,14 +121,17 @@ def main() -> None:
     for benchmark in args.benchmarks:
         iterations, warmups = {}, {}
         for label, method, overrides in ROWS + (COMPILED_ROWS if args.compile else ()):
-            trainer = trainer_for(method, f"benchmark={benchmark}", *overrides, *extra)
+            trainer, _ = trainer_for(f"method={method}", f"benchmark={benchmark}", *overrides,
+                                     *extra)
             warmups[label] = sum(wall_times(trainer.train_iteration, WARMUP, warmup=0))
             iterations[label] = trainer.train_iteration
         if benchmark == "sinusoid_uniform":
-            looped = looped_meta_gradient(trainer_for("maml", *extra))
+            looped = looped_meta_gradient(trainer_for("method=maml", *extra)[0])
             warmups[LOOPED] = sum(wall_times(looped, WARMUP, warmup=0))
             iterations[LOOPED] = looped
-        turns_of = taking_turns(iterations, args.turns)
+        turns, marks = in_turns(iterations, TURN, args.turns, warmup=0,
+                                between=lambda: reference_product_ms(repeats=5))
+        turns_of = {label: list(zip(marks[label], turns[label])) for label in turns}
         turn_yardsticks = [yardstick for turns in turns_of.values() for yardstick, _ in turns]
         yardsticks += turn_yardsticks
         fast_yardsticks[benchmark] = statistics.quantiles(turn_yardsticks, n=4)[0]

@@ -37,14 +37,18 @@ import statistics
 import time
 
 import torch
-from hydra import compose, initialize_config_dir
-from timing import alternating_ratios, markdown_table, reference_product_ms, write_section
+from timing import (
+    in_turns,
+    markdown_table,
+    ratio_cell,
+    reference_product_ms,
+    trainer_for,
+    turn_medians,
+    write_section,
+)
 
 from armeta_rl.allocator import keep_freed_memory
-from armeta_rl.cli import config_dir
-from armeta_rl.config import validate
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.players import build_players
 
 BENCHMARKS = ("half_cheetah_vel", "half_cheetah_dir", "ant_dir", "half_cheetah_mass_vel",
               "walker2d_mass_vel")
@@ -53,21 +57,16 @@ OTHER_SIZES = ("40x20x200", "10x10x100")  # the other families: the cost is clos
 ITERATIONS = 500
 
 
-def trainer_for(benchmark: str, method: str, tasks: int, episodes: int,
-                steps: int, *overrides: str) -> GameTrainer:
+def sized_trainer(benchmark: str, method: str, tasks: int, episodes: int,
+                  steps: int, *overrides: str) -> GameTrainer:
     """The run's trainer as armeta-train builds it, at the row's size on one MuJoCo thread, with
-    ``overrides`` of ``trainer.*`` and the rest."""
-    composed = [f"benchmark={benchmark}", f"method={method}", f"trainer.meta_batch={tasks}",
-                f"benchmark.collector.episodes={episodes}",
-                f"benchmark.collector.max_steps={steps}",
-                "benchmark.collector.make_env.threads=1", "logger=none", *overrides]
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=composed)
-    config = validate(cfg)
-    players = build_players(config)
+    ``overrides``, its envs built."""
+    trainer, players = trainer_for(
+        f"benchmark={benchmark}", f"method={method}", f"trainer.meta_batch={tasks}",
+        f"benchmark.collector.episodes={episodes}", f"benchmark.collector.max_steps={steps}",
+        "benchmark.collector.make_env.threads=1", *overrides)
     players.leader.collector.env(tasks)  # built before the timed iterations
-    return GameTrainer(players.leader, players.principle, iterations=10**9, meta_batch=tasks,
-                       progress=False, follower_at=config.trainer.follower_at)
+    return trainer
 
 
 def seconds(fn, repeats: int) -> tuple[float, float]:
@@ -83,13 +82,13 @@ def seconds(fn, repeats: int) -> tuple[float, float]:
 
 def row(benchmark: str, size: str, repeats: int) -> tuple[str, ...]:
     tasks, episodes, steps = (int(n) for n in size.split("x"))
-    maml = trainer_for(benchmark, "maml", tasks, episodes, steps)
+    maml = sized_trainer(benchmark, "maml", tasks, episodes, steps)
     leader = maml.leader
     initial = maml.principle.propose(tasks)
     rollout, _ = seconds(lambda: leader.collector.collect(initial, None, policy=leader.net),
                          repeats)
     maml_cpu, maml_wall = seconds(maml.train_iteration, repeats)
-    ar = trainer_for(benchmark, "ar_maml", tasks, episodes, steps)
+    ar = sized_trainer(benchmark, "ar_maml", tasks, episodes, steps)
     ar_cpu, ar_wall = seconds(ar.train_iteration, repeats)
     hours = ITERATIONS / 3600
     return (benchmark, f"{tasks} × {episodes} × {steps}", f"{rollout:.1f}", f"{maml_cpu:.1f}",
@@ -109,20 +108,19 @@ def overhead_rows(benchmark: str, size: str, calls: int, rounds: int,
                   budget: tuple[str, ...]) -> list[tuple[str, ...]]:
     """Each of :data:`OVERHEAD_VARIANTS`' meta-iteration time against MAML's at ``size`` (with
     ``budget`` overrides), timed in alternating turns of ``calls`` iterations
-    (``timing.alternating_ratios``): median seconds of both and the ratio, with its range over
-    the ``rounds``."""
+    (``timing.in_turns``): median seconds of both and the ratio, with its range over the
+    ``rounds``."""
     tasks, episodes, steps = (int(n) for n in size.split("x"))
-    maml = trainer_for(benchmark, "maml", tasks, episodes, steps, *budget)
+    maml = sized_trainer(benchmark, "maml", tasks, episodes, steps, *budget)
     rows = []
     for label, (method, *overrides) in OVERHEAD_VARIANTS.items():
-        other = trainer_for(benchmark, method, tasks, episodes, steps, *budget, *overrides)
-        ours, theirs = alternating_ratios(maml.train_iteration, other.train_iteration, calls,
-                                          rounds)
-        ratios = [t / o for o, t in zip(ours, theirs)]
+        other = sized_trainer(benchmark, method, tasks, episodes, steps, *budget, *overrides)
+        turns, _ = in_turns({"maml": maml.train_iteration, "other": other.train_iteration},
+                            calls, rounds)
+        ours, theirs = turn_medians(turns["maml"]), turn_medians(turns["other"])
         rows.append((benchmark, f"{tasks} × {episodes} × {steps}", label,
                      f"{statistics.median(ours):.2f}", f"{statistics.median(theirs):.2f}",
-                     f"**{statistics.median(ratios):.2f}×** ({min(ratios):.2f}–"
-                     f"{max(ratios):.2f})"))
+                     ratio_cell(theirs, ours)))
         print(" | ".join(rows[-1]), flush=True)
     return rows
 

@@ -59,7 +59,6 @@ import argparse
 import json
 import multiprocessing
 import os
-import resource
 import select
 import statistics
 import subprocess
@@ -70,10 +69,17 @@ import types
 from collections.abc import Callable
 from pathlib import Path
 
+from timing import (
+    REFERENCE_ROWS,
+    markdown_table,
+    peak_rss_mib,
+    ratio_cell,
+    this_machine,
+    trainer_for,
+    write_section,
+)
+
 HERE = Path(__file__).resolve().parent
-ROWS = HERE.parent / "docs" / "results" / "reference" / "rows.json"
-"""Each workload's latest medians (reference, ours, our products replayed), for other reports
-(the GPU check's point-robot target) to read."""
 
 WORKLOADS = {
     # name: our (benchmark, method), the reference, its arguments, default turn length, and the
@@ -119,10 +125,6 @@ def reply(message: dict) -> None:
     """One JSON line to the driver."""
     CHANNEL[0].write(json.dumps(message) + "\n")
     CHANNEL[0].flush()
-
-
-def peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def cpu_seconds() -> float:
@@ -248,14 +250,13 @@ def maml_rl_worker(path: Path, workload: dict) -> None:
 def ours_worker(workload: dict, overrides: list[str]) -> None:
     """Our trainer on ``workload``'s benchmark with its defaults (eager) and ``overrides``."""
     import torch
-    from gpu_check import trainer_for
 
     from armeta_rl.allocator import keep_freed_memory
 
     torch.set_num_threads(1)
     keep_freed_memory()  # as armeta-train does
     benchmark, method = workload["ours"]
-    trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}", *overrides])
+    trainer, _ = trainer_for(f"benchmark={benchmark}", f"method={method}", *overrides)
     gate = Gate(warmup=2, profile=lambda n: {"products_ms": products_ms(trainer, n)})
     while True:
         gate()
@@ -382,8 +383,6 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
 
 
 def table(result: dict) -> str:
-    from timing import markdown_table
-
     workload = WORKLOADS[result["name"]]
     rounds, ours = result["rounds"], [side for side in result["sides"] if side != "reference"]
     ratios = {side: [r["reference_ms"] / r[f"{side}_ms"] for r in rounds] for side in ours}
@@ -399,11 +398,12 @@ def table(result: dict) -> str:
     benchmark, method = workload["ours"]
     reference = ("authors' AR-MAML" if workload["reference"] == "authors"
                  else "pytorch-maml-rl")
+    times = {side: [r[f"{side}_ms"] for r in rounds] for side in result["sides"]}
+    cpu = {side: [r[f"{side}_cpu_ms"] for r in rounds] for side in result["sides"]}
     summary = "; ".join(
-        f"{'ours' if side == 'ours' else 'ours compiled'} **{statistics.median(ratio):.1f}×** "
-        f"(range {min(ratio):.1f}–{max(ratio):.1f}×; CPU time "
-        f"{statistics.median(cpu_ratios[side]):.1f}×, {min(cpu_ratios[side]):.1f}–"
-        f"{max(cpu_ratios[side]):.1f}×)" for side, ratio in ratios.items())
+        f"{'ours' if side == 'ours' else 'ours compiled'} "
+        f"{ratio_cell(times['reference'], times[side], 1)} (CPU time "
+        f"{ratio_cell(cpu['reference'], cpu[side], 1)})" for side in ours)
     rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in result["sides"])
     reference_ms = statistics.median(r["reference_ms"] for r in rounds)
     floor = (f"Our matrix products alone (replayed, `products_ms`) take "
@@ -426,10 +426,9 @@ def table(result: dict) -> str:
 
 
 def write_rows(results: list[dict]) -> None:
-    """Merge each workload's medians into :data:`ROWS`, keeping the other workloads' rows."""
-    from timing import this_machine
-
-    rows = json.loads(ROWS.read_text()) if ROWS.exists() else {}
+    """Merge each workload's medians into ``timing.REFERENCE_ROWS``, keeping the other
+    workloads' rows."""
+    rows = json.loads(REFERENCE_ROWS.read_text()) if REFERENCE_ROWS.exists() else {}
     for result in results:
         rounds = result["rounds"]
         rows[result["name"]] = {
@@ -438,8 +437,8 @@ def write_rows(results: list[dict]) -> None:
             **{f"{side}_ms": statistics.median(r[f"{side}_ms"] for r in rounds)
                for side in result["sides"]},
             "products_ms": result["products_ms"]}
-    ROWS.parent.mkdir(parents=True, exist_ok=True)
-    ROWS.write_text(json.dumps(rows, indent=1, sort_keys=True) + "\n")
+    REFERENCE_ROWS.parent.mkdir(parents=True, exist_ok=True)
+    REFERENCE_ROWS.write_text(json.dumps(rows, indent=1, sort_keys=True) + "\n")
 
 
 def main() -> None:
@@ -489,8 +488,6 @@ def main() -> None:
             + "\n\n".join(table(result) for result in results))
     print(body)
     write_rows(results)
-    from timing import write_section
-
     write_section("bench_reference", "Against the reference implementations "
                   "(bench_reference.py)", body)
 

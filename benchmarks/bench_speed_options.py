@@ -16,11 +16,17 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 
 import torch
-from bench_meta_iteration import trainer_for
-from timing import DOCS, alternating_ratios, markdown_table, write_section
+from timing import (
+    DOCS,
+    in_turns,
+    markdown_table,
+    trainer_for,
+    turn_medians,
+    wall_times,
+    write_section,
+)
 
 SWITCHES = (
     ("learner.maml.adaptation=low_rank", "sinusoid_uniform", "learner.maml.adaptation=vmap",
@@ -48,16 +54,13 @@ def main() -> None:
     for switch, benchmark, default, compiles in SWITCHES:
         if compiles and args.no_compile:
             continue
-        reference = trainer_for("ar_maml", f"benchmark={benchmark}", default)
-        variant = trainer_for("ar_maml", f"benchmark={benchmark}", switch)
-        start = time.perf_counter()
-        for _ in range(WARMUP):
-            variant.train_iteration()
-        warmup = time.perf_counter() - start
-        for _ in range(WARMUP):
-            reference.train_iteration()
-        ref, var = alternating_ratios(reference.train_iteration, variant.train_iteration,
-                                      args.calls, args.turns)
+        reference, _ = trainer_for("method=ar_maml", f"benchmark={benchmark}", default)
+        variant, _ = trainer_for("method=ar_maml", f"benchmark={benchmark}", switch)
+        warmup = sum(wall_times(variant.train_iteration, WARMUP, warmup=0))
+        wall_times(reference.train_iteration, 0, warmup=WARMUP)
+        turns, _ = in_turns({"default": reference.train_iteration,
+                             "switch": variant.train_iteration}, args.calls, args.turns)
+        ref, var = turn_medians(turns["default"]), turn_medians(turns["switch"])
         ratios = [v / r for r, v in zip(ref, var, strict=True)]
         ratio = statistics.median(ratios)
         rows.append((f"`{switch}`", benchmark, f"{1000 * statistics.median(ref):.1f}",

@@ -199,8 +199,11 @@ def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE
     other scripts' sections untouched; the command is ``command``, by default this process's own
     command line, and the machine ``machine``, by default this one."""
     if command is None:
+        script = Path(sys.argv[0]).resolve()
+        shown = (script.relative_to(ROOT) if script.is_relative_to(ROOT)
+                 else Path("benchmarks", script.name))
         command = "OMP_NUM_THREADS=1 python " + " ".join(
-            [f"benchmarks/{Path(sys.argv[0]).name}", *map(shlex.quote, sys.argv[1:])])
+            [str(shown), *map(shlex.quote, sys.argv[1:])])
     text = page.read_text() if page.exists() else ""
     page.write_text(replace_section(text, name, section(title, command, body, machine)))
     print(f"wrote the {name} section of {page}")
