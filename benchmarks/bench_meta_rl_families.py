@@ -26,7 +26,8 @@ keeps the rows it finished).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_rl_families.py [--benchmarks ...]
 [--sizes 40x20x200 10x10x100 ...] [--repeats 1]``; it prints the table and writes it to its
-section of docs/benchmarks.md.
+section of docs/benchmarks.md. With ``--overhead`` it runs the ``bench_ar_overhead`` comparison
+of ``benchmarks/turns.yaml`` instead (each method's meta-iteration against MAML's, in turns).
 """
 
 from __future__ import annotations
@@ -34,16 +35,15 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
 
 import torch
 from timing import (
-    in_turns,
+    compare_in_turns,
     markdown_table,
-    ratio_cell,
     reference_product_ms,
     trainer_for,
-    turn_medians,
     write_section,
 )
 
@@ -96,50 +96,6 @@ def row(benchmark: str, size: str, repeats: int) -> tuple[str, ...]:
             f"{maml_wall:.0f} / {ar_wall:.0f}")
 
 
-OVERHEAD_VARIANTS = {
-    "ar_maml (follower at θ_{t+1}, paper)": ("ar_maml", "trainer.follower_at=next"),
-    "ar_maml (follower on the step's losses)": ("ar_maml", "trainer.follower_at=step"),
-    "mpts_maml": ("mpts_maml",),
-}
-"""The methods whose meta-iteration :func:`overhead_rows` times against MAML's."""
-
-
-def overhead_rows(benchmark: str, size: str, calls: int, rounds: int,
-                  budget: tuple[str, ...]) -> list[tuple[str, ...]]:
-    """Each of :data:`OVERHEAD_VARIANTS`' meta-iteration time against MAML's at ``size`` (with
-    ``budget`` overrides), timed in alternating turns of ``calls`` iterations
-    (``timing.in_turns``): median seconds of both and the ratio, with its range over the
-    ``rounds``."""
-    tasks, episodes, steps = (int(n) for n in size.split("x"))
-    maml = sized_trainer(benchmark, "maml", tasks, episodes, steps, *budget)
-    rows = []
-    for label, (method, *overrides) in OVERHEAD_VARIANTS.items():
-        other = sized_trainer(benchmark, method, tasks, episodes, steps, *budget, *overrides)
-        turns, _ = in_turns({"maml": maml.train_iteration, "other": other.train_iteration},
-                            calls, rounds)
-        ours, theirs = turn_medians(turns["maml"]), turn_medians(turns["other"])
-        rows.append((benchmark, f"{tasks} × {episodes} × {steps}", label,
-                     f"{statistics.median(ours):.2f}", f"{statistics.median(theirs):.2f}",
-                     ratio_cell(theirs, ours)))
-        print(" | ".join(rows[-1]), flush=True)
-    return rows
-
-
-def write_overhead(rows: list[tuple[str, ...]], calls: int, rounds: int) -> None:
-    """The overhead table into its section of docs/benchmarks.md."""
-    table = markdown_table(("benchmark", "tasks × episodes × steps", "method", "maml s",
-                            "method s", "ratio to maml (range over rounds)"), rows)
-    body = (f"Seconds per meta-iteration on one torch and one MuJoCo thread, each method "
-            f"against MAML in alternating turns of {calls} iterations ({rounds} rounds, "
-            f"medians), so that the machine's load falls on both alike. AR-MAML's follower at "
-            "θ_{t+1} collects its tasks afresh after the leader's step (two more rollouts); on "
-            "the step's losses it costs only the flow's update (`trainer.follower_at=step`, "
-            f"docs/meta-rl.md).\n\n{table}")
-    print(body)
-    write_section("bench_ar_overhead", "AR-MAML's cost against MAML's (bench_meta_rl_families.py "
-                  "--overhead)", body)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--benchmarks", nargs="+", default=list(BENCHMARKS), choices=BENCHMARKS)
@@ -148,20 +104,18 @@ def main() -> None:
                              "(default: six sizes for half_cheetah_vel, two for the others)")
     parser.add_argument("--repeats", type=int, default=1, help="timed iterations per cell")
     parser.add_argument("--overhead", action="store_true",
-                        help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's, in "
-                             "alternating turns, at the first of --sizes (default 20x10x100)")
-    parser.add_argument("--calls", type=int, default=3, help="--overhead: iterations a turn")
-    parser.add_argument("--rounds", type=int, default=3, help="--overhead: turns of each")
-    args = parser.parse_args()
+                        help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's in "
+                             "turns, the bench_ar_overhead comparison of benchmarks/turns.yaml "
+                             "(its options: --calls, --rounds, --benchmarks)")
+    args, rest = parser.parse_known_args()
+    if args.overhead:
+        compare_in_turns("bench_ar_overhead", [a for a in sys.argv[1:] if a != "--overhead"])
+        return
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
     torch.set_num_threads(1)
     keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
     torch.manual_seed(0)
-    if args.overhead:
-        size = (args.sizes or ["20x10x100"])[0]
-        rows = [row for benchmark in args.benchmarks for row in overhead_rows(
-            benchmark, size, args.calls, args.rounds, ("learner.maml_trpo.hvp_episodes=5",))]
-        write_overhead(rows, args.calls, args.rounds)
-        return
     before = reference_product_ms()
     rows = []
     for benchmark in args.benchmarks:

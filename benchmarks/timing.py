@@ -207,3 +207,87 @@ def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE
     text = page.read_text() if page.exists() else ""
     page.write_text(replace_section(text, name, section(title, command, body, machine)))
     print(f"wrote the {name} section of {page}")
+
+
+# -- trainers in turns: the comparisons of turns.yaml --------------------------------------------
+
+TURNS = Path(__file__).with_name("turns.yaml")
+
+
+def compare_in_turns(name: str, argv: Sequence[str] | None = None,
+                     wraps: dict[str, Callable] | None = None) -> str:
+    """Run comparison ``name`` of ``turns.yaml`` (command-line options ``--rounds``, ``--calls``,
+    ``--benchmarks``, ``--compile``/``--no-compile``; other arguments are config overrides of every
+    row), write its table into its section of each of its pages, and return the section's body.
+
+    Every row's trainer runs its warm-up calls (timed together: compiles fall there), then the
+    rows of a group take turns (:func:`in_turns`), with the machine's yardstick
+    (:func:`reference_product_ms`) taken between turns. A row's ms are the median of its turn
+    medians; its fast-spell median is the median of its turns whose yardstick is at most the
+    lower quartile of the group's (the code's cost in the run's fastest spells); its ratio is its
+    turn over the group's first row's turn of the same round. A row may name a function of
+    ``wraps`` that turns its trainer into the function timed instead of ``train_iteration``."""
+    import argparse
+
+    import yaml
+
+    from armeta_rl.allocator import keep_freed_memory
+
+    spec = yaml.safe_load(TURNS.read_text())[name]
+    parser = argparse.ArgumentParser(description=spec["about"])
+    parser.add_argument("--rounds", "--turns", type=int, default=spec["rounds"])
+    parser.add_argument("--calls", type=int, default=spec["calls"], help="calls per turn")
+    parser.add_argument("--benchmarks", nargs="+", help="the groups run (default: all)")
+    parser.add_argument("--compile", action="store_true", help="run the rows that compile")
+    parser.add_argument("--no-compile", action="store_true", help="skip the rows that compile")
+    args, overrides = parser.parse_known_args(argv)
+    if args.rounds < 1:
+        parser.error(f"--rounds must be at least 1, got {args.rounds}")
+    compiling = args.compile or (spec.get("compile") != "opt-in" and not args.no_compile)
+    torch.set_num_threads(1)
+    keep_freed_memory()  # as armeta-train does
+    torch.manual_seed(0)
+    table, marks_seen = [], []
+    for group in spec["groups"]:
+        wanted = {label: row if isinstance(row, dict) else {"overrides": row}
+                  for label, row in group["rows"].items()}
+        wanted = {label: row for label, row in wanted.items() if compiling
+                  or not any(o.endswith("compile=true") for o in row["overrides"])}
+        if args.benchmarks and group["benchmark"] not in args.benchmarks or len(wanted) < 2:
+            continue  # a group left without a row to compare
+        rows, warmups = {}, {}
+        for label, row in wanted.items():
+            trainer, _ = trainer_for(f"benchmark={group['benchmark']}", *spec.get("base", []),
+                                     *row["overrides"], *overrides)
+            fn = wraps[row["wrap"]](trainer) if "wrap" in row else trainer.train_iteration
+            warmups[label] = sum(wall_times(fn, spec["warmup"], warmup=0))
+            rows[label] = fn
+        turns, marks = in_turns(rows, args.calls, args.rounds, warmup=0,
+                                between=lambda: reference_product_ms(repeats=5))
+        every = [mark for label in rows for mark in marks[label]]
+        fast = statistics.quantiles(every, n=4)[0] if len(every) > 1 else every[0]
+        marks_seen += every
+        first = turn_medians(turns[next(iter(rows))])
+        for label in rows:
+            medians = turn_medians(turns[label])
+            quick = [t for mark, turn in zip(marks[label], turns[label]) if mark <= fast
+                     for t in turn]
+            table.append((group["benchmark"], label, f"{1000 * statistics.median(medians):.1f}",
+                          f"{1000 * min(min(turn) for turn in turns[label]):.1f}",
+                          f"{1000 * statistics.median(quick):.1f}" if quick else "–",
+                          ratio_cell(medians, first), f"{warmups[label]:.1f}"))
+            print(" | ".join(table[-1]), flush=True)
+    body = (f"{spec['about']} Per row: {spec['warmup']} warm-up calls (their seconds in the last "
+            f"column, compiles included), then {args.rounds} rounds of {args.calls} calls, the "
+            "rows of a benchmark taking turns (`timing.compare_in_turns`); ms: median of the turn "
+            "medians; fast-spell: the turns whose machine yardstick (`timing.reference_product_ms`"
+            f", median {statistics.median(marks_seen):.2f} ms, range {min(marks_seen):.2f}–"
+            f"{max(marks_seen):.2f} ms) was at most the benchmark's lower quartile; ratio: the "
+            "row's turn over the first row's turn of the same round.\n\n"
+            + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
+                              "× first row (median, range)", f"first {spec['warmup']} calls s"),
+                             table))
+    print(body)
+    for page in spec["pages"]:
+        write_section(name, spec["title"], body, DOCS / page)
+    return body
