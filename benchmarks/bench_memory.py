@@ -52,13 +52,9 @@ def resident_mib() -> float:
 
 def child(name: str) -> None:
     """Train row ``name`` and print its memory figures as one JSON line."""
-    import torch
-    from timing import peak_rss_mib, trainer_for
+    from timing import as_trained, peak_rss_mib, trainer_for
 
-    from armeta_rl.allocator import keep_freed_memory
-
-    torch.set_num_threads(1)
-    keep_freed_memory()
+    as_trained()
     benchmark, method, iterations, overrides = ROWS[name]
     trainer, _ = trainer_for(f"benchmark={benchmark}", f"method={method}", *overrides)
     # a one-iteration row reads all three marks after its only iteration

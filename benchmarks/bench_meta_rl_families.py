@@ -38,8 +38,8 @@ import statistics
 import sys
 import time
 
-import torch
 from timing import (
+    as_trained,
     compare_in_turns,
     markdown_table,
     reference_product_ms,
@@ -47,7 +47,6 @@ from timing import (
     write_section,
 )
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.trainers.game import GameTrainer
 
 BENCHMARKS = ("half_cheetah_vel", "half_cheetah_dir", "ant_dir", "half_cheetah_mass_vel",
@@ -113,9 +112,7 @@ def main() -> None:
         return
     if rest:
         parser.error(f"unrecognized arguments: {' '.join(rest)}")
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
-    torch.manual_seed(0)
+    as_trained()
     before = reference_product_ms()
     rows = []
     for benchmark in args.benchmarks:

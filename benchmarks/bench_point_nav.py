@@ -21,10 +21,9 @@ import math
 
 import torch
 from tensordict import TensorDict
-from timing import markdown_table, median_s, write_section
+from timing import as_trained, markdown_table, median_s, write_section
 from torch import nn
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions
@@ -38,9 +37,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
-    torch.manual_seed(0)
+    as_trained()
     k, e, steps = args.tasks, args.episodes, 100
     space = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
     tasks = BoxUniform(space).sample(k)

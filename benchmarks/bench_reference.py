@@ -71,6 +71,7 @@ from pathlib import Path
 
 from timing import (
     REFERENCE_ROWS,
+    as_trained,
     markdown_table,
     peak_rss_mib,
     ratio_cell,
@@ -249,12 +250,8 @@ def maml_rl_worker(path: Path, workload: dict) -> None:
 
 def ours_worker(workload: dict, overrides: list[str]) -> None:
     """Our trainer on ``workload``'s benchmark with its defaults (eager) and ``overrides``."""
-    import torch
 
-    from armeta_rl.allocator import keep_freed_memory
-
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
+    as_trained()
     benchmark, method = workload["ours"]
     trainer, _ = trainer_for(f"benchmark={benchmark}", f"method={method}", *overrides)
     gate = Gate(warmup=2, profile=lambda n: {"products_ms": products_ms(trainer, n)})

@@ -47,6 +47,7 @@ from timing import (
     BENCHMARKS_PAGE,
     REFERENCE_ROWS,
     ROOT,
+    as_trained,
     markdown_table,
     peak_rss_mib,
     trainer_for,
@@ -102,18 +103,9 @@ def failure(row: dict, error: BaseException) -> dict:
     return {**row, "status": "error", "error": f"{type(error).__name__}: {error}"[:500]}
 
 
-def one_thread() -> None:
-    import torch
-
-    from armeta_rl.allocator import keep_freed_memory
-
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
-
-
 def meta(entry: dict, results: Path) -> None:
     """Meta-iterations of one benchmark on each of the entry's devices, one row per device."""
-    one_thread()
+    as_trained()
     for device in entry["devices"]:
         row = {"part": "meta", "device": device,
                **{key: entry[key] for key in ("benchmark", "method", "variant")}}
@@ -150,7 +142,7 @@ def warp(entry: dict, results: Path) -> None:
         for part in WARP_PARTS:
             append_row(results, {"part": part, **size, "status": "skipped", "reason": reason})
         return
-    one_thread()
+    as_trained()
     sync, gpu_peak = device_tools(entry["device"])
 
     def built(tasks: int, episodes: int, steps: int):
@@ -305,17 +297,17 @@ def plan(spec: dict, args: argparse.Namespace) -> list[dict]:
 
 
 class Part:
-    """One part in its own process, under its own time limit, cut to what the budget has left."""
+    """One part in its own process, under its own time limit (cut to what the budget has left),
+    its output appended to ``log``."""
 
-    def __init__(self, entry: dict, results: Path) -> None:
-        self.entry, self.name, self.limit_s = entry, entry["name"], entry["limit_s"]
+    def __init__(self, entry: dict, results: Path, log: Path) -> None:
+        self.entry, self.name, self.log = entry, entry["name"], log
         self.command = [sys.executable, str(Path(__file__).resolve()), "part", "--results",
                         str(results), json.dumps(entry)]
-        self.log = Path(tempfile.mkdtemp(prefix="gpu_check_")) / f"{self.name}.log"
         self.outcome, self.wall = "not started", 0.0
 
     def run(self, deadline: float) -> None:
-        limit = min(self.limit_s, deadline - time.monotonic())
+        limit = min(self.entry["limit_s"], deadline - time.monotonic())
         if limit < MIN_PART_S:
             self.outcome = f"skipped: {deadline - time.monotonic():.0f} s of the budget left"
             return
@@ -325,32 +317,29 @@ class Part:
                "WANDB_MODE": "offline", "WANDB_SILENT": "true", "HYDRA_FULL_ERROR": "1",
                "PYTHONUNBUFFERED": "1", **self.entry.get("env", {})}
         start = time.monotonic()
-        with self.log.open("w") as handle:
+        with self.log.open("a") as handle:
+            handle.write(f"\n===== {self.name}\n$ {' '.join(self.command)}\n")
+            handle.flush()
             process = subprocess.Popen(self.command, cwd=ROOT, env=env, stdout=handle,
                                        stderr=subprocess.STDOUT, start_new_session=True)
-        try:
-            code = process.wait(timeout=limit)
-            self.outcome = "ok" if code == 0 else f"failed (exit code {code})"
-        except subprocess.TimeoutExpired:
-            os.killpg(process.pid, signal.SIGKILL)  # the part and the processes it started
-            process.wait()
-            self.outcome = f"timed out after {limit:.0f} s"
-        self.wall = time.monotonic() - start
-
-    def append_log(self, log: Path) -> None:
-        with log.open("a") as handle:
-            handle.write(f"\n===== {self.name}: {self.outcome}, {self.wall:.1f} s\n"
-                         f"$ {' '.join(self.command)}\n")
-            if self.log.exists():
-                handle.write(self.log.read_text(errors="replace"))
+            try:
+                code = process.wait(timeout=limit)
+                self.outcome = "ok" if code == 0 else f"failed (exit code {code})"
+            except subprocess.TimeoutExpired:
+                os.killpg(process.pid, signal.SIGKILL)  # the part and the processes it started
+                process.wait()
+                self.outcome = f"timed out after {limit:.0f} s"
+            self.wall = time.monotonic() - start
+            handle.write(f"\n===== {self.name}: {self.outcome}, {self.wall:.1f} s\n")
 
 
 def run(args: argparse.Namespace) -> None:
     """The whole check (module docstring); a dry run runs every part in this process."""
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    results = out / "results.jsonl"
-    results.unlink(missing_ok=True)
+    results, log, tests_log = out / "results.jsonl", out / "gpu_check.log", out / "tests.log"
+    for path in (results, log, tests_log):
+        path.unlink(missing_ok=True)
     parts = plan(yaml.safe_load(SPEC.read_text()), args)
     outcomes = []
     if args.dry_run:
@@ -370,18 +359,16 @@ def run(args: argparse.Namespace) -> None:
         # test_devices reuses them); the timed warp parts keep their own (two processes compiling
         # into one cache could race).
         cache = {"WARP_CACHE_PATH": tempfile.mkdtemp(prefix="warp_tests_")}
-        background = [Part({**entry, "env": cache}, results) for entry in parts
+        background = [Part({**entry, "env": cache}, results, tests_log) for entry in parts
                       if entry.get("background")]
-        foreground = [Part(entry, results) for entry in parts if not entry.get("background")]
+        foreground = [Part(entry, results, log) for entry in parts if not entry.get("background")]
         waiter = threading.Thread(target=lambda: [part.run(deadline) for part in background])
         foreground[0].run(deadline)  # the preflight, alone
         waiter.start()
         for part in foreground[1:]:
             part.run(deadline)
         waiter.join()
-        for part in foreground + background:
-            part.append_log(out / ("tests.log" if part in background else "gpu_check.log"))
-            outcomes.append((part.name, part.outcome, part.wall))
+        outcomes = [(part.name, part.outcome, part.wall) for part in foreground + background]
     with results.open("a") as handle:
         for name, outcome, wall in outcomes:
             handle.write(json.dumps({"part": "outcome", "name": name, "outcome": outcome,
@@ -562,16 +549,11 @@ def main(argv: list[str] | None = None) -> None:
     part = commands.add_parser("part", help="(internal) one part of the plan")
     part.add_argument("--results", type=Path, required=True)
     part.add_argument("entry", type=json.loads)
-    again = commands.add_parser("report", help="the GPU section again from results.jsonl")
-    again.add_argument("--results", type=Path, required=True)
-    again.add_argument("--out", type=Path, default=Path(os.environ.get("OUT") or "/tmp/gpu_check"))
     args = parser.parse_args(argv)
     if args.command == "run":
         run(args)
-    elif args.command == "part":
-        CHECKS[args.entry["kind"]](args.entry, args.results)
     else:
-        report(args.results, args.out)
+        CHECKS[args.entry["kind"]](args.entry, args.results)
 
 
 if __name__ == "__main__":

@@ -21,9 +21,7 @@ import statistics
 from pathlib import Path
 
 import torch
-from timing import trainer_for, wall_times
-
-from armeta_rl.allocator import keep_freed_memory
+from timing import as_trained, trainer_for, wall_times
 
 
 def main() -> None:
@@ -37,8 +35,7 @@ def main() -> None:
     args, overrides = parser.parse_known_args()
     if args.iterations < 1:
         parser.error(f"--iterations must be at least 1, got {args.iterations}")
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
+    as_trained()
     trainer, _ = trainer_for(f"benchmark={args.benchmark}", f"method={args.method}",
                              *overrides)
 

@@ -58,6 +58,16 @@ def trainer_for(*overrides: str):
     return trainer, players
 
 
+def as_trained() -> None:
+    """This process set up as ``armeta-train`` sets up a run (one torch thread here, glibc keeping
+    freed memory: ``trainer.keep_freed_memory``), torch's generator seeded with 0."""
+    from armeta_rl.allocator import keep_freed_memory
+
+    torch.set_num_threads(1)
+    keep_freed_memory()
+    torch.manual_seed(0)
+
+
 # -- timing -------------------------------------------------------------------------------------
 
 def wall_times(
@@ -231,8 +241,6 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None,
 
     import yaml
 
-    from armeta_rl.allocator import keep_freed_memory
-
     spec = yaml.safe_load(TURNS.read_text())[name]
     parser = argparse.ArgumentParser(description=spec["about"])
     parser.add_argument("--rounds", "--turns", type=int, default=spec["rounds"])
@@ -244,9 +252,7 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None,
     if args.rounds < 1:
         parser.error(f"--rounds must be at least 1, got {args.rounds}")
     compiling = args.compile or (spec.get("compile") != "opt-in" and not args.no_compile)
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
-    torch.manual_seed(0)
+    as_trained()
     table, marks_seen = [], []
     for group in spec["groups"]:
         wanted = {label: row if isinstance(row, dict) else {"overrides": row}
