@@ -1,5 +1,6 @@
 """Milliseconds per meta-iteration of the regression and system-identification games, one thread:
-the ``bench_meta_iteration`` comparison of ``benchmarks/turns.yaml`` (``timing.compare_in_turns``).
+the ``bench_meta_iteration`` comparison under ``turns`` in ``benchmarks/workloads.yaml``
+(``timing.compare_in_turns``).
 
 Rows: the full AR-MAML iteration (data collection, leader step, follower losses at θ_{t+1},
 adversary update every iteration) with the spline and the planar adversary, and plain MAML with

@@ -26,8 +26,9 @@ keeps the rows it finished).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_rl_families.py [--benchmarks ...]
 [--sizes 40x20x200 10x10x100 ...] [--repeats 1]``; it prints the table and writes it to its
-section of docs/benchmarks.md. With ``--overhead`` it runs the ``bench_ar_overhead`` comparison
-of ``benchmarks/turns.yaml`` instead (each method's meta-iteration against MAML's, in turns).
+section of docs/benchmarks.md. With ``--overhead`` it runs instead the ``bench_ar_overhead``
+comparison under ``turns`` in ``benchmarks/workloads.yaml`` (each method's meta-iteration against
+MAML's, in turns).
 """
 
 from __future__ import annotations
@@ -104,7 +105,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1, help="timed iterations per cell")
     parser.add_argument("--overhead", action="store_true",
                         help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's in "
-                             "turns, the bench_ar_overhead comparison of benchmarks/turns.yaml "
+                             "turns, the bench_ar_overhead comparison of benchmarks/workloads.yaml "
                              "(its options: --calls, --rounds, --benchmarks)")
     args, rest = parser.parse_known_args()
     if args.overhead:

@@ -77,34 +77,15 @@ from timing import (
     ratio_cell,
     this_machine,
     trainer_for,
+    workloads,
     write_section,
 )
 
 HERE = Path(__file__).resolve().parent
 
-WORKLOADS = {
-    # name: our (benchmark, method), the reference, its arguments, default turn length, and the
-    # overrides of our compiled form (``--compiled``; none: not compared compiled)
-    "sinusoid": {"ours": ("sinusoid_uniform", "ar_maml"), "reference": "authors",
-                 "args": ["--task", "sine", "--tasks_per_metaupdate", "25",
-                                          "--task_num_data_points", "10",
-                                          "--update_batch_size", "5"], "turn": 20,
-                 "compiled": ["learner.maml.compile=true", "risk.ar.compile=true"]},
-    "pendulum": {"ours": ("pendulum_uniform_paper", "ar_maml"), "reference": "authors",
-                 "args": ["--task", "pendulum", "--tasks_per_metaupdate",
-                                              "16", "--task_num_data_points", "200",
-                                              "--update_batch_size", "10"], "turn": 10,
-                 "compiled": ["learner.maml.compile=true", "risk.ar.compile=true",
-                              "benchmark.collector.compile=true"]},
-    "acrobot": {"ours": ("acrobot_uniform_paper", "ar_maml"), "reference": "authors",
-                "args": ["--task", "acrobot", "--tasks_per_metaupdate", "16",
-                                            "--task_num_data_points", "200",
-                                            "--update_batch_size", "10"], "turn": 10,
-                "compiled": ["learner.maml.compile=true", "risk.ar.compile=true",
-                             "benchmark.collector.compile=true"]},
-    "point_robot": {"ours": ("point_nav", "maml"), "reference": "pytorch-maml-rl",
-                    "config": "configs/maml/2d-navigation.yaml", "turn": 2, "compiled": []},
-}
+WORKLOADS = workloads("reference")
+"""Each workload: our (benchmark, method), the reference with its arguments or config, the
+iterations of a turn, and the overrides of our compiled form (``--compiled``)."""
 
 
 # -- workers ------------------------------------------------------------------------------------
@@ -345,12 +326,13 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
     workload = WORKLOADS[name]
     me = str(Path(__file__).resolve())
     path = args.authors if workload["reference"] == "authors" else args.maml_rl
+    spec = json.dumps(workload)
     workers = {"reference": Worker([args.reference_python, me, "worker", workload["reference"],
-                                    name, "--path", str(path)], logs / f"{name}_reference.log"),
-               "ours": Worker([sys.executable, me, "worker", "ours", name],
+                                    spec, "--path", str(path)], logs / f"{name}_reference.log"),
+               "ours": Worker([sys.executable, me, "worker", "ours", spec],
                               logs / f"{name}_ours.log")}
     if args.compiled and workload["compiled"]:
-        workers["compiled"] = Worker([sys.executable, me, "worker", "ours", name, "--overrides",
+        workers["compiled"] = Worker([sys.executable, me, "worker", "ours", spec, "--overrides",
                                       *workload["compiled"]], logs / f"{name}_compiled.log")
     try:
         for worker in workers.values():
@@ -443,7 +425,7 @@ def main() -> None:
     sub = parser.add_subparsers(dest="command")
     worker = sub.add_parser("worker", help="(internal) one side of a comparison")
     worker.add_argument("side", choices=["ours", "authors", "pytorch-maml-rl"])
-    worker.add_argument("workload", choices=list(WORKLOADS))
+    worker.add_argument("workload", type=json.loads, help="its workload, as JSON")
     worker.add_argument("--path", type=Path)
     worker.add_argument("--overrides", nargs="*", default=[])
     parser.add_argument("--authors", type=Path, help="a clone of lvyiqin/AR-MAML")
@@ -460,7 +442,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.command == "worker":
         own_stdout()
-        workload = WORKLOADS[args.workload]
+        workload = args.workload
         if args.side == "ours":
             ours_worker(workload, args.overrides)
         elif args.side == "authors":

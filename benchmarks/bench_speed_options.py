@@ -1,5 +1,6 @@
 """Each speed switch against the readable default it replaces, per AR-MAML meta-iteration: the
-``bench_speed_options`` comparison of ``benchmarks/turns.yaml`` (``timing.compare_in_turns``).
+``bench_speed_options`` comparison under ``turns`` in ``benchmarks/workloads.yaml``
+(``timing.compare_in_turns``).
 
 A switch stays in the code only while this benchmark shows it saving at least 10 % of a
 meta-iteration of the benchmark it is meant for (docs/speed-options.md). For every switch two

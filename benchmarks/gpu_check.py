@@ -1,6 +1,6 @@
 """The GPU check: the CUDA and MuJoCo Warp tests, meta-iterations of the benchmark families on the
-CPU and on CUDA, and the MuJoCo Warp envs' throughput, each workload one line of
-``benchmarks/gpu_check.yaml``; it writes the ``gpu_check`` section of docs/benchmarks.md, the
+CPU and on CUDA, and the MuJoCo Warp envs' throughput, each workload one line under ``gpu_check``
+in ``benchmarks/workloads.yaml``; it writes the ``gpu_check`` section of docs/benchmarks.md, the
 machine named.
 
 ``benchmarks/gpu_check.sh`` runs it on a lent GPU machine: the repository is the working directory
@@ -42,7 +42,6 @@ import xml.etree.ElementTree as ElementTree
 from collections.abc import Callable
 from pathlib import Path
 
-import yaml
 from timing import (
     BENCHMARKS_PAGE,
     REFERENCE_ROWS,
@@ -52,10 +51,10 @@ from timing import (
     peak_rss_mib,
     trainer_for,
     wall_times,
+    workloads,
     write_section,
 )
 
-SPEC = Path(__file__).with_name("gpu_check.yaml")
 BUDGET_S, REPORT_RESERVE_S, MIN_PART_S = 430, 25, 15
 COMPILE_OVERRIDES = ["learner.maml.compile=true", "risk.ar.compile=true"]
 TINY = {"tasks": 1, "episodes": 1, "steps": 2}
@@ -340,7 +339,7 @@ def run(args: argparse.Namespace) -> None:
     results, log, tests_log = out / "results.jsonl", out / "gpu_check.log", out / "tests.log"
     for path in (results, log, tests_log):
         path.unlink(missing_ok=True)
-    parts = plan(yaml.safe_load(SPEC.read_text()), args)
+    parts = plan(workloads("gpu_check"), args)
     outcomes = []
     if args.dry_run:
         for entry in parts:
@@ -493,7 +492,7 @@ def report(results: Path, out: Path, page: Path = BENCHMARKS_PAGE) -> str:
                f"{pre.get('python', '?')}, torch {torch_version} (CUDA {pre.get('torch_cuda')}), "
                f"warp devices {pre.get('warp_devices', '–')}")
     missing = f" Missing modules: {'; '.join(pre['missing'])}." if pre.get("missing") else ""
-    goals = targets(yaml.safe_load(SPEC.read_text()), rows)
+    goals = targets(workloads("gpu_check"), rows)
     test_table = markdown_table(
         ("tests", "result", "passed", "failed", "skipped", "failing tests", "skip reasons"),
         [(r["name"], why(r) if r["status"] == "skipped" else r["status"],

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU check (benchmarks/gpu_check.py, whose docstring says what it assumes of the machine;
-# its workloads are the lines of benchmarks/gpu_check.yaml): it writes the GPU section of
+# its workloads are the lines under gpu_check in benchmarks/workloads.yaml): it writes the GPU section of
 # docs/benchmarks.md and everything else under ${OUT:-/tmp/gpu_check}. This wrapper puts the
 # repository root and benchmarks/ on PYTHONPATH (in front of what is there, e.g. the carried
 # wheels' --target directory), runs one thread and bounds the whole run: --budget seconds

@@ -30,12 +30,20 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
 BENCHMARKS_PAGE = DOCS / "benchmarks.md"
+WORKLOADS = Path(__file__).with_name("workloads.yaml")
 REFERENCE_ROWS = DOCS / "results" / "reference" / "rows.json"
 """Each reference workload's latest medians (``bench_reference.py`` writes them; the GPU check's
 point-robot target reads them)."""
 
 
 # -- workloads ----------------------------------------------------------------------------------
+
+def workloads(key: str) -> dict:
+    """The workloads of ``key`` (a benchmark's part of ``benchmarks/workloads.yaml``)."""
+    import yaml
+
+    return yaml.safe_load(WORKLOADS.read_text())[key]
+
 
 def trainer_for(*overrides: str):
     """A seeded ``GameTrainer`` of the ``armeta-train`` config with ``overrides``, its players
@@ -219,16 +227,14 @@ def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE
     print(f"wrote the {name} section of {page}")
 
 
-# -- trainers in turns: the comparisons of turns.yaml --------------------------------------------
-
-TURNS = Path(__file__).with_name("turns.yaml")
-
+# -- trainers in turns: the comparisons under ``turns`` in workloads.yaml ----------------------
 
 def compare_in_turns(name: str, argv: Sequence[str] | None = None,
                      wraps: dict[str, Callable] | None = None) -> str:
-    """Run comparison ``name`` of ``turns.yaml`` (command-line options ``--rounds``, ``--calls``,
-    ``--benchmarks``, ``--compile``/``--no-compile``; other arguments are config overrides of every
-    row), write its table into its section of each of its pages, and return the section's body.
+    """Run comparison ``name`` under ``turns`` in ``workloads.yaml`` (command-line options
+    ``--rounds``, ``--calls``, ``--benchmarks``, ``--compile``/``--no-compile``; other arguments are
+    config overrides of every row), write its table into its section of each of its pages, and
+    return the section's body.
 
     Every row's trainer runs its warm-up calls (timed together: compiles fall there), then the
     rows of a group take turns (:func:`in_turns`), with the machine's yardstick
@@ -239,9 +245,7 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None,
     ``wraps`` that turns its trainer into the function timed instead of ``train_iteration``."""
     import argparse
 
-    import yaml
-
-    spec = yaml.safe_load(TURNS.read_text())[name]
+    spec = workloads("turns")[name]
     parser = argparse.ArgumentParser(description=spec["about"])
     parser.add_argument("--rounds", "--turns", type=int, default=spec["rounds"])
     parser.add_argument("--calls", type=int, default=spec["calls"], help="calls per turn")

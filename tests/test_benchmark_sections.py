@@ -78,7 +78,7 @@ def test_every_script_writes_a_section_of_the_page(timing):
         assert f'write_section("{script.stem}"' in text or \
             f'compare_in_turns("{script.stem}"' in text, script.name
         assert start in page and end in page, script.name
-    for name, spec in yaml.safe_load((BENCHMARKS / "turns.yaml").read_text()).items():
+    for name, spec in yaml.safe_load((BENCHMARKS / "workloads.yaml").read_text())["turns"].items():
         for page_name in spec["pages"]:
             text = (BENCHMARKS.parent / "docs" / page_name).read_text()
             assert all(marker in text for marker in timing.markers(name)), (name, page_name)

@@ -1,7 +1,8 @@
-"""The GPU check's dry run (``benchmarks/gpu_check.py run --dry-run``): every workload line of
-``benchmarks/gpu_check.yaml`` at tiny size in one process, on a machine with or without CUDA. The
-section it writes names the machine and has a row for every check; without CUDA the CUDA rows
-say so instead of failing, and the MuJoCo Warp lines run on warp's CPU device where it has one."""
+"""The GPU check's dry run (``benchmarks/gpu_check.py run --dry-run``): every workload line under
+``gpu_check`` in ``benchmarks/workloads.yaml`` at tiny size in one process, on a machine with or
+without CUDA. The section it writes names the machine and has a row for every check; without CUDA
+the CUDA rows say so instead of failing, and the MuJoCo Warp lines run on warp's CPU device where
+it has one."""
 
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ def test_a_dry_run_writes_a_row_for_every_check_and_names_the_machine(tmp_path, 
     assert "Machine: " + ("no GPU" if not torch.cuda.is_available() else "") in section
     assert "| error" not in section and "error:" not in section
     cuda = "| ok |" if torch.cuda.is_available() else "skipped: no CUDA |"
-    spec = yaml.safe_load((BENCHMARKS / "gpu_check.yaml").read_text())
+    spec = yaml.safe_load((BENCHMARKS / "workloads.yaml").read_text())["gpu_check"]
     for path in spec["tests"]:
         assert f"| {Path(path).stem} | skipped: dry run |" in section
     for line in spec["meta"]:
