@@ -24,28 +24,23 @@ worker process of its own, with these shims applied at import time only:
 Both references need the old ``gym`` API and NumPy < 2 (``np.float_``); give them their own
 interpreter with ``--reference-python`` (a venv with torch, ``numpy<2``, ``gym==0.17.3``, scipy,
 pyyaml, tqdm). Our side runs ``armeta-train``'s trainer on the corresponding ``*_paper`` benchmark
-(point robot: ``point_nav``, MAML-TRPO with exact Hessian-vector products, as pytorch-maml-rl).
+(point robot: ``point_nav``, MAML-TRPO with exact Hessian-vector products, as pytorch-maml-rl);
+the workloads are the lines under ``reference`` in ``benchmarks/workloads.yaml``.
 
-Turn-taking: the two workers are started and warmed up (the authors' first iteration includes their
+Turn-taking: the workers are started and warmed up (the authors' first iteration includes their
 evaluation on 500 tasks, so it is not timed), then each round runs one turn of ``--turn``
-iterations in the reference and one in ours (the order alternating from round to round), so that a
-shared machine's slow spells fall on both. Each round gives the ratio of the turn medians; the
-table shows every round, the median ratio and its range, the peak RSS of each worker, the machine
-and its load. Each iteration is timed twice: wall time, and CPU time (user and system, of the
-worker and of its live child processes): on a shared, overloaded machine the wall times of two
-programs stretch unevenly, while the CPU time each spends on its own work stays comparable. One
-torch thread everywhere (``OMP_NUM_THREADS=1``); pytorch-maml-rl samples in one worker process
-(``--num-workers 1``) beside its learner, as its README runs it.
+iterations in each, the first side rotating from round to round, so that a shared machine's slow
+spells fall on all. Each round gives the ratio of the turn medians, in wall time and in CPU time
+(user and system, of the worker and of its live child processes: on an overloaded machine the
+wall times of two programs stretch unevenly, the CPU time each spends on its own work much
+less). One torch thread everywhere; pytorch-maml-rl samples in one worker process
+(``--num-workers 1``) beside its learner, as its README runs it. With ``--compiled`` a third
+worker takes turns: ours with the workload's compile switches on, its compile in its warm-up.
 
 After the rounds our worker records the matrix products of one more turn and times them replayed
 alone (:func:`products_ms`): the part of our meta-iteration that no removal of overhead can take
 away, so the reference's median over it is the highest ratio our computation can reach on this
 machine; the table states it next to the measured ratio.
-
-With ``--compiled`` a third worker takes turns on the regression and system-identification
-workloads: ours with every compile switch of the workload on (``torch.compile`` of the leader's
-loss, the adversary's flow and, in system identification, the physics step; ``"compiled"`` of
-:data:`WORKLOADS`), its compile part of its warm-up.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_reference.py --authors PATH --maml-rl PATH
 --reference-python PATH/bin/python [--workloads sinusoid pendulum acrobot point_robot]
@@ -362,45 +357,30 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
 
 
 def table(result: dict) -> str:
-    workload = WORKLOADS[result["name"]]
-    rounds, ours = result["rounds"], [side for side in result["sides"] if side != "reference"]
-    ratios = {side: [r["reference_ms"] / r[f"{side}_ms"] for r in rounds] for side in ours}
-    cpu_ratios = {side: [r["reference_cpu_ms"] / r[f"{side}_cpu_ms"] for r in rounds]
-                  for side in ours}
-    rows = [(i + 1, f"{r['reference_ms']:.1f}",
-             *[cell for side in ours for cell in (f"{r[f'{side}_ms']:.1f}",
-                                                  f"{ratios[side][i]:.1f}×")],
-             f"{r['reference_cpu_ms']:.1f}",
-             *[cell for side in ours for cell in (f"{r[f'{side}_cpu_ms']:.1f}",
-                                                  f"{cpu_ratios[side][i]:.1f}×")],
+    """A workload's summary line and its table of rounds: each side's wall and CPU ms, and the
+    reference's over each of ours."""
+    workload, rounds, sides = WORKLOADS[result["name"]], result["rounds"], result["sides"]
+    wall = {side: [r[f"{side}_ms"] for r in rounds] for side in sides}
+    cpu = {side: [r[f"{side}_cpu_ms"] for r in rounds] for side in sides}
+    ours = sides[1:]
+    rows = [(i + 1, *(f"{wall[side][i]:.1f} / {cpu[side][i]:.1f}" for side in sides),
+             *(f"{wall['reference'][i] / wall[side][i]:.1f}× / "
+               f"{cpu['reference'][i] / cpu[side][i]:.1f}×" for side in ours),
              f"{r['load']:.1f}") for i, r in enumerate(rounds)]
     benchmark, method = workload["ours"]
     reference = ("authors' AR-MAML" if workload["reference"] == "authors"
                  else "pytorch-maml-rl")
-    times = {side: [r[f"{side}_ms"] for r in rounds] for side in result["sides"]}
-    cpu = {side: [r[f"{side}_cpu_ms"] for r in rounds] for side in result["sides"]}
-    summary = "; ".join(
-        f"{'ours' if side == 'ours' else 'ours compiled'} "
-        f"{ratio_cell(times['reference'], times[side], 1)} (CPU time "
-        f"{ratio_cell(cpu['reference'], cpu[side], 1)})" for side in ours)
-    rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in result["sides"])
-    reference_ms = statistics.median(r["reference_ms"] for r in rounds)
-    floor = (f"Our matrix products alone (replayed, `products_ms`) take "
-             f"{result['products_ms']:.1f} ms a meta-iteration: no removal of the rest can take "
-             f"ours past **{reference_ms / result['products_ms']:.1f}×** (median reference ms over "
-             f"that).")
+    summary = "; ".join(f"{side} {ratio_cell(wall['reference'], wall[side], 1)} (CPU time "
+                        f"{ratio_cell(cpu['reference'], cpu[side], 1)})" for side in ours)
+    rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in sides)
+    ceiling = statistics.median(wall["reference"]) / result["products_ms"]
     head = (f"**{result['name']}**: {reference} against `{benchmark}` `{method}`, "
             f"{result['turn']} iterations a turn; ratio reference ms / ours ms, median over the "
-            f"rounds: {summary}; peak RSS: {rss}. {floor}")
-    header = ("round", "reference ms",
-              *[cell for side in ours for cell in (
-                  f"{'ours' if side == 'ours' else 'compiled'} ms",
-                  f"{'ratio' if side == 'ours' else 'compiled ratio'}")],
-              "reference CPU ms",
-              *[cell for side in ours for cell in (
-                  f"{'ours' if side == 'ours' else 'compiled'} CPU ms",
-                  f"{'CPU ratio' if side == 'ours' else 'compiled CPU ratio'}")],
-              "load (1 min)")
+            f"rounds: {summary}; peak RSS: {rss}. Our matrix products alone (replayed, "
+            f"`products_ms`) take {result['products_ms']:.1f} ms a meta-iteration: no removal of "
+            f"the rest can take ours past **{ceiling:.1f}×** (median reference ms over that).")
+    header = ("round", *(f"{side} ms / CPU ms" for side in sides),
+              *(f"reference / {side} (wall / CPU)" for side in ours), "load (1 min)")
     return head + "\n\n" + markdown_table(header, rows)
 
 
