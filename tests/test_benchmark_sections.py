@@ -95,3 +95,20 @@ def test_every_section_of_the_page_records_a_command_of_an_existing_script(timin
         assert command, name
         scripts = re.findall(r"(?:benchmarks|studies)/\w+\.(?:py|sh)", command.group(1))
         assert scripts and all((BENCHMARKS.parent / s).is_file() for s in scripts), name
+
+
+def test_the_scripts_share_the_harness_and_import_no_other_script():
+    """One harness: a benchmark script imports ``timing`` and no other script, so there is no
+    circle between scripts (nor a second timing or table path hidden in one)."""
+    import ast
+
+    scripts = {path.stem for path in BENCHMARKS.glob("*.py")}
+    for path in sorted(BENCHMARKS.glob("*.py")):
+        imported = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                imported.add(node.module.split(".")[0])
+        local = imported & scripts
+        assert local <= ({"timing"} if path.stem != "timing" else set()), (path.name, local)
