@@ -1,12 +1,14 @@
-"""The benchmark harness: every benchmark script (run as ``python benchmarks/<name>.py``) builds
-its workloads here, times them here and writes its tables here.
+"""The benchmark harness: every benchmark script (run as ``python benchmarks/<name>.py``) takes its
+workloads, its timing and its tables from here.
 
-* workloads: :func:`trainer_for` builds a run's trainer from config overrides, as ``armeta-train``
-  builds it;
-* timing: :func:`wall_times` (calls of one function), :func:`in_turns` (several functions taking
-  turns in one session, so that a shared machine's slow spells fall on all alike: the way two
-  forms are compared) with :func:`ratio_cell` for the ratios of turns, :func:`peak_rss_mib` and
-  :func:`reference_product_ms` (a yardstick of the machine's speed at the moment);
+* workloads: :func:`workloads` reads a benchmark's part of ``benchmarks/workloads.yaml`` (the
+  workloads as data), :func:`trainer_for` builds a run's trainer from config overrides as
+  ``armeta-train`` builds it, :func:`as_trained` sets the process up as ``armeta-train`` does;
+* timing: :func:`wall_times` and :func:`median_s` (calls of one function), :func:`in_turns`
+  (several functions taking turns in one session, so that a shared machine's slow spells fall on
+  all alike: the way two forms are compared) with :func:`ratio_cell` for the ratios of turns,
+  :func:`compare_in_turns` (trainers of config overrides in turns, from ``workloads.yaml``),
+  :func:`peak_rss_mib` and :func:`reference_product_ms` (a yardstick of the machine's speed);
 * tables: :func:`markdown_table` and :func:`write_section`, which replaces the script's section of
   docs/benchmarks.md (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables,
   its command, the date and the machine.
@@ -24,8 +26,13 @@ import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
+
+if TYPE_CHECKING:
+    from armeta_rl.trainers.game import GameTrainer
+    from armeta_rl.trainers.players import Players
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
@@ -45,7 +52,7 @@ def workloads(key: str) -> dict:
     return yaml.safe_load(WORKLOADS.read_text())[key]
 
 
-def trainer_for(*overrides: str):
+def trainer_for(*overrides: str) -> tuple[GameTrainer, Players]:
     """A seeded ``GameTrainer`` of the ``armeta-train`` config with ``overrides``, its players
     built as the CLI builds them (no logger, no progress bar), and the players."""
     from hydra import compose, initialize_config_dir
