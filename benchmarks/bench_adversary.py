@@ -17,10 +17,9 @@ import statistics
 import time
 
 import torch
-from timing import markdown_table, write_section
+from timing import as_trained, markdown_table, write_section
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
 from armeta_rl.tasks import BoxUniform, TaskSpace
 
@@ -60,9 +59,7 @@ def main() -> None:
     parser.add_argument("--no-compile", action="store_true",
                         help="skip the compiled rows (inductor takes minutes to compile them)")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
-    torch.manual_seed(0)
+    as_trained()
     space = TaskSpace(["amplitude", "phase"], [0.1, 0.0], [5.0, math.pi])
     corner = torch.tensor([0.1, 0.0])
     rows = [(name, options, False) for name, options in FLOWS.items()]

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import statistics
 from collections.abc import Callable
 from functools import partial
 
@@ -35,7 +34,7 @@ import mujoco
 import numpy as np
 import torch
 from tensordict import TensorDict
-from timing import markdown_table, wall_times, write_section
+from timing import markdown_table, median_s, write_section
 
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector, make_task_split_env
 from armeta_rl.envs.ant_goal import (
@@ -46,11 +45,6 @@ from armeta_rl.envs.ant_goal import (
 from armeta_rl.rl.policy import GaussianMLP
 
 STAGE_ACC = mujoco.mjtStage.mjSTAGE_ACC.value
-
-
-def seconds(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``repeats`` calls after one warm-up call."""
-    return statistics.median(wall_times(fn, repeats))
 
 
 def bare_loop(n_sims: int, steps: int, frame_skip: int) -> Callable[[], None]:
@@ -137,7 +131,7 @@ def meta_iteration_seconds(
     def erm_weights(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1 / tasks)
 
-    elapsed = seconds(
+    elapsed = median_s(
         lambda: leader.step(leader.collect(task_batch, create_graph=True), erm_weights), repeats)
     collector.close()
     return elapsed
@@ -159,28 +153,28 @@ def main() -> None:
     n = k * e
     rows: list[tuple[str, str, float]] = []
 
-    t = seconds(bare_loop(n, steps, frame_skip), args.repeats)
+    t = median_s(bare_loop(n, steps, frame_skip), args.repeats)
     rows.append(("bare mj_step loop (reference)", f"{n} MjData", n * steps / t))
     gym_steps = 1000
-    t = seconds(gymnasium_loop(gym_steps), args.repeats)
+    t = median_s(gymnasium_loop(gym_steps), args.repeats)
     rows.append(("gymnasium Ant-v5 (one env)", "1", gym_steps / t))
-    t = seconds(native_batch(n, steps, frame_skip), args.repeats)
+    t = median_s(native_batch(n, steps, frame_skip), args.repeats)
     rows.append(("mujoco.batch step + forward (native)", f"{n} sims", n * steps / t))
     env = AntGoalEnv((k, e), seed=0)
-    t = seconds(env_rollout(env, steps), args.repeats)
+    t = median_s(env_rollout(env, steps), args.repeats)
     rows.append(("AntGoalEnv.rollout, 1 process", f"[{k}, {e}]", n * steps / t))
     cores = os.cpu_count() or 1
     threaded = AntGoalEnv((k, e), seed=0, threads=None)
-    t = seconds(env_rollout(threaded, steps), args.repeats)
+    t = median_s(env_rollout(threaded, steps), args.repeats)
     rows.append((f"AntGoalEnv.rollout, 1 process, {cores} MuJoCo threads", f"[{k}, {e}]",
                  n * steps / t))
     parallel = make_task_split_env(partial(AntGoalEnv, threads=1), 2, (k, e), steps)
-    t = seconds(env_rollout(parallel, steps), args.repeats)
+    t = median_s(env_rollout(parallel, steps), args.repeats)
     rows.append(("AntGoalEnv, 2 processes (ParallelEnv)", f"[{k}, {e}]", n * steps / t))
     parallel.close()
     for workers in (1, 2):
         collector = task_split_collector(workers, e, steps)
-        t = seconds(collection(collector, k), args.repeats)
+        t = median_s(collection(collector, k), args.repeats)
         collector.close()
         how = f"1 process, {cores} MuJoCo threads" if workers == 1 else f"{workers} processes"
         rows.append((f"collect with policy, {how}", f"[{k}, {e}]", n * steps / t))

@@ -9,12 +9,12 @@ step) with ``--tasks`` tasks × ``--episodes`` episodes × ``--horizon`` steps (
   one MuJoCo thread per core), and
 * ``RayEpisodeCollector`` with each of ``--workers`` Ray actors (one MuJoCo thread each),
 
-in turns (local, Ray 1, Ray 2, ..., local, ...) so that every Ray row is a ratio to the local
-collector measured in the same turn: the machine's other load affects both sides of each ratio
-alike. Times are scaled linearly to the paper's 40 tasks (as ``bench_ant_goal.py``) and to a
-500-iteration run. The table, with the command, the date and the machine, replaces the section
-between this script's markers in ``docs/scale.md`` and in ``docs/benchmarks.md``
-(``timing.write_section``; ``--no-doc`` prints it only).
+in turns (``timing.in_turns``: local, Ray 1, Ray 2, ..., the first rotating), so that every Ray row
+is a ratio to the local collector measured in the same round: the machine's other load affects both
+sides of each ratio alike. Times are scaled linearly to the paper's 40 tasks (as
+``bench_ant_goal.py``) and to a 500-iteration run. The table, with the command, the date and the
+machine, replaces the section between this script's markers in ``docs/scale.md`` and in
+``docs/benchmarks.md`` (``timing.write_section``; ``--no-doc`` prints it only).
 
 Ray: ``--address`` as ``benchmark.collector.address`` (none: a Ray instance of this machine in
 this process). The actors reserve ``--cpus-per-worker`` CPUs each (default 0, so that the actors of
@@ -28,13 +28,12 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import time
 from functools import partial
 from pathlib import Path
 
 import timing
 import torch
-from tensordict import TensorDict
+from timing import ratio_cell
 
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
 from armeta_rl.collectors.ray_episodes import RayEpisodeCollector, connect_ray
@@ -52,30 +51,18 @@ def make_leader(collector, seed: int) -> MAMLTRPOLeader:
     return MAMLTRPOLeader(collector)
 
 
-def timed_step(leader: MAMLTRPOLeader, tasks: TensorDict, seed: int) -> float:
-    """Seconds of one meta-iteration on ``tasks`` with equal task weights."""
-    count = tasks.batch_size[0]
-    torch.manual_seed(seed)
-    start = time.perf_counter()
-    leader.step(leader.collect(tasks, create_graph=True),
-                lambda losses: torch.full_like(losses, 1 / count))
-    return time.perf_counter() - start
-
-
-def table(names: list[str], times: dict[str, list[float]], tasks: int) -> list[str]:
-    """Markdown rows: median seconds, median ratio to the local collector of the same turn,
-    and the paper-size and 500-iteration figures."""
-    local = times[names[0]]
-    rows = ["| collector | s / iteration (median) | × local (median of turns) | "
-            f"s / iteration at {PAPER_TASKS} tasks | {RUN_ITERATIONS} iterations |",
-            "|---|---:|---:|---:|---:|"]
+def table(names: list[str], times: dict[str, list[float]], tasks: int) -> str:
+    """Median seconds, median ratio to the local collector of the same turn, and the paper-size
+    and 500-iteration figures."""
+    rows = []
     for name in names:
         seconds = statistics.median(times[name])
-        ratio = statistics.median(t / ref for t, ref in zip(times[name], local))
         scaled = seconds * PAPER_TASKS / tasks
-        rows.append(f"| {name} | {seconds:.1f} | {ratio:.2f} | {scaled:.0f} | "
-                    f"{RUN_ITERATIONS * scaled / 3600:.1f} h |")
-    return rows
+        rows.append((name, f"{seconds:.1f}", ratio_cell(times[name], times[names[0]]),
+                     f"{scaled:.0f}", f"{RUN_ITERATIONS * scaled / 3600:.1f} h"))
+    return timing.markdown_table(
+        ("collector", "s / iteration (median)", "× local (median of turns, range)",
+         f"s / iteration at {PAPER_TASKS} tasks", f"{RUN_ITERATIONS} iterations"), rows)
 
 
 def main() -> None:
@@ -111,17 +98,19 @@ def main() -> None:
     for leader in leaders.values():  # untimed: starts the actors and builds the envs
         leader.collector.collect(tasks, policy=leader.net)
 
-    times: dict[str, list[float]] = {name: [] for name in leaders}
-    for turn in range(args.turns):
-        for name, leader in leaders.items():
-            times[name].append(timed_step(leader, tasks, turn))
-            print(f"turn {turn + 1}: {name}: {times[name][-1]:.1f} s", flush=True)
+    def step(leader: MAMLTRPOLeader) -> None:
+        leader.step(leader.collect(tasks, create_graph=True),
+                    lambda losses: torch.full_like(losses, 1 / args.tasks))
+
+    turns, _ = timing.in_turns({name: partial(step, leader) for name, leader in leaders.items()},
+                               1, args.turns, warmup=0)
+    times = {name: timing.turn_medians(turns[name]) for name in leaders}
     for collector in collectors.values():
         collector.close()
 
     body = (f"{args.tasks} tasks × {args.episodes} episodes × {args.horizon} steps, "
             f"{args.turns} turns, scaled linearly to {PAPER_TASKS} tasks.\n\n"
-            + "\n".join(table(list(leaders), times, args.tasks)))
+            + table(list(leaders), times, args.tasks))
     print(body)
     if not args.no_doc:
         title = "Ant goal-position with Ray workers (bench_ant_ray.py)"

@@ -38,12 +38,10 @@ from collections.abc import Callable
 from functools import partial
 
 import torch
-from bench_meta_iteration import trainer_for
-from timing import DOCS, markdown_table, write_section
+from timing import DOCS, as_trained, markdown_table, trainer_for, write_section
 from torch import Tensor
 from torch.func import grad, jvp, linearize, vjp
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MetaBatch, Params
 from armeta_rl.rl.baseline import episode_mean
 from armeta_rl.rl.policy import loc_scale, log_prob
@@ -163,10 +161,8 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--no-compile", action="store_true", help="skip the compiled form")
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
-    torch.manual_seed(0)
-    trainer = trainer_for("maml", "benchmark=point_nav")
+    as_trained()
+    trainer, _ = trainer_for("method=maml", "benchmark=point_nav")
     leader: MAMLTRPOLeader = trainer.leader
     for _ in range(2):
         trainer.train_iteration()

@@ -20,29 +20,17 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from timing import as_trained, markdown_table, peak_rss_mib, trainer_for, workloads, write_section
+
 HERE = Path(__file__).resolve().parent
 
-ROWS = {
-    # name: (benchmark, method, iterations, overrides)
-    "sinusoid_uniform": ("sinusoid_uniform", "ar_maml", 500, []),
-    "pendulum_uniform_paper": ("pendulum_uniform_paper", "ar_maml", 500, []),
-    "acrobot_uniform_paper": ("acrobot_uniform_paper", "ar_maml", 500, []),
-    "acrobot_uniform_paper, physics compiled": ("acrobot_uniform_paper", "ar_maml", 500, [
-        "benchmark.collector.compile=true"]),
-    "point_nav (4 tasks × 4 episodes)": ("point_nav", "ar_maml", 500, [
-        "trainer.meta_batch=4", "benchmark.collector.episodes=4"]),
-    "ant_goal (2 tasks × 2 episodes × 20 steps)": ("ant_goal", "maml", 500, [
-        "trainer.meta_batch=2", "benchmark.collector.episodes=2",
-        "benchmark.collector.max_steps=20", "benchmark.collector.make_env.threads=1"]),
-    "ant_goal (paper profile: 40 × 20 × 200)": ("ant_goal", "maml", 1, [
-        "benchmark.collector.make_env.threads=1"]),
-}
+ROWS = workloads("memory")
+"""The training runs, each with its benchmark, method, meta-iterations and overrides."""
 
 
 def resident_mib() -> float:
@@ -53,15 +41,11 @@ def resident_mib() -> float:
 
 def child(name: str) -> None:
     """Train row ``name`` and print its memory figures as one JSON line."""
-    import torch
-    from gpu_check import trainer_for
-
-    from armeta_rl.allocator import keep_freed_memory
-
-    torch.set_num_threads(1)
-    keep_freed_memory()
-    benchmark, method, iterations, overrides = ROWS[name]
-    trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}", *overrides])
+    as_trained()
+    row = ROWS[name]
+    benchmark, method, iterations = row["benchmark"], row["method"], row["iterations"]
+    overrides = row.get("overrides", [])
+    trainer, _ = trainer_for(f"benchmark={benchmark}", f"method={method}", *overrides)
     # a one-iteration row reads all three marks after its only iteration
     marks = {"tenth": max(1, iterations // 10), "half": max(1, iterations // 2),
              "end": iterations}
@@ -71,13 +55,11 @@ def child(name: str) -> None:
         trainer.train_iteration()
         figures.update({mark: resident_mib() for mark, at in marks.items() if at == iteration})
     figures["seconds_per_iteration"] = (time.perf_counter() - start) / iterations
-    figures["peak"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    figures["peak"] = peak_rss_mib()
     print(json.dumps(figures))
 
 
 def main() -> None:
-    from timing import markdown_table, write_section
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--rows", nargs="+", default=list(ROWS), choices=list(ROWS))
     parser.add_argument("--child", help=argparse.SUPPRESS)
@@ -93,11 +75,11 @@ def main() -> None:
                                                     [str(HERE.parent), str(HERE)])})
         if result.returncode:
             print(result.stderr[-3000:], file=sys.stderr)
-            table.append((name, ROWS[name][1], ROWS[name][2], "–", "–", "–", "–", "–",
+            table.append((name, ROWS[name]["method"], ROWS[name]["iterations"], *["–"] * 5,
                           "failed"))
             continue
         f = json.loads(result.stdout.strip().splitlines()[-1])
-        benchmark, method, iterations, _ = ROWS[name]
+        method, iterations = ROWS[name]["method"], ROWS[name]["iterations"]
         growth = f["end"] - f["tenth"]
         table.append((name, method, iterations, f"{f['tenth']:.0f}", f"{f['half']:.0f}",
                       f"{f['end']:.0f}", f"{growth:+.0f}", f"{f['peak']:.0f}",

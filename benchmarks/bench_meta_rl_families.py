@@ -26,7 +26,9 @@ keeps the rows it finished).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_rl_families.py [--benchmarks ...]
 [--sizes 40x20x200 10x10x100 ...] [--repeats 1]``; it prints the table and writes it to its
-section of docs/benchmarks.md.
+section of docs/benchmarks.md. With ``--overhead`` it runs instead the ``bench_ar_overhead``
+comparison under ``turns`` in ``benchmarks/workloads.yaml`` (each method's meta-iteration against
+MAML's, in turns).
 """
 
 from __future__ import annotations
@@ -34,17 +36,19 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
+import sys
 import time
 
-import torch
-from hydra import compose, initialize_config_dir
-from timing import alternating_ratios, markdown_table, reference_product_ms, write_section
+from timing import (
+    as_trained,
+    compare_in_turns,
+    markdown_table,
+    reference_product_ms,
+    trainer_for,
+    write_section,
+)
 
-from armeta_rl.allocator import keep_freed_memory
-from armeta_rl.cli import config_dir
-from armeta_rl.config import validate
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.players import build_players
 
 BENCHMARKS = ("half_cheetah_vel", "half_cheetah_dir", "ant_dir", "half_cheetah_mass_vel",
               "walker2d_mass_vel")
@@ -53,21 +57,16 @@ OTHER_SIZES = ("40x20x200", "10x10x100")  # the other families: the cost is clos
 ITERATIONS = 500
 
 
-def trainer_for(benchmark: str, method: str, tasks: int, episodes: int,
-                steps: int, *overrides: str) -> GameTrainer:
+def sized_trainer(benchmark: str, method: str, tasks: int, episodes: int,
+                  steps: int, *overrides: str) -> GameTrainer:
     """The run's trainer as armeta-train builds it, at the row's size on one MuJoCo thread, with
-    ``overrides`` of ``trainer.*`` and the rest."""
-    composed = [f"benchmark={benchmark}", f"method={method}", f"trainer.meta_batch={tasks}",
-                f"benchmark.collector.episodes={episodes}",
-                f"benchmark.collector.max_steps={steps}",
-                "benchmark.collector.make_env.threads=1", "logger=none", *overrides]
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        cfg = compose("train", overrides=composed)
-    config = validate(cfg)
-    players = build_players(config)
+    ``overrides``, its envs built."""
+    trainer, players = trainer_for(
+        f"benchmark={benchmark}", f"method={method}", f"trainer.meta_batch={tasks}",
+        f"benchmark.collector.episodes={episodes}", f"benchmark.collector.max_steps={steps}",
+        "benchmark.collector.make_env.threads=1", *overrides)
     players.leader.collector.env(tasks)  # built before the timed iterations
-    return GameTrainer(players.leader, players.principle, iterations=10**9, meta_batch=tasks,
-                       progress=False, follower_at=config.trainer.follower_at)
+    return trainer
 
 
 def seconds(fn, repeats: int) -> tuple[float, float]:
@@ -83,63 +82,18 @@ def seconds(fn, repeats: int) -> tuple[float, float]:
 
 def row(benchmark: str, size: str, repeats: int) -> tuple[str, ...]:
     tasks, episodes, steps = (int(n) for n in size.split("x"))
-    maml = trainer_for(benchmark, "maml", tasks, episodes, steps)
+    maml = sized_trainer(benchmark, "maml", tasks, episodes, steps)
     leader = maml.leader
     initial = maml.principle.propose(tasks)
     rollout, _ = seconds(lambda: leader.collector.collect(initial, None, policy=leader.net),
                          repeats)
     maml_cpu, maml_wall = seconds(maml.train_iteration, repeats)
-    ar = trainer_for(benchmark, "ar_maml", tasks, episodes, steps)
+    ar = sized_trainer(benchmark, "ar_maml", tasks, episodes, steps)
     ar_cpu, ar_wall = seconds(ar.train_iteration, repeats)
     hours = ITERATIONS / 3600
     return (benchmark, f"{tasks} × {episodes} × {steps}", f"{rollout:.1f}", f"{maml_cpu:.1f}",
             f"{ar_cpu:.1f}", f"{maml_cpu * hours:.1f}", f"{ar_cpu * hours:.1f}",
             f"{maml_wall:.0f} / {ar_wall:.0f}")
-
-
-OVERHEAD_VARIANTS = {
-    "ar_maml (follower at θ_{t+1}, paper)": ("ar_maml", "trainer.follower_at=next"),
-    "ar_maml (follower on the step's losses)": ("ar_maml", "trainer.follower_at=step"),
-    "mpts_maml": ("mpts_maml",),
-}
-"""The methods whose meta-iteration :func:`overhead_rows` times against MAML's."""
-
-
-def overhead_rows(benchmark: str, size: str, calls: int, rounds: int,
-                  budget: tuple[str, ...]) -> list[tuple[str, ...]]:
-    """Each of :data:`OVERHEAD_VARIANTS`' meta-iteration time against MAML's at ``size`` (with
-    ``budget`` overrides), timed in alternating turns of ``calls`` iterations
-    (``timing.alternating_ratios``): median seconds of both and the ratio, with its range over
-    the ``rounds``."""
-    tasks, episodes, steps = (int(n) for n in size.split("x"))
-    maml = trainer_for(benchmark, "maml", tasks, episodes, steps, *budget)
-    rows = []
-    for label, (method, *overrides) in OVERHEAD_VARIANTS.items():
-        other = trainer_for(benchmark, method, tasks, episodes, steps, *budget, *overrides)
-        ours, theirs = alternating_ratios(maml.train_iteration, other.train_iteration, calls,
-                                          rounds)
-        ratios = [t / o for o, t in zip(ours, theirs)]
-        rows.append((benchmark, f"{tasks} × {episodes} × {steps}", label,
-                     f"{statistics.median(ours):.2f}", f"{statistics.median(theirs):.2f}",
-                     f"**{statistics.median(ratios):.2f}×** ({min(ratios):.2f}–"
-                     f"{max(ratios):.2f})"))
-        print(" | ".join(rows[-1]), flush=True)
-    return rows
-
-
-def write_overhead(rows: list[tuple[str, ...]], calls: int, rounds: int) -> None:
-    """The overhead table into its section of docs/benchmarks.md."""
-    table = markdown_table(("benchmark", "tasks × episodes × steps", "method", "maml s",
-                            "method s", "ratio to maml (range over rounds)"), rows)
-    body = (f"Seconds per meta-iteration on one torch and one MuJoCo thread, each method "
-            f"against MAML in alternating turns of {calls} iterations ({rounds} rounds, "
-            f"medians), so that the machine's load falls on both alike. AR-MAML's follower at "
-            "θ_{t+1} collects its tasks afresh after the leader's step (two more rollouts); on "
-            "the step's losses it costs only the flow's update (`trainer.follower_at=step`, "
-            f"docs/meta-rl.md).\n\n{table}")
-    print(body)
-    write_section("bench_ar_overhead", "AR-MAML's cost against MAML's (bench_meta_rl_families.py "
-                  "--overhead)", body)
 
 
 def main() -> None:
@@ -150,20 +104,16 @@ def main() -> None:
                              "(default: six sizes for half_cheetah_vel, two for the others)")
     parser.add_argument("--repeats", type=int, default=1, help="timed iterations per cell")
     parser.add_argument("--overhead", action="store_true",
-                        help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's, in "
-                             "alternating turns, at the first of --sizes (default 20x10x100)")
-    parser.add_argument("--calls", type=int, default=3, help="--overhead: iterations a turn")
-    parser.add_argument("--rounds", type=int, default=3, help="--overhead: turns of each")
-    args = parser.parse_args()
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
-    torch.manual_seed(0)
+                        help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's in "
+                             "turns, the bench_ar_overhead comparison of benchmarks/workloads.yaml "
+                             "(its options: --calls, --rounds, --benchmarks)")
+    args, rest = parser.parse_known_args()
     if args.overhead:
-        size = (args.sizes or ["20x10x100"])[0]
-        rows = [row for benchmark in args.benchmarks for row in overhead_rows(
-            benchmark, size, args.calls, args.rounds, ("learner.maml_trpo.hvp_episodes=5",))]
-        write_overhead(rows, args.calls, args.rounds)
+        compare_in_turns("bench_ar_overhead", [a for a in sys.argv[1:] if a != "--overhead"])
         return
+    if rest:
+        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    as_trained()
     before = reference_product_ms()
     rows = []
     for benchmark in args.benchmarks:

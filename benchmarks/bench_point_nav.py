@@ -18,25 +18,17 @@ from __future__ import annotations
 
 import argparse
 import math
-import statistics
-from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict
-from timing import markdown_table, wall_times, write_section
+from timing import as_trained, markdown_table, median_s, write_section
 from torch import nn
 
-from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.collectors.episodes import PointNavigationCollector
 from armeta_rl.envs.point_navigation import PointNavigationEnv
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import BoxUniform, TaskSpace
-
-
-def seconds(fn: Callable[[], object], repeats: int) -> float:
-    """Median wall time of ``repeats`` calls after one warm-up call."""
-    return statistics.median(wall_times(fn, repeats))
 
 
 def main() -> None:
@@ -45,9 +37,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does (trainer.keep_freed_memory)
-    torch.manual_seed(0)
+    as_trained()
     k, e, steps = args.tasks, args.episodes, 100
     space = TaskSpace(["goal_x", "goal_y"], [-0.5, -0.5], [0.5, 0.5])
     tasks = BoxUniform(space).sample(k)
@@ -55,28 +45,28 @@ def main() -> None:
 
     env = PointNavigationEnv((k, e), seed=0)
     reset = env.reset(TensorDict({"params": tasks["params"][:, None].expand(k, e, 2)}, [k, e]))
-    t = seconds(lambda: env.rollout(steps, tensordict=reset.clone(), auto_reset=False,
+    t = median_s(lambda: env.rollout(steps, tensordict=reset.clone(), auto_reset=False,
                                     break_when_any_done=False), args.repeats)
     rows.append(("env.rollout, random actions", t, k * e * steps / t))
 
     collector = PointNavigationCollector(episodes=e, seed=0)
     net = GaussianMLP()
     per_task = TensorDict.from_module(net).detach().expand(k).clone()
-    t = seconds(lambda: collector.collect(tasks, None, policy=net), args.repeats)
+    t = median_s(lambda: collector.collect(tasks, None, policy=net), args.repeats)
     rows.append(("collect, shared θ", t, k * e * steps / t))
-    t = seconds(lambda: collector.collect(tasks, per_task, policy=net), args.repeats)
+    t = median_s(lambda: collector.collect(tasks, per_task, policy=net), args.repeats)
     rows.append(("collect, per-task θ'_k", t, k * e * steps / t))
 
     def erm(losses: torch.Tensor) -> torch.Tensor:
         return torch.full_like(losses, 1.0 / losses.numel())
 
     leader = MAMLTRPOLeader(collector)
-    t = seconds(lambda: leader.collect(tasks), args.repeats)
+    t = median_s(lambda: leader.collect(tasks), args.repeats)
     rows.append(("both rollouts + inner step (sampling)", t, 2 * k * e * steps / t))
     for label, hvp_episodes in (("exact HVP", None), ("HVP on 5 episodes/task", 5),
                                 ("HVP on 2 episodes/task", 2)):
         leader = MAMLTRPOLeader(collector, options=MamlTrpoOptions(hvp_episodes=hvp_episodes))
-        t = seconds(lambda leader=leader: leader.step(leader.collect(tasks, create_graph=True),
+        t = median_s(lambda leader=leader: leader.step(leader.collect(tasks, create_graph=True),
                                                       erm), args.repeats)
         rows.append((f"meta-iteration, {label}", t, 2 * k * e * steps / t))
 
@@ -85,13 +75,14 @@ def main() -> None:
     weights = erm(torch.zeros(k))
     hvp = leader.kl_hessian_product(batch, weights, leader.surrogate_gradient(batch, weights)[2])
     vector = torch.randn(sum(p.numel() for p in leader.net.parameters()))
-    product = seconds(lambda: hvp(vector), 5 * args.repeats)
+    product = median_s(lambda: hvp(vector), 5 * args.repeats)
     rows.append(("one exact KL Hessian-vector product", product, math.nan))
     largest = max((m for m in leader.net.mean if isinstance(m, nn.Linear)),
                   key=lambda layer: layer.weight.numel())
     n_out, n_in = largest.weight.shape
     activations, weight = torch.randn(k, e * steps, n_in), torch.randn(k, n_in, n_out)
-    floor = seconds(lambda: [torch.bmm(activations, weight) for _ in range(16)], 5 * args.repeats)
+    floor = median_s(lambda: [torch.bmm(activations, weight) for _ in range(16)],
+                     5 * args.repeats)
     rows.append((f"its 16 [K, E*T, {n_in}] x [K, {n_in}, {n_out}] products", floor, math.nan))
 
     table = markdown_table(

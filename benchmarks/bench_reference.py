@@ -24,28 +24,23 @@ worker process of its own, with these shims applied at import time only:
 Both references need the old ``gym`` API and NumPy < 2 (``np.float_``); give them their own
 interpreter with ``--reference-python`` (a venv with torch, ``numpy<2``, ``gym==0.17.3``, scipy,
 pyyaml, tqdm). Our side runs ``armeta-train``'s trainer on the corresponding ``*_paper`` benchmark
-(point robot: ``point_nav``, MAML-TRPO with exact Hessian-vector products, as pytorch-maml-rl).
+(point robot: ``point_nav``, MAML-TRPO with exact Hessian-vector products, as pytorch-maml-rl);
+the workloads are the lines under ``reference`` in ``benchmarks/workloads.yaml``.
 
-Turn-taking: the two workers are started and warmed up (the authors' first iteration includes their
+Turn-taking: the workers are started and warmed up (the authors' first iteration includes their
 evaluation on 500 tasks, so it is not timed), then each round runs one turn of ``--turn``
-iterations in the reference and one in ours (the order alternating from round to round), so that a
-shared machine's slow spells fall on both. Each round gives the ratio of the turn medians; the
-table shows every round, the median ratio and its range, the peak RSS of each worker, the machine
-and its load. Each iteration is timed twice: wall time, and CPU time (user and system, of the
-worker and of its live child processes): on a shared, overloaded machine the wall times of two
-programs stretch unevenly, while the CPU time each spends on its own work stays comparable. One
-torch thread everywhere (``OMP_NUM_THREADS=1``); pytorch-maml-rl samples in one worker process
-(``--num-workers 1``) beside its learner, as its README runs it.
+iterations in each, the first side rotating from round to round, so that a shared machine's slow
+spells fall on all. Each round gives the ratio of the turn medians, in wall time and in CPU time
+(user and system, of the worker and of its live child processes: on an overloaded machine the
+wall times of two programs stretch unevenly, the CPU time each spends on its own work much
+less). One torch thread everywhere; pytorch-maml-rl samples in one worker process
+(``--num-workers 1``) beside its learner, as its README runs it. With ``--compiled`` a third
+worker takes turns: ours with the workload's compile switches on, its compile in its warm-up.
 
 After the rounds our worker records the matrix products of one more turn and times them replayed
 alone (:func:`products_ms`): the part of our meta-iteration that no removal of overhead can take
 away, so the reference's median over it is the highest ratio our computation can reach on this
 machine; the table states it next to the measured ratio.
-
-With ``--compiled`` a third worker takes turns on the regression and system-identification
-workloads: ours with every compile switch of the workload on (``torch.compile`` of the leader's
-loss, the adversary's flow and, in system identification, the physics step; ``"compiled"`` of
-:data:`WORKLOADS`), its compile part of its warm-up.
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_reference.py --authors PATH --maml-rl PATH
 --reference-python PATH/bin/python [--workloads sinusoid pendulum acrobot point_robot]
@@ -59,7 +54,6 @@ import argparse
 import json
 import multiprocessing
 import os
-import resource
 import select
 import statistics
 import subprocess
@@ -70,34 +64,23 @@ import types
 from collections.abc import Callable
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-ROWS = HERE.parent / "docs" / "results" / "reference" / "rows.json"
-"""Each workload's latest medians (reference, ours, our products replayed), for other reports
-(the GPU check's point-robot target) to read."""
+from timing import (
+    REFERENCE_ROWS,
+    as_trained,
+    markdown_table,
+    peak_rss_mib,
+    ratio_cell,
+    this_machine,
+    trainer_for,
+    workloads,
+    write_section,
+)
 
-WORKLOADS = {
-    # name: our (benchmark, method), the reference, its arguments, default turn length, and the
-    # overrides of our compiled form (``--compiled``; none: not compared compiled)
-    "sinusoid": {"ours": ("sinusoid_uniform", "ar_maml"), "reference": "authors",
-                 "args": ["--task", "sine", "--tasks_per_metaupdate", "25",
-                                          "--task_num_data_points", "10",
-                                          "--update_batch_size", "5"], "turn": 20,
-                 "compiled": ["learner.maml.compile=true", "risk.ar.compile=true"]},
-    "pendulum": {"ours": ("pendulum_uniform_paper", "ar_maml"), "reference": "authors",
-                 "args": ["--task", "pendulum", "--tasks_per_metaupdate",
-                                              "16", "--task_num_data_points", "200",
-                                              "--update_batch_size", "10"], "turn": 10,
-                 "compiled": ["learner.maml.compile=true", "risk.ar.compile=true",
-                              "benchmark.collector.compile=true"]},
-    "acrobot": {"ours": ("acrobot_uniform_paper", "ar_maml"), "reference": "authors",
-                "args": ["--task", "acrobot", "--tasks_per_metaupdate", "16",
-                                            "--task_num_data_points", "200",
-                                            "--update_batch_size", "10"], "turn": 10,
-                "compiled": ["learner.maml.compile=true", "risk.ar.compile=true",
-                             "benchmark.collector.compile=true"]},
-    "point_robot": {"ours": ("point_nav", "maml"), "reference": "pytorch-maml-rl",
-                    "config": "configs/maml/2d-navigation.yaml", "turn": 2, "compiled": []},
-}
+HERE = Path(__file__).resolve().parent
+
+WORKLOADS = workloads("reference")
+"""Each workload: our (benchmark, method), the reference with its arguments or config, the
+iterations of a turn, and the overrides of our compiled form (``--compiled``)."""
 
 
 # -- workers ------------------------------------------------------------------------------------
@@ -119,10 +102,6 @@ def reply(message: dict) -> None:
     """One JSON line to the driver."""
     CHANNEL[0].write(json.dumps(message) + "\n")
     CHANNEL[0].flush()
-
-
-def peak_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def cpu_seconds() -> float:
@@ -247,15 +226,10 @@ def maml_rl_worker(path: Path, workload: dict) -> None:
 
 def ours_worker(workload: dict, overrides: list[str]) -> None:
     """Our trainer on ``workload``'s benchmark with its defaults (eager) and ``overrides``."""
-    import torch
-    from gpu_check import trainer_for
 
-    from armeta_rl.allocator import keep_freed_memory
-
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
+    as_trained()
     benchmark, method = workload["ours"]
-    trainer, _ = trainer_for([f"benchmark={benchmark}", f"method={method}", *overrides])
+    trainer, _ = trainer_for(f"benchmark={benchmark}", f"method={method}", *overrides)
     gate = Gate(warmup=2, profile=lambda n: {"products_ms": products_ms(trainer, n)})
     while True:
         gate()
@@ -347,12 +321,13 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
     workload = WORKLOADS[name]
     me = str(Path(__file__).resolve())
     path = args.authors if workload["reference"] == "authors" else args.maml_rl
+    spec = json.dumps(workload)
     workers = {"reference": Worker([args.reference_python, me, "worker", workload["reference"],
-                                    name, "--path", str(path)], logs / f"{name}_reference.log"),
-               "ours": Worker([sys.executable, me, "worker", "ours", name],
+                                    spec, "--path", str(path)], logs / f"{name}_reference.log"),
+               "ours": Worker([sys.executable, me, "worker", "ours", spec],
                               logs / f"{name}_ours.log")}
     if args.compiled and workload["compiled"]:
-        workers["compiled"] = Worker([sys.executable, me, "worker", "ours", name, "--overrides",
+        workers["compiled"] = Worker([sys.executable, me, "worker", "ours", spec, "--overrides",
                                       *workload["compiled"]], logs / f"{name}_compiled.log")
     try:
         for worker in workers.values():
@@ -382,54 +357,37 @@ def compare(name: str, args: argparse.Namespace, logs: Path) -> dict:
 
 
 def table(result: dict) -> str:
-    from timing import markdown_table
-
-    workload = WORKLOADS[result["name"]]
-    rounds, ours = result["rounds"], [side for side in result["sides"] if side != "reference"]
-    ratios = {side: [r["reference_ms"] / r[f"{side}_ms"] for r in rounds] for side in ours}
-    cpu_ratios = {side: [r["reference_cpu_ms"] / r[f"{side}_cpu_ms"] for r in rounds]
-                  for side in ours}
-    rows = [(i + 1, f"{r['reference_ms']:.1f}",
-             *[cell for side in ours for cell in (f"{r[f'{side}_ms']:.1f}",
-                                                  f"{ratios[side][i]:.1f}×")],
-             f"{r['reference_cpu_ms']:.1f}",
-             *[cell for side in ours for cell in (f"{r[f'{side}_cpu_ms']:.1f}",
-                                                  f"{cpu_ratios[side][i]:.1f}×")],
+    """A workload's summary line and its table of rounds: each side's wall and CPU ms, and the
+    reference's over each of ours."""
+    workload, rounds, sides = WORKLOADS[result["name"]], result["rounds"], result["sides"]
+    wall = {side: [r[f"{side}_ms"] for r in rounds] for side in sides}
+    cpu = {side: [r[f"{side}_cpu_ms"] for r in rounds] for side in sides}
+    ours = sides[1:]
+    rows = [(i + 1, *(f"{wall[side][i]:.1f} / {cpu[side][i]:.1f}" for side in sides),
+             *(f"{wall['reference'][i] / wall[side][i]:.1f}× / "
+               f"{cpu['reference'][i] / cpu[side][i]:.1f}×" for side in ours),
              f"{r['load']:.1f}") for i, r in enumerate(rounds)]
     benchmark, method = workload["ours"]
     reference = ("authors' AR-MAML" if workload["reference"] == "authors"
                  else "pytorch-maml-rl")
-    summary = "; ".join(
-        f"{'ours' if side == 'ours' else 'ours compiled'} **{statistics.median(ratio):.1f}×** "
-        f"(range {min(ratio):.1f}–{max(ratio):.1f}×; CPU time "
-        f"{statistics.median(cpu_ratios[side]):.1f}×, {min(cpu_ratios[side]):.1f}–"
-        f"{max(cpu_ratios[side]):.1f}×)" for side, ratio in ratios.items())
-    rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in result["sides"])
-    reference_ms = statistics.median(r["reference_ms"] for r in rounds)
-    floor = (f"Our matrix products alone (replayed, `products_ms`) take "
-             f"{result['products_ms']:.1f} ms a meta-iteration: no removal of the rest can take "
-             f"ours past **{reference_ms / result['products_ms']:.1f}×** (median reference ms over "
-             f"that).")
+    summary = "; ".join(f"{side} {ratio_cell(wall['reference'], wall[side], 1)} (CPU time "
+                        f"{ratio_cell(cpu['reference'], cpu[side], 1)})" for side in ours)
+    rss = ", ".join(f"{side} {rounds[-1][f'{side}_rss']:.0f} MiB" for side in sides)
+    ceiling = statistics.median(wall["reference"]) / result["products_ms"]
     head = (f"**{result['name']}**: {reference} against `{benchmark}` `{method}`, "
             f"{result['turn']} iterations a turn; ratio reference ms / ours ms, median over the "
-            f"rounds: {summary}; peak RSS: {rss}. {floor}")
-    header = ("round", "reference ms",
-              *[cell for side in ours for cell in (
-                  f"{'ours' if side == 'ours' else 'compiled'} ms",
-                  f"{'ratio' if side == 'ours' else 'compiled ratio'}")],
-              "reference CPU ms",
-              *[cell for side in ours for cell in (
-                  f"{'ours' if side == 'ours' else 'compiled'} CPU ms",
-                  f"{'CPU ratio' if side == 'ours' else 'compiled CPU ratio'}")],
-              "load (1 min)")
+            f"rounds: {summary}; peak RSS: {rss}. Our matrix products alone (replayed, "
+            f"`products_ms`) take {result['products_ms']:.1f} ms a meta-iteration: no removal of "
+            f"the rest can take ours past **{ceiling:.1f}×** (median reference ms over that).")
+    header = ("round", *(f"{side} ms / CPU ms" for side in sides),
+              *(f"reference / {side} (wall / CPU)" for side in ours), "load (1 min)")
     return head + "\n\n" + markdown_table(header, rows)
 
 
 def write_rows(results: list[dict]) -> None:
-    """Merge each workload's medians into :data:`ROWS`, keeping the other workloads' rows."""
-    from timing import this_machine
-
-    rows = json.loads(ROWS.read_text()) if ROWS.exists() else {}
+    """Merge each workload's medians into ``timing.REFERENCE_ROWS``, keeping the other
+    workloads' rows."""
+    rows = json.loads(REFERENCE_ROWS.read_text()) if REFERENCE_ROWS.exists() else {}
     for result in results:
         rounds = result["rounds"]
         rows[result["name"]] = {
@@ -438,8 +396,8 @@ def write_rows(results: list[dict]) -> None:
             **{f"{side}_ms": statistics.median(r[f"{side}_ms"] for r in rounds)
                for side in result["sides"]},
             "products_ms": result["products_ms"]}
-    ROWS.parent.mkdir(parents=True, exist_ok=True)
-    ROWS.write_text(json.dumps(rows, indent=1, sort_keys=True) + "\n")
+    REFERENCE_ROWS.parent.mkdir(parents=True, exist_ok=True)
+    REFERENCE_ROWS.write_text(json.dumps(rows, indent=1, sort_keys=True) + "\n")
 
 
 def main() -> None:
@@ -447,7 +405,7 @@ def main() -> None:
     sub = parser.add_subparsers(dest="command")
     worker = sub.add_parser("worker", help="(internal) one side of a comparison")
     worker.add_argument("side", choices=["ours", "authors", "pytorch-maml-rl"])
-    worker.add_argument("workload", choices=list(WORKLOADS))
+    worker.add_argument("workload", type=json.loads, help="its workload, as JSON")
     worker.add_argument("--path", type=Path)
     worker.add_argument("--overrides", nargs="*", default=[])
     parser.add_argument("--authors", type=Path, help="a clone of lvyiqin/AR-MAML")
@@ -464,7 +422,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.command == "worker":
         own_stdout()
-        workload = WORKLOADS[args.workload]
+        workload = args.workload
         if args.side == "ours":
             ours_worker(workload, args.overrides)
         elif args.side == "authors":
@@ -489,8 +447,6 @@ def main() -> None:
             + "\n\n".join(table(result) for result in results))
     print(body)
     write_rows(results)
-    from timing import write_section
-
     write_section("bench_reference", "Against the reference implementations "
                   "(bench_reference.py)", body)
 

@@ -2,7 +2,7 @@
 one benchmark and method under ``cProfile``, sorted by cumulative time, after the median time of
 as many unprofiled iterations (the profiler's own cost inflates the profiled ones).
 
-The trainer is ``armeta-train``'s (``gpu_check.trainer_for``, with its allocator setting), built
+The trainer is ``armeta-train``'s (``timing.trainer_for``, with its allocator setting), built
 from the config with the overrides given; ``device=cuda`` profiles on the GPU (each iteration
 then ends with a device synchronization, so that queued kernels count where they ran).
 
@@ -21,10 +21,7 @@ import statistics
 from pathlib import Path
 
 import torch
-from gpu_check import trainer_for
-from timing import wall_times
-
-from armeta_rl.allocator import keep_freed_memory
+from timing import as_trained, trainer_for, wall_times
 
 
 def main() -> None:
@@ -38,10 +35,9 @@ def main() -> None:
     args, overrides = parser.parse_known_args()
     if args.iterations < 1:
         parser.error(f"--iterations must be at least 1, got {args.iterations}")
-    torch.set_num_threads(1)
-    keep_freed_memory()  # as armeta-train does
-    trainer, _ = trainer_for([f"benchmark={args.benchmark}", f"method={args.method}",
-                              *overrides])
+    as_trained()
+    trainer, _ = trainer_for(f"benchmark={args.benchmark}", f"method={args.method}",
+                             *overrides)
 
     def iteration() -> None:
         trainer.train_iteration()

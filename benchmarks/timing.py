@@ -1,39 +1,166 @@
-"""Wall-clock timing shared by the benchmark scripts (run as ``python benchmarks/<name>.py``), and
-the writer of their sections of docs/benchmarks.md: every script replaces its own section, between
-``<!-- name:start -->`` and ``<!-- name:end -->``, with its tables, its command and the date."""
+"""The benchmark harness: every benchmark script (run as ``python benchmarks/<name>.py``) takes its
+workloads, its timing and its tables from here.
+
+* workloads: :func:`workloads` reads a benchmark's part of ``benchmarks/workloads.yaml`` (the
+  workloads as data), :func:`trainer_for` builds a run's trainer from config overrides as
+  ``armeta-train`` builds it, :func:`as_trained` sets the process up as ``armeta-train`` does;
+* timing: :func:`wall_times` and :func:`median_s` (calls of one function), :func:`in_turns`
+  (several functions taking turns in one session, so that a shared machine's slow spells fall on
+  all alike: the way two forms are compared) with :func:`ratio_cell` for the ratios of turns,
+  :func:`compare_in_turns` (trainers of config overrides in turns, from ``workloads.yaml``),
+  :func:`peak_rss_mib` and :func:`reference_product_ms` (a yardstick of the machine's speed);
+* tables: :func:`markdown_table` and :func:`write_section`, which replaces the script's section of
+  docs/benchmarks.md (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables,
+  its command, the date and the machine.
+"""
 
 from __future__ import annotations
 
 import datetime
 import os
 import platform
+import resource
 import shlex
 import statistics
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
+if TYPE_CHECKING:
+    from armeta_rl.trainers.game import GameTrainer
+    from armeta_rl.trainers.players import Players
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+BENCHMARKS_PAGE = DOCS / "benchmarks.md"
+WORKLOADS = Path(__file__).with_name("workloads.yaml")
+REFERENCE_ROWS = DOCS / "results" / "reference" / "rows.json"
+"""Each reference workload's latest medians (``bench_reference.py`` writes them; the GPU check's
+point-robot target reads them)."""
+
+
+# -- workloads ----------------------------------------------------------------------------------
+
+def workloads(key: str) -> dict:
+    """The workloads of ``key`` (a benchmark's part of ``benchmarks/workloads.yaml``)."""
+    import yaml
+
+    return yaml.safe_load(WORKLOADS.read_text())[key]
+
+
+def trainer_for(*overrides: str) -> tuple[GameTrainer, Players]:
+    """A seeded ``GameTrainer`` of the ``armeta-train`` config with ``overrides``, its players
+    built as the CLI builds them (no logger, no progress bar), and the players."""
+    from hydra import compose, initialize_config_dir
+
+    from armeta_rl.cli import config_dir
+    from armeta_rl.config import validate
+    from armeta_rl.trainers.game import GameTrainer
+    from armeta_rl.trainers.players import build_players
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg = compose("train", overrides=[*overrides, "trainer.progress=false", "logger=none"])
+    config = validate(cfg)
+    players, options = build_players(config), config.trainer
+    trainer = GameTrainer(players.leader, players.principle, iterations=10**9,
+                          meta_batch=options.meta_batch, progress=False,
+                          max_loss=options.max_loss, follower_rollouts=options.follower_rollouts,
+                          follower_at=options.follower_at)
+    return trainer, players
+
+
+def as_trained() -> None:
+    """This process set up as ``armeta-train`` sets up a run (one torch thread here, glibc keeping
+    freed memory: ``trainer.keep_freed_memory``), torch's generator seeded with 0."""
+    from armeta_rl.allocator import keep_freed_memory
+
+    torch.set_num_threads(1)
+    keep_freed_memory()
+    torch.manual_seed(0)
+
+
+# -- timing -------------------------------------------------------------------------------------
 
 def wall_times(
     fn: Callable[[], object],
     repeats: int,
     warmup: int = 1,
     clock: Callable[[], float] = time.perf_counter,
+    sync: Callable[[], object] = lambda: None,
+    budget_s: float = float("inf"),
 ) -> list[float]:
     """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls, on
     ``clock`` (wall time; ``time.process_time`` gives this process's CPU time, less sensitive to
-    other processes)."""
+    other processes); ``sync`` waits for queued device work before each reading (e.g.
+    ``torch.cuda.synchronize``); no call starts after ``budget_s`` seconds of timed calls once
+    one has been timed."""
     for _ in range(warmup):
         fn()
-    times = []
-    for _ in range(repeats):
+    sync()
+    times: list[float] = []
+    while len(times) < repeats and (not times or sum(times) < budget_s):
         start = clock()
         fn()
+        sync()
         times.append(clock() - start)
     return times
+
+
+def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, **kwargs) -> float:
+    """Median seconds of ``repeats`` calls of ``fn`` (:func:`wall_times`)."""
+    return statistics.median(wall_times(fn, repeats, warmup, **kwargs))
+
+
+def in_turns(
+    rows: dict[str, Callable[[], object]],
+    calls: int,
+    rounds: int,
+    warmup: int = 1,
+    between: Callable[[], float] | None = None,
+) -> tuple[dict[str, list[list[float]]], dict[str, list[float]]]:
+    """Every row's ``rounds`` turns of ``calls`` timed calls, the rows taking turns (after
+    ``warmup`` untimed calls of each; the first row of a round rotates, so that no row always
+    follows the same one), so that a shared machine's slow spells fall on all rows alike.
+    Returns each row's turns (their calls' seconds) and, where ``between`` is given (a yardstick
+    taken after every turn and once before the first), each turn's mean of the yardsticks taken
+    just before and just after it."""
+    for fn in rows.values():
+        for _ in range(warmup):
+            fn()
+    labels = list(rows)
+    turns: dict[str, list[list[float]]] = {label: [] for label in labels}
+    marks: dict[str, list[float]] = {label: [] for label in labels}
+    before = between() if between else float("nan")
+    for index in range(rounds):
+        for label in labels[index % len(labels):] + labels[:index % len(labels)]:
+            turns[label].append(wall_times(rows[label], calls, warmup=0))
+            after = between() if between else float("nan")
+            marks[label].append((before + after) / 2)
+            before = after
+    return turns, marks
+
+
+def turn_medians(turns: list[list[float]]) -> list[float]:
+    """The median seconds of each turn."""
+    return [statistics.median(turn) for turn in turns]
+
+
+def ratio_cell(numerators: Sequence[float], denominators: Sequence[float],
+               digits: int = 2) -> str:
+    """The median of the per-round ratios and their range, as a table cell: ``**1.23×**
+    (1.10–1.40)``."""
+    ratios = [a / b for a, b in zip(numerators, denominators, strict=True)]
+    return (f"**{statistics.median(ratios):.{digits}f}×** ({min(ratios):.{digits}f}–"
+            f"{max(ratios):.{digits}f})")
+
+
+def peak_rss_mib() -> float:
+    """This process's peak resident set size in MiB (Linux reports ``ru_maxrss`` in KiB)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 def reference_product_ms(repeats: int = 50) -> float:
@@ -42,36 +169,10 @@ def reference_product_ms(repeats: int = 50) -> float:
     (a shared machine has fast and slow spells), so that tables taken at different times can be
     compared."""
     activations, weights = torch.randn(16, 190, 128), torch.randn(16, 128, 128)
-    times = wall_times(lambda: torch.bmm(activations, weights), repeats, warmup=5)
-    return 1000 * statistics.median(times)
+    return 1000 * median_s(lambda: torch.bmm(activations, weights), repeats, warmup=5)
 
 
-def alternating_ratios(
-    reference: Callable[[], object],
-    variant: Callable[[], object],
-    calls: int,
-    rounds: int,
-    use_reference: Callable[[], None] = lambda: None,
-    use_variant: Callable[[], None] = lambda: None,
-) -> tuple[list[float], list[float]]:
-    """Median seconds of ``calls`` calls of ``reference`` and of ``variant``, taking turns
-    ``rounds`` times (after one untimed turn each), so that a shared machine's slow spells fall
-    on both alike; ``use_reference`` / ``use_variant`` switch between them before each turn when
-    both are the same function. Returns the reference's and the variant's turn medians."""
-    def turn(use: Callable[[], None], fn: Callable[[], object]) -> float:
-        use()
-        return statistics.median(wall_times(fn, calls, warmup=0))
-
-    turn(use_reference, reference)
-    turn(use_variant, variant)
-    pairs = [(turn(use_reference, reference), turn(use_variant, variant)) for _ in range(rounds)]
-    use_reference()
-    return [r for r, _ in pairs], [v for _, v in pairs]
-
-
-DOCS = Path(__file__).resolve().parents[1] / "docs"
-BENCHMARKS_PAGE = DOCS / "benchmarks.md"
-
+# -- tables and sections ------------------------------------------------------------------------
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> str:
     """A Markdown table with ``header`` and one line per row (cells as ``str`` gives them)."""
@@ -123,8 +224,87 @@ def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE
     other scripts' sections untouched; the command is ``command``, by default this process's own
     command line, and the machine ``machine``, by default this one."""
     if command is None:
+        script = Path(sys.argv[0]).resolve()
+        shown = (script.relative_to(ROOT) if script.is_relative_to(ROOT)
+                 else Path("benchmarks", script.name))
         command = "OMP_NUM_THREADS=1 python " + " ".join(
-            [f"benchmarks/{Path(sys.argv[0]).name}", *map(shlex.quote, sys.argv[1:])])
+            [str(shown), *map(shlex.quote, sys.argv[1:])])
     text = page.read_text() if page.exists() else ""
     page.write_text(replace_section(text, name, section(title, command, body, machine)))
     print(f"wrote the {name} section of {page}")
+
+
+# -- trainers in turns: the comparisons under ``turns`` in workloads.yaml ----------------------
+
+def compare_in_turns(name: str, argv: Sequence[str] | None = None,
+                     wraps: dict[str, Callable] | None = None) -> str:
+    """Run comparison ``name`` under ``turns`` in ``workloads.yaml`` (command-line options
+    ``--rounds``, ``--calls``, ``--benchmarks``, ``--compile``/``--no-compile``; other arguments are
+    config overrides of every row), write its table into its section of each of its pages, and
+    return the section's body.
+
+    Every row's trainer runs its warm-up calls (timed together: compiles fall there), then the
+    rows of a group take turns (:func:`in_turns`), with the machine's yardstick
+    (:func:`reference_product_ms`) taken between turns. A row's ms are the median of its turn
+    medians; its fast-spell median is the median of its turns whose yardstick is at most the
+    lower quartile of the group's (the code's cost in the run's fastest spells); its ratio is its
+    turn over the group's first row's turn of the same round. A row may name a function of
+    ``wraps`` that turns its trainer into the function timed instead of ``train_iteration``."""
+    import argparse
+
+    spec = workloads("turns")[name]
+    parser = argparse.ArgumentParser(description=spec["about"])
+    parser.add_argument("--rounds", "--turns", type=int, default=spec["rounds"])
+    parser.add_argument("--calls", type=int, default=spec["calls"], help="calls per turn")
+    parser.add_argument("--benchmarks", nargs="+", help="the groups run (default: all)")
+    parser.add_argument("--compile", action="store_true", help="run the rows that compile")
+    parser.add_argument("--no-compile", action="store_true", help="skip the rows that compile")
+    args, overrides = parser.parse_known_args(argv)
+    if args.rounds < 1:
+        parser.error(f"--rounds must be at least 1, got {args.rounds}")
+    compiling = args.compile or (spec.get("compile") != "opt-in" and not args.no_compile)
+    as_trained()
+    table, marks_seen = [], []
+    for group in spec["groups"]:
+        wanted = {label: row if isinstance(row, dict) else {"overrides": row}
+                  for label, row in group["rows"].items()}
+        wanted = {label: row for label, row in wanted.items() if compiling
+                  or not any(o.endswith("compile=true") for o in row["overrides"])}
+        if args.benchmarks and group["benchmark"] not in args.benchmarks or len(wanted) < 2:
+            continue  # a group left without a row to compare
+        rows, warmups = {}, {}
+        for label, row in wanted.items():
+            trainer, _ = trainer_for(f"benchmark={group['benchmark']}", *spec.get("base", []),
+                                     *row["overrides"], *overrides)
+            fn = wraps[row["wrap"]](trainer) if "wrap" in row else trainer.train_iteration
+            warmups[label] = sum(wall_times(fn, spec["warmup"], warmup=0))
+            rows[label] = fn
+        turns, marks = in_turns(rows, args.calls, args.rounds, warmup=0,
+                                between=lambda: reference_product_ms(repeats=5))
+        every = [mark for label in rows for mark in marks[label]]
+        fast = statistics.quantiles(every, n=4)[0] if len(every) > 1 else every[0]
+        marks_seen += every
+        first = turn_medians(turns[next(iter(rows))])
+        for label in rows:
+            medians = turn_medians(turns[label])
+            quick = [t for mark, turn in zip(marks[label], turns[label]) if mark <= fast
+                     for t in turn]
+            table.append((group["benchmark"], label, f"{1000 * statistics.median(medians):.1f}",
+                          f"{1000 * min(min(turn) for turn in turns[label]):.1f}",
+                          f"{1000 * statistics.median(quick):.1f}" if quick else "–",
+                          ratio_cell(medians, first), f"{warmups[label]:.1f}"))
+            print(" | ".join(table[-1]), flush=True)
+    body = (f"{spec['about']} Per row: {spec['warmup']} warm-up calls (their seconds in the last "
+            f"column, compiles included), then {args.rounds} rounds of {args.calls} calls, the "
+            "rows of a benchmark taking turns (`timing.compare_in_turns`); ms: median of the turn "
+            "medians; fast-spell: the turns whose machine yardstick (`timing.reference_product_ms`"
+            f", median {statistics.median(marks_seen):.2f} ms, range {min(marks_seen):.2f}–"
+            f"{max(marks_seen):.2f} ms) was at most the benchmark's lower quartile; ratio: the "
+            "row's turn over the first row's turn of the same round.\n\n"
+            + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
+                              "× first row (median, range)", f"first {spec['warmup']} calls s"),
+                             table))
+    print(body)
+    for page in spec["pages"]:
+        write_section(name, spec["title"], body, DOCS / page)
+    return body

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import importlib.util
+import re
 import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 
@@ -72,5 +74,41 @@ def test_every_script_writes_a_section_of_the_page(timing):
     page = (BENCHMARKS.parent / "docs" / "benchmarks.md").read_text()
     for script in sorted(BENCHMARKS.glob("bench_*.py")):
         start, end = timing.markers(script.stem)
-        assert f'write_section("{script.stem}"' in script.read_text(), script.name
+        text = script.read_text()
+        assert f'write_section("{script.stem}"' in text or \
+            f'compare_in_turns("{script.stem}"' in text, script.name
         assert start in page and end in page, script.name
+    for name, spec in yaml.safe_load((BENCHMARKS / "workloads.yaml").read_text())["turns"].items():
+        for page_name in spec["pages"]:
+            text = (BENCHMARKS.parent / "docs" / page_name).read_text()
+            assert all(marker in text for marker in timing.markers(name)), (name, page_name)
+
+
+def test_every_section_of_the_page_records_a_command_of_an_existing_script(timing):
+    page = (BENCHMARKS.parent / "docs" / "benchmarks.md").read_text()
+    names = re.findall(r"<!-- (\w+):start -->", page)
+    assert len(names) >= 15
+    for name in names:
+        start, end = timing.markers(name)
+        body = page.split(start)[1].split(end)[0]
+        command = re.search(r"^`([^`]+)`, run on \d{4}-\d\d-\d\d \(", body, re.MULTILINE)
+        assert command, name
+        scripts = re.findall(r"(?:benchmarks|studies)/\w+\.(?:py|sh)", command.group(1))
+        assert scripts and all((BENCHMARKS.parent / s).is_file() for s in scripts), name
+
+
+def test_the_scripts_share_the_harness_and_import_no_other_script():
+    """One harness: a benchmark script imports ``timing`` and no other script, so there is no
+    circle between scripts (nor a second timing or table path hidden in one)."""
+    import ast
+
+    scripts = {path.stem for path in BENCHMARKS.glob("*.py")}
+    for path in sorted(BENCHMARKS.glob("*.py")):
+        imported = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                imported |= {alias.name.split(".")[0] for alias in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                imported.add(node.module.split(".")[0])
+        local = imported & scripts
+        assert local <= ({"timing"} if path.stem != "timing" else set()), (path.name, local)

@@ -11,7 +11,7 @@ root-mean-square of their differences. Where the first pair agrees as well as th
 step moved the tasks' losses by less than a rollout's noise, and ``step`` gives the follower the
 signal ``next`` would, at no cost.
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/follower_lag.py --run <run dir> [--tasks 20]
+Run: ``OMP_NUM_THREADS=1 python studies/follower_lag.py --run <run dir> [--tasks 20]
 [--steps 10]``; it prints the table and writes it to its section of docs/meta-rl.md.
 """
 
@@ -20,14 +20,18 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
+import sys
+from pathlib import Path
 
 import torch
-from timing import DOCS, markdown_table, write_section
 
 from armeta_rl.devices import forked_rng
 from armeta_rl.learners.base import weighted_sum
 from armeta_rl.risk.erm import uniform_weights
 from armeta_rl.trainers.players import load_players
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from timing import DOCS, markdown_table, write_section  # noqa: E402 (the benchmarks' writer)
 
 
 def centred(losses: torch.Tensor) -> torch.Tensor:
@@ -77,7 +81,7 @@ def main() -> None:
             f"batch (the follower's baseline).\n\n{table}")
     print(body)
     write_section("follower_lag", "The follower's losses at θ_t and at θ_{t+1} "
-                  "(benchmarks/follower_lag.py)", body, page=DOCS / "meta-rl.md")
+                  "(studies/follower_lag.py)", body, page=DOCS / "meta-rl.md")
 
 
 if __name__ == "__main__":

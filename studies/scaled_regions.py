@@ -5,7 +5,7 @@ and random streams in the plain env: MAML-TRPO normalizes each task's advantages
 trajectories are the same and only the returns differ), beside the best return of each goal
 (the full-speed straight path); and where trained AR adversaries put their mass.
 
-    OMP_NUM_THREADS=1 python benchmarks/scaled_regions.py --learner <point_nav run> \\
+    OMP_NUM_THREADS=1 python studies/scaled_regions.py --learner <point_nav run> \\
         --adversaries <ar_maml runs...> --out docs/results/meta_rl_regions
 """
 
@@ -89,7 +89,7 @@ def main() -> None:
     lines = [
         "# The paper's scaled regions against the other corners",
         "",
-        f"`OMP_NUM_THREADS=1 python benchmarks/scaled_regions.py --learner {args.learner} "
+        f"`OMP_NUM_THREADS=1 python studies/scaled_regions.py --learner {args.learner} "
         f"--adversaries {' '.join(args.adversaries)}`, run on {date.today().isoformat()} "
         f"({platform.machine()}, torch {torch.__version__}). {args.n_tasks} goals per corner "
         f"of the box (0.25 × 0.25), {args.rollouts} rollouts each; the same goals and random "

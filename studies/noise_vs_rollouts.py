@@ -16,7 +16,7 @@ batches of ``chunk`` rollouts. From the rollouts, per R:
 
 It writes ``noise_vs_rollouts.md`` and ``noise_vs_rollouts.png`` into ``--out``. Run:
 
-    OMP_NUM_THREADS=1 python benchmarks/noise_vs_rollouts.py --runs <run A> <run B> \\
+    OMP_NUM_THREADS=1 python studies/noise_vs_rollouts.py --runs <run A> <run B> \\
         --out docs/results/meta_rl_noise
 """
 
@@ -141,7 +141,7 @@ def write(rows: list[dict[str, float]], seconds: dict[int, float], names: tuple[
     lines = [
         "# Evaluation noise against rollouts per task",
         "",
-        f"`OMP_NUM_THREADS=1 python benchmarks/noise_vs_rollouts.py --runs {runs[0]} {runs[1]} "
+        f"`OMP_NUM_THREADS=1 python studies/noise_vs_rollouts.py --runs {runs[0]} {runs[1]} "
         f"--n-tasks {args.n_tasks} --max-rollouts {args.max_rollouts}`, run on "
         f"{date.today().isoformat()} ({platform.machine()}, torch {torch.__version__}, 1 "
         "thread, a machine shared with other jobs).",

@@ -6,7 +6,7 @@ Every cell gets ``tasks`` goals drawn uniformly in it, each scored on ``rollouts
 ``cells`` cells with the worst mean score are the shift. It prints the suite entry and writes
 ``hard_cells_<suite>.md`` (every cell's score) into ``--out``.
 
-    OMP_NUM_THREADS=1 python benchmarks/hard_cells.py --learner <run> --grid 5 5 --cells 3
+    OMP_NUM_THREADS=1 python studies/hard_cells.py --learner <run> --grid 5 5 --cells 3
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def main() -> None:
     entry = (f"hard_cells: {{kind: cells, grid: {list(args.grid)}, "
              f"cells: {[list(c) for c in hardest]}}}")
     lines = [f"# The hardest cells of the {suite} suite's box", "",
-             f"`OMP_NUM_THREADS=1 python benchmarks/hard_cells.py --learner {args.learner} "
+             f"`OMP_NUM_THREADS=1 python studies/hard_cells.py --learner {args.learner} "
              f"--grid {' '.join(map(str, args.grid))} --cells {args.cells} --tasks {args.tasks} "
              f"--rollouts {args.rollouts}`: every cell's mean {metric} over {args.tasks} tasks "
              f"× {args.rollouts} rollouts, worst first; the first {args.cells} are the suite's "

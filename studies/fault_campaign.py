@@ -1,9 +1,9 @@
 """The fault campaign: preemption signals, damaged artefacts, bad inputs and resume
 keys, each case run through the command-line tools exactly as a user types it, on this checkout
 and on an earlier revision (``--before``), written as a table into docs/configuration.md (the
-``fault_campaign`` section) and its raw outcomes into ``benchmarks/fault_campaign.json``.
+``fault_campaign`` section) and its raw outcomes into ``studies/fault_campaign.json``.
 
-    OMP_NUM_THREADS=1 python benchmarks/fault_campaign.py [--before REV] [--rerun-before]
+    OMP_NUM_THREADS=1 python studies/fault_campaign.py [--before REV] [--rerun-before]
         [--only CASE,...]
 
 An earlier revision is extracted with ``git archive`` into a temporary directory and its cases run
@@ -31,7 +31,8 @@ from collections.abc import Callable
 from io import BytesIO
 from pathlib import Path
 
-from timing import DOCS, markdown_table, write_section
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+from timing import DOCS, markdown_table, write_section  # noqa: E402 (the benchmarks' writer)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).with_name("fault_campaign.json")
@@ -757,13 +758,13 @@ def main() -> None:
                   for cases in columns]
         write_section("fault_campaign", "The fault campaign", (
             "Each case run through the command-line tools as a user types it "
-            "(`benchmarks/fault_campaign.py`; raw outcomes in "
-            "`benchmarks/fault_campaign.json`; the columns may come from runs of some cases "
+            "(`studies/fault_campaign.py`; raw outcomes in "
+            "`studies/fault_campaign.json`; the columns may come from runs of some cases "
             "only, `--only`). Exit codes: 0 done, 1 a failed run or sweep, 2 bad input, 75 "
             "stopped by a preemption signal (resume it), 130 stopped by SIGINT. Cases ending in "
             f"a traceback, a segfault or a death by a catchable signal: {counts[0]} of "
             f"{len(CASES)} before, {counts[1]} now.\n\n" + table), PAGE,
-            command=f"OMP_NUM_THREADS=1 python benchmarks/fault_campaign.py --before {args.before}")
+            command=f"OMP_NUM_THREADS=1 python studies/fault_campaign.py --before {args.before}")
 
 
 if __name__ == "__main__":
