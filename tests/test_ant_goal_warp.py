@@ -41,12 +41,8 @@ warp = pytest.importorskip("warp", reason="MuJoCo Warp is not installed (pip ins
                                           "'armeta-rl[gpu]')")
 pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed")
 
-from armeta_rl.envs.ant_goal_warp import (  # noqa: E402
-    AntGoalWarpEnv,
-    WarpBatch,
-    ant_goal_warp,
-    find_warp_device,
-)
+from armeta_rl.envs.ant_goal_warp import AntGoalWarpEnv, ant_goal_warp  # noqa: E402
+from armeta_rl.envs.warp_physics import WarpBatch, find_warp_device  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS, WORLDS = 200, 2
