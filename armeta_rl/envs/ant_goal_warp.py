@@ -29,16 +29,9 @@ class AntGoalWarpEnv(WarpSimulation, AntGoalEnv):
     """:class:`~armeta_rl.envs.ant_goal.AntGoalEnv` with its simulations on MuJoCo Warp and its
     step on the warp device.
 
-    Args:
-        args, kwargs: :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`'s arguments, passed on
-            unchanged (``threads`` is unused by MuJoCo Warp, accepted so that a config can swap
-            the env class alone); ``device`` (the torch device of the outputs) defaults to the
-            warp device's.
-        warp_device: where the physics runs: ``"cuda"``, ``"cuda:N"`` or ``"cpu"`` (warp's CPU
-            backend, for checks).
-        nconmax, njmax: contacts and constraints per world (``None``: MuJoCo Warp's defaults).
-        graphs: replay the physics as CUDA graphs (``None``: on CUDA;
-            :class:`~armeta_rl.envs.warp_physics.WarpBatch`).
+    Arguments: :class:`~armeta_rl.envs.ant_goal.AntGoalEnv`'s, passed on unchanged, and
+    ``warp_device``, ``nconmax``, ``njmax``, ``graphs``
+    (:class:`~armeta_rl.envs.warp_physics.WarpSimulation`).
     """
 
 

@@ -5,17 +5,10 @@ run in torch on the warp device) with the physics of MuJoCo Warp; the mass-scale
 (HalfCheetah-MassVel, Walker2d-MassVel) are the Vel envs under a
 :class:`~armeta_rl.envs.mujoco_tasks.PhysicsTaskTransform`, which writes each simulation's masses
 into its own world (``configs/benchmark/*_warp.yaml``). Arguments: the CPU env's, plus
-``warp_device``, ``nconmax``, ``njmax``, ``graphs`` (:class:`WarpSimulation`).
-
-Examples:
-    >>> import torch
-    >>> from tensordict import TensorDict
-    >>> from armeta_rl.envs.locomotion_warp import HalfCheetahVelWarpEnv
-    >>> from armeta_rl.tasks import TASK_KEY
-    >>> env = HalfCheetahVelWarpEnv(batch_size=(2, 1), seed=0, warp_device="cpu")
-    >>> start = env.reset(TensorDict({TASK_KEY: torch.ones(2, 1, 1)}, [2, 1]))
-    >>> env.rollout(3, tensordict=start, auto_reset=False)["observation"].shape
-    torch.Size([2, 1, 3, 20])
+``warp_device``, ``nconmax``, ``njmax``, ``graphs``
+(:class:`~armeta_rl.envs.warp_physics.WarpSimulation`): for instance
+``HalfCheetahVelWarpEnv(batch_size=(40, 20), warp_device="cuda")``, whose ``reset`` and ``step``
+take and return tensors on that GPU.
 """
 
 from armeta_rl.envs.locomotion import (

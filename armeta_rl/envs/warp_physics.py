@@ -116,8 +116,8 @@ class WarpBatch:
         model: the MuJoCo model (copied to the device).
         nsim: number of simulations (warp worlds).
         device: warp device name (:func:`find_warp_device`).
-        nconmax, njmax: contacts and constraints allocated per world (``None``: MuJoCo Warp's
-            defaults for the model).
+        nconmax: contacts allocated per world (``None``: MuJoCo Warp's default for the model).
+        njmax: constraints allocated per world (``None``: MuJoCo Warp's default).
         graphs: replay ``step``, ``forward`` and ``reset`` as CUDA graphs (``None``: on CUDA; a
             capture that fails falls back to launching the kernels, with a warning).
     """
@@ -262,13 +262,15 @@ class WarpSimulation:
     the same model, reward, observation, identifiers and seeding (module docstring).
 
     Args:
-        args, kwargs: the task env's arguments, passed on unchanged (``threads`` is unused by
-            MuJoCo Warp, accepted so that a config can swap the env class alone); ``device``
-            (the torch device of the outputs) defaults to the warp device's.
+        *args: the task env's positional arguments, passed on.
         warp_device: where the physics runs: ``"cuda"``, ``"cuda:N"`` or ``"cpu"`` (warp's CPU
             backend, for checks).
-        nconmax, njmax: contacts and constraints per world (``None``: MuJoCo Warp's defaults).
+        nconmax: contacts per world (``None``: MuJoCo Warp's default).
+        njmax: constraints per world (``None``: MuJoCo Warp's default).
         graphs: replay the physics as CUDA graphs (``None``: on CUDA; :class:`WarpBatch`).
+        **kwargs: the task env's keyword arguments, passed on unchanged (``threads`` is unused
+            by MuJoCo Warp, accepted so that a config can swap the env class alone); ``device``
+            (the torch device of the outputs) defaults to the warp device's.
     """
 
     xp = torch
@@ -317,11 +319,8 @@ def warp_env(env: type | str, warp_device: str = "cuda", device_key: str = DEVIC
     the collector is built, before any training (the env itself is built at the first
     collection). ``device_key`` is the config key errors name for ``warp_device``.
 
-    Examples:
-        >>> from armeta_rl.envs.warp_physics import warp_env
-        >>> make_env = warp_env("armeta_rl.envs.locomotion_warp.HalfCheetahVelWarpEnv", "cpu")
-        >>> make_env.func.__name__, make_env.keywords
-        ('HalfCheetahVelWarpEnv', {'warp_device': 'cpu'})
+    ``configs/benchmark/half_cheetah_vel_warp.yaml`` builds its ``make_env`` as
+    ``warp_env("armeta_rl.envs.locomotion_warp.HalfCheetahVelWarpEnv", "cuda", **options)``.
     """
     given = env
     if isinstance(env, str):
