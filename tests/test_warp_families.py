@@ -125,6 +125,29 @@ def test_each_warp_world_has_the_dynamics_of_its_own_mass(cpu_env, warp_env, dev
     torch.testing.assert_close(masses, nominal * torch.tensor([[0.75], [1.25]]))
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_every_kind_of_physics_parameter_follows_its_own_warp_world(device):
+    """Friction, gravity, mass and inertia, damping and gear, each different in the two worlds:
+    each Warp world steps as the CPU simulation of its own physics."""
+    parameters = [
+        {"name": "friction", "kind": "geom_friction_scale", "target": "all", "low": 0.3,
+         "high": 1.5},
+        {"name": "gravity", "kind": "gravity_z", "low": -12.0, "high": -8.0},
+        {"name": "torso", "kind": "body_mass_scale", "target": "torso", "low": 0.5, "high": 2.0},
+        {"name": "damping", "kind": "joint_damping_scale", "target": "all", "low": 0.5,
+         "high": 2.0},
+        {"name": "gear", "kind": "actuator_gear_scale", "target": "all", "low": 0.5, "high": 2.0},
+    ]
+    kwargs = {"batch_size": (2, 1), "max_steps": STEPS, "seed": 1, "reset_noise_scale": 0.0}
+    cpu = physics_task_env(HalfCheetahVelEnv, parameters, **kwargs)
+    env = physics_task_env(partial(HalfCheetahVelWarpEnv, warp_device=device), parameters,
+                           **kwargs)
+    params = torch.tensor([[[1.0, 0.3, -12.0, 0.5, 0.5, 0.5]], [[1.0, 1.5, -8.0, 2.0, 2.0, 2.0]]])
+    errors = _teacher_forced(cpu, env, params, same_actions=True)
+    assert errors["obs"].max() <= OBS_TOL and errors["reward"].max() <= REWARD_TOL
+    assert (errors["cpu"][:, 0] - errors["cpu"][:, 1]).abs().max() > 100 * OBS_TOL
+
+
 @pytest.mark.parametrize("benchmark,env_class", [
     ("half_cheetah_vel_warp", HalfCheetahVelWarpEnv),
     ("half_cheetah_dir_warp", HalfCheetahDirWarpEnv),

@@ -333,7 +333,7 @@ class _BatchSims:
                 if isinstance(field, torch.Tensor):
                     at = (torch.as_tensor(rows, device=field.device)[:, None],
                           torch.as_tensor(edit.index, device=field.device)[None, :])
-                    field[at] = torch.as_tensor(values, dtype=field.dtype).to(field.device)
+                    field[at] = torch.tensor(np.array(values), dtype=field.dtype).to(field.device)
                 else:
                     field[rows[:, None], edit.index[None, :]] = values
         self.sim.set_const(rows.astype(np.int32))
