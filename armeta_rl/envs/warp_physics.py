@@ -159,13 +159,13 @@ class WarpBatch:
         expands it. After writing a field that ``mj_setConst`` reads (the masses), call
         :meth:`set_const`."""
         if name not in self._expanded:
-            owner, field = ((self.model.opt, name[4:]) if name.startswith("opt.")
-                            else (self.model, name))
-            host = getattr(self.host_model.opt if owner is self.model.opt else self.host_model,
-                           field)
+            option = name.startswith("opt.")
+            field = name[4:] if option else name
+            owner, host = ((self.model.opt, self.host_model.opt) if option
+                           else (self.model, self.host_model))
             self._per_world(owner, field)
             view = self.wp.to_torch(getattr(owner, field))
-            self._expanded[name] = view.reshape(self.nsim, *np.shape(host))
+            self._expanded[name] = view.reshape(self.nsim, *np.shape(getattr(host, field)))
         return self._expanded[name]
 
     def _per_world(self, owner: Any, field: str) -> None:
