@@ -195,7 +195,8 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
     def _healthy(self) -> np.ndarray:
         """Boolean ``[n_sims]``: the simulation goes on (else the episode terminates). Default: a
         finite state."""
-        return np.isfinite(self._qpos).all(-1) & np.isfinite(self._qvel).all(-1)
+        xp = self.xp
+        return xp.isfinite(self._qpos).all(-1) & xp.isfinite(self._qvel).all(-1)
 
     def _reset_noise(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The perturbations ``([n, nq], [n, nv])`` (float64) added to the model's initial qpos
@@ -210,9 +211,14 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
 
     # -- the simulation's arrays -------------------------------------------------------------
     # The step below is written once for the arrays the batch binds: float64 NumPy arrays here;
-    # torch tensors on a GPU for MuJoCo Warp (armeta_rl.envs.ant_goal_warp), which overrides
-    # these four. What reads the bound arrays (_observe, _reward, _healthy) uses only operators
-    # and methods the two share.
+    # float32 torch tensors on the warp device for MuJoCo Warp
+    # (armeta_rl.envs.warp_physics.WarpSimulation), which overrides these. What reads the bound
+    # arrays (_observe, _reward, _forward_reward, _healthy) uses only operators and methods the
+    # two share, and the functions of ``xp``.
+
+    xp = np
+    """The array module of the bound arrays (``numpy``; ``torch`` on MuJoCo Warp): the functions
+    the task's code calls on them (``xp.abs``, ``xp.where``, ...), which the two spell alike."""
 
     sim_device = torch.device("cpu")
     """Where the bound arrays live, as a torch device."""
@@ -236,7 +242,7 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
 
     def _make_batch(self, threads: int) -> Batch:
         """The ``n_sims`` simulations of the model, stepped natively on ``threads`` threads
-        (:class:`armeta_rl.envs.ant_goal_warp.AntGoalWarpEnv` puts them on MuJoCo Warp)."""
+        (:class:`armeta_rl.envs.warp_physics.WarpSimulation` puts them on MuJoCo Warp)."""
         return Batch(self.model, self.n_sims, nthread=threads)
 
     def _make_specs(self) -> None:

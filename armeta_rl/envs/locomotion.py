@@ -140,8 +140,7 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         """Fill the observation buffer ``[n_sims, 20]``: qpos[1:], clipped qvel, torso xpos."""
         nq, nv, obs = self.model.nq, self.model.nv, self._obs
         obs[:, : nq - 1] = self._qpos[:, 1:]
-        np.clip(self._qvel, -self.velocity_clip, self.velocity_clip,
-                out=obs[:, nq - 1 : nq - 1 + nv])
+        obs[:, nq - 1 : nq - 1 + nv] = self._qvel.clip(-self.velocity_clip, self.velocity_clip)
         obs[:, nq - 1 + nv :] = self._xpos[:, self._torso]
         return obs
 
@@ -151,7 +150,7 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
 
     def ctrl_cost(self, action: np.ndarray) -> np.ndarray:
         """``ctrl_cost_weight · ‖a‖²`` ``[n_sims]``."""
-        return self.ctrl_cost_weight * np.square(action).sum(-1)
+        return self.ctrl_cost_weight * self.xp.square(action).sum(-1)
 
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
@@ -173,7 +172,7 @@ class TargetVelocity:
 
     def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
         """−|v − goal_velocity| ``[n_sims]``."""
-        return -np.abs(self.forward_velocity(qpos_before) - task[:, 0])
+        return -self.xp.abs(self.forward_velocity(qpos_before) - task[:, 0])
 
 
 class HalfCheetahTaskEnv(PlanarRunnerEnv):
@@ -257,7 +256,7 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
 
     def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
         """``d·v`` ``[n_sims]``."""
-        return np.where(task[:, 0] >= 0, 1.0, -1.0) * self.forward_velocity(qpos_before)
+        return self.xp.where(task[:, 0] >= 0, 1.0, -1.0) * self.forward_velocity(qpos_before)
 
 
 class Walker2dVelEnv(TargetVelocity, PlanarRunnerEnv):
@@ -380,6 +379,7 @@ class AntDirEnv(AntTaskEnv):
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
         """The Ant-Dir reward of the module docstring."""
-        direction = np.stack([np.cos(task[:, 0]), np.sin(task[:, 0])], -1)
+        xp = self.xp
+        direction = xp.stack([xp.cos(task[:, 0]), xp.sin(task[:, 0])], -1)
         velocity = (self._qpos[:, :2] - qpos_before[:, :2]) / self.dt
         return self.ant_reward((direction * velocity).sum(-1), action)

@@ -37,8 +37,11 @@ envs: a TorchRL ``GymEnv`` of a gymnasium MuJoCo env (one simulation, batch ``[]
 ``SerialEnv`` of them (one task per sub-env, batch ``[n]``), and any env that steps a
 :class:`mujoco.batch.Batch` under ``env.sim`` with its model under ``env.model`` (our
 :class:`~armeta_rl.envs.batched_mujoco.BatchedMujocoEnv` envs: one task per simulation,
-batch ``[tasks, episodes]``). To run tasks in parallel processes, put one transform inside each
-worker's env (``ParallelEnv(n, lambda: TransformedEnv(GymEnv(...), PhysicsTaskTransform(...)))``).
+batch ``[tasks, episodes]``), on the CPU or as MuJoCo Warp worlds
+(:class:`~armeta_rl.envs.warp_physics.WarpBatch`, whose per-world model fields are MuJoCo Warp's
+batched fields and whose ``set_const`` is ``mjw.set_const``). To run tasks in parallel
+processes, put one transform inside each worker's env
+(``ParallelEnv(n, lambda: TransformedEnv(GymEnv(...), PhysicsTaskTransform(...)))``).
 
 Task families are written in YAML (``configs/task_family/``)::
 
@@ -315,17 +318,33 @@ class _ModelList:
 
 
 class _BatchSims:
-    """The simulations of one :class:`mujoco.batch.Batch`, with per-simulation model fields."""
+    """The simulations of one :class:`mujoco.batch.Batch`, or of a batch with its ``expand``,
+    ``set_const`` and ``nsim`` whose expanded fields are torch tensors (MuJoCo Warp's worlds,
+    :class:`~armeta_rl.envs.warp_physics.WarpBatch`), with per-simulation model fields."""
 
-    def __init__(self, sim: Batch, model: mujoco.MjModel) -> None:
+    def __init__(self, sim: Any, model: mujoco.MjModel) -> None:
         self.sim, self.model = sim, model
 
     def write(self, rows: np.ndarray, edits: Sequence[Sequence[_Edit]], params: np.ndarray) -> None:
         for j, parameter_edits in enumerate(edits):
             for edit in parameter_edits:
                 field = self.sim.expand(edit.field).reshape(self.sim.nsim, -1)
-                field[rows[:, None], edit.index[None, :]] = _new_values(edit, params[rows, j])
+                values = _new_values(edit, params[rows, j])
+                if isinstance(field, torch.Tensor):
+                    at = (torch.as_tensor(rows, device=field.device)[:, None],
+                          torch.as_tensor(edit.index, device=field.device)[None, :])
+                    field[at] = torch.tensor(np.array(values), dtype=field.dtype).to(field.device)
+                else:
+                    field[rows[:, None], edit.index[None, :]] = values
         self.sim.set_const(rows.astype(np.int32))
+
+
+def _is_batch(sim: Any) -> bool:
+    """Whether ``sim`` steps a batch of simulations with per-simulation model fields: a
+    :class:`mujoco.batch.Batch`, or a batch with the same ``expand`` and ``set_const``
+    (:class:`~armeta_rl.envs.warp_physics.WarpBatch`)."""
+    return isinstance(sim, Batch) or all(
+        callable(getattr(sim, name, None)) for name in ("expand", "set_const", "bind"))
 
 
 def _gym_model(env: GymEnv) -> tuple[mujoco.MjModel, mujoco.MjData]:
@@ -349,13 +368,14 @@ def _simulations(env: EnvBase) -> _ModelList | _BatchSims:
         if env.batch_size == torch.Size([]):
             model, data = _gym_model(env)
             return _ModelList([model], [data])
-    elif isinstance(env.__dict__.get("sim"), Batch) and isinstance(env.__dict__.get("model"),
-                                                                    mujoco.MjModel):
+    elif _is_batch(env.__dict__.get("sim")) and isinstance(env.__dict__.get("model"),
+                                                           mujoco.MjModel):
         return _BatchSims(env.sim, env.model)
     raise ConfigError(
         "env", type(env).__name__,
         "a GymEnv of a gymnasium MuJoCo env, a SerialEnv of them, or an env with a "
-        "mujoco.batch.Batch 'sim' and its 'model' (AntGoalEnv); for a ParallelEnv put a "
+        "mujoco.batch.Batch (or MuJoCo Warp WarpBatch) 'sim' and its 'model' (AntGoalEnv); for "
+        "a ParallelEnv put a "
         "PhysicsTaskTransform inside each worker's env",
     )
 
