@@ -129,6 +129,11 @@ def meta(entry: dict, results: Path) -> None:
         append_row(results, row)
 
 
+DEVICE_KEY = "benchmark.collector.make_env.warp_device"
+"""Where a Warp benchmark's config takes its warp device (a line's ``device_key`` where else: the
+MassVel families build the env under their mass transform)."""
+
+
 def warp(entry: dict, results: Path) -> None:
     """A MuJoCo Warp benchmark at the entry's size, each figure written as it is measured: a tiny
     collection first (it compiles the warp kernels), the env steps/s of one collection with the
@@ -148,7 +153,7 @@ def warp(entry: dict, results: Path) -> None:
         return trainer_for(
             f"benchmark={entry['benchmark']}", f"method={entry['method']}",
             f"device={entry['device']}",
-            f"benchmark.collector.make_env.warp_device={entry['warp_device']}",
+            f"{entry.get('device_key', DEVICE_KEY)}={entry['warp_device']}",
             f"trainer.meta_batch={tasks}", f"benchmark.collector.episodes={episodes}",
             f"benchmark.collector.max_steps={steps}", *entry.get("overrides", []))
 

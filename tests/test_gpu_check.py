@@ -52,7 +52,8 @@ def test_a_dry_run_writes_a_row_for_every_check_and_names_the_machine(tmp_path, 
             row = next(row for row in section.splitlines()
                        if row.startswith(f"| {line['benchmark']} | {part} |"))
             assert ("skipped" not in row) if warp_cpu else row.endswith(cuda), row
-        assert f"{line['benchmark']} >= {line['target_steps_per_s']:,} env steps/s: " in section
+        if "target_steps_per_s" in line:
+            assert f"{line['benchmark']} >= {line['target_steps_per_s']:,} env steps/s: " in section
     assert "not the target's size" in section or not warp_cpu
     for part in ("preflight", "meta-point_nav", "compiled-sinusoid_uniform"):
         assert f"| {part} | ok |" in section
