@@ -371,7 +371,6 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["table1", "seeds=7"], "'seeds' = 7: table1 at profile quick has: 0, 1"),
         (["table1", "iterations=3"], "'iterations' = '3': no such option"),
         (["profile=quick"], "name an experiment first"),
-        (["table1", "pack=yes"], "'pack' = 'yes': allowed: true, false"),
     ],
 )
 def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, args, expected):
@@ -380,6 +379,17 @@ def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, args, expected):
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert expected in result.stderr
     assert not (tmp_path / "r").exists()
+
+
+def test_a_pack_value_other_than_true_or_false_gets_one_line_and_exit_code_2(capsys):
+    from armeta_rl.reproduce.cli import parse
+
+    assert parse(["table1", "pack=true"])["pack"] is True
+    with pytest.raises(SystemExit) as exit_:
+        parse(["table1", "pack=yes"])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == ("armeta-reproduce: error: config key 'pack' = 'yes': "
+                                       "allowed: true, false\n")
 
 
 def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_path):
