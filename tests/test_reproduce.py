@@ -381,6 +381,17 @@ def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, args, expected):
     assert not (tmp_path / "r").exists()
 
 
+def test_a_pack_value_other_than_true_or_false_gets_one_line_and_exit_code_2(capsys):
+    from armeta_rl.reproduce.cli import parse
+
+    assert parse(["table1", "pack=true"])["pack"] is True
+    with pytest.raises(SystemExit) as exit_:
+        parse(["table1", "pack=yes"])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err == ("armeta-reproduce: error: config key 'pack' = 'yes': "
+                                       "allowed: true, false\n")
+
+
 def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_path):
     result = _run("cnp_table", "profile=tiny", f"results={table1_dir}", cwd=tmp_path)
     assert result.returncode == 2
@@ -667,3 +678,89 @@ def test_a_report_that_is_not_this_runs_is_unfinished_and_left_out(tmp_path, tab
     records = collect(plan, results, {})
     assert not [r for r in records if (r["method"], r["seed"], r["distribution"]) == (
         "maml", 0, "initial")]
+
+
+def _run_files(results: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(results)): p.read_bytes()
+            for p in sorted(results.glob("runs/*/*/*/*"))
+            if p.name == "config.yaml" or (p.name.startswith("eval") and p.suffix == ".json")}
+
+
+def test_packed_runs_hold_every_value_and_rebuild_the_reports_alone(table1_dir, tmp_path):
+    """``pack=true`` puts every report and config of the run directories into two compact files
+    that give each file back byte for byte (every float bit for bit); with the run directories
+    gone, the same command rebuilds the report, its CSV and its figure as they were."""
+    from armeta_rl.reproduce.packed import CONFIGS_FILE, REPORTS_FILE, read_packed, unpack
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    files = _run_files(results)
+    assert len(files) == 16 + 16 + 56  # every run's config.yaml and eval.json, every evaluation
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",), pack=True) == 0
+    aggregated = {name: (results / name).read_bytes()
+                  for name in ("table1.md", "table1.csv", "table1.png")}
+    packed = read_packed(results)
+    for name, data in files.items():
+        place = (str(Path(name).parent), Path(name).name)
+        if place[1] == "config.yaml":
+            assert packed.configs[place[0]] == data.decode()
+        else:  # key order and floats' every bit: the JSON texts are equal
+            assert json.dumps(packed.reports[place]) == json.dumps(json.loads(data))
+    unpack(tmp_path / "unpacked", packed)
+    assert _run_files(tmp_path / "unpacked") == files
+    size = sum(len(d) for d in files.values())
+    assert (results / REPORTS_FILE).stat().st_size + (results / CONFIGS_FILE).stat().st_size \
+        < size / 4
+    shutil.rmtree(results / "runs")
+    for name in aggregated:
+        (results / name).unlink()
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    assert {name: (results / name).read_bytes() for name in aggregated} == aggregated
+
+
+def test_a_run_directorys_report_wins_over_its_packed_copy(table1_dir, tmp_path):
+    """A report in its run directory is the one read (a sweep writing into a packed directory
+    reads its own reports): another run's report copied there marks the run unfinished although
+    its packed copy is its own, and the packed copy counts again once the file is gone."""
+    from armeta_rl.reproduce.packed import pack, read_packed
+    from armeta_rl.reproduce.plan import finished, report_problem
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    pack(results)
+    packed = read_packed(results)
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
+    report = results / maml.subdir / "eval.json"
+    shutil.copy(results / "runs/sinusoid_uniform/dr_maml/seed0/eval.json", report)
+    assert report_problem(results, maml, packed).startswith("it is the report of method")
+    shutil.rmtree(results / maml.subdir)
+    assert finished(results, maml, packed) and not finished(results, maml)
+
+
+def test_configs_pack_as_differences_from_the_base_and_read_back_as_written():
+    """A config is its differences from the base (each key's most common value); one with its
+    keys in another order also keeps that order, one whose keys cannot be dotted keeps its
+    text; every text reads back as it was."""
+    from armeta_rl.reproduce.packed import config_lines, configs_of
+
+    base = "method:\n  name: maml\n  lr: 0.01\nseed: 0\ntags:\n- a\n- 1\n"
+    configs = {"runs/a/seed0": base,
+               "runs/a/seed1": base.replace("seed: 0", "seed: 1"),
+               "runs/b/seed0": base.replace("lr: 0.01", "lr: 1").replace("tags:\n- a\n- 1\n",
+                                                                          "extra: {}\n"),
+               "runs/c/seed0": "seed: 0\nmethod:\n  name: maml\n  lr: 0.01\n",
+               "runs/d/seed0": base + "cvar:\n  '0.5': 1.0\n"}
+    lines = config_lines(configs)
+    assert lines[0]["base"] == {"method": {"name": "maml", "lr": 0.01}, "seed": 0,
+                                "tags": ["a", 1]}
+    by_run = {line["run"]: line for line in lines[1:]}
+    assert by_run["runs/a/seed0"] == {"run": "runs/a/seed0", "set": {}, "unset": []}
+    assert by_run["runs/a/seed1"]["set"] == {"seed": 1}
+    assert by_run["runs/b/seed0"]["set"] == {"method.lr": 1, "extra": {}}  # 1, not 1.0
+    assert by_run["runs/b/seed0"]["unset"] == ["tags"]
+    assert by_run["runs/c/seed0"]["order"] == ["seed", "method.name", "method.lr"]
+    assert by_run["runs/d/seed0"] == {"run": "runs/d/seed0", "text": configs["runs/d/seed0"]}
+    assert configs_of(lines) == configs

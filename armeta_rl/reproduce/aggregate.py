@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
@@ -18,14 +17,16 @@ from pathlib import Path
 from typing import Any
 
 from armeta_rl.config import CONFIG_FILE
+from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
 from armeta_rl.reproduce.plan import (
     EVAL_FILE,
     Plan,
+    TrainRun,
     finished,
     identity_problem,
-    report_sections,
+    load_report,
 )
-from armeta_rl.trainers.evaluation import ReportInvalid, read_report
+from armeta_rl.trainers.evaluation import ReportInvalid
 from armeta_rl.trainers.run_dir import write_text_atomically
 
 INITIAL = "initial"
@@ -154,29 +155,37 @@ def train_seconds(plan: Plan, results: Path, known: dict[str, float]) -> dict[st
     return seconds
 
 
-def collect(plan: Plan, results: Path, seconds: dict[str, float]) -> list[dict[str, Any]]:
+def collect(plan: Plan, results: Path, seconds: dict[str, float],
+            packed: Packed = NOTHING_PACKED) -> list[dict[str, Any]]:
     """One record per finished run and distribution: p0 from the run's ``eval.json`` (with the
     run's wall time from ``seconds``, :func:`train_seconds`), each named adversary from its
     ``eval_vs_<name>.json``, each shift (``shift/<name>``) from its ``eval_shifts.json``; with
-    noisy support labels as extra records. A report that fails its schema is not finished
-    (:func:`~armeta_rl.reproduce.plan.finished`) and is left out."""
+    noisy support labels as extra records. Each report is read from its run's directory, else
+    from ``packed`` (:func:`~armeta_rl.reproduce.plan.load_report`). A report that fails its
+    schema is not finished (:func:`~armeta_rl.reproduce.plan.finished`) and is left out."""
     records = []
     sources = [(run, EVAL_FILE, INITIAL, INITIAL) for run in plan.runs]
     sources += [(job.learner, Path(job.out).name, "adversarial", job.name) for job in plan.evals
                 if job.adversary is not None]
     shift_files = dict.fromkeys((job.learner, Path(job.out).name) for job in plan.evals
                                 if job.adversary is None)  # in the plan's order, as a set is not
+    reports: dict[tuple[str, str], dict[str, Any] | None] = {}
+
+    def read(run: TrainRun, file: str) -> dict[str, Any] | None:
+        if (run.subdir, file) not in reports:
+            try:
+                report = load_report(results, results / run.subdir / file, packed)
+            except ReportInvalid:
+                report = None
+            reports[(run.subdir, file)] = report
+        return reports[(run.subdir, file)]
+
     for run, file in shift_files:
-        path = results / run.subdir / file
-        if path.is_file():
-            sources += [(run, file, name, name) for name in json.loads(path.read_text())
-                        if name.startswith(SHIFT_PREFIX) and not name.endswith("_noisy")]
+        sources += [(run, file, name, name) for name in read(run, file) or ()
+                    if name.startswith(SHIFT_PREFIX) and not name.endswith("_noisy")]
     for run, file, section, distribution in sources:
-        try:
-            report = read_report(results / run.subdir / file, report_sections(file))
-        except ReportInvalid:
-            continue
-        if identity_problem(report, run, results) is not None:
+        report = read(run, file)
+        if report is None or identity_problem(report, run, results, packed) is not None:
             continue
         run_time = seconds.get(run.subdir) if file == EVAL_FILE else None
         for noisy in (False, True):
@@ -228,12 +237,12 @@ def display(name: str) -> str:
     return name
 
 
-def progress_note(plan: Plan, results: Path) -> str:
-    """How many of the plan's runs (attack runs included) and evaluations have finished (a
-    partial sweep says so)."""
+def progress_note(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) -> str:
+    """How many of the plan's runs (attack runs included) and evaluations have finished, in
+    their directories or ``packed`` (a partial sweep says so)."""
     trained = (*plan.runs, *plan.attacks)
-    runs = sum(finished(results, r) for r in trained)
-    evals = sum(finished(results, e) for e in plan.evals)
+    runs = sum(finished(results, r, packed) for r in trained)
+    evals = sum(finished(results, e, packed) for e in plan.evals)
     total = len(trained) + len(plan.evals)
     counts = (f"{runs}/{len(trained)} training runs"
               + (f" ({len(plan.attacks)} of them attack runs)" if plan.attacks else "")

@@ -1,6 +1,6 @@
 """``armeta-reproduce <experiment> [profile=quick|paper|paper_ray|paper_warp|tiny]
 [benchmarks=a,b] [seeds=0,1] [results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N]
-[hydra.launcher.…=…] [+train.<key>=<value>]``: one artefact of the paper.
+[pack=true] [hydra.launcher.…=…] [+train.<key>=<value>]``: one artefact of the paper.
 
 It trains the experiment's runs (one ``armeta-train`` multirun), then its attack runs against the
 finished ones (a second), scores them on the adversaries (one ``armeta-eval`` multirun) and
@@ -13,6 +13,9 @@ same command again continues a sweep.
 report keeps the other benchmarks' finished runs), ``launcher=none`` only aggregates, ``hydra.*``
 and ``hydra/<group>=`` arguments go to both multiruns (launcher settings) and
 ``+train.<key>=<value>`` is appended to every training run's overrides.
+``pack=true`` packs the run directories' reports and configs into ``reports.jsonl.gz`` and
+``configs.jsonl.gz``; the report is then rebuilt from those files alone where the run directories
+are gone (``launcher=none``), and runs packed there are never run again.
 """
 
 from __future__ import annotations
@@ -48,6 +51,14 @@ from armeta_rl.reproduce.launch import (
     ray_address,
     train_job,
 )
+from armeta_rl.reproduce.packed import (
+    CONFIGS_FILE,
+    NOTHING_PACKED,
+    REPORTS_FILE,
+    Packed,
+    read_packed,
+)
+from armeta_rl.reproduce.packed import pack as pack_runs
 from armeta_rl.reproduce.plan import (
     Plan,
     finished,
@@ -60,7 +71,7 @@ from armeta_rl.trainers.run_dir import write_text_atomically
 
 PROG = "armeta-reproduce"
 MANIFEST = "reproduce.yaml"
-OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs")
+OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs", "pack")
 DEFAULT_STOP_SIGNALS = ("SIGTERM", "SIGUSR1")
 """The signals (besides SIGINT) on which a sweep stops: its runs in flight finish their
 iteration and checkpoint, no further job starts, and the command exits 75 (SIGINT: 130)."""
@@ -205,16 +216,17 @@ def run_times(records: list[dict]) -> str:
 
 
 def write_report(plan: Plan, results: Path, wall_seconds: float,
-                 seconds: dict[str, float]) -> Path:
+                 seconds: dict[str, float], packed: Packed = NOTHING_PACKED) -> Path:
     """``<experiment>.csv`` and ``<experiment>.md`` (with its figures) from the finished runs,
-    with each run's wall time from ``seconds``."""
-    records = collect(plan, results, seconds)
+    in their directories or ``packed``, with each run's wall time from ``seconds``."""
+    records = collect(plan, results, seconds, packed)
     write_csv(records, results / f"{plan.experiment}.csv")
     body = LAYOUTS[plan.spec["layout"]](plan, records, results) if records else "No run finished."
-    body += learning_curves_section(plan, results)
+    body += learning_curves_section(plan, results, packed)
     minutes = wall_seconds / 60
     text = (f"# {plan.spec['title']}\n\n{plan.spec.get('description', '').strip()}\n\n"
-            f"{progress_note(plan, results)} Wall time of the sweeps so far: {minutes:.1f} min"
+            f"{progress_note(plan, results, packed)} Wall time of the sweeps so far: "
+            f"{minutes:.1f} min"
             f"{run_times(records)}.\n"
             f"Cells: mean ± std over seeds unless marked s.e.; every run's numbers are in "
             f"`{plan.experiment}.csv`.\n\n{body}\n")
@@ -223,12 +235,12 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
     return path
 
 
-def learning_curves_section(plan: Plan, results: Path) -> str:
+def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) -> str:
     """Every training run's learning curve into ``<experiment>_curves.csv.gz`` (rows of runs
     whose logs are gone kept from the file as it was) and their figure; the report's section
     that shows them, empty when no run has logged one."""
     path = curves_path(results, plan.experiment)
-    rows = collect_curves(plan, results, read_curves(path))
+    rows = collect_curves(plan, results, read_curves(path), packed)
     if not rows:
         return ""
     write_curves(rows, path)
@@ -242,14 +254,15 @@ def learning_curves_section(plan: Plan, results: Path) -> str:
 
 
 def reported_plan(results: Path, experiment: str, profile: str, extra: tuple[str, ...],
-                  benchmarks: tuple[str, ...] | None) -> Plan:
+                  benchmarks: tuple[str, ...] | None, packed: Packed = NOTHING_PACKED) -> Plan:
     """The plan a report covers: every seed of the requested ``benchmarks`` and of each other
     benchmark of the experiment with a finished run in ``results``, so a sweep restricted to some
     benchmarks never drops the rows that the directory already holds for the others."""
     whole = make_plan(experiment, profile, extra)
     if benchmarks is None:
         return whole
-    shown = {*benchmarks, *(run.benchmark for run in whole.runs if finished(results, run))}
+    shown = {*benchmarks, *(run.benchmark for run in whole.runs
+                            if finished(results, run, packed))}
     return make_plan(experiment, profile, extra, tuple(shown))
 
 
@@ -257,10 +270,13 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
               launcher: str = "local", jobs: int | None = None,
               hydra_args: tuple[str, ...] = (), extra: tuple[str, ...] = (),
               benchmarks: tuple[str, ...] | None = None,
-              seeds: tuple[int, ...] | None = None) -> int:
+              seeds: tuple[int, ...] | None = None, pack: bool = False) -> int:
     """Run what is missing of ``experiment`` at ``profile`` (restricted to ``benchmarks`` and
     ``seeds``) and aggregate over all seeds the benchmarks of :func:`reported_plan`; the exit
-    code (0 when every run and evaluation of the restriction finished).
+    code (0 when every run and evaluation of the restriction finished). Runs packed in the
+    results directory's compact files (:mod:`armeta_rl.reproduce.packed`) count as finished and
+    are aggregated from them; with ``pack``, every run directory's reports and config are packed
+    into those files before aggregating.
 
     Raises:
         ConfigError: an unknown experiment, profile or launcher, a results directory that is not
@@ -284,7 +300,8 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
         if refused is not None and report_path(results, item).exists():
             print(f"{PROG}: {report_path(results, item)} is not a finished report ({refused}): "
                   "made again", file=sys.stderr)
-    runs = [r for r in plan.runs if not finished(results, r)]
+    packed = read_packed(results)
+    runs = [r for r in plan.runs if not finished(results, r, packed)]
     attack_note = (f", {len(plan.attacks)} attack runs" if plan.attacks else "")
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
           f"({len(runs)} to run){attack_note}, {len(plan.evals)} evaluations; launcher "
@@ -300,13 +317,14 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
                           f"{experiment} train", len(plan.runs) - len(runs),
                           (*selected, *hydra_args), local)
         attacks = [] if launcher == "none" or stop.requested else [  # targets finished
-            a for a in plan.attacks if not finished(results, a) and finished(results, a.target)]
+            a for a in plan.attacks if not finished(results, a, packed)
+            and finished(results, a.target)]
         if attacks:
             code = launch(train, [train_job(results, a) for a in attacks],
                           results, f"{experiment} attack",
-                          sum(finished(results, a) for a in plan.attacks),
+                          sum(finished(results, a, packed) for a in plan.attacks),
                           (*selected, *hydra_args), local) or code
-        evals = [e for e in plan.evals if not finished(results, e)]
+        evals = [e for e in plan.evals if not finished(results, e, packed)]
         ready = [] if stop.requested else [
             e for e in evals if finished(results, e.learner)
             and (e.adversary is None or finished(results, e.adversary))]
@@ -317,17 +335,21 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     wall = manifest["wall_seconds"]
     if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
         wall[experiment] = clock.before + clock.seconds
-    whole = reported_plan(results, experiment, profile, extra, benchmarks)
+    if pack:
+        packed = pack_runs(results)
+        print(f"{PROG}: packed {len(packed.reports)} reports and {len(packed.configs)} configs "
+              f"into {results / REPORTS_FILE} and {results / CONFIGS_FILE}")
+    whole = reported_plan(results, experiment, profile, extra, benchmarks, packed)
     seconds = train_seconds(whole, results, dict(manifest.get("train_seconds", {})))
     manifest["train_seconds"] = seconds
     save_manifest(results, manifest)
-    report = write_report(whole, results, wall.get(experiment, 0.0), seconds)
-    print(f"{PROG}: {progress_note(whole, results)} Report: {report}")
+    report = write_report(whole, results, wall.get(experiment, 0.0), seconds, packed)
+    print(f"{PROG}: {progress_note(whole, results, packed)} Report: {report}")
     if stop.requested:
         print(f"{PROG}: stopped by {stop.name}: the runs in flight wrote checkpoints; the same "
               "command continues the sweep", file=sys.stderr)
         return stop.exit_code
-    incomplete = any(not finished(results, r)
+    incomplete = any(not finished(results, r, packed)
                      for r in (*plan.runs, *plan.attacks, *plan.evals))
     return code or int(incomplete)
 
@@ -356,6 +378,10 @@ def parse(args: list[str]) -> dict:
             if not all(part.isdigit() for part in value.split(",")):
                 _fail(f"config key 'seeds' = {value!r}: must be comma-separated integers")
             options["seeds"] = tuple(int(part) for part in value.split(","))
+        elif key == "pack":
+            if value not in ("true", "false"):
+                _fail(f"config key 'pack' = {value!r}: allowed: true, false")
+            options["pack"] = value == "true"
         elif key == "results":
             options["results"] = Path(value)
         elif key in OPTIONS:

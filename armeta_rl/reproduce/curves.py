@@ -18,6 +18,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
+from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
 from armeta_rl.reproduce.plan import Plan, finished
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, write_atomically
 
@@ -78,18 +79,18 @@ def _parse(key: str, value: str) -> Any:
     return int(value) if key in ("seed", "iteration") else float(value)
 
 
-def collect_curves(plan: Plan, results: Path, kept: Sequence[dict[str, Any]] = ()
-                   ) -> list[dict[str, Any]]:
+def collect_curves(plan: Plan, results: Path, kept: Sequence[dict[str, Any]] = (),
+                   packed: Packed = NOTHING_PACKED) -> list[dict[str, Any]]:
     """One row per iteration of every finished training run of ``plan`` (attack runs included;
-    a run still training is left out): from the run's log where it has one, else its rows in
-    ``kept`` (the experiment's file as it was)."""
+    a run still training is left out; a packed run is finished): from the run's log where it has
+    one, else its rows in ``kept`` (the experiment's file as it was)."""
     old: dict[tuple, list[dict[str, Any]]] = {}
     for row in kept:
         old.setdefault(_identity(row), []).append(row)
     rows = []
     for run in (*plan.runs, *plan.attacks):
         identity = (run.benchmark, run.name, run.seed)
-        if not finished(results, run):
+        if not finished(results, run, packed):
             continue
         curve = run_curve(results / run.subdir)
         if not curve:

@@ -14,6 +14,7 @@ own per profile.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from armeta_rl.config import CONFIG_FILE
 from armeta_rl.config_files import config_files
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce import PROFILES_FILE, experiment_names
+from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
 
 EVAL_FILE = "eval.json"
 
@@ -283,49 +285,84 @@ def report_path(results: Path, run: TrainRun | EvalJob) -> Path:
     return results / (run.out if isinstance(run, EvalJob) else f"{run.subdir}/{EVAL_FILE}")
 
 
-def report_problem(results: Path, run: TrainRun | EvalJob) -> str | None:
+def report_problem(results: Path, run: TrainRun | EvalJob,
+                   packed: Packed = NOTHING_PACKED) -> str | None:
     """Why the report of ``run`` (its ``eval.json``; an evaluation job's own report) does not
-    mark it finished, or ``None`` when it does: the file is missing, unreadable, or fails its
-    schema (:func:`~armeta_rl.trainers.evaluation.check_report`; a hand-edited mean or a NaN)."""
-    from armeta_rl.trainers.evaluation import ReportInvalid, read_report
+    mark it finished, or ``None`` when it does: the file is missing (from the run's directory
+    and from ``packed``), unreadable, or fails its schema
+    (:func:`~armeta_rl.trainers.evaluation.check_report`; a hand-edited mean or a NaN)."""
+    from armeta_rl.trainers.evaluation import ReportInvalid
 
     path = report_path(results, run)
     try:
-        return identity_problem(read_report(path, report_sections(path.name)), run, results)
+        return identity_problem(load_report(results, path, packed), run, results, packed)
     except ReportInvalid as error:
         return str(error)
 
 
+def load_report(results: Path, path: Path, packed: Packed = NOTHING_PACKED) -> dict[str, Any]:
+    """The report at ``path`` (in a run directory of ``results``) if it passes its schema: the
+    file where it exists, else its packed copy in ``packed``, else :class:`ReportInvalid`
+    (a run's own files win, so a sweep writing into a packed directory reads its new reports)."""
+    from armeta_rl.trainers.evaluation import ReportInvalid, check_report, read_report
+
+    place = (str(path.parent.relative_to(results)), path.name)
+    if path.exists() or path.is_symlink() or place not in packed.reports:
+        return read_report(path, report_sections(path.name))
+    report = packed.reports[place]
+    try:
+        check_report(report, report_sections(path.name))
+    except ReportInvalid as error:
+        raise ReportInvalid(f"its packed copy: {error}") from None
+    return report
+
+
+@functools.lru_cache(maxsize=4096)
+def config_digest(text: str) -> str:
+    """The ``config_sha256`` (:func:`~armeta_rl.trainers.checkpoint.run_identity`) of a run's
+    ``config.yaml`` text; remembered by text, as a report asks for every run's several times and
+    composing a config is most of an aggregation's time."""
+    from armeta_rl.trainers.checkpoint import run_identity
+
+    return run_identity(OmegaConf.create(text))["config_sha256"]
+
+
 def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
-                     results: Path) -> str | None:
+                     results: Path, packed: Packed = NOTHING_PACKED) -> str | None:
     """Why ``report``, found where ``run`` keeps its report, is another run's (its benchmark,
     method or seed differ from the run's, or an evaluation job's learner's; or the digest of
     the result-changing keys it records differs from the run's ``config.yaml``'s, as a variant's
-    does), or ``None``: a report copied from another run's directory is not this run's result."""
-    from armeta_rl.trainers.checkpoint import run_identity
-
+    does; the run's packed config where its directory has none), or ``None``: a report copied
+    from another run's directory is not this run's result."""
     learner = run.learner if isinstance(run, EvalJob) else run
     expected = {"benchmark": learner.config, "method": learner.method, "seed": learner.seed}
     for key, value in expected.items():
         if key in report and report[key] != value:
             return f"it is the report of {key} {report[key]!r}, not this run's {value!r}"
     config = results / learner.subdir / CONFIG_FILE
-    if "config_sha256" in report and config.is_file():
-        try:
-            ours = run_identity(OmegaConf.load(config))["config_sha256"]
-        except (OSError, ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException):
-            return None  # a damaged config.yaml is its run's own refusal (resume says so)
-        if report["config_sha256"] != ours:
-            return (f"it is the report of another config (config_sha256 "
-                    f"{str(report['config_sha256'])[:12]}…, not this run's {ours[:12]}…)")
+    if "config_sha256" not in report:
+        return None
+    try:
+        if config.is_file():
+            ours = config_digest(config.read_text(encoding="utf-8"))
+        elif learner.subdir in packed.configs:
+            ours = config_digest(packed.configs[learner.subdir])
+        else:
+            return None
+    except (OSError, ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException):
+        return None  # a damaged config.yaml is its run's own refusal (resume says so)
+    if report["config_sha256"] != ours:
+        return (f"it is the report of another config (config_sha256 "
+                f"{str(report['config_sha256'])[:12]}…, not this run's {ours[:12]}…)")
     return None
 
 
-def finished(results: Path, run: TrainRun | EvalJob) -> bool:
-    """Whether a run has its ``eval.json`` (an evaluation job: its report), passing the schema
-    of a report and being this run's (:func:`identity_problem`); a damaged, hand-edited or
-    copied one counts as unfinished, so it is made again."""
-    return report_problem(results, run) is None
+def finished(results: Path, run: TrainRun | EvalJob, packed: Packed = NOTHING_PACKED) -> bool:
+    """Whether a run has its ``eval.json`` (an evaluation job: its report), in its directory or
+    in ``packed``, passing the schema of a report and being this run's
+    (:func:`identity_problem`); a damaged, hand-edited or copied one counts as unfinished, so it
+    is made again."""
+    return report_problem(results, run, packed) is None
 
 
 def interrupted(results: Path, run: TrainRun) -> bool:

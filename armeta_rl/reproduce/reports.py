@@ -241,8 +241,9 @@ def entropy(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     images = {(run.benchmark, f"λ = {lambdas[run.variant]}"):
               results / run.subdir / "density.png" for run in plan.runs
               if run.seed == seed and (results / run.subdir / "density.png").is_file()}
-    figures.image_grid(images, _benchmarks(plan), [f"λ = {lambdas[v]}" for v in variants],
-                       results / f"{plan.experiment}_densities.png")
+    if images:  # packed runs keep no density map: their figure stays as it was drawn
+        figures.image_grid(images, _benchmarks(plan), [f"λ = {lambdas[v]}" for v in variants],
+                           results / f"{plan.experiment}_densities.png")
     return (markdown_table(header, rows) + f"\n\n![MSE against λ]({plan.experiment}_lambda.png)"
             f"\n\nMean ± s.e. over seeds.\n\n" + markdown_table(mse_header, mse_rows)
             + f"\n\n![densities]({plan.experiment}_densities.png)\n\nDensity maps: seed {seed}, "
