@@ -764,3 +764,18 @@ def test_configs_pack_as_differences_from_the_base_and_read_back_as_written():
     assert by_run["runs/c/seed0"]["order"] == ["seed", "method.name", "method.lr"]
     assert by_run["runs/d/seed0"] == {"run": "runs/d/seed0", "text": configs["runs/d/seed0"]}
     assert configs_of(lines) == configs
+
+
+def test_a_gain_cell_counts_the_seeds_that_adapt_in_the_returns_decimals():
+    """Three seeds' gains on returns near −55: one decimal as the returns have (a gain of 7.58
+    is not written with three), the root-mean-square standard error over tasks in brackets, and
+    the seeds whose gain is beyond twice its error counted."""
+    from armeta_rl.reproduce.reports import _gain
+
+    records = [{"method": "maml", "seed": s, "mean": m, "gain": g, "gain_sem": e}
+               for s, m, g, e in ((0, -54.0, 7.5, 2.0), (1, -56.0, 3.0, 2.0),
+                                  (2, -55.0, 12.24, 2.0))]
+    records.append({"method": "dr_maml", "seed": 0, "mean": -60.0, "gain": None})
+    text, adapting, seeds = _gain(records, method="maml")
+    assert text == "+7.6 ± 4.6 [2.0] (2/3 adapt)" and (adapting, seeds) == (2, 3)
+    assert _gain(records, method="dr_maml") == ("–", 0, 0)

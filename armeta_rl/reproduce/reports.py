@@ -329,14 +329,15 @@ def _difference(pairs: list[dict[str, Any]], column: str, higher_better: bool) -
 def _gain(records: list[dict[str, Any]], **where: Any) -> tuple[str, int, int]:
     """The adaptation gain over seeds, ``+mean ± std [RMS s.e. over tasks] (k/S adapt)``, with k
     the seeds whose gain is beyond twice its standard error over tasks
-    (:func:`~armeta_rl.trainers.evaluation.adapts`); and k and S."""
+    (:func:`~armeta_rl.trainers.evaluation.adapts`); and k and S. Written with the decimals of
+    the returns it is a difference of, so the cells of one table agree."""
     from armeta_rl.trainers.evaluation import adapts
 
     chosen = [r for r in select(records, **where) if r.get("gain") is not None]
     if not chosen:
         return "–", 0, 0
     spread = over_seeds([r["gain"] for r in chosen])
-    places = decimals(spread.mean)
+    places = decimals(over_seeds([r["mean"] for r in chosen]).mean)  # the return's decimals
     text = f"{spread.mean:+.{places}f}" + (f" ± {spread.std:.{places}f}" if spread.n > 1 else "")
     sems = [r["gain_sem"] for r in chosen if r.get("gain_sem") is not None]
     if sems:
