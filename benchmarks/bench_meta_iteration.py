@@ -38,7 +38,7 @@ from timing import markdown_table, reference_product_ms, wall_times, write_secti
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
-from armeta_rl.config import validate
+from armeta_rl.config import TrainerConfig, validate
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.players import build_players
 
@@ -84,9 +84,7 @@ def trainer_for(method: str, *overrides: str) -> GameTrainer:
     return GameTrainer(
         players.leader,
         players.principle,
-        iterations=10**9,
-        meta_batch=cfg.trainer.meta_batch,
-        progress=False,
+        TrainerConfig(iterations=10**9, meta_batch=cfg.trainer.meta_batch, progress=False),
     )
 
 

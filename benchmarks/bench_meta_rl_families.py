@@ -42,7 +42,7 @@ from timing import alternating_ratios, markdown_table, reference_product_ms, wri
 
 from armeta_rl.allocator import keep_freed_memory
 from armeta_rl.cli import config_dir
-from armeta_rl.config import validate
+from armeta_rl.config import TrainerConfig, validate
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.players import build_players
 
@@ -66,8 +66,9 @@ def trainer_for(benchmark: str, method: str, tasks: int, episodes: int,
     config = validate(cfg)
     players = build_players(config)
     players.leader.collector.env(tasks)  # built before the timed iterations
-    return GameTrainer(players.leader, players.principle, iterations=10**9, meta_batch=tasks,
-                       progress=False, follower_at=config.trainer.follower_at)
+    return GameTrainer(players.leader, players.principle, TrainerConfig(
+        iterations=10**9, meta_batch=tasks, progress=False,
+        follower_at=config.trainer.follower_at))
 
 
 def seconds(fn, repeats: int) -> tuple[float, float]:

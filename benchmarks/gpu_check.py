@@ -160,14 +160,14 @@ def compose(*overrides: str):
 def trainer_for(overrides: Sequence[str]):
     """A seeded trainer of the config ``overrides`` (players built as ``armeta-train`` builds
     them), and its players."""
-    from armeta_rl.config import validate
+    from armeta_rl.config import TrainerConfig, validate
     from armeta_rl.trainers.game import GameTrainer
     from armeta_rl.trainers.players import build_players
 
     cfg = compose(*overrides, "trainer.progress=false", "logger=none")
     players = build_players(validate(cfg))
-    trainer = GameTrainer(players.leader, players.principle, iterations=10**9,
-                          meta_batch=cfg.trainer.meta_batch, progress=False)
+    trainer = GameTrainer(players.leader, players.principle, TrainerConfig(
+        iterations=10**9, meta_batch=cfg.trainer.meta_batch, progress=False))
     return trainer, players
 
 
