@@ -3,10 +3,12 @@
 Bad input ends with one line naming the config key, the value and what is allowed (and the
 likely key, for a misspelt one), and exit code 2. The config of every job on the command line is
 composed (Hydra checks the types and refuses unknown keys) and validated
-(:func:`armeta_rl.config.validate`: the ranges and the rules between keys) before Hydra starts; a
-single run's directory is checked and locked then too, so a refused command writes nothing. A
-run stopped by a diverged loss or a failed write ends with one line and exit code 1. See
-docs/configuration.md.
+(:func:`armeta_rl.config.validate`: the ranges, the rules between keys, the device resolved)
+before Hydra starts; a resumed run's saved config is merged with the command line's changes and
+validated then (:func:`resume_config`). A single run's directory is checked and locked then too,
+so a refused command writes nothing. What runs below the CLI takes the validated
+:class:`~armeta_rl.config.TrainConfig`, never a composed config. A run stopped by a diverged loss
+or a failed write ends with one line and exit code 1. See docs/configuration.md.
 """
 
 from __future__ import annotations
@@ -18,11 +20,14 @@ import sys
 from collections.abc import Callable, Sequence
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from armeta_rl.config_files import config_files, group_choices
+
+if TYPE_CHECKING:
+    from armeta_rl.config import TrainConfig
 
 GROUPS = ("benchmark", "method", "logger")
 """The config groups a command line chooses from (``benchmark=point_nav``)."""
@@ -190,16 +195,25 @@ def _composition_message(job: list[str], config_name: str, error: Exception) -> 
     return " ".join(text.split())
 
 
-def check_jobs(args: Sequence[str]) -> list[Any]:
+def checked(cfg: DictConfig) -> TrainConfig:
+    """The composed ``cfg`` validated (:func:`armeta_rl.config.validate`) with its method's
+    names checked against the registries (:func:`armeta_rl.factory.check_method`)."""
+    from armeta_rl.config import validate
+    from armeta_rl.factory import check_method
+
+    config = validate(cfg)
+    check_method(config.method)
+    return config
+
+
+def check_jobs(args: Sequence[str]) -> list[TrainConfig]:
     """Compose and validate the ``armeta-train`` config of every job on the command line (each
     combination of a ``-m`` sweep), so that no job trains before every job's values are known to
     be good; returns their :class:`~armeta_rl.config.TrainConfig`. :class:`Refused` for the
     first bad one."""
     from hydra import initialize_config_dir
 
-    from armeta_rl.config import validate
     from armeta_rl.errors import ConfigError
-    from armeta_rl.factory import check_method
 
     jobs = job_overrides(args)
     configs = []
@@ -207,8 +221,7 @@ def check_jobs(args: Sequence[str]) -> list[Any]:
         for job in jobs:
             where = f" (job {' '.join(job)})" if len(jobs) > 1 else ""
             try:
-                config = validate(compose_job(job))
-                check_method(config.method)
+                config = checked(compose_job(job))
             except Refused as refused:
                 raise Refused(f"{refused}{where}") from None
             except ConfigError as error:
@@ -229,11 +242,18 @@ bar, the allocator, the stop signals, and torch's thread count (which the seeded
 families were measured not to change: tests/test_faults.py)."""
 
 
-def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
-    """The config a run resumed from ``run_dir`` with ``overrides`` continues under: its saved
-    config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised and
-    ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given. Any other override, or
-    fewer iterations, is refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
+def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:
+    """The config a run resumed from ``run_dir`` with ``overrides`` continues under
+    (:func:`resume_changes`)."""
+    return resume_changes(run_dir, overrides)[0]
+
+
+def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, list[str]]:
+    """The config a run resumed from ``run_dir`` with ``overrides`` continues under, validated:
+    its saved config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised
+    and ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given; and ``key=value`` of
+    each key of :data:`NO_RESULT_KEYS` it changes. Any other override, or fewer iterations, is
+    refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
     from armeta_rl.config import load_run_config, validate
 
     saved = load_run_config(run_dir, "resume")
@@ -263,8 +283,7 @@ def resume_config(run_dir: str, overrides: list[str]) -> DictConfig:
                        f"{saved.trainer.iterations} on resume (a run can train longer, not "
                        "shorter)")
     cfg = _merged(saved, changes)
-    validate(cfg)
-    return cfg
+    return validate(cfg), changed_on_resume(saved, cfg)
 
 
 def changed_on_resume(saved: DictConfig, cfg: DictConfig) -> list[str]:
@@ -369,43 +388,54 @@ def _in_run_list_sweep() -> bool:
             and hydra_cfg.sweeper.get("_target_") == RunListSweeperConf._target_)
 
 
-def _train_task(cfg: DictConfig) -> None:
-    """Train (or resume) one run, stopping cleanly on ``trainer.stop_signals`` and SIGINT
-    (:mod:`armeta_rl.preemption`): the signal becomes the process's stop request, which the game
-    loop reads."""
-    from hydra.core.hydra_config import HydraConfig
-
+def _train_task(config: TrainConfig, run_dir: Path, taken: Sequence[str] = ()) -> None:
+    """Train (or resume) the run of the validated ``config`` in ``run_dir``, stopping cleanly on
+    ``trainer.stop_signals`` and SIGINT (:mod:`armeta_rl.preemption`): the signal becomes the
+    process's stop request, which the game loop reads. ``taken``: the keys a resume changed
+    (:func:`resume_changes`), said first."""
     from armeta_rl.allocator import keep_freed_memory
-    from armeta_rl.config import load_run_config
     from armeta_rl.errors import RunStopped
     from armeta_rl.preemption import PROCESS, listening
     from armeta_rl.trainers.training import run_training
 
-    if cfg.resume:
-        saved = load_run_config(cfg.resume, "resume")
-        cfg = resume_config(cfg.resume, list(HydraConfig.get().overrides.task))
-        run_dir = Path(cfg.resume)
-        taken = changed_on_resume(saved, cfg)
-        if taken:
-            print(f"resuming {run_dir} with {', '.join(taken)} (they change no result)")
-    else:
-        run_dir = Path(HydraConfig.get().runtime.output_dir)
+    if taken:
+        print(f"resuming {run_dir} with {', '.join(taken)} (they change no result)")
     if PROCESS.requested:  # a later job of a sweep worker that was asked to stop
         raise RunStopped(f"not started: this process received {PROCESS.name}; the same command "
                          "starts it", PROCESS.exit_code)
-    if cfg.trainer.keep_freed_memory:
+    if config.trainer.keep_freed_memory:
         keep_freed_memory()
-    with listening(cfg.trainer.stop_signals) as stop:
-        run_training(cfg, run_dir, stop=stop)
+    with listening(config.trainer.stop_signals) as stop:
+        run_training(config, run_dir, stop=stop)
+
+
+def _sweep_job(cfg: DictConfig) -> None:
+    """One job of a ``-m`` sweep, trained (:func:`_train_task`) with its composed ``cfg``
+    validated (:func:`checked`; a basic sweep's jobs were all checked before the first started,
+    a ``run_list`` sweep's by ``armeta-reproduce``) in the directory Hydra gave it, or, for a job
+    that resumes a run, with that run's config and the job's changes (:func:`resume_changes`)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if cfg.resume:
+        config, taken = resume_changes(cfg.resume, list(HydraConfig.get().overrides.task))
+        _train_task(config, Path(cfg.resume), taken)
+    else:
+        _train_task(checked(cfg), Path(HydraConfig.get().runtime.output_dir))
 
 
 def _run_hydra(argv: list[str], config_name: str, task: Callable[[DictConfig], None]) -> None:
-    """Hydra's command line (``hydra.main``) on ``argv`` rather than ``sys.argv``."""
-    from hydra._internal.utils import _run_hydra, get_args_parser
+    """Hydra's command line (``hydra.main``) on ``argv``: Hydra's entry point reads its words
+    from ``sys.argv``, which holds them while it runs."""
+    import hydra
 
-    parser = get_args_parser()
-    _run_hydra(args=parser.parse_args(argv), args_parser=parser, task_function=task,
-               config_path=str(config_dir()), config_name=config_name)
+    main = hydra.main(config_path=str(config_dir()), config_name=config_name,
+                      version_base=None)(task)
+    program = sys.argv[:1] or ["armeta"]
+    saved, sys.argv = sys.argv, [*program, *argv]
+    try:
+        main()
+    finally:
+        sys.argv = saved
 
 
 def planned_run_dir(args: list[str]) -> Path:
@@ -493,9 +523,9 @@ def train(argv: list[str] | None = None) -> int:
 
 def _train(args: list[str]) -> None:
     prog = "armeta-train"
-    task = _report_errors(prog, _train_task)
-    if _without_checks(args, prog, "train", task, GROUPS, "train a method on a benchmark "
-                       "(armeta-train [group=option ...] [key=value ...] [-m])"):
+    if _without_checks(args, prog, "train", _report_errors(prog, _sweep_job), GROUPS,
+                       "train a method on a benchmark (armeta-train [group=option ...] "
+                       "[key=value ...] [-m])"):
         return
     from armeta_rl.trainers.run_dir import check_run_dir, run_lock
 
@@ -508,16 +538,23 @@ def _train(args: list[str]) -> None:
     if resume:
         if multirun:
             raise Refused(f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
-        resume_config(resume, [a for a in args if not a.startswith("-")])
+        config, taken = resume_changes(resume, [a for a in args if not a.startswith("-")])
         # the run's job log stays in its own directory, whatever hydra.run.dir says
         args = [a for a in args if not a.startswith(("hydra.run.dir=", "hydra.output_subdir="))]
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     else:
-        check_jobs(args)
+        configs, taken = check_jobs(args), []
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
-        _run_hydra(args, "train", task)
+        _run_hydra(args, "train", _report_errors(prog, _sweep_job))
         return
+    if not resume:
+        if len(configs) > 1:
+            raise Refused(f"a command line of {len(configs)} jobs (a value with commas): add -m "
+                          "to run them all; a list value is written key=[a,b]")
+        (config,) = configs
     run_dir = Path(resume) if resume else planned_run_dir(args)
+    # Hydra composes the same config again for its job; the run takes the one checked here
+    task = _report_errors(prog, lambda _composed: _train_task(config, run_dir, taken))
     key = "resume" if resume else "hydra.run.dir"
     check_run_dir(run_dir, key)
     given = [a for a in args if a.startswith("hydra.run.dir=")]
@@ -553,25 +590,27 @@ def _remove_run_dir(run_dir: Path) -> None:
 
 
 def _eval_task(cfg: DictConfig) -> None:
-    from armeta_rl.config import load_run_config
+    """Score the runs ``cfg`` names: each run's saved config, with the command line's ``device``
+    and ``eval.*``, validated once (:func:`armeta_rl.trainers.players.saved_run`), the run
+    directories first, each named as itself, then the report's path derived from them."""
     from armeta_rl.errors import ConfigError
     from armeta_rl.trainers.evaluation import format_table
-    from armeta_rl.trainers.report import cross_evaluate
+    from armeta_rl.trainers.players import saved_run
+    from armeta_rl.trainers.report import evaluate_runs
     from armeta_rl.trainers.run_dir import write_text_atomically
 
     if not isinstance(cfg.initial, bool):
         raise ConfigError("initial", cfg.initial, "must be true or false")
-    load_run_config(cfg.learner, "learner")  # the run directories first, each named as itself,
-    if cfg.adversary is not None:            # then the report's path derived from them
-        load_run_config(cfg.adversary, "adversary")
+    overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
+    learner = saved_run(cfg.learner, "learner", cfg.device, {"eval": overrides})
+    adversary = (None if cfg.adversary is None
+                 else saved_run(cfg.adversary, "adversary", cfg.device))
     shifts = OmegaConf.to_container(cfg.shifts) if OmegaConf.is_list(cfg.shifts) else cfg.shifts
     suffix = ("" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}") or (
         "" if shifts is None else "_shifts")
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     check_writable(out, "out")
-    overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    report = cross_evaluate(cfg.learner, cfg.adversary, overrides, cfg.device, shifts,
-                            cfg.initial)
+    report = evaluate_runs(cfg.learner, learner, cfg.adversary, adversary, shifts, cfg.initial)
     write_text_atomically(out, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     print(f"written: {out}")

@@ -6,8 +6,9 @@ learners' and risk principles' sections (``learner.maml``, ``risk.ar``) are thei
 dataclasses, registered in Hydra's ConfigStore by :func:`armeta_rl.fields.register` and listed in
 the defaults of ``configs/train.yaml``. This module imports none of them. Hydra checks every
 value's type and refuses unknown keys as it composes; :func:`validate` makes the dataclasses,
-which checks every range and the rules between keys, and is called once, by the CLI (and by
-:func:`~armeta_rl.trainers.training.run_training` for Python callers). See
+which checks every range and the rules between keys and resolves ``device``. The CLI calls it
+once per run (a resumed run: on its saved config merged with the command line's changes,
+:func:`load_run`), and everything below the CLI takes the :class:`TrainConfig` it returns. See
 docs/configuration.md.
 """
 
@@ -18,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
 import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
@@ -214,9 +216,20 @@ class TrainConfig(Section):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        resolve_device(self.device)
+        self._device = resolve_device(self.device)
         self.check_task_split()
         self.check_machine()
+
+    @property
+    def torch_device(self) -> torch.device:
+        """``device`` as the ``torch.device`` it was resolved to when this config was checked
+        (the one resolution of a run: the builders take this object)."""
+        return self._device
+
+    def values(self) -> dict[str, Any]:
+        """Every key's value as plain, resolved YAML types: what ``config.yaml`` saves, what
+        :func:`~armeta_rl.trainers.checkpoint.run_identity` digests and wandb records."""
+        return OmegaConf.to_container(OmegaConf.structured(self), resolve=True)
 
     def check_machine(self) -> None:
         """``threads`` within this process's CPUs, and the sizes within the device's memory:
@@ -321,9 +334,28 @@ def schema() -> DictConfig:
     return cfg
 
 
+def load_run(run_dir: str | Path, key: str, changes: Mapping[str, Any] | None = None
+             ) -> TrainConfig:
+    """The config saved in ``run_dir`` (:func:`load_run_config`) with ``changes`` merged in,
+    checked (:func:`validate`); ``key`` names the option that pointed there."""
+    saved = load_run_config(run_dir, key)
+    try:
+        merged = OmegaConf.merge(saved, changes or {})
+    except OmegaConfBaseException as error:
+        raise config_error(error) from None
+    return validate(merged)
+
+
+def run_values(run_dir: str | Path, key: str) -> dict[str, Any]:
+    """The values of the config saved in ``run_dir`` (:func:`load_run_config`), resolved, as
+    plain YAML types, not checked: what another run compares its own with."""
+    return OmegaConf.to_container(load_run_config(run_dir, key), resolve=True)
+
+
 def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
-    """The resolved config saved in ``run_dir``, typed (:func:`schema`); ``key`` names the option
-    that pointed there. A file that does not parse, or lacks a section every run's config has
+    """The resolved config saved in ``run_dir``, typed (:func:`schema`), not checked (a resume
+    merges the command line's changes first, :func:`load_run`); ``key`` names the option that
+    pointed there. A file that does not parse, or lacks a section every run's config has
     (:data:`SAVED_SECTIONS`: an empty or truncated file), is refused: merged into the schema it
     would silently take defaults."""
     path = Path(run_dir) / CONFIG_FILE

@@ -16,6 +16,7 @@ workloads, its timing and its tables from here.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import os
 import platform
@@ -65,11 +66,9 @@ def trainer_for(*overrides: str) -> tuple[GameTrainer, Players]:
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = compose("train", overrides=[*overrides, "trainer.progress=false", "logger=none"])
     config = validate(cfg)
-    players, options = build_players(config), config.trainer
-    trainer = GameTrainer(players.leader, players.principle, iterations=10**9,
-                          meta_batch=options.meta_batch, progress=False,
-                          max_loss=options.max_loss, follower_rollouts=options.follower_rollouts,
-                          follower_at=options.follower_at)
+    players = build_players(config)
+    trainer = GameTrainer(players.leader, players.principle,
+                          dataclasses.replace(config.trainer, iterations=10**9))
     return trainer, players
 
 

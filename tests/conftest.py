@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
 from armeta_rl.cli import config_dir
-from armeta_rl.config import validate
+from armeta_rl.config import TrainConfig, validate
 
 torch.set_num_threads(1)
 os.environ.setdefault("WANDB_MODE", "offline")
@@ -36,6 +36,11 @@ def compose_train(*overrides: str) -> DictConfig:
     """The ``armeta-train`` config for ``overrides``."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         return compose("train", overrides=list(overrides))
+
+
+def train_config(*overrides: str) -> TrainConfig:
+    """The ``armeta-train`` config for ``overrides``, validated as the CLI validates it."""
+    return validate(compose_train(*overrides))
 
 
 def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:

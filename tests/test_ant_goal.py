@@ -303,7 +303,7 @@ def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):
         "logger=csv",
     )
     assert cfg.benchmark.collector.workers == 2
-    report = run_training(cfg, tmp_path)
+    report = run_training(validate(cfg), tmp_path)
     assert report["metric"] == "return" and "adversarial" in report
     for curve in ("return_pre", "return_post"):
         assert (tmp_path / "logs" / "scalars" / "train" / f"{curve}.csv").is_file()

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.trainers.players import load_players
+from armeta_rl.trainers.players import build_players, load_players
 from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, players_of
+from conftest import SMALL_RUN, train_config
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 RUN = (*SMALL_RUN, "trainer.meta_batch=5", "trainer.checkpoint_every=2", "logger=csv",
@@ -24,12 +24,12 @@ RUN = (*SMALL_RUN, "trainer.meta_batch=5", "trainer.checkpoint_every=2", "logger
 def target(tmp_path_factory):
     """A finished MAML run: the learner attacked."""
     run_dir = tmp_path_factory.mktemp("maml")
-    run_training(compose_train(*RUN, "method=maml"), run_dir, progress=False)
+    run_training(train_config(*RUN, "method=maml"), run_dir, progress=False)
     return run_dir
 
 
 def attack(target, *overrides):
-    return compose_train(*RUN, "method=ar_maml", f"trainer.frozen_leader={target}", *overrides)
+    return train_config(*RUN, "method=ar_maml", f"trainer.frozen_leader={target}", *overrides)
 
 
 @pytest.fixture(scope="module")
@@ -51,7 +51,7 @@ def test_the_learner_stays_and_the_adversary_learns_against_it(target, attacked)
     report = json.loads((attacked / "eval.json").read_text())
     scored = json.loads((target / "eval.json").read_text())
     assert report["initial"] == scored["initial"]  # the same learner on the same p0 tasks
-    initial_phi = players_of(attack(target)).principle.parameters()
+    initial_phi = build_players(attack(target)).principle.parameters()
     assert not all(torch.equal(a, b) for a, b in zip(players.principle.parameters(), initial_phi))
     logged = (attacked / "logs" / "scalars" / "adversary" / "objective.csv").read_text()
     assert len(logged.splitlines()) == 6
@@ -98,7 +98,7 @@ def test_a_learner_that_does_not_fit_is_refused(tmp_path, target, overrides, wor
 
 def test_an_unfinished_or_missing_target_gets_one_line_and_exit_code_2(tmp_path, target):
     unfinished = tmp_path / "unfinished"
-    run_training(compose_train(*RUN, "method=maml", "trainer.stop_at=2"), unfinished,
+    run_training(train_config(*RUN, "method=maml", "trainer.stop_at=2"), unfinished,
                  progress=False)
     for source, words in ((unfinished, "has not finished (no eval.json)"),
                           (tmp_path / "nothing", "is not a run directory")):

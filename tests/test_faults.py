@@ -5,6 +5,7 @@ uninterrupted run's evaluation and logs, or it is refused with a clear error."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import errno
 import json
 import logging
@@ -26,6 +27,7 @@ from PIL import Image
 
 import armeta_rl.trainers.checkpoint as checkpoint_module
 from armeta_rl.cli import Refused, _eval_task, _report_errors, config_dir, resume_config, train
+from armeta_rl.config import validate
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
@@ -33,7 +35,7 @@ from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.report import EVAL_FILE, cross_evaluate
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOCK_FILE
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, train_config
 
 RUN = (*SMALL_RUN, "method=ar_maml", "trainer.meta_batch=5", "logger=csv",
        "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.density_every=0")
@@ -61,7 +63,7 @@ def outcome(run_dir):
 def whole(tmp_path_factory):
     """The uninterrupted run."""
     run_dir = tmp_path_factory.mktemp("whole")
-    run_training(compose_train(*RUN), run_dir, progress=False)
+    run_training(train_config(*RUN), run_dir, progress=False)
     return run_dir
 
 
@@ -69,9 +71,9 @@ def finish(run_dir):
     """Continue ``run_dir`` after a fault: resume it, or start it afresh when the fault came
     before its config was saved (then nothing of it was kept)."""
     if (run_dir / "config.yaml").exists():
-        run_training(compose_train(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+        run_training(train_config(*RUN, f"resume={run_dir}"), run_dir, progress=False)
     else:
-        run_training(compose_train(*RUN), run_dir, progress=False)
+        run_training(train_config(*RUN), run_dir, progress=False)
 
 
 class FaultPoints:
@@ -97,7 +99,7 @@ class FaultPoints:
 def test_a_run_killed_at_random_points_resumes_exactly(tmp_path, whole, monkeypatch):
     with monkeypatch.context() as patch:
         counter = FaultPoints(patch, None)
-        run_training(compose_train(*RUN), tmp_path / "counted", progress=False)
+        run_training(train_config(*RUN), tmp_path / "counted", progress=False)
     points = counter.calls
     rng = random.Random(29)
     kill_points = rng.sample(range(1, points + 1), KILLS)
@@ -107,7 +109,7 @@ def test_a_run_killed_at_random_points_resumes_exactly(tmp_path, whole, monkeypa
         with monkeypatch.context() as patch:
             FaultPoints(patch, kill_at)
             with pytest.raises(Killed):
-                run_training(compose_train(*RUN), run_dir, progress=False)
+                run_training(train_config(*RUN), run_dir, progress=False)
         if n % 4 == 0:  # every fourth run is killed again while it resumes
             with monkeypatch.context() as patch:
                 again = FaultPoints(patch, rng.randint(1, points // 2))
@@ -160,7 +162,7 @@ FILES = {
 def stopped(tmp_path_factory):
     """A run stopped at iteration 4 (checkpoints 2 and 4)."""
     run_dir = tmp_path_factory.mktemp("stopped")
-    run_training(compose_train(*RUN, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(train_config(*RUN, "trainer.stop_at=4"), run_dir, progress=False)
     return run_dir
 
 
@@ -212,7 +214,7 @@ def test_a_full_disk_keeps_the_last_intact_checkpoint_and_resumes_exactly(
     with monkeypatch.context() as patch:
         enospc_from(patch, 5)  # the second checkpoint (iteration 4): 4 files per checkpoint
         task = _report_errors("armeta-train",
-                              lambda cfg: run_training(cfg, run_dir, progress=False))
+                              lambda cfg: run_training(validate(cfg), run_dir, progress=False))
         with pytest.raises(SystemExit) as exit_:
             task(compose_train(*RUN))
     assert exit_.value.code == 1
@@ -227,7 +229,7 @@ def test_a_full_disk_keeps_the_last_intact_checkpoint_and_resumes_exactly(
 def test_a_full_disk_error_is_a_run_directory_error(tmp_path, monkeypatch):
     enospc_from(monkeypatch, 1)
     with pytest.raises(RunDirectoryError, match="checkpoint-000000000002: No space left"):
-        run_training(compose_train(*RUN), tmp_path, progress=False)
+        run_training(train_config(*RUN), tmp_path, progress=False)
 
 
 def test_interrupted_staging_is_cleaned(tmp_path, whole, stopped):
@@ -251,11 +253,11 @@ def test_a_locked_run_directory_is_refused_until_its_holder_dies(tmp_path):
                               stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
     with pytest.raises(ConfigError, match=rf"in use by another run \(pid {holder.pid}\)"):
-        run_training(compose_train(*RUN), tmp_path, progress=False)
+        run_training(train_config(*RUN), tmp_path, progress=False)
     assert not (tmp_path / "config.yaml").exists()
     holder.kill()
     holder.wait()
-    run_training(compose_train(*RUN), tmp_path, progress=False)  # the dead holder's lock
+    run_training(train_config(*RUN), tmp_path, progress=False)  # the dead holder's lock
     assert (tmp_path / EVAL_FILE).is_file() and not (tmp_path / LOCK_FILE).exists()
 
 
@@ -275,19 +277,19 @@ def test_two_runs_started_together_into_one_directory(tmp_path, whole):
 
 def test_the_divergence_bound_stops_the_run_and_names_the_checkpoint(tmp_path, monkeypatch):
     with pytest.raises(TrainingDiverged, match="beyond trainer.max_loss = 0.001.*no checkpoint"):
-        run_training(compose_train(*RUN, "trainer.max_loss=1e-3"), tmp_path, progress=False)
+        run_training(train_config(*RUN, "trainer.max_loss=1e-3"), tmp_path, progress=False)
     run_dir = tmp_path / "later"
     step = game.GameTrainer.train_iteration
 
     def blows_up_at_3(self):
         """Iteration 3's losses leave a bound that the first two kept."""
         if self.iteration == 2:
-            self.max_loss = 1e-3
+            self.options = dataclasses.replace(self.options, max_loss=1e-3)
         return step(self)
 
     monkeypatch.setattr(game.GameTrainer, "train_iteration", blows_up_at_3)
     with pytest.raises(TrainingDiverged, match="iteration 3.*checkpoint-000000000002 is kept"):
-        run_training(compose_train(*RUN), run_dir, progress=False)
+        run_training(train_config(*RUN), run_dir, progress=False)
 
 
 def test_a_diverged_adversary_step_stops_the_run_at_its_last_good_checkpoint(
@@ -309,10 +311,10 @@ def test_a_diverged_adversary_step_stops_the_run_at_its_last_good_checkpoint(
         patch.setattr(adversarial, "follower_step", explodes_at_3)
         with pytest.raises(TrainingDiverged, match="non-finite parameters.*"
                                                    "checkpoint-000000000002 is kept"):
-            run_training(compose_train(*RUN), run_dir, progress=False)
+            run_training(train_config(*RUN), run_dir, progress=False)
     _, players = load_players(run_dir, "resume")
     assert all(torch.isfinite(p).all() for p in players.principle.parameters())
-    run_training(compose_train(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+    run_training(train_config(*RUN, f"resume={run_dir}"), run_dir, progress=False)
     assert (run_dir / EVAL_FILE).is_file()
 
 
@@ -430,9 +432,9 @@ def test_resume_with_more_iterations_follows_the_longer_cosine_schedule(tmp_path
     iteration 7 on, exactly the adversary learning rates of a run planned for 10 from the start
     (η_t = η·(1 + cos(π t / 10)) / 2 at update t + 1); its config.yaml then says 10."""
     longer = tmp_path / "longer"
-    run_training(compose_train(*RUN, "trainer.iterations=10"), longer, progress=False)
+    run_training(train_config(*RUN, "trainer.iterations=10"), longer, progress=False)
     extended = tmp_path / "extended"
-    run_training(compose_train(*RUN), extended, progress=False)
+    run_training(train_config(*RUN), extended, progress=False)
     cfg = resume_config(str(extended), [f"resume={extended}", "trainer.iterations=10"])
     run_training(cfg, extended, progress=False)
     rates = {run: (run / CSV_LOG_DIR / "scalars" / "adversary" / "lr.csv").read_text()
@@ -453,7 +455,7 @@ def test_a_read_only_run_directory_is_refused_before_anything_is_written(tmp_pat
     parent.chmod(0o555)
     try:
         with pytest.raises(ConfigError, match=r"cannot be written in .* \(read-only\)"):
-            run_training(compose_train(*RUN), parent / "run", progress=False)
+            run_training(train_config(*RUN), parent / "run", progress=False)
         assert not (parent / "run").exists()
     finally:
         parent.chmod(0o755)
@@ -462,10 +464,10 @@ def test_a_read_only_run_directory_is_refused_before_anything_is_written(tmp_pat
 def test_an_rl_run_resumes_exactly(tmp_path):
     overrides = (*SMALL_RUN, "benchmark=point_nav_plain", "method=maml", "trainer.iterations=4",
                  "trainer.checkpoint_every=2", "trainer.meta_batch=4", "eval.n_tasks=4")
-    run_training(compose_train(*overrides), tmp_path / "whole", progress=False)
-    run_training(compose_train(*overrides, "trainer.stop_at=2"), tmp_path / "split",
+    run_training(train_config(*overrides), tmp_path / "whole", progress=False)
+    run_training(train_config(*overrides, "trainer.stop_at=2"), tmp_path / "split",
                  progress=False)
-    run_training(compose_train(*overrides, f"resume={tmp_path / 'split'}"), tmp_path / "split",
+    run_training(train_config(*overrides, f"resume={tmp_path / 'split'}"), tmp_path / "split",
                  progress=False)
     assert (tmp_path / "split" / EVAL_FILE).read_text() == (tmp_path / "whole" / EVAL_FILE
                                                              ).read_text()
@@ -559,14 +561,14 @@ def test_a_stop_request_is_read_by_the_game_loop(tmp_path, whole, monkeypatch):
     monkeypatch.setattr(game.GameTrainer, "train_iteration", requested_during_5)
     run_dir = tmp_path / "run"
     with pytest.raises(RunStopped, match="stopped by SIGUSR1 after iteration 5") as stopped:
-        run_training(compose_train(*RUN), run_dir, progress=False, stop=stop)
+        run_training(train_config(*RUN), run_dir, progress=False, stop=stop)
     assert stopped.value.code == EXIT_PREEMPTED
     monkeypatch.undo()
     finish(run_dir)
     assert outcome(run_dir) == outcome(whole)
     before = tmp_path / "before"
     with pytest.raises(RunStopped, match="after iteration 0: no checkpoint yet"):
-        run_training(compose_train(*RUN), before, progress=False, stop=stop)
+        run_training(train_config(*RUN), before, progress=False, stop=stop)
     assert (before / "config.yaml").exists() and not (before / "checkpoints").exists()
     finish(before)
     assert outcome(before) == outcome(whole)
@@ -639,7 +641,7 @@ def test_resuming_a_finished_run_changes_nothing(tmp_path, whole, capsys):
     run_dir = tmp_path / "run"
     shutil.copytree(whole, run_dir)
     files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != LOCK_FILE}
-    report = run_training(compose_train(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+    report = run_training(train_config(*RUN, f"resume={run_dir}"), run_dir, progress=False)
     assert report == json.loads((whole / EVAL_FILE).read_text())
     assert "has finished: nothing to do" in capsys.readouterr().out
     assert {p: p.read_bytes() for p in files} == files
@@ -655,7 +657,7 @@ def test_an_evaluation_cut_short_is_logged_once_on_resume(tmp_path, whole, monke
         patch.setattr("armeta_rl.trainers.training.write_text_atomically",
                       lambda path, text: (_ for _ in ()).throw(Killed()))
         with pytest.raises(Killed):
-            run_training(compose_train(*RUN), run_dir, progress=False)
+            run_training(train_config(*RUN), run_dir, progress=False)
     assert not (run_dir / EVAL_FILE).exists()
     finish(run_dir)
     assert outcome(run_dir) == outcome(whole)
@@ -665,18 +667,18 @@ def test_an_evaluation_cut_short_is_logged_once_on_resume(tmp_path, whole, monke
 def framed(tmp_path_factory):
     """The uninterrupted run with density frames at 0, 2, 4 and 6."""
     run_dir = tmp_path_factory.mktemp("framed")
-    run_training(compose_train(*FRAMES), run_dir, progress=False)
+    run_training(train_config(*FRAMES), run_dir, progress=False)
     return run_dir
 
 
 def test_a_damaged_density_frame_is_left_out_of_the_animation_with_a_warning(
         tmp_path, framed, caplog):
     run_dir = tmp_path / "run"
-    run_training(compose_train(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(train_config(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
     for damaged in ("iter_000002.png", "iter_000002.pt"):  # a frame with its numbers is redrawn
         (run_dir / "density" / damaged).write_bytes(b"")
     with caplog.at_level(logging.WARNING):
-        run_training(compose_train(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
+        run_training(train_config(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
     assert "iter_000002.png cannot be read: left out of density.gif" in caplog.text
     assert outcome(run_dir) == outcome(framed)
     frames = Image.open(run_dir / "density.gif")
@@ -701,7 +703,7 @@ def test_every_file_of_a_run_is_written_through_a_staged_sibling(tmp_path, monke
 
     monkeypatch.setattr(builtins, "open", spy(real_open))
     monkeypatch.setattr(io, "open", spy(real_io_open))
-    run_training(compose_train(*FRAMES), tmp_path / "run", progress=False)
+    run_training(train_config(*FRAMES), tmp_path / "run", progress=False)
     monkeypatch.undo()
     staged = [p for p in written if any(part.startswith(".") for part in p.parts)]
     direct = sorted({p.relative_to(tmp_path) for p in written
@@ -772,7 +774,7 @@ def test_eval_names_the_learner_before_the_report_path_and_checks_out_first(
         tmp_path, stopped, capsys, monkeypatch):
     code, err = evaluate_in_process(capsys, f"learner={tmp_path / 'no' / 'run'}")
     assert code == 2 and len(err) == 1 and "'learner'" in err[0], err
-    monkeypatch.setattr("armeta_rl.trainers.report.cross_evaluate",
+    monkeypatch.setattr("armeta_rl.trainers.report.evaluate_runs",
                         lambda *args: pytest.fail("evaluated before checking out="))
     code, err = evaluate_in_process(capsys, f"learner={stopped}", "out=/proc/armeta/eval.json")
     assert code == 2 and len(err) == 1 and "'out'" in err[0], err
@@ -1011,7 +1013,7 @@ def test_a_checkpoint_of_another_run_is_refused_on_resume_and_eval(tmp_path, sto
     it, or loading it as a frozen leader refuses them as another run's (its seed differs), and
     nothing is trained or written."""
     other = tmp_path / "other"
-    run_training(compose_train(*RUN, "seed=4", "trainer.stop_at=2"), other, progress=False)
+    run_training(train_config(*RUN, "seed=4", "trainer.stop_at=2"), other, progress=False)
     run_dir = tmp_path / "run"
     shutil.copytree(stopped, run_dir)
     shutil.rmtree(run_dir / "checkpoints")
@@ -1079,10 +1081,10 @@ def test_a_frame_a_kill_cut_off_after_its_checkpoint_is_drawn_on_resume(tmp_path
     its numbers saved): the resumed run draws it from the checkpoint's p_φ, so its animation
     equals the uninterrupted run's frame for frame."""
     run_dir = tmp_path / "run"
-    run_training(compose_train(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(train_config(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
     for name in lost:
         (run_dir / "density" / name).unlink()
-    run_training(compose_train(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
+    run_training(train_config(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
     ours, theirs = Image.open(run_dir / "density.gif"), Image.open(framed / "density.gif")
     assert ours.n_frames == theirs.n_frames
     for index in range(ours.n_frames):

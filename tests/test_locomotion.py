@@ -19,6 +19,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs, step_mdp
 
+from armeta_rl.config import validate
 from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
 from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
 from armeta_rl.errors import ConfigError
@@ -170,7 +171,7 @@ def test_half_cheetah_vel_benchmark_trains(tmp_path):
     env = collector_of(cfg).env(2)
     assert isinstance(env, HalfCheetahVelEnv) and env.batch_size == (2, 2)
     assert (env.ctrl_cost_weight, env.frame_skip, env.max_steps) == (0.05, 5, 10)
-    report = run_training(cfg, tmp_path)
+    report = run_training(validate(cfg), tmp_path)
     assert report["metric"] == "return" and "adversarial" in report
 
 

@@ -15,6 +15,7 @@ from torch.func import functional_call
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
+from armeta_rl.config import TrainerConfig
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, last_step_loss
 from armeta_rl.rl.baseline import (
@@ -533,7 +534,8 @@ def test_mpts_with_the_authors_label_learns_from_the_last_step_loss():
     update, scores = principle.update, leader.scores
     principle.update = lambda tasks, losses: seen.append(losses) or update(tasks, losses)
     leader.scores = lambda batch: scored.append(scores(batch)) or scored[-1]
-    GameTrainer(leader, principle, iterations=1, meta_batch=3, progress=False).train_iteration()
+    options = TrainerConfig(iterations=1, meta_batch=3, progress=False)
+    GameTrainer(leader, principle, options).train_iteration()
     assert principle.label == "last_step_loss"
     assert torch.equal(seen[0], scored[0]["last_step_loss"])
     assert not torch.equal(seen[0], scored[0]["loss"])

@@ -80,7 +80,7 @@ def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
         "benchmark.collector.max_steps=10",
         "logger=csv",
     )
-    report = run_training(cfg, tmp_path)
+    report = run_training(validate(cfg), tmp_path)
     assert report["metric"] == "return"
     assert report["initial"]["cvar"]["0.5"] <= report["initial"]["mean"]
     assert ("adversarial" in report) == (method == "ar_maml")
@@ -91,7 +91,7 @@ def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
 def test_cnp_has_no_rl_form():
     cfg = compose_train(*SMALL_RUN, "benchmark=point_nav", "method=cnp")
     with pytest.raises(ConfigError, match="supports methods whose learner is one of: maml"):
-        run_training(cfg, "/nonexistent")
+        run_training(validate(cfg), "/nonexistent")
 
 
 @pytest.mark.parametrize(

@@ -14,6 +14,7 @@ from torchrl.collectors import Collector
 from torchrl.envs import SerialEnv, StepCounter, TransformedEnv
 from torchrl.envs.utils import RandomPolicy, check_env_specs
 
+from armeta_rl.config import validate
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
 from armeta_rl.envs.batched_mujoco import load_gym_model
 from armeta_rl.envs.mujoco_tasks import (
@@ -288,7 +289,7 @@ def test_ant_goal_physics_benchmark_builds_its_env_and_trains(tmp_path):
     torso = load_ant_model().body("torso")
     masses = env.base_env.sim.expanded("body_mass")[:, torso.id]
     np.testing.assert_array_equal(masses, torso.mass[0] * np.repeat([1.75, 0.5], 2))
-    report = run_training(cfg, tmp_path)
+    report = run_training(validate(cfg), tmp_path)
     assert report["metric"] == "return" and "adversarial" in report
 
 
@@ -353,5 +354,5 @@ def test_half_cheetah_mass_vel_benchmark_trains(tmp_path):
                         "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "benchmark.collector.make_env.threads=1")
-    report = run_training(cfg, tmp_path)
+    report = run_training(validate(cfg), tmp_path)
     assert report["metric"] == "return" and "adversarial" in report

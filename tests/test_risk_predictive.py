@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from armeta_rl.cli import train
+from armeta_rl.config import validate
 from armeta_rl.errors import ConfigError, TrainingDiverged
 from armeta_rl.risk import mpts, pdts
 from armeta_rl.risk.base import RiskPrinciple
@@ -494,7 +495,7 @@ def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
                         "trainer.iterations=2", "trainer.meta_batch=3", "eval.n_tasks=3",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "logger=csv")
-    report = run_training(cfg, tmp_path)
+    report = run_training(validate(cfg), tmp_path)
     assert report["metric"] == "return" and report["method"] == f"{kind}_maml"
     assert (tmp_path / "logs" / "scalars" / "risk" / "pcc.csv").is_file()
 

@@ -10,6 +10,7 @@ import torch
 from tensordict import TensorDict
 
 from armeta_rl.collectors.regression import SinusoidCollector
+from armeta_rl.config import TrainerConfig
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml import MAMLLeader
 from armeta_rl.learners.mlp import make_mlp
@@ -125,7 +126,8 @@ def test_dr_training_logs_the_tail_of_each_steps_losses():
     def train(principle) -> tuple[list[dict[str, float]], torch.Tensor]:
         torch.manual_seed(0)
         leader = MAMLLeader(make_mlp(1, 1, (8, 8)), SinusoidCollector(5, 5))
-        trainer = GameTrainer(leader, principle, iterations=3, meta_batch=8, progress=False)
+        trainer = GameTrainer(leader, principle,
+                              TrainerConfig(iterations=3, meta_batch=8, progress=False))
         return [trainer.train_iteration() for _ in range(3)], torch.get_rng_state()
 
     logs, rng = train(TailRiskPrinciple(BoxUniform(SPACE), DrOptions(alpha=0.5)))

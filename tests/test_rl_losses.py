@@ -26,7 +26,7 @@ from armeta_rl.rl.losses import (
 )
 from armeta_rl.rl.policy import GaussianMLP, log_prob, make_actor
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, players_of
+from conftest import SMALL_RUN, compose_train, players_of, train_config
 
 K, E, T = 3, 4, 6
 
@@ -182,10 +182,10 @@ PPO_RUN = (*SMALL_RUN, "benchmark=point_nav_plain", "method=ar_maml", "method.le
 def test_a_resumed_maml_ppo_run_ends_exactly_like_an_uninterrupted_one(tmp_path):
     """The outer optimizer's state travels in the checkpoint: AR-MAML-PPO stopped after
     iteration 2 and resumed writes the uninterrupted run's eval.json, byte for byte."""
-    run_training(compose_train(*PPO_RUN), tmp_path / "whole", progress=False)
-    run_training(compose_train(*PPO_RUN, "trainer.stop_at=2"), tmp_path / "split",
+    run_training(train_config(*PPO_RUN), tmp_path / "whole", progress=False)
+    run_training(train_config(*PPO_RUN, "trainer.stop_at=2"), tmp_path / "split",
                  progress=False)
-    run_training(compose_train(*PPO_RUN, f"resume={tmp_path / 'split'}"), tmp_path / "split",
+    run_training(train_config(*PPO_RUN, f"resume={tmp_path / 'split'}"), tmp_path / "split",
                  progress=False)
     whole, split = ((tmp_path / d / "eval.json").read_text() for d in ("whole", "split"))
     assert whole == split

@@ -21,7 +21,7 @@ from armeta_rl.tasks.shifts import (
     suite_shifts,
 )
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train
+from conftest import SMALL_RUN, compose_train, train_config
 
 EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
 BOXES = {
@@ -117,7 +117,7 @@ def test_a_shifts_tasks_depend_on_its_name_only():
 @pytest.fixture(scope="module")
 def sinusoid_run(tmp_path_factory):
     run = tmp_path_factory.mktemp("shifts") / "maml"
-    run_training(compose_train(*SMALL_RUN, "method=maml"), run)
+    run_training(train_config(*SMALL_RUN, "method=maml"), run)
     return run
 
 

@@ -10,6 +10,7 @@ import pytest
 import torch
 from tensordict import TensorDict
 
+from armeta_rl.config import validate
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml import MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import TiedAngleHead, make_mlp
@@ -110,5 +111,5 @@ def test_a_short_maml_run_on_the_paper_protocol_lowers_the_query_mse(tmp_path):
     assert isinstance(untrained.leader.model, TiedAngleHead)
     before = evaluate_on(untrained.leader, untrained.initial, untrained.eval_collector,
                          cfg.eval.n_tasks, [0.5], cfg.eval.seed)["mean"]
-    run_training(cfg, tmp_path)
+    run_training(validate(cfg), tmp_path)
     assert json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"] < 0.7 * before

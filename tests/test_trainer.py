@@ -7,16 +7,17 @@ import sys
 import pytest
 import torch
 
+from armeta_rl.config import TrainerConfig, validate
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, players_of
+from conftest import SMALL_RUN, compose_train, players_of, train_config
 
 
 @pytest.mark.parametrize("method", ["maml", "ar_maml"])
 def test_training_writes_a_complete_run_directory(tmp_path, method):
-    report = run_training(compose_train(*SMALL_RUN, f"method={method}", "logger=csv"), tmp_path)
+    report = run_training(train_config(*SMALL_RUN, f"method={method}", "logger=csv"), tmp_path)
     saved = json.loads((tmp_path / "eval.json").read_text())
     assert saved == report
     assert saved["metric"] == "mse" and saved["initial"]["n_tasks"] == 20
@@ -38,7 +39,7 @@ def test_training_lowers_the_query_loss(tmp_path):
     )
     players = players_of(cfg)
     before = run_training_eval(players, cfg)
-    run_training(cfg, tmp_path)
+    run_training(validate(cfg), tmp_path)
     after = json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"]
     assert after < 0.8 * before
 
@@ -59,7 +60,7 @@ def run_training_eval(players, cfg):
 
 def test_resume_through_the_cli_ends_exactly_like_an_uninterrupted_run(tmp_path):
     overrides = [*SMALL_RUN, "method=ar_maml"]
-    run_training(compose_train(*overrides), tmp_path / "whole")
+    run_training(train_config(*overrides), tmp_path / "whole")
     cli = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
     stopped = subprocess.run(
         [*cli, *overrides, "trainer.stop_at=3", f"hydra.run.dir={tmp_path / 'split'}"],
@@ -97,11 +98,8 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
     trainer = GameTrainer(
         players.leader,
         players.principle,
-        iterations=10,
-        meta_batch=5,
+        TrainerConfig(iterations=10, meta_batch=5, checkpoint_every=2, progress=False),
         checkpoint=checkpoint,
-        checkpoint_every=2,
-        progress=False,
     )
     with pytest.raises(TrainingDiverged, match="iteration 6"):
         trainer.run()
@@ -120,8 +118,8 @@ def test_the_followers_loss_averages_independent_rollouts():
     tasks = TensorDict({"params": torch.tensor([[0.3, -0.2]]).expand(400, 2)}, [400])
     variances = []
     for rollouts in (1, 4):
-        trainer = GameTrainer(players.leader, players.principle, iterations=1, meta_batch=2,
-                              progress=False, follower_rollouts=rollouts)
+        trainer = GameTrainer(players.leader, players.principle, TrainerConfig(
+            iterations=1, meta_batch=2, progress=False, follower_rollouts=rollouts))
         torch.manual_seed(rollouts)
         variances.append(float(trainer.fresh_losses(tasks).double().var()))
     assert 4 / 1.6 < variances[0] / variances[1] < 4 * 1.6
@@ -143,8 +141,8 @@ def test_a_follower_on_the_steps_losses_reads_them_and_collects_nothing_more():
 
     collector.collect = counted
     for follower_at, rollouts in (("next", 4), ("step", 2)):
-        trainer = GameTrainer(players.leader, players.principle, iterations=1, meta_batch=2,
-                              progress=False, follower_at=follower_at)
+        trainer = GameTrainer(players.leader, players.principle, TrainerConfig(
+            iterations=1, meta_batch=2, progress=False, follower_at=follower_at))
         calls.clear()
         trainer.train_iteration()
         assert len(calls) == rollouts

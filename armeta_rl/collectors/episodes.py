@@ -29,6 +29,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.envs import EnvBase
 
+from armeta_rl.devices import CPU
 from armeta_rl.envs.point_navigation import (
     TRUNCATED_KEY,
     PointNavigationEnv,
@@ -91,7 +92,7 @@ class EpisodeCollector:
     """
 
     def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,
-                 max_steps: int = 100, device: torch.device | str = "cpu") -> None:
+                 max_steps: int = 100, device: torch.device = CPU) -> None:
         if int(episodes) < 1:
             raise ConfigError("benchmark.collector.episodes", episodes, "must be >= 1")
         if int(max_steps) < 1:
@@ -99,7 +100,7 @@ class EpisodeCollector:
         self.make_env = make_env
         self.episodes = int(episodes)
         self.max_steps = int(max_steps)
-        self.device = torch.device(device)
+        self.device = device
         self._envs: dict[int, EnvBase] = {}
 
     def probe_env(self) -> EnvBase:
@@ -243,7 +244,7 @@ class PointNavigationCollector(EpisodeCollector):
 
     def __init__(self, episodes: int = 20, max_steps: int = 100,
                  sparse_regions: Sequence[Region] = (), squared_distance: bool = False,
-                 seed: int | None = None, device: torch.device | str = "cpu",
+                 seed: int | None = None, device: torch.device = CPU,
                  truncated_regions: Sequence[Region] = (), graphs: bool | None = None) -> None:
         if graphs is not None and not isinstance(graphs, bool):
             raise ConfigError("benchmark.collector.graphs", graphs, "true, false or null")

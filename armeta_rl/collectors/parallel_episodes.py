@@ -30,6 +30,7 @@ from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.transforms import BatchSizeTransform
 
 from armeta_rl.collectors.episodes import EpisodeCollector
+from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 
 WORKERS_KEY = "benchmark.collector.workers"
@@ -100,7 +101,7 @@ class TaskSplitEpisodeCollector(EpisodeCollector):
         seed: int = 0,
         in_process: bool = False,
         mp_start_method: str = "fork",
-        device: torch.device | str = "cpu",
+        device: torch.device = CPU,
     ) -> None:
         if int(workers) < 1:
             raise ConfigError(WORKERS_KEY, workers, "must be >= 1")

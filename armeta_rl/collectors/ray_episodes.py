@@ -46,6 +46,7 @@ from torchrl.envs.transforms import BatchSizeTransform
 
 from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.collectors.parallel_episodes import WORKERS_KEY, _reshape
+from armeta_rl.devices import CPU
 from armeta_rl.errors import CollectionFailed, ConfigError
 from armeta_rl.quiet import native_stderr_silenced
 
@@ -318,7 +319,7 @@ class RayEpisodeCollector(EpisodeCollector):
         timeout_s: float = 300.0,
         connect_timeout_s: float = 10.0,
         cpus_per_worker: float = 1.0,
-        device: torch.device | str = "cpu",
+        device: torch.device = CPU,
     ) -> None:
         checks = {
             WORKERS_KEY: (workers, int(workers) >= 1, "must be >= 1"),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict
 
+from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.protocol import TASK_KEY
 
@@ -29,7 +30,7 @@ class SinusoidCollector:
 
     def __init__(
         self, n_support: int = 5, n_query: int = 5, x_low: float = -5.0, x_high: float = 5.0,
-        device: torch.device | str = "cpu",
+        device: torch.device = CPU,
     ) -> None:
         for key, value in (("n_support", n_support), ("n_query", n_query)):
             if int(value) != value or value < 1:
@@ -38,7 +39,7 @@ class SinusoidCollector:
             raise ConfigError("benchmark.collector.x_low", x_low, f"must be < x_high ({x_high})")
         self.n_support, self.n_query = int(n_support), int(n_query)
         self.x_low, self.x_high = float(x_low), float(x_high)
-        self.device = torch.device(device)
+        self.device = device
 
     in_features = 1
     """Size of ``x``."""

@@ -10,6 +10,7 @@ from tensordict import TensorDict
 from torch import Tensor
 
 from armeta_rl.compiling import compile_backend
+from armeta_rl.devices import CPU
 from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
@@ -89,7 +90,7 @@ class SysIdCollector:
 
     def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
                  episodes: int = 20, target: str = "delta", normalize: str = "none",
-                 device: str = "cpu", identifiers: Sequence[str] | None = None,
+                 device: torch.device = CPU, identifiers: Sequence[str] | None = None,
                  compile: bool | str | None = False) -> None:
         if env not in ENVIRONMENTS:
             raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
@@ -117,7 +118,7 @@ class SysIdCollector:
                               f"distinct names among {', '.join(known)} ({env})")
         self.identifiers = tuple(self.env_cls.param_names if identifiers is None else identifiers)
         self.n_transitions, self.n_support, self.episodes = n_transitions, n_support, episodes
-        self.target, self.normalize, self.device = target, normalize, torch.device(device)
+        self.target, self.normalize, self.device = target, normalize, device
         self.backend = compile_backend("benchmark.collector.compile", compile)
         self._envs: dict[int, IdentifiedSystemEnv] = {}
         x_scale, y_scale = self._scales()

@@ -24,6 +24,7 @@ from torch.nn import functional as F
 from torchrl.modules import MLP
 
 from armeta_rl.collectors.base import TaskCollector
+from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 from armeta_rl.fields import Section, above, at_least, one_of, register
 from armeta_rl.learners.base import (
@@ -121,7 +122,7 @@ class CNPLeader(OneNetworkLeader):
 
     def __init__(self, in_features: int, out_features: int, collector: TaskCollector,
                  options: CnpOptions = CnpOptions(),
-                 device: torch.device | str = "cpu") -> None:
+                 device: torch.device = CPU) -> None:
         self.collector = collector
         self.likelihood = options.likelihood
         self.model = ConditionalNeuralProcess(in_features, out_features, options.hidden).to(device)

@@ -31,6 +31,7 @@ from torchrl.modules import ProbabilisticActor
 from torchrl.objectives import LossModule
 
 from armeta_rl.collectors.base import TaskCollector
+from armeta_rl.devices import CPU
 from armeta_rl.fields import Section, above, at_least, each, inside, key, register
 from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, MetaBatch, as_task_params
@@ -91,7 +92,7 @@ class MAMLPPOLeader(MAMLTRPOLeader):
         self,
         collector: TaskCollector,
         options: MamlPpoOptions = MamlPpoOptions(),
-        device: torch.device | str = "cpu",
+        device: torch.device = CPU,
         inner_loss: Callable[[ProbabilisticActor], LossModule] = reinforce_loss,
         outer_loss: Callable[[ProbabilisticActor], LossModule] | None = None,
     ) -> None:

@@ -32,6 +32,7 @@ from torchrl.objectives import LossModule
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import episode_returns
+from armeta_rl.devices import CPU
 from armeta_rl.fields import Section, above, at_least, each, inside, key, register
 from armeta_rl.learners.base import TaskWeights, weighted_sum
 from armeta_rl.learners.maml import sgd_step
@@ -160,7 +161,7 @@ class MAMLTRPOLeader:
         self,
         collector: TaskCollector,
         options: MamlTrpoOptions = MamlTrpoOptions(),
-        device: torch.device | str = "cpu",
+        device: torch.device = CPU,
         inner_loss: Callable[[ProbabilisticActor], LossModule] = reinforce_loss,
     ) -> None:
         self.collector = collector

@@ -78,7 +78,7 @@ class TaskSpace:
         return len(self.names)
 
     def bounds(
-        self, dtype: torch.dtype | None = None, device: torch.device | str | None = None
+        self, dtype: torch.dtype | None = None, device: torch.device | None = None
     ) -> tuple[Tensor, Tensor]:
         """``(low, high)`` as tensors of shape ``[d]``."""
         kwargs = {"dtype": dtype or torch.get_default_dtype(), "device": device}

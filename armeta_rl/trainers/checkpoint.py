@@ -108,17 +108,18 @@ class TorchPayload(StateDictCheckpointAdapter):
         return state
 
 
-def run_identity(cfg: Any) -> dict[str, Any]:
+def run_identity(values: Mapping[str, Any]) -> dict[str, Any]:
     """What makes a run this run: its benchmark, method and seed, and the SHA-256 of the values
-    of :data:`IDENTITY_KEYS` in its resolved config ``cfg`` (a DictConfig). A checkpoint records
-    it, and a resume or an evaluation refuses a checkpoint of another run
+    of :data:`IDENTITY_KEYS` in its config's ``values`` (:meth:`TrainConfig.values
+    <armeta_rl.config.TrainConfig.values>`, or a saved ``config.yaml`` as loaded). A checkpoint
+    records it, and a resume or an evaluation refuses a checkpoint of another run
     (:meth:`RunCheckpoint.restore`)."""
     from omegaconf import OmegaConf
 
-    resolved = OmegaConf.create(OmegaConf.to_container(cfg, resolve=True))
-    values = {key: OmegaConf.select(resolved, key) for key in IDENTITY_KEYS}
+    resolved = OmegaConf.create(OmegaConf.to_container(OmegaConf.create(values), resolve=True))
+    chosen = {key: OmegaConf.select(resolved, key) for key in IDENTITY_KEYS}
     text = json.dumps({key: OmegaConf.to_container(value) if OmegaConf.is_config(value)
-                       else value for key, value in values.items()}, sort_keys=True, default=str)
+                       else value for key, value in chosen.items()}, sort_keys=True, default=str)
     return {"benchmark": str(resolved.benchmark.name), "method": str(resolved.method.name),
             "seed": int(resolved.seed), "config_sha256": _sha256(text.encode())}
 

@@ -23,6 +23,7 @@ from tensordict import TensorDict
 from torch import Tensor
 from tqdm.auto import tqdm
 
+from armeta_rl.config import TrainerConfig
 from armeta_rl.errors import TrainingDiverged
 from armeta_rl.learners.base import Leader
 from armeta_rl.preemption import StopRequest
@@ -39,26 +40,28 @@ class GameTrainer:
     Args:
         leader: the meta-learner (MAML, CNP, MAML-TRPO).
         principle: where tasks come from and how their losses are weighted (ERM, AR, DR, ...).
-        iterations: total meta-iterations of the run.
-        meta_batch: tasks per meta-iteration K.
+        options: the loop's section of the run config (``trainer``,
+            :class:`~armeta_rl.config.TrainerConfig`): ``iterations`` in all, ``meta_batch`` tasks
+            per iteration K, ``log_every``, ``checkpoint_every``, ``stop_at`` (:meth:`run` stops
+            there, checkpointed), ``progress`` (a tqdm bar with the iteration and current losses),
+            ``max_loss`` (the divergence guard: a task loss beyond ±``max_loss`` stops the run
+            like a non-finite one; ``None``: only non-finite losses stop it), ``frozen_leader``
+            (set: the leader is never stepped; θ stays fixed and the follower is trained
+            against it on the losses of its proposed tasks at that θ), ``follower_rollouts``
+            (for an on-policy leader, the follower's loss of a task is the mean of this many
+            independent rollouts at θ_{t+1}, collected in one batch: less noise in the
+            follower's signal for that many more rollouts), ``follower_at`` (``"next"``: a
+            follower of the game reads its tasks' losses at θ_{t+1}, paper Algorithm 1;
+            ``"step"``: the step's own losses at θ_t, which cost nothing more, where θ_{t+1}
+            would take a fresh collection in meta-RL).
         log: called with the scalars of an iteration and its number, every ``log_every``.
         checkpoint: where to save every ``checkpoint_every`` iterations (``None``: never).
-        progress: show a tqdm bar with the iteration and current losses.
-        max_loss: the divergence guard: a task loss beyond ±``max_loss`` stops the run like a
-            non-finite one (``None``: only non-finite losses stop it).
         after_iteration: called with the iteration number after every iteration (after its
             logging and checkpoint), e.g. to draw the adversary's density.
-        train_leader: step the leader (``False``: θ stays fixed and the follower is trained
-            against it on the losses of its proposed tasks at that θ, ``trainer.frozen_leader``).
-        follower_rollouts: for an on-policy leader, the follower's loss of a task is the mean
-            of this many independent rollouts at θ_{t+1} (1: one, the paper's), collected in one
-            batch: less noise in the follower's signal for that many more rollouts.
-        follower_at: ``"next"``: a follower of the game reads its tasks' losses at θ_{t+1}
-            (paper Algorithm 1); ``"step"``: it reads the step's own losses at θ_t, which cost
-            nothing more, where θ_{t+1} would take a fresh collection (meta-RL).
 
     Examples:
         >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.config import TrainerConfig
         >>> from armeta_rl.learners import MAMLLeader, make_mlp
         >>> from armeta_rl.risk import TailRiskPrinciple
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
@@ -66,9 +69,9 @@ class GameTrainer:
         >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
         >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector())
         >>> logged = []
-        >>> trainer = GameTrainer(leader, TailRiskPrinciple(BoxUniform(space)), iterations=4,
-        ...                       meta_batch=8, log=lambda scalars, i: logged.append(i),
-        ...                       log_every=2, progress=False)
+        >>> options = TrainerConfig(iterations=4, meta_batch=8, log_every=2, progress=False)
+        >>> trainer = GameTrainer(leader, TailRiskPrinciple(BoxUniform(space)), options,
+        ...                       log=lambda scalars, i: logged.append(i))
         >>> trainer.run()  # the iteration reached
         4
         >>> logged
@@ -79,29 +82,16 @@ class GameTrainer:
         self,
         leader: Leader,
         principle: RiskPrinciple,
+        options: TrainerConfig,
         *,
-        iterations: int,
-        meta_batch: int,
         log: LogFn | None = None,
-        log_every: int = 50,
         checkpoint: RunCheckpoint | None = None,
-        checkpoint_every: int = 500,
-        progress: bool = True,
-        max_loss: float | None = None,
         after_iteration: Callable[[int], None] | None = None,
-        train_leader: bool = True,
-        follower_rollouts: int = 1,
-        follower_at: str = "next",
     ) -> None:
-        self.leader, self.principle = leader, principle
-        self.iterations, self.meta_batch = iterations, meta_batch
-        self.log, self.log_every = log, log_every
-        self.checkpoint, self.checkpoint_every = checkpoint, checkpoint_every
-        self.progress, self.max_loss = progress, max_loss
+        self.leader, self.principle, self.options = leader, principle, options
+        self.log, self.checkpoint = log, checkpoint
         self.after_iteration = after_iteration
-        self.train_leader = train_leader
-        self.follower_rollouts = follower_rollouts
-        self.follower_at = follower_at
+        self.train_leader = options.frozen_leader is None
         self.iteration = 0
 
     def train_iteration(self) -> dict[str, float]:
@@ -112,7 +102,7 @@ class GameTrainer:
         iterations the principle updates on the tasks' losses (:meth:`follower_losses`).
         """
         start = time.perf_counter()
-        tasks = self.principle.propose(self.meta_batch)
+        tasks = self.principle.propose(self.options.meta_batch)
         if not torch.isfinite(tasks[TASK_KEY]).all() or torch.isnan(tasks["log_prob"]).any():
             raise TrainingDiverged(
                 f"non-finite task identifiers proposed at iteration {self.iteration + 1}"
@@ -152,7 +142,7 @@ class GameTrainer:
         A principle that only reports statistics of the step, or any principle with
         ``follower_at="step"``, reads the step's losses at θ_t, which cost nothing more.
         """
-        if not self.principle.needs_next_losses or self.follower_at == "step":
+        if not self.principle.needs_next_losses or self.options.follower_at == "step":
             return step_losses
         if not self.leader.on_policy:
             with torch.no_grad():
@@ -163,7 +153,7 @@ class GameTrainer:
     def fresh_losses(self, tasks: TensorDict) -> Tensor:
         """The losses ``[K]`` of ``tasks`` at the current θ on data collected afresh: per task,
         the mean of ``follower_rollouts`` independent rollouts, collected in one batch."""
-        rollouts = self.follower_rollouts
+        rollouts = self.options.follower_rollouts
         losses = self.leader.evaluate(self.leader.collect(repeat_tasks(tasks, rollouts)))
         return losses if rollouts == 1 else per_rollout(losses, rollouts).mean(0)
 
@@ -174,22 +164,25 @@ class GameTrainer:
             raise TrainingDiverged(
                 f"the leader loss is not finite at iteration {self.iteration + 1}"
             )
-        if self.max_loss is not None and worst > self.max_loss:
+        max_loss = self.options.max_loss
+        if max_loss is not None and worst > max_loss:
             raise TrainingDiverged(
                 f"a task loss reached {worst:.3g} at iteration {self.iteration + 1}, beyond "
-                f"trainer.max_loss = {self.max_loss:g}"
+                f"trainer.max_loss = {max_loss:g}"
             )
 
-    def run(self, stop_at: int | None = None, stop: StopRequest | None = None) -> int:
+    def run(self, stop: StopRequest | None = None) -> int:
         """Train until ``iterations`` (or ``stop_at``, checkpointing there), or until ``stop`` is
         requested: then the current iteration is finished and checkpointed; returns the iteration
         reached. A :class:`TrainingDiverged` propagates and leaves the last good checkpoint."""
-        end = self.iterations if stop_at is None else min(stop_at, self.iterations)
+        options = self.options
+        end = options.iterations if options.stop_at is None else min(options.stop_at,
+                                                                     options.iterations)
         start, saved = self.iteration, None
         bar = tqdm(
             total=end,
             initial=self.iteration,
-            disable=not self.progress,
+            disable=not options.progress,
             desc="meta-iterations",
             dynamic_ncols=True,
         )
@@ -197,7 +190,7 @@ class GameTrainer:
             while self.iteration < end and not (stop is not None and stop.requested):
                 logs = self.train_iteration()
                 bar.update(1)
-                if self.iteration % self.log_every == 0 or self.iteration == end:
+                if self.iteration % options.log_every == 0 or self.iteration == end:
                     bar.set_postfix(
                         {
                             k.split("/")[-1]: f"{v:.3g}"
@@ -207,7 +200,7 @@ class GameTrainer:
                     )
                     if self.log is not None:
                         self.log(logs, self.iteration)
-                if self.iteration % self.checkpoint_every == 0 or self.iteration == end:
+                if self.iteration % options.checkpoint_every == 0 or self.iteration == end:
                     saved = self.save(logs)
                 if self.after_iteration is not None:
                     self.after_iteration(self.iteration)

@@ -1,4 +1,4 @@
-"""The run's logger: CSV (default), wandb or none, from ``cfg.logger``."""
+"""The run's logger: CSV (default), wandb or none, from the config's ``logger`` section."""
 
 from __future__ import annotations
 
@@ -7,21 +7,23 @@ import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import CSVLogger, Logger, WandbLogger
 
+from armeta_rl.config import LoggerConfig
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR
 
 
 @contextmanager
-def run_logger(cfg: DictConfig, run_dir: Path) -> Iterator[Logger | None]:
+def run_logger(options: LoggerConfig, run_dir: Path, hparams: dict[str, Any] | None = None
+               ) -> Iterator[Logger | None]:
     """The run's logger (:func:`make_logger`) for the ``with`` block; a wandb run is finished
     when the block ends (marked failed if it raised). A wandb run left open would be handed back
     by the next ``wandb.init`` in the process (wandb's default ``reinit="return_previous"``), so
     the jobs of an in-process sweep would all log into the first job's run."""
-    logger = make_logger(cfg, run_dir)
+    logger = make_logger(options, run_dir, hparams)
     failed = True
     try:
         yield logger
@@ -31,9 +33,11 @@ def run_logger(cfg: DictConfig, run_dir: Path) -> Iterator[Logger | None]:
             logger.experiment.finish(exit_code=1 if failed else 0)
 
 
-def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
-    """CSV (default), wandb (offline unless ``WANDB_MODE=online``) or none."""
-    kind = cfg.logger.kind
+def make_logger(options: LoggerConfig, run_dir: Path, hparams: dict[str, Any] | None = None
+                ) -> Logger | None:
+    """CSV (default), wandb (offline unless ``WANDB_MODE=online``; ``hparams``, the run's config
+    values, recorded as its config) or none."""
+    kind = options.kind
     if kind == "none":
         return None
     if kind == "csv":
@@ -46,9 +50,9 @@ def make_logger(cfg: DictConfig, run_dir: Path) -> Logger | None:
             offline=offline,
             save_dir=str(run_dir),
             id=run_id,
-            project=cfg.logger.project,
+            project=options.project,
             log_env_packages=False,
         )
-        logger.log_hparams(OmegaConf.to_container(cfg, resolve=True))
+        logger.log_hparams(hparams or {})
         return logger
     raise ConfigError("logger.kind", kind, "allowed: csv, wandb, none")

@@ -6,16 +6,15 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.collectors.episodes import EpisodeCollector
-from armeta_rl.config import TrainConfig, load_run_config, validate
-from armeta_rl.devices import CPU, resolve_device
+from armeta_rl.config import TrainConfig, load_run, run_values
+from armeta_rl.devices import CPU
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
     build_collector,
@@ -24,7 +23,6 @@ from armeta_rl.factory import (
     build_principle,
     build_space,
 )
-from armeta_rl.fields import config_error
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
@@ -57,9 +55,9 @@ def seed_everything(seed: int) -> None:
 
 def build_players(config: TrainConfig) -> Players:
     """Seed, then build the players of ``config`` (:func:`armeta_rl.config.validate`) on its
-    ``device`` (the seed fixes their initial parameters, which are drawn on the CPU whatever the
-    device)."""
-    device = resolve_device(config.device)
+    device (``config.torch_device``; the seed fixes their initial parameters, which are drawn on
+    the CPU whatever the device)."""
+    device = config.torch_device
     seed_everything(config.seed)
     benchmark, method = config.benchmark, config.method
     space = build_space(benchmark.space)
@@ -85,10 +83,12 @@ SAME_MATHS = ("compile", "adaptation")
 learner's run and the run attacking it."""
 
 
-def _leaves(cfg: DictConfig, name: str) -> dict[str, object]:
-    """The resolved values below ``name`` in ``cfg``, by dotted key (``name`` itself if a leaf)."""
-    node = OmegaConf.select(cfg, name)
-    value = OmegaConf.to_container(node, resolve=True) if isinstance(node, DictConfig) else node
+def _leaves(values: dict[str, Any], name: str) -> dict[str, object]:
+    """The values below dotted ``name`` in the nested ``values``, by dotted key (``name`` itself
+    if a leaf)."""
+    value: Any = values
+    for part in name.split("."):
+        value = value.get(part) if isinstance(value, dict) else None
     if not isinstance(value, dict):
         return {name: value}
     found: dict[str, object] = {}
@@ -103,8 +103,8 @@ def _leaves(cfg: DictConfig, name: str) -> dict[str, object]:
     return found
 
 
-def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
-    """Load the final leader of the finished run ``cfg.trainer.frozen_leader`` into
+def load_frozen_leader(config: TrainConfig, players: Players) -> None:
+    """Load the final leader of the finished run ``config.trainer.frozen_leader`` into
     ``players.leader`` (an attack run: the adversary trains against that learner, whose θ stays).
 
     Raises:
@@ -112,18 +112,19 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
             directory is not a finished run (no ``eval.json``), a benchmark or learner setting
             that both runs have differs, or its checkpoint is broken or does not fit.
     """
-    source = cfg.trainer.frozen_leader
+    source = config.trainer.frozen_leader
     if players.adversary is None:
         raise ConfigError(
             FROZEN_KEY, source,
-            f"needs a method with a flow adversary (ar_*), not {cfg.method.name}",
+            f"needs a method with a flow adversary (ar_*), not {config.method.name}",
         )
-    saved = load_run_config(source, FROZEN_KEY)
+    saved = run_values(source, FROZEN_KEY)
     if not (Path(source) / "eval.json").is_file():
         raise ConfigError(FROZEN_KEY, source, "has not finished (no eval.json)")
     names = ("benchmark", "method.learner", "learner")
+    values = config.values()
     theirs = {k: v for name in names for k, v in _leaves(saved, name).items()}
-    ours = {k: v for name in names for k, v in _leaves(cfg, name).items()}
+    ours = {k: v for name in names for k, v in _leaves(values, name).items()}
     # only the keys both configs have are compared; a real mismatch of shapes fails the load
     differing = sorted(k for k in theirs.keys() & ours.keys()
                        if theirs.get(k) != ours.get(k) and k.rsplit(".", 1)[-1] not in SAME_MATHS)
@@ -139,23 +140,32 @@ def load_frozen_leader(cfg: DictConfig, players: Players) -> None:
     checkpoint.restore(FROZEN_KEY, ("leader",), fallback=False)
 
 
-def load_players(
-    run_dir: str | Path, key: str, device: str | None = None, changes: dict | None = None
-) -> tuple[TrainConfig, Players]:
-    """Rebuild a saved run's players on ``device`` (default: the run's own ``device``), with
-    ``changes`` to its config (e.g. other ``eval`` settings), and load its latest checkpoint
-    there, wherever it was saved. Its ``threads`` (training's torch threads, at most the CPUs
-    of the machine that trained it) is set to 1: loading and evaluating use none of them."""
-    try:
-        cfg = OmegaConf.merge(load_run_config(run_dir, key), {"threads": 1}, changes or {},
-                              {} if device is None else {"device": device})
-    except OmegaConfBaseException as error:
-        raise config_error(error) from None
-    config = validate(cfg)
+def saved_run(run_dir: str | Path, key: str, device: str | None = None,
+              changes: dict | None = None) -> TrainConfig:
+    """A saved run's config (:func:`armeta_rl.config.load_run`) to rebuild its players on
+    ``device`` (default: the run's own ``device``) with ``changes`` (e.g. other ``eval``
+    settings). Its ``threads`` (training's torch threads, at most the CPUs of the machine that
+    trained it) is set to 1: loading and evaluating use none of them."""
+    return load_run(run_dir, key, {"threads": 1, **(changes or {}),
+                                   **({} if device is None else {"device": device})})
+
+
+def restore_players(run_dir: str | Path, key: str, config: TrainConfig) -> Players:
+    """The players of ``config`` (:func:`saved_run`) with the latest checkpoint of ``run_dir``
+    loaded onto its device, wherever it was saved."""
     players = build_players(config)
     checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle,
-                               device=players.device, identity=run_identity(cfg))
+                               device=players.device, identity=run_identity(config.values()))
     if not checkpoint.checkpoints():
         raise ConfigError(key, str(run_dir), "has no checkpoint")
     checkpoint.restore(key, ("leader", "principle"), fallback=False)
-    return config, players
+    return players
+
+
+def load_players(
+    run_dir: str | Path, key: str, device: str | None = None, changes: dict | None = None
+) -> tuple[TrainConfig, Players]:
+    """A saved run's config (:func:`saved_run`) and its players with its latest checkpoint
+    (:func:`restore_players`)."""
+    config = saved_run(run_dir, key, device, changes)
+    return config, restore_players(run_dir, key, config)

@@ -12,14 +12,14 @@ from typing import Any
 import torch
 
 from armeta_rl.collectors.regression import NoisySupport
-from armeta_rl.config import TrainConfig, load_run_config
-from armeta_rl.devices import CPU, forked_rng, resolve_device
+from armeta_rl.config import TrainConfig
+from armeta_rl.devices import CPU, forked_rng
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.shifts import shift_seed, suite_shifts
 from armeta_rl.trainers.checkpoint import run_identity
 from armeta_rl.trainers.evaluation import evaluate_on
-from armeta_rl.trainers.players import Players, load_players
+from armeta_rl.trainers.players import Players, restore_players, saved_run
 
 EVAL_FILE = "eval.json"
 
@@ -117,18 +117,32 @@ def cross_evaluate(
     ``adversary_dir`` (same benchmark) and on ``shifts`` of its benchmark's shift suite
     (``"all"`` or names; :mod:`armeta_rl.tasks.shifts`), all loaded onto ``device`` wherever they
     were trained; ``eval_overrides`` replace the learner run's ``eval.*``; ``initial=False``
-    leaves p0 out."""
-    resolve_device(device)
-    config, players = load_players(learner_dir, "learner", device,
-                                   {"eval": eval_overrides or {}})
-    adversary = None
-    if adversary_dir is not None:
-        adv_config, adv_players = load_players(adversary_dir, "adversary", device)
+    leaves p0 out (:func:`evaluate_runs` on the runs' configs, :func:`saved_run`)."""
+    learner = saved_run(learner_dir, "learner", device, {"eval": eval_overrides or {}})
+    adversary = None if adversary_dir is None else saved_run(adversary_dir, "adversary", device)
+    return evaluate_runs(learner_dir, learner, adversary_dir, adversary, shifts, initial)
+
+
+def evaluate_runs(
+    learner_dir: str | Path,
+    learner: TrainConfig,
+    adversary_dir: str | Path | None = None,
+    adversary: TrainConfig | None = None,
+    shifts: str | Sequence[str] | None = None,
+    initial: bool = True,
+) -> dict[str, Any]:
+    """:func:`cross_evaluate` of runs whose configs are loaded (``learner``, ``adversary``: the
+    configs of ``learner_dir`` and ``adversary_dir`` as :func:`saved_run` gives them, on the
+    device to evaluate on)."""
+    players = restore_players(learner_dir, "learner", learner)
+    distribution = None
+    if adversary_dir is not None and adversary is not None:
+        adv_players = restore_players(adversary_dir, "adversary", adversary)
         if adv_players.adversary is None:
             raise ConfigError(
                 "adversary",
                 str(adversary_dir),
-                f"was trained with method {adv_config.method.name}, which has no adversary",
+                f"was trained with method {adversary.method.name}, which has no adversary",
             )
         if adv_players.space != players.space:
             raise ConfigError(
@@ -137,13 +151,11 @@ def cross_evaluate(
                 f"its identifier box {adv_players.space} differs from the learner's "
                 f"{players.space}",
             )
-        adversary = adv_players.adversary
+        distribution = adv_players.adversary
     chosen = None if shifts is None else suite_shifts(
-        players.space, config.benchmark.shift_suite, config.benchmark.name, shifts)
-    report = evaluate_players(config, players, adversary, chosen, initial)
-    report["config_sha256"] = run_identity(load_run_config(learner_dir, "learner"))[
-        "config_sha256"]
+        players.space, learner.benchmark.shift_suite, learner.benchmark.name, shifts)
+    report = evaluate_players(learner, players, distribution, chosen, initial)
+    report["config_sha256"] = run_identity(learner.values())["config_sha256"]
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report
-

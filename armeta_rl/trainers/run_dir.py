@@ -14,8 +14,9 @@ import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.checkpoint import write_file
@@ -134,9 +135,10 @@ def _same_file(fd: int, path: Path) -> bool:
         return False
 
 
-def write_config(cfg: DictConfig, path: Path) -> None:
-    """Save the resolved ``cfg`` as ``path`` atomically (a crash leaves the old file or none)."""
-    write_text_atomically(path, OmegaConf.to_yaml(cfg, resolve=True))
+def write_config(values: dict[str, Any], path: Path) -> None:
+    """Save a config's ``values`` (:meth:`armeta_rl.config.TrainConfig.values`) as YAML at
+    ``path`` atomically (a crash leaves the old file or none)."""
+    write_text_atomically(path, OmegaConf.to_yaml(values))
 
 
 def write_text_atomically(path: Path, text: str) -> None:

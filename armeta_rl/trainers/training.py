@@ -5,15 +5,15 @@ from __future__ import annotations
 import json
 import logging
 import signal
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
 from torchrl.record.loggers import Logger, WandbLogger
 
 from armeta_rl.compiling import COMPILE_KEYS
-from armeta_rl.config import CONFIG_FILE, TrainConfig, load_run_config, validate
+from armeta_rl.config import CONFIG_FILE, TrainConfig, run_values
 from armeta_rl.errors import (
     CollectionFailed,
     ConfigError,
@@ -52,11 +52,13 @@ def say(message: str) -> None:
     log.info(message)
 
 
-def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True,
+def run_training(config: TrainConfig, run_dir: str | Path, progress: bool = True,
                  stop: StopRequest | None = None) -> dict | None:
-    """Train ``cfg`` in ``run_dir`` (resuming from its checkpoint if ``cfg.resume`` is set),
-    holding the run directory's lock throughout; a resumed run that has finished (its
-    ``eval.json`` passes its schema) is left as it is.
+    """Train ``config`` (checked: :func:`armeta_rl.config.validate`; on resume the saved config
+    with the command line's changes, :func:`armeta_rl.cli.resume_config`) in ``run_dir``
+    (resuming from its checkpoint if ``config.resume`` is set), holding the run directory's lock
+    throughout; a resumed run that has finished (its ``eval.json`` passes its schema) is left as
+    it is.
 
     ``stop`` is checked after every iteration (the CLI sets it on a preemption signal,
     :mod:`armeta_rl.preemption`): once it is requested, the run checkpoints the iteration it
@@ -65,8 +67,8 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True,
     Returns the evaluation report, or ``None`` when the run stopped early at ``trainer.stop_at``.
 
     Raises:
-        ConfigError: a bad value, a run directory that cannot be written or that another run
-            holds, or (on resume) no intact checkpoint.
+        ConfigError: a value the built players refuse, a run directory that cannot be written
+            or that another run holds, or (on resume) no intact checkpoint.
         TrainingDiverged: the losses left ``trainer.max_loss``; names the checkpoint kept.
         RunDirectoryError: a checkpoint, log or report could not be written (e.g. a full disk);
             names the checkpoint kept.
@@ -74,14 +76,13 @@ def run_training(cfg: DictConfig, run_dir: str | Path, progress: bool = True,
             and the resume command.
     """
     run_dir = Path(run_dir)
-    key = "resume" if cfg.resume else "hydra.run.dir"
+    key = "resume" if config.resume else "hydra.run.dir"
     stop = stop if stop is not None else StopRequest()
-    config = validate(cfg)
     say(f"run directory: {run_dir}")
     check_run_dir(run_dir, key)
     with run_lock(run_dir, key):
         try:
-            return _train_locked(cfg, config, run_dir, progress, stop)
+            return _train_locked(config, run_dir, progress, stop)
         except KeyboardInterrupt:
             if stop.signal != signal.SIGINT:  # not the second Ctrl-C of preemption.listening
                 raise
@@ -121,11 +122,17 @@ def finished_report(run_dir: Path) -> dict | None:
         return None
 
 
-def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress: bool,
+def _saved_iterations(run_dir: Path) -> int | None:
+    """``trainer.iterations`` of the config ``run_dir`` saved (``None``: none saved yet)."""
+    if not (run_dir / CONFIG_FILE).is_file():
+        return None
+    return run_values(run_dir, "resume")["trainer"]["iterations"]
+
+
+def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
                   stop: StopRequest) -> dict | None:
-    """:func:`run_training` inside the run directory's lock; ``config`` is ``cfg`` validated."""
-    saved_iterations = (load_run_config(run_dir, "resume").trainer.iterations if config.resume
-                        else None)
+    """:func:`run_training` inside the run directory's lock."""
+    saved_iterations = _saved_iterations(run_dir) if config.resume else None
     report = finished_report(run_dir) if config.resume else None
     if report is not None and saved_iterations == config.trainer.iterations:
         say(f"{run_dir} has finished: nothing to do ({EVAL_FILE} holds its evaluation; "
@@ -147,16 +154,18 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
                           "must be 1 with trainer.follower_at=step: the follower reads the "
                           "step's own losses, not fresh rollouts")
+    values = config.values()
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
-                               device=players.device, identity=run_identity(cfg))
+                               device=players.device, identity=run_identity(values))
     trainer_options = config.trainer
     if trainer_options.frozen_leader is not None and not (
         config.resume and checkpoint.checkpoints()
     ):
-        load_frozen_leader(cfg, players)
-    start = _open_run(cfg, run_dir, checkpoint, evaluated=report is not None)
-    with run_logger(cfg, run_dir) as logger:
-        compiled = [key for key in COMPILE_KEYS if OmegaConf.select(cfg, key, default=False)]
+        load_frozen_leader(config, players)
+    start = _open_run(config, values, run_dir, checkpoint, saved_iterations,
+                      evaluated=report is not None)
+    with run_logger(config.logger, run_dir, values) as logger:
+        compiled = [key for key in COMPILE_KEYS if _selected(values, key)]
         if compiled:
             say(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
                 "(about 2 minutes with an empty compile cache)")
@@ -169,24 +178,12 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
             if start == 0 or (start % trainer_options.density_every == 0
                                and not readable(frames.frame_path(start))):
                 frames.draw(start)  # p0; or the checkpoint's p_φ, whose frame a kill cut off
-        trainer = GameTrainer(
-            players.leader,
-            players.principle,
-            iterations=trainer_options.iterations,
-            meta_batch=trainer_options.meta_batch,
-            log_every=trainer_options.log_every,
-            checkpoint=checkpoint,
-            checkpoint_every=trainer_options.checkpoint_every,
-            log=lambda scalars, step: _log_scalars(logger, scalars, step),
-            progress=progress and trainer_options.progress,
-            max_loss=trainer_options.max_loss,
-            after_iteration=frames,
-            train_leader=trainer_options.frozen_leader is None,
-            follower_rollouts=trainer_options.follower_rollouts,
-            follower_at=trainer_options.follower_at,
-        )
+        options = trainer_options if progress else replace(trainer_options, progress=False)
+        trainer = GameTrainer(players.leader, players.principle, options,
+                              log=lambda scalars, step: _log_scalars(logger, scalars, step),
+                              checkpoint=checkpoint, after_iteration=frames)
         trainer.iteration = start
-        reached = trainer.run(stop_at=trainer_options.stop_at, stop=stop)
+        reached = trainer.run(stop=stop)
         planned = min(trainer_options.iterations,
                       trainer_options.stop_at or trainer_options.iterations)
         if stop.requested and reached < planned:
@@ -200,6 +197,13 @@ def _train_locked(cfg: DictConfig, config: TrainConfig, run_dir: Path, progress:
         return _finish(config, run_dir, players, logger, frames, reached, checkpoint.identity)
 
 
+def _selected(values: dict[str, Any], key: str) -> Any:
+    """The value of dotted ``key`` in the nested ``values`` (``None`` where it has none)."""
+    for part in key.split("."):
+        values = values.get(part) if isinstance(values, dict) else None
+    return values
+
+
 def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> None:
     """An iteration's scalars to the run's logger (CSV, wandb) and a line of the job log."""
     if logger is not None:
@@ -207,26 +211,28 @@ def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> N
     log.info("iteration %d: %s", step, " ".join(f"{k}={v:.6g}" for k, v in scalars.items()))
 
 
-def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
+def _open_run(config: TrainConfig, values: dict[str, Any], run_dir: Path,
+              checkpoint: RunCheckpoint, saved_iterations: int | None,
               evaluated: bool = False) -> int:
     """Clear what a crash left half-written in ``run_dir``, then restore its checkpoint (resume)
-    or save the config of a fresh run; returns the iteration training starts from.
-    ``evaluated``: the run's ``eval.json`` holds the evaluation at the iteration it resumes
-    from (a finished run resumed to train longer)."""
+    or save the config of a fresh run (``values``: :meth:`TrainConfig.values`); returns the
+    iteration training starts from. ``saved_iterations``: the resumed run's saved
+    ``trainer.iterations``. ``evaluated``: the run's ``eval.json`` holds the evaluation at the
+    iteration it resumes from (a finished run resumed to train longer)."""
     if checkpoint.directory.exists() and not checkpoint.directory.is_dir():
-        raise ConfigError("resume" if cfg.resume else "hydra.run.dir", str(run_dir),
+        raise ConfigError("resume" if config.resume else "hydra.run.dir", str(run_dir),
                           f"its {checkpoint.directory.name} is not a directory: move it away")
     checkpoint.clean_staging()
     for path in staged_leftovers(run_dir, (".", CSV_LOG_DIR, FRAMES_DIR)):
         path.unlink()  # what an atomic write left when a crash interrupted it
     start = 0
-    if cfg.resume:
+    if config.resume:
         if checkpoint.checkpoints() or checkpoint.set_aside():
             start = checkpoint.restore("resume")
         drop_csv_rows_after(run_dir, start, evaluated)
-        saved = load_run_config(run_dir, "resume")
-        if saved.trainer.iterations != cfg.trainer.iterations:  # resumed to train longer
-            saved.trainer.iterations = cfg.trainer.iterations
+        if saved_iterations != config.trainer.iterations:  # resumed to train longer
+            saved = run_values(run_dir, "resume")
+            saved["trainer"]["iterations"] = config.trainer.iterations
             write_config(saved, run_dir / CONFIG_FILE)
             (run_dir / EVAL_FILE).unlink(missing_ok=True)  # the run is no longer finished
     else:
@@ -236,7 +242,7 @@ def _open_run(cfg: DictConfig, run_dir: Path, checkpoint: RunCheckpoint,
                 "already holds a run: continue it with resume=<dir>, or train into a new "
                 "directory",
             )
-        write_config(cfg, run_dir / CONFIG_FILE)
+        write_config(values, run_dir / CONFIG_FILE)
     return start
 
 
