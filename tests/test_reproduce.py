@@ -779,3 +779,20 @@ def test_a_gain_cell_counts_the_seeds_that_adapt_in_the_returns_decimals():
     text, adapting, seeds = _gain(records, method="maml")
     assert text == "+7.6 ± 4.6 [2.0] (2/3 adapt)" and (adapting, seeds) == (2, 3)
     assert _gain(records, method="dr_maml") == ("–", 0, 0)
+
+
+def test_a_run_saved_before_a_key_existed_keeps_its_report(tmp_path, table1_dir):
+    """A run whose config.yaml was written before a key was added (its default now in the
+    schema) and whose report was made after, by a resume under the newer version, is the same
+    run: its saved config is read as a resume reads it, merged into the schema."""
+    from armeta_rl.reproduce.plan import report_problem
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
+    config = results / maml.subdir / "config.yaml"
+    older = config.read_text().replace("    label_scale: 1.0\n", "")
+    assert older != config.read_text()
+    config.write_text(older)
+    assert report_problem(results, maml) is None

@@ -14,6 +14,7 @@ own per profile.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 from dataclasses import dataclass
 from pathlib import Path
@@ -320,11 +321,20 @@ def load_report(results: Path, path: Path, packed: Packed = NOTHING_PACKED) -> d
 @functools.lru_cache(maxsize=4096)
 def config_digest(text: str) -> str:
     """The ``config_sha256`` (:func:`~armeta_rl.trainers.checkpoint.run_identity`) of a run's
-    ``config.yaml`` text; remembered by text, as a report asks for every run's several times and
-    composing a config is most of an aggregation's time."""
+    ``config.yaml`` text as the run sees it: merged into this version's schema, as a resume
+    merges it, so a run saved before a key was added (with its default) and evaluated after
+    keeps its identity (the text alone where it no longer fits the schema). Remembered by text,
+    as a report asks for every run's several times and composing a config is most of an
+    aggregation's time."""
+    from omegaconf.errors import OmegaConfBaseException
+
+    from armeta_rl.config import schema
     from armeta_rl.trainers.checkpoint import run_identity
 
-    return run_identity(OmegaConf.create(text))["config_sha256"]
+    saved = OmegaConf.create(text)
+    with contextlib.suppress(OmegaConfBaseException):
+        saved = OmegaConf.merge(schema(), saved)
+    return run_identity(saved)["config_sha256"]
 
 
 def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
