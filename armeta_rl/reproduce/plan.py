@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.config import CONFIG_FILE
@@ -326,12 +326,14 @@ def config_digest(text: str) -> str:
     keeps its identity (the text alone where it no longer fits the schema). Remembered by text,
     as a report asks for every run's several times and composing a config is most of an
     aggregation's time."""
-    from omegaconf.errors import OmegaConfBaseException
-
-    from armeta_rl.config import schema
+    from armeta_rl.config import saved_sections, schema
     from armeta_rl.trainers.checkpoint import run_identity
 
-    saved = OmegaConf.create(text)
+    saved, absent = OmegaConf.create(text), object()
+    if not isinstance(saved, DictConfig) or any(
+            OmegaConf.select(saved, name, default=absent) is absent
+            for name in saved_sections(saved)):
+        raise ValueError("an incomplete config.yaml")  # the run's own refusal, not another's
     with contextlib.suppress(OmegaConfBaseException):
         saved = OmegaConf.merge(schema(), saved)
     return run_identity(saved)["config_sha256"]
