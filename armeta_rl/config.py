@@ -362,26 +362,39 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
     if not path.is_file():
         raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
     try:
-        saved = OmegaConf.load(path)
-    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
         reason = " ".join(str(error).split())
         raise ConfigError(
             key, str(run_dir), f"its {CONFIG_FILE} cannot be read: {reason}"
         ) from None
+    return read_run_config(text, key, str(run_dir))
+
+
+def read_run_config(text: str, key: str, where: str) -> DictConfig:
+    """A run's saved ``config.yaml`` ``text`` as a resume reads it (:func:`load_run_config`):
+    merged into this version's schema, so keys added since take their defaults; ``key`` and
+    ``where`` name it in a refusal: a text that does not parse, is not a mapping, lacks a section
+    every run's config has (:data:`SAVED_SECTIONS`: an empty or truncated file) or does not fit
+    the schema."""
+    try:
+        saved = OmegaConf.create(text)
+    except yaml.YAMLError as error:
+        reason = " ".join(str(error).split())
+        raise ConfigError(key, where, f"its {CONFIG_FILE} cannot be read: {reason}") from None
     if not isinstance(saved, DictConfig):
-        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is not a mapping of keys")
+        raise ConfigError(key, where, f"its {CONFIG_FILE} is not a mapping of keys")
     missing = next((name for name in saved_sections(saved)
                     if OmegaConf.select(saved, name, default=_ABSENT) is _ABSENT), None)
     if missing is not None:
-        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} is incomplete (no '{missing}'; "
+        raise ConfigError(key, where, f"its {CONFIG_FILE} is incomplete (no '{missing}'; "
                           "empty or cut short): restore it, or train the run again")
     try:
         return OmegaConf.merge(schema(), saved)
     except OmegaConfBaseException as error:
         line = config_error(error)
-        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} does not fit this version: "
-                                             f"{line}") from None
-
+        raise ConfigError(key, where, f"its {CONFIG_FILE} does not fit this version: "
+                                      f"{line}") from None
 
 _ABSENT = object()
 SAVED_SECTIONS = ("seed", "trainer", "trainer.iterations", "eval", "eval.n_tasks", "method",

@@ -14,14 +14,13 @@ own per profile.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import yaml
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.config import CONFIG_FILE
@@ -321,22 +320,16 @@ def load_report(results: Path, path: Path, packed: Packed = NOTHING_PACKED) -> d
 @functools.lru_cache(maxsize=4096)
 def config_digest(text: str) -> str:
     """The ``config_sha256`` (:func:`~armeta_rl.trainers.checkpoint.run_identity`) of a run's
-    ``config.yaml`` text as the run sees it: merged into this version's schema, as a resume
-    merges it, so a run saved before a key was added (with its default) and evaluated after
-    keeps its identity (the text alone where it no longer fits the schema). Remembered by text,
-    as a report asks for every run's several times and composing a config is most of an
-    aggregation's time."""
-    from armeta_rl.config import saved_sections, schema
+    ``config.yaml`` text as the run sees it, read as a resume reads it
+    (:func:`~armeta_rl.config.read_run_config`: merged into this version's schema), so a run
+    saved before a key was added (with its default) and evaluated after keeps its identity;
+    ``ConfigError`` for a damaged text (its run's own refusal). Remembered by text, as a report
+    asks for every run's several times and composing a config is most of an aggregation's
+    time."""
+    from armeta_rl.config import read_run_config
     from armeta_rl.trainers.checkpoint import run_identity
 
-    saved, absent = OmegaConf.create(text), object()
-    if not isinstance(saved, DictConfig) or any(
-            OmegaConf.select(saved, name, default=absent) is absent
-            for name in saved_sections(saved)):
-        raise ValueError("an incomplete config.yaml")  # the run's own refusal, not another's
-    with contextlib.suppress(OmegaConfBaseException):
-        saved = OmegaConf.merge(schema(), saved)
-    return run_identity(saved)["config_sha256"]
+    return run_identity(read_run_config(text, "config", "config.yaml"))["config_sha256"]
 
 
 def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
