@@ -6,8 +6,8 @@ flow adversary's spline couplings and in the vmapped second-order MAML step, and
 steps of a system-identification rollout, one after the other. Compiling fuses them.
 It pays on long runs only: the first iterations wait for the compiler (minutes with an empty
 cache, much less once torch's on-disk compile cache holds the graphs), and shapes are static, so
-each distinct batch shape compiles once. ``benchmarks/bench_speed_options.py`` measures each
-switch against the eager default (docs/speed-options.md).
+each distinct batch shape compiles once. ``python -m benchmarks.timing bench_speed_options``
+measures each switch against the eager default (docs/speed-options.md).
 """
 
 from __future__ import annotations

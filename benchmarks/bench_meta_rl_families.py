@@ -26,9 +26,9 @@ keeps the rows it finished).
 
 Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_meta_rl_families.py [--benchmarks ...]
 [--sizes 40x20x200 10x10x100 ...] [--repeats 1]``; it prints the table and writes it to its
-section of docs/benchmarks.md. With ``--overhead`` it runs instead the ``bench_ar_overhead``
-comparison under ``turns`` in ``benchmarks/workloads.yaml`` (each method's meta-iteration against
-MAML's, in turns).
+section of docs/benchmarks.md. Each method's meta-iteration against MAML's, in turns, is the
+``bench_ar_overhead`` comparison of ``benchmarks/workloads.yaml`` (``python -m benchmarks.timing
+bench_ar_overhead``).
 """
 
 from __future__ import annotations
@@ -36,12 +36,10 @@ from __future__ import annotations
 import argparse
 import os
 import statistics
-import sys
 import time
 
 from timing import (
     as_trained,
-    compare_in_turns,
     markdown_table,
     reference_product_ms,
     trainer_for,
@@ -103,16 +101,7 @@ def main() -> None:
                         help="tasks x episodes x steps per meta-iteration, e.g. 40x20x200 "
                              "(default: six sizes for half_cheetah_vel, two for the others)")
     parser.add_argument("--repeats", type=int, default=1, help="timed iterations per cell")
-    parser.add_argument("--overhead", action="store_true",
-                        help="instead: AR-MAML's and MPTS-MAML's iteration against MAML's in "
-                             "turns, the bench_ar_overhead comparison of benchmarks/workloads.yaml "
-                             "(its options: --calls, --rounds, --benchmarks)")
-    args, rest = parser.parse_known_args()
-    if args.overhead:
-        compare_in_turns("bench_ar_overhead", [a for a in sys.argv[1:] if a != "--overhead"])
-        return
-    if rest:
-        parser.error(f"unrecognized arguments: {' '.join(rest)}")
+    args = parser.parse_args()
     as_trained()
     before = reference_product_ms()
     rows = []

@@ -1,5 +1,8 @@
-"""The benchmark harness: every benchmark script (run as ``python benchmarks/<name>.py``) takes its
-workloads, its timing and its tables from here.
+"""The benchmark harness, and the entry of every comparison declared as data:
+``python -m benchmarks.timing NAME [--rounds N] [--calls N] [override ...]`` runs the comparison
+``NAME`` under ``turns`` in ``benchmarks/workloads.yaml`` (no script of its own). The other
+benchmark scripts (``python benchmarks/<name>.py``) take their workloads, timing and tables from
+here too.
 
 * workloads: :func:`workloads` reads a benchmark's part of ``benchmarks/workloads.yaml`` (the
   workloads as data), :func:`trainer_for` builds a run's trainer from config overrides as
@@ -224,7 +227,8 @@ def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE
     command line, and the machine ``machine``, by default this one."""
     if command is None:
         script = Path(sys.argv[0]).resolve()
-        shown = (script.relative_to(ROOT) if script.is_relative_to(ROOT)
+        shown = ("-m benchmarks.timing" if script == Path(__file__).resolve()
+                 else script.relative_to(ROOT) if script.is_relative_to(ROOT)
                  else Path("benchmarks", script.name))
         command = "OMP_NUM_THREADS=1 python " + " ".join(
             [str(shown), *map(shlex.quote, sys.argv[1:])])
@@ -235,20 +239,18 @@ def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE
 
 # -- trainers in turns: the comparisons under ``turns`` in workloads.yaml ----------------------
 
-def compare_in_turns(name: str, argv: Sequence[str] | None = None,
-                     wraps: dict[str, Callable] | None = None) -> str:
+def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
     """Run comparison ``name`` under ``turns`` in ``workloads.yaml`` (command-line options
-    ``--rounds``, ``--calls``, ``--benchmarks``, ``--compile``/``--no-compile``; other arguments are
-    config overrides of every row), write its table into its section of each of its pages, and
-    return the section's body.
+    ``--rounds``, ``--calls``, ``--benchmarks``, ``--compile``/``--no-compile``, ``--no-doc``;
+    other arguments are config overrides of every row), write its table into its section of each
+    of its pages (unless ``--no-doc``), and return the section's body.
 
-    Every row's trainer runs its warm-up calls (timed together: compiles fall there), then the
-    rows of a group take turns (:func:`in_turns`), with the machine's yardstick
-    (:func:`reference_product_ms`) taken between turns. A row's ms are the median of its turn
-    medians; its fast-spell median is the median of its turns whose yardstick is at most the
-    lower quartile of the group's (the code's cost in the run's fastest spells); its ratio is its
-    turn over the group's first row's turn of the same round. A row may name a function of
-    ``wraps`` that turns its trainer into the function timed instead of ``train_iteration``."""
+    Every row's trainer runs its warm-up calls (timed together: compiles, actors' starts and env
+    builds fall there), then the rows of a group take turns (:func:`in_turns`), with the
+    machine's yardstick (:func:`reference_product_ms`) taken between turns. A row's ms are the
+    median of its turn medians; its fast-spell median is the median of its turns whose yardstick
+    is at most the lower quartile of the group's (the code's cost in the run's fastest spells);
+    its ratio is its turn over the group's first row's turn of the same round."""
     import argparse
 
     spec = workloads("turns")[name]
@@ -258,6 +260,7 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None,
     parser.add_argument("--benchmarks", nargs="+", help="the groups run (default: all)")
     parser.add_argument("--compile", action="store_true", help="run the rows that compile")
     parser.add_argument("--no-compile", action="store_true", help="skip the rows that compile")
+    parser.add_argument("--no-doc", action="store_true", help="print the table only")
     args, overrides = parser.parse_known_args(argv)
     if args.rounds < 1:
         parser.error(f"--rounds must be at least 1, got {args.rounds}")
@@ -265,19 +268,16 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None,
     as_trained()
     table, marks_seen = [], []
     for group in spec["groups"]:
-        wanted = {label: row if isinstance(row, dict) else {"overrides": row}
-                  for label, row in group["rows"].items()}
-        wanted = {label: row for label, row in wanted.items() if compiling
-                  or not any(o.endswith("compile=true") for o in row["overrides"])}
+        wanted = {label: row for label, row in group["rows"].items()
+                  if compiling or not any(o.endswith("compile=true") for o in row)}
         if args.benchmarks and group["benchmark"] not in args.benchmarks or len(wanted) < 2:
             continue  # a group left without a row to compare
         rows, warmups = {}, {}
         for label, row in wanted.items():
             trainer, _ = trainer_for(f"benchmark={group['benchmark']}", *spec.get("base", []),
-                                     *row["overrides"], *overrides)
-            fn = wraps[row["wrap"]](trainer) if "wrap" in row else trainer.train_iteration
-            warmups[label] = sum(wall_times(fn, spec["warmup"], warmup=0))
-            rows[label] = fn
+                                     *row, *overrides)
+            warmups[label] = sum(wall_times(trainer.train_iteration, spec["warmup"], warmup=0))
+            rows[label] = trainer.train_iteration
         turns, marks = in_turns(rows, args.calls, args.rounds, warmup=0,
                                 between=lambda: reference_product_ms(repeats=5))
         every = [mark for label in rows for mark in marks[label]]
@@ -304,6 +304,23 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None,
                               "× first row (median, range)", f"first {spec['warmup']} calls s"),
                              table))
     print(body)
-    for page in spec["pages"]:
+    for page in [] if args.no_doc else spec["pages"]:
         write_section(name, spec["title"], body, DOCS / page)
     return body
+
+
+def main(argv: Sequence[str]) -> None:
+    """``python -m benchmarks.timing NAME [option ...] [override ...]``: comparison ``NAME``
+    under ``turns`` in ``workloads.yaml`` (:func:`compare_in_turns`); an unknown name gets one
+    line naming the known ones (exit code 2)."""
+    names = list(workloads("turns"))
+    if not argv or argv[0] not in names:
+        got = repr(argv[0]) if argv else "nothing"
+        print(f"benchmarks.timing: NAME = {got}: allowed: {', '.join(names)} (the comparisons "
+              "under 'turns' in benchmarks/workloads.yaml)", file=sys.stderr)
+        sys.exit(2)
+    compare_in_turns(argv[0], argv[1:])
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])

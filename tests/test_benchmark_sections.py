@@ -85,7 +85,10 @@ def test_every_script_writes_a_section_of_the_page(timing):
 
 
 def test_every_section_of_the_page_records_a_command_of_an_existing_script(timing):
+    """Its script exists, or it names a comparison of ``workloads.yaml`` that
+    ``python -m benchmarks.timing`` runs."""
     page = (BENCHMARKS.parent / "docs" / "benchmarks.md").read_text()
+    turns = yaml.safe_load((BENCHMARKS / "workloads.yaml").read_text())["turns"]
     names = re.findall(r"<!-- (\w+):start -->", page)
     assert len(names) >= 15
     for name in names:
@@ -94,7 +97,10 @@ def test_every_section_of_the_page_records_a_command_of_an_existing_script(timin
         command = re.search(r"^`([^`]+)`, run on \d{4}-\d\d-\d\d \(", body, re.MULTILINE)
         assert command, name
         scripts = re.findall(r"(?:benchmarks|studies)/\w+\.(?:py|sh)", command.group(1))
-        assert scripts and all((BENCHMARKS.parent / s).is_file() for s in scripts), name
+        entries = re.findall(r"-m benchmarks\.timing (\w+)", command.group(1))
+        assert scripts or entries, name
+        assert all((BENCHMARKS.parent / s).is_file() for s in scripts), name
+        assert all(entry in turns for entry in entries), name
 
 
 def test_the_scripts_share_the_harness_and_import_no_other_script():
@@ -112,3 +118,11 @@ def test_the_scripts_share_the_harness_and_import_no_other_script():
                 imported.add(node.module.split(".")[0])
         local = imported & scripts
         assert local <= ({"timing"} if path.stem != "timing" else set()), (path.name, local)
+
+
+def test_an_unknown_comparison_gets_one_line_naming_the_known_ones(timing, capsys):
+    with pytest.raises(SystemExit) as stop:
+        timing.main(["bench_nope"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'bench_nope'" in err and "bench_meta_iteration" in err

@@ -2,7 +2,7 @@
 
 The ``aot_eager`` backend traces the same graphs as ``inductor`` (through vmap, grad and the
 flow's couplings, forward and backward) without generating code, so these checks take seconds;
-inductor's kernels are exercised by ``benchmarks/bench_meta_iteration.py --compile``.
+inductor's kernels are exercised by ``python -m benchmarks.timing bench_meta_iteration --compile``.
 """
 
 import math

@@ -16,8 +16,8 @@ order with both held constant) is the same too, up to rounding.
 
 It pays when the support set is small against the layer widths (few-shot regression: 5 points
 and 128 units); with larger support and query sets (system identification: 10 and 190 points) the
-thin per-task products cost more than they save. ``benchmarks/bench_speed_options.py`` measures it
-against the vmapped form (docs/speed-options.md).
+thin per-task products cost more than they save. ``python -m benchmarks.timing
+bench_speed_options`` measures it against the vmapped form (docs/speed-options.md).
 """
 
 from __future__ import annotations
