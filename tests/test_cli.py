@@ -206,7 +206,8 @@ def test_help_lists_the_groups_a_command_line_chooses_from_and_exits_0(capsys):
 @pytest.mark.parametrize("script", ["armeta-train", "armeta-eval", "armeta-reproduce"])
 def test_help_imports_neither_torch_nor_mujoco_nor_ray(script):
     """--help of each console script (its entry point, as installed) answers from the config
-    folder alone: torch, TorchRL, MuJoCo and Ray stay unimported (benchmarks/bench_help.py)."""
+    folder alone: torch, TorchRL, MuJoCo and Ray stay unimported (its seconds:
+    docs/notes/speed-measurements.md)."""
     probe = ("import sys; from importlib.metadata import entry_points; "
              f"(e,) = [e for e in entry_points(group='console_scripts') if e.name == '{script}']; "
              f"sys.argv = ['{script}', '--help']\n"

@@ -53,7 +53,7 @@ class SysIdCollector:
 
     ``episodes=20`` (20 episodes of 10 steps per task): a step costs about the same for any
     batch, so collection time grows with the steps per episode (see
-    ``benchmarks/bench_sysid_envs.py``). Shorter episodes stay closer to the initial states
+    docs/notes/speed-measurements.md). Shorter episodes stay closer to the initial states
     (the velocities they cover: docs/notes/history.md).
 
     The environment's initial-state seed is drawn from torch's global RNG at every call, so
