@@ -11,15 +11,14 @@ Env steps per second (one env step = ``frame_skip`` = 5 physics steps) of
   one ``[tasks, episodes]`` env);
 * a whole episode collection with the Gaussian MLP policy (``TaskSplitEpisodeCollector.collect``,
   what training runs): in one process with one MuJoCo thread per core, and with the tasks split
-  over 2 worker processes of one thread each;
+  over 2 worker processes of one thread each.
 
-then seconds per MAML-TRPO meta-iteration on ``ant_goal`` (rollouts before and after adaptation and
-the TRPO step) for a reduced meta-batch, in one process (MuJoCo threads) and with the tasks split
-over 2 processes, scaled linearly to the paper's 40 tasks and to a 500-iteration run.
-Single-threaded torch; the machine's load average is printed with the table.
+Single-threaded torch; the machine's load average is printed with the table. A meta-iteration of
+these collectors (and of Ray's) is timed in turns by the ``bench_ant_ray`` comparison
+(``python -m benchmarks.timing bench_ant_ray``).
 
-Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_goal.py`` (``--skip-meta`` for the env rows
-only); it prints its tables and writes them to its section of docs/benchmarks.md.
+Run: ``OMP_NUM_THREADS=1 python benchmarks/bench_ant_goal.py``; it prints its table and writes it
+to its section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -116,36 +115,12 @@ def collection(collector: TaskSplitEpisodeCollector, tasks: int) -> Callable[[],
     return lambda: collector.collect(goals, policy=net)
 
 
-def meta_iteration_seconds(
-    tasks: int, episodes: int, horizon: int, repeats: int, workers: int = 1
-) -> float:
-    """Seconds per MAML-TRPO meta-iteration on ant_goal with ``tasks`` tasks."""
-    from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
-    from armeta_rl.tasks import BoxUniform, TaskSpace
-
-    space = TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0])
-    collector = task_split_collector(workers, episodes, horizon)
-    leader = MAMLTRPOLeader(collector)
-    task_batch = BoxUniform(space).sample(tasks)
-
-    def erm_weights(losses: torch.Tensor) -> torch.Tensor:
-        return torch.full_like(losses, 1 / tasks)
-
-    elapsed = median_s(
-        lambda: leader.step(leader.collect(task_batch, create_graph=True), erm_weights), repeats)
-    collector.close()
-    return elapsed
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--tasks", type=int, default=8)
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--steps", type=int, default=25, help="env steps per timed call")
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--meta-tasks", type=int, default=4, help="meta-batch actually timed")
-    parser.add_argument("--horizon", type=int, default=200)
-    parser.add_argument("--skip-meta", action="store_true")
     args = parser.parse_args()
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -186,19 +161,6 @@ def main() -> None:
             + markdown_table(("what", "batch", "env steps/s", "% of bare loop"),
                              [(name, batch, f"{rate:,.0f}", f"{100 * rate / bare:.0f} %")
                               for name, batch, rate in rows]))
-    if not args.skip_meta:
-        meta_rows = []
-        for workers in (1, 2):
-            t = meta_iteration_seconds(args.meta_tasks, e, args.horizon, 1, workers)
-            scaled = t * 40 / args.meta_tasks
-            how = (f"1 process, {cores} MuJoCo threads" if workers == 1
-                   else f"tasks split over {workers} processes")
-            meta_rows.append((how, f"{t:.1f}", f"{scaled:.0f}", f"{500 * scaled / 3600:.1f}"))
-        body += (f"\n\nMAML-TRPO meta-iteration on ant_goal, {args.meta_tasks} tasks × {e} "
-                 f"episodes × {args.horizon} steps (2 rollouts + TRPO), one torch thread per "
-                 f"process, scaled linearly to the paper's 40 tasks:\n\n"
-                 + markdown_table(("how", "s measured", "s at 40 tasks", "h for 500 iterations"),
-                                  meta_rows))
     print(body)
     write_section("bench_ant_goal", "Ant goal-position env (bench_ant_goal.py)", body)
 
