@@ -1,8 +1,9 @@
 """CPU cost of the canonical meta-RL benchmarks (HalfCheetah-Vel, HalfCheetah-Dir, Ant-Dir,
 HalfCheetah-MassVel, Walker2d-MassVel): seconds per meta-iteration on one thread, at MAML's protocol
-(40 tasks × 20 episodes × 200 steps, as pytorch-maml-rl's configs) and at smaller sizes: six sizes
-for half_cheetah_vel (the benchmark of the meta-RL experiments), the largest and the smallest for
-the others (the cost is close to linear in between).
+(40 tasks × 20 episodes × 200 steps, as pytorch-maml-rl's configs) and at smaller sizes, those under
+``families`` in ``benchmarks/workloads.yaml``: six for half_cheetah_vel (the benchmark of the
+meta-RL experiments), the largest and the smallest for the others (the cost is close to linear in
+between).
 
 Every row builds the run as ``armeta-train`` does from the shipped benchmark YAML (one MuJoCo
 thread, ``benchmark.collector.make_env.threads=1``; the tasks, episodes and steps of the row) and
@@ -43,15 +44,14 @@ from timing import (
     markdown_table,
     reference_product_ms,
     trainer_for,
+    workloads,
     write_section,
 )
 
 from armeta_rl.trainers.game import GameTrainer
 
-BENCHMARKS = ("half_cheetah_vel", "half_cheetah_dir", "ant_dir", "half_cheetah_mass_vel",
-              "walker2d_mass_vel")
-SIZES = ("40x20x200", "20x20x200", "20x10x200", "10x10x200", "20x20x100", "10x10x100")
-OTHER_SIZES = ("40x20x200", "10x10x100")  # the other families: the cost is close to linear
+SIZES = workloads("families")
+"""Each benchmark's sizes, tasks x episodes x steps."""
 ITERATIONS = 500
 
 
@@ -96,18 +96,17 @@ def row(benchmark: str, size: str, repeats: int) -> tuple[str, ...]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--benchmarks", nargs="+", default=list(BENCHMARKS), choices=BENCHMARKS)
+    parser.add_argument("--benchmarks", nargs="+", default=list(SIZES), choices=SIZES)
     parser.add_argument("--sizes", nargs="+", default=None,
                         help="tasks x episodes x steps per meta-iteration, e.g. 40x20x200 "
-                             "(default: six sizes for half_cheetah_vel, two for the others)")
+                             "(default: the benchmark's under families in workloads.yaml)")
     parser.add_argument("--repeats", type=int, default=1, help="timed iterations per cell")
     args = parser.parse_args()
     as_trained()
     before = reference_product_ms()
     rows = []
     for benchmark in args.benchmarks:
-        sizes = args.sizes or (SIZES if benchmark == "half_cheetah_vel" else OTHER_SIZES)
-        for size in sizes:
+        for size in args.sizes or SIZES[benchmark]:
             rows.append(row(benchmark, size, args.repeats))
             print(" | ".join(rows[-1]), flush=True)
             write(rows, args.repeats, before, reference_product_ms())
