@@ -91,13 +91,11 @@ def wall_times(
     fn: Callable[[], object],
     repeats: int,
     warmup: int = 1,
-    clock: Callable[[], float] = time.perf_counter,
     sync: Callable[[], object] = lambda: None,
     budget_s: float = float("inf"),
 ) -> list[float]:
-    """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls, on
-    ``clock`` (wall time; ``time.process_time`` gives this process's CPU time, less sensitive to
-    other processes); ``sync`` waits for queued device work before each reading (e.g.
+    """Wall seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls;
+    ``sync`` waits for queued device work before each reading (e.g.
     ``torch.cuda.synchronize``); no call starts after ``budget_s`` seconds of timed calls once
     one has been timed."""
     for _ in range(warmup):
@@ -105,10 +103,10 @@ def wall_times(
     sync()
     times: list[float] = []
     while len(times) < repeats and (not times or sum(times) < budget_s):
-        start = clock()
+        start = time.perf_counter()
         fn()
         sync()
-        times.append(clock() - start)
+        times.append(time.perf_counter() - start)
     return times
 
 
