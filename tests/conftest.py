@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import mujoco
 import pytest
@@ -41,6 +42,19 @@ def compose_train(*overrides: str) -> DictConfig:
 def train_config(*overrides: str) -> TrainConfig:
     """The ``armeta-train`` config for ``overrides``, validated as the CLI validates it."""
     return validate(compose_train(*overrides))
+
+
+def refusal(command: Callable[[list[str]], int], args: list[str],
+            capsys: pytest.CaptureFixture) -> str:
+    """The one line ``command`` (:func:`armeta_rl.cli.train` or ``evaluate``, run in this
+    process on the command line ``args``) writes to stderr when it refuses them with exit code
+    2. A process of its own is a second or more of imports per case; the tests that run the
+    programs as processes check that their exit code and stderr are these."""
+    code, err = command(list(args)), capsys.readouterr().err
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    return lines[0]
 
 
 def raw_mjdata(model: mujoco.MjModel, sim) -> list[mujoco.MjData]:

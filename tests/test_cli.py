@@ -6,8 +6,9 @@ from pathlib import Path
 
 import pytest
 
+from armeta_rl.cli import evaluate, train
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, train_config
+from conftest import SMALL_RUN, refusal, train_config
 
 TRAIN = [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())"]
 EVAL = [sys.executable, "-c",
@@ -57,16 +58,11 @@ EVAL = [sys.executable, "-c",
          "AntGoalEnv refuses it: tensordict key 'params'"),
     ],
 )
-def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, override, key, allowed):
-    """``override``: one or more space-separated overrides."""
-    result = subprocess.run(
-        [*TRAIN, *override.split(), f"hydra.run.dir={tmp_path}"], capture_output=True, text=True,
-        timeout=120,
-    )
-    assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    assert f"'{key}'" in lines[0] and allowed in lines[0]
+def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, capsys, override, key, allowed):
+    """``override``: one or more space-separated overrides (``armeta-train`` in this process;
+    the program's own exit code and stderr: the next test)."""
+    line = refusal(train, [*override.split(), f"hydra.run.dir={tmp_path}"], capsys)
+    assert f"'{key}'" in line and allowed in line
 
 
 def test_support_noise_on_an_rl_benchmark_is_refused_before_training(tmp_path):
@@ -94,29 +90,31 @@ def test_unknown_choice_inside_a_sweep_is_rejected(tmp_path):
     assert result.returncode == 2 and "'ar_mam'" in result.stderr
 
 
-def test_override_keys_are_checked_for_the_chosen_benchmark_and_sweep(tmp_path):
-    def run(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([*TRAIN, *args], capture_output=True, text=True, timeout=120,
-                              cwd=tmp_path)
+def test_override_keys_are_checked_for_the_chosen_benchmark_and_sweep(tmp_path, monkeypatch,
+                                                                      capsys):
+    monkeypatch.chdir(tmp_path)
 
-    sysid = run("benchmark=pendulum_uniform", "benchmark.collector.episodes=10", "--cfg", "job")
-    assert sysid.returncode == 0 and "episodes: 10" in sysid.stdout
-    swept = run("-m", "benchmark=point_nav,sinusoid_uniform", "benchmark.collector.max_steps=50")
-    assert swept.returncode == 2
-    assert "'benchmark.collector.max_steps'" in swept.stderr
-    assert "benchmark=sinusoid_uniform" in swept.stderr
-    added = run("risk.ar.flow=planar", "+risk.ar.flow_kwargs.activation=leaky_relu", "--cfg", "job")
-    assert added.returncode == 0 and "activation: leaky_relu" in added.stdout
-    unreadable = run("trainer.iterations=[")
-    assert unreadable.returncode == 2 and len(unreadable.stderr.strip().splitlines()) == 1
-    assert "'trainer.iterations=['" in unreadable.stderr
+    def run(*args: str) -> tuple[int, str, str]:
+        code = train(list(args))
+        out, err = capsys.readouterr()
+        return code, out, err
+
+    code, out, _ = run("benchmark=pendulum_uniform", "benchmark.collector.episodes=10",
+                       "--cfg", "job")
+    assert code == 0 and "episodes: 10" in out
+    code, _, err = run("-m", "benchmark=point_nav,sinusoid_uniform",
+                       "benchmark.collector.max_steps=50")
+    assert code == 2
+    assert "'benchmark.collector.max_steps'" in err and "benchmark=sinusoid_uniform" in err
+    code, out, _ = run("risk.ar.flow=planar", "+risk.ar.flow_kwargs.activation=leaky_relu",
+                       "--cfg", "job")
+    assert code == 0 and "activation: leaky_relu" in out
+    assert "'trainer.iterations=['" in refusal(train, ["trainer.iterations=["], capsys)
 
 
-def test_resume_and_eval_of_a_non_run_directory_are_rejected(tmp_path):
-    resumed = subprocess.run([*TRAIN, f"resume={tmp_path}"], capture_output=True, text=True)
-    assert resumed.returncode == 2 and "'resume'" in resumed.stderr
-    evaluated = subprocess.run([*EVAL, f"learner={tmp_path}"], capture_output=True, text=True)
-    assert evaluated.returncode == 2 and "'learner'" in evaluated.stderr
+def test_resume_and_eval_of_a_non_run_directory_are_rejected(tmp_path, capsys):
+    assert "'resume'" in refusal(train, [f"resume={tmp_path}"], capsys)
+    assert "'learner'" in refusal(evaluate, [f"learner={tmp_path}"], capsys)
 
 
 def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):

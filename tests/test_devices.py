@@ -11,6 +11,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.checkpoint import GlobalRNGState
 
+from armeta_rl.cli import evaluate, train
 from armeta_rl.config import validate
 from armeta_rl.devices import resolve_device
 from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
@@ -21,20 +22,12 @@ from armeta_rl.trainers.checkpoint import PortableRNGState
 from armeta_rl.trainers.players import Players, load_players
 from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, train_config
+from conftest import SMALL_RUN, compose_train, refusal, train_config
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
-EVAL = [sys.executable, "-c", "from armeta_rl.cli import evaluate; evaluate()"]
 CUDA = torch.cuda.is_available()
 GPUS = torch.cuda.device_count() if CUDA else 0
 needs_cuda = pytest.mark.skipif(not CUDA, reason="CUDA not available")
-
-
-def _one_line(result: subprocess.CompletedProcess) -> str:
-    assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1, result.stderr
-    return lines[0]
 
 
 BAD_DEVICES = [("tpu", "allowed: cpu, cuda, cuda:N"), ("cuda:x", "allowed: cpu, cuda, cuda:N"),
@@ -44,11 +37,9 @@ if not CUDA:
 
 
 @pytest.mark.parametrize("device,allowed", BAD_DEVICES)
-def test_a_bad_device_is_one_line_and_exit_2_before_anything_is_written(tmp_path, device,
-                                                                        allowed):
-    result = subprocess.run([*TRAIN, f"device={device}", f"hydra.run.dir={tmp_path / 'run'}"],
-                            capture_output=True, text=True, timeout=120)
-    line = _one_line(result)
+def test_a_bad_device_is_one_line_and_exit_2_before_anything_is_written(tmp_path, capsys,
+                                                                        device, allowed):
+    line = refusal(train, [f"device={device}", f"hydra.run.dir={tmp_path / 'run'}"], capsys)
     assert line.startswith(f"armeta-train: error: config key 'device' = '{device}': ")
     assert allowed in line
     assert not (tmp_path / "run").exists()
@@ -133,15 +124,13 @@ def test_cuda_random_state_in_a_checkpoint_does_not_block_a_cpu_resume():
     assert torch.equal(torch.rand(3), expected)
 
 
-def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path):
+def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path, capsys):
     run = tmp_path / "run"
     run_training(train_config(*SMALL_RUN, "method=maml", "trainer.stop_at=3"), run)
-    resumed = subprocess.run([*TRAIN, f"resume={run}", "device=tpu"], capture_output=True,
-                             text=True, timeout=120)
-    assert "config key 'device' = 'tpu'" in _one_line(resumed)
-    evaluated = subprocess.run([*EVAL, f"learner={run}", "device=tpu"], capture_output=True,
-                               text=True, timeout=120)
-    assert "config key 'device' = 'tpu'" in _one_line(evaluated)
+    assert "config key 'device' = 'tpu'" in refusal(train, [f"resume={run}", "device=tpu"],
+                                                    capsys)
+    assert "config key 'device' = 'tpu'" in refusal(evaluate, [f"learner={run}", "device=tpu"],
+                                                    capsys)
     resumed = subprocess.run([*TRAIN, f"resume={run}", "device=cpu"], capture_output=True,
                              text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr

@@ -1,6 +1,7 @@
-"""armeta-reproduce: every experiment end to end at the tiny profile, the aggregation against
-hand-computed cases, skipping and resuming of finished runs, a Ray-launched sweep on a local head,
-and bad input (one line, exit code 2)."""
+"""armeta-reproduce: table1 end to end at the tiny profile (the other experiments:
+``tests/test_reproduce_experiments.py``), the aggregation against hand-computed cases, skipping and
+resuming of finished runs, a Ray-launched sweep on a local head, and bad input (one line, exit
+code 2)."""
 
 import json
 import math
@@ -29,24 +30,12 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
-from armeta_rl.reproduce.cli import MANIFEST, SweepClock, check_runs, reproduce
+from armeta_rl.reproduce.cli import MANIFEST, SweepClock, check_runs, main, reproduce
 from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
 from armeta_rl.reproduce.reports import paired, table
 
 ROOT = Path(__file__).resolve().parents[1]
 REPRODUCE = [sys.executable, "-c", "from armeta_rl.reproduce.cli import main; main()"]
-FIRST_BENCHMARK = {
-    "table1": "sinusoid_uniform",
-    "cnp_table": "sinusoid_uniform",
-    "entropy": "sinusoid_uniform",
-    "noise": "sinusoid_uniform",
-    "point_robot": "point_nav",
-    "meta_rl_point": "point_nav",
-    "meta_rl_point_validation": "point_nav",
-    "meta_rl_cheetah": "half_cheetah_vel",
-    "meta_rl_cheetah_mass": "half_cheetah_mass_vel",
-    "ant_pos": "ant_goal",
-}
 
 
 @pytest.fixture(scope="module")
@@ -124,23 +113,6 @@ def test_experiments_sharing_table1s_runs_only_aggregate(table1_dir, experiment)
     assert "complete" in (table1_dir / f"{experiment}.md").read_text()
 
 
-@pytest.mark.parametrize("experiment", sorted(set(FIRST_BENCHMARK) - {"table1"}))
-def test_every_experiment_runs_at_tiny_size(tmp_path, experiment):
-    """(table1 runs in the ``table1_dir`` fixture.)"""
-    benchmark = FIRST_BENCHMARK[experiment]
-    assert reproduce(experiment, "tiny", tmp_path, launcher="basic", benchmarks=(benchmark,)) == 0
-    plan = make_plan(experiment, "tiny", benchmarks=(benchmark,))
-    assert all((tmp_path / run.subdir / "eval.json").is_file()
-               for run in (*plan.runs, *plan.attacks))
-    assert all((tmp_path / job.out).is_file() for job in plan.evals)
-    assert "complete" in (tmp_path / f"{experiment}.md").read_text()
-    assert list(tmp_path.glob("*.png"))
-
-
-def test_every_experiment_is_covered():
-    assert set(experiment_names()) == {*FIRST_BENCHMARK, "cvar_curves", "scatter"}
-
-
 def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, capsys):
     before = _eval_files(table1_dir)
     assert reproduce("table1", "tiny", table1_dir, launcher="basic",
@@ -160,7 +132,14 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
             in (table1_dir / "table1.md").read_text())
     assert reproduce("table1", "tiny", table1_dir, launcher="basic",
                      benchmarks=("sinusoid_uniform",)) == 0
-    assert "(1 to run)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "(1 to run)" in out
+    # Each job's progress line counts the finished jobs of the experiment from their files.
+    progress = [line.rsplit(", elapsed", 1)[0] for line in out.splitlines()
+                if line.startswith("[table1 train]")]
+    assert progress == [
+        "[table1 train] start runs/sinusoid_uniform/ar_maml/seed1: 13/14 finished, 1 left",
+        "[table1 train] done runs/sinusoid_uniform/ar_maml/seed1: 14/14 finished, 0 left"]
     jobs = (table1_dir / ".sweeps" / "table1-train.yaml").read_text()
     assert f"resume={run}" in jobs and jobs.count("overrides") == 1
     assert _eval_files(table1_dir) == before
@@ -360,6 +339,14 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
                           cwd=cwd, env={**os.environ, "PYTHONPATH": str(ROOT)})
 
 
+def _refusal(monkeypatch, capsys, *args: str) -> tuple[int, str]:
+    """``armeta-reproduce args`` in this process: its exit code and what it wrote to stderr."""
+    monkeypatch.setattr(sys, "argv", ["armeta-reproduce", *args])
+    with pytest.raises(SystemExit) as exit_:
+        main()
+    return exit_.value.code, capsys.readouterr().err
+
+
 @pytest.mark.parametrize(
     "args,expected",
     [
@@ -373,12 +360,19 @@ def _run(*args: str, cwd: Path) -> subprocess.CompletedProcess:
         (["profile=quick"], "name an experiment first"),
     ],
 )
-def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, args, expected):
-    result = _run(*args, f"results={tmp_path / 'r'}", cwd=tmp_path)
-    assert result.returncode == 2, result.stderr
-    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
-    assert expected in result.stderr
+def test_bad_input_gets_one_line_and_exit_code_2(tmp_path, monkeypatch, capsys, args, expected):
+    code, err = _refusal(monkeypatch, capsys, *args, f"results={tmp_path / 'r'}")
+    assert code == 2, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert expected in err
     assert not (tmp_path / "r").exists()
+
+
+def test_a_refusal_is_one_line_and_exit_code_2_from_the_command_itself(tmp_path):
+    result = _run("table2", f"results={tmp_path / 'r'}", cwd=tmp_path)
+    assert (result.returncode, result.stdout) == (2, ""), result.stderr
+    assert result.stderr == ("armeta-reproduce: error: config key 'experiment' = 'table2': "
+                             f"allowed: {', '.join(experiment_names())}\n")
 
 
 def test_a_pack_value_other_than_true_or_false_gets_one_line_and_exit_code_2(capsys):
@@ -392,17 +386,19 @@ def test_a_pack_value_other_than_true_or_false_gets_one_line_and_exit_code_2(cap
                                        "allowed: true, false\n")
 
 
-def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_path):
-    result = _run("cnp_table", "profile=tiny", f"results={table1_dir}", cwd=tmp_path)
-    assert result.returncode == 2
-    assert len(result.stderr.strip().splitlines()) == 1, result.stderr
-    assert "holds the runs of experiment table1, not cnp_table" in result.stderr
-    other = _run("table1", "profile=quick", f"results={table1_dir}", cwd=tmp_path)
-    assert other.returncode == 2 and "holds profile tiny" in other.stderr
+def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_path, monkeypatch,
+                                                              capsys):
+    code, err = _refusal(monkeypatch, capsys, "cnp_table", "profile=tiny", f"results={table1_dir}")
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1, err
+    assert "holds the runs of experiment table1, not cnp_table" in err
+    code, err = _refusal(monkeypatch, capsys, "table1", "profile=quick", f"results={table1_dir}")
+    assert code == 2 and "holds profile tiny" in err
     (tmp_path / "notes").mkdir()
     (tmp_path / "notes" / "a.txt").write_text("mine")
-    stranger = _run("table1", "profile=tiny", f"results={tmp_path / 'notes'}", cwd=tmp_path)
-    assert stranger.returncode == 2 and "not an armeta-reproduce results" in stranger.stderr
+    code, err = _refusal(monkeypatch, capsys, "table1", "profile=tiny",
+                         f"results={tmp_path / 'notes'}")
+    assert code == 2 and "not an armeta-reproduce results" in err
 
 
 RAY_SWEEP = textwrap.dedent("""
@@ -568,22 +564,40 @@ def _packaged_copy(tmp_path: Path, profiles_text: str) -> Path:
     return root
 
 
-@pytest.mark.parametrize(
-    "entry,expected",
-    [
-        ("{config: sinusoid_normal_paper, iterations: 5}",
-         "'paper.benchmarks.sinusoid_normal' = {'config': 'sinusoid_normal_paper', "
-         "'iterations': 5}: allowed: a list of overrides, or {config: <benchmark>"),
-        ("{overrides: [trainer.iterations=5]}",
-         "'paper.benchmarks.sinusoid_normal' = {'overrides': ['trainer.iterations=5']}: allowed"),
-        ("{config: sinusoid_circle}", "'benchmark' = 'sinusoid_circle': allowed: "),
-    ],
-)
-def test_a_malformed_profile_entry_gets_one_line_and_exit_code_2(tmp_path, entry, expected):
+MALFORMED_ENTRIES = [
+    ("{config: sinusoid_normal_paper, iterations: 5}",
+     "'paper.benchmarks.sinusoid_normal' = {'config': 'sinusoid_normal_paper', "
+     "'iterations': 5}: allowed: a list of overrides, or {config: <benchmark>"),
+    ("{overrides: [trainer.iterations=5]}",
+     "'paper.benchmarks.sinusoid_normal' = {'overrides': ['trainer.iterations=5']}: allowed"),
+    ("{config: sinusoid_circle}", "'benchmark' = 'sinusoid_circle': allowed: "),
+]
+SHOWN_ENTRY = "sinusoid_normal: {config: sinusoid_normal_paper, overrides: [risk.ar.lr=0.000125]}"
+
+
+def _profiles_with(entry: str) -> str:
+    """``profiles.yaml`` with Sinusoid-N's paper entry replaced by ``entry``."""
     profiles = (ROOT / "configs" / "reproduce" / PROFILES_FILE).read_text()
-    shown = "sinusoid_normal: {config: sinusoid_normal_paper, overrides: [risk.ar.lr=0.000125]}"
-    assert shown in profiles
-    site = _packaged_copy(tmp_path, profiles.replace(shown, f"sinusoid_normal: {entry}"))
+    assert SHOWN_ENTRY in profiles
+    return profiles.replace(SHOWN_ENTRY, f"sinusoid_normal: {entry}")
+
+
+@pytest.mark.parametrize("entry,expected", MALFORMED_ENTRIES)
+def test_a_malformed_profile_entry_gets_one_line_and_exit_code_2(tmp_path, monkeypatch, capsys,
+                                                                  entry, expected):
+    profiles = OmegaConf.to_container(OmegaConf.create(_profiles_with(entry)))
+    monkeypatch.setattr(plan_module, "load_profiles", lambda: profiles)
+    code, err = _refusal(monkeypatch, capsys, "table1", "profile=paper",
+                         f"results={tmp_path / 'r'}")
+    assert code == 2, err
+    assert len(err.strip().splitlines()) == 1, err
+    assert expected in err
+    assert not (tmp_path / "r").exists()
+
+
+def test_an_installed_packages_malformed_profile_entry_gets_one_line(tmp_path):
+    entry, expected = MALFORMED_ENTRIES[0]
+    site = _packaged_copy(tmp_path, _profiles_with(entry))
     result = subprocess.run(
         [*REPRODUCE, "table1", "profile=paper", f"results={tmp_path / 'r'}"],
         capture_output=True, text=True, timeout=120, cwd=tmp_path,
@@ -591,7 +605,6 @@ def test_a_malformed_profile_entry_gets_one_line_and_exit_code_2(tmp_path, entry
     assert result.returncode == 2, result.stderr
     assert len(result.stderr.strip().splitlines()) == 1, result.stderr
     assert expected in result.stderr
-    assert not (tmp_path / "r").exists()
 
 
 @pytest.mark.parametrize(

@@ -19,9 +19,10 @@ from typing import Any
 
 from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from armeta_rl.preemption import EXIT_PREEMPTED, PROCESS
+from armeta_rl.reproduce import read_jobs
 
 
 def format_elapsed(seconds: float) -> str:
@@ -48,11 +49,11 @@ class Progress(Callback):
 
     def line(self, event: str, config: DictConfig) -> str:
         """The progress line for ``event`` of the job whose config is ``config``."""
-        jobs = OmegaConf.load(self.jobs_file).jobs
-        done = self.finished_before + sum(Path(job.done).is_file() for job in jobs)
+        jobs = read_jobs(self.jobs_file)
+        done = self.finished_before + sum(Path(job["done"]).is_file() for job in jobs)
         total = self.finished_before + len(jobs)
         elapsed = format_elapsed(time.time() - self.started)
-        name = jobs[config.hydra.job.num].name
+        name = jobs[config.hydra.job.num]["name"]
         return (f"[{self.label}] {event} {name}: {done}/{total} finished, "
                 f"{total - done} left, elapsed {elapsed}")
 

@@ -32,6 +32,7 @@ from hydra.types import HydraContext, TaskFunction
 from omegaconf import DictConfig, OmegaConf
 
 from armeta_rl.errors import JobFailed
+from armeta_rl.reproduce import read_jobs
 
 
 @dataclass
@@ -43,11 +44,6 @@ class RunListSweeperConf:
 ConfigStore.instance().store(
     group="hydra/sweeper", name="run_list", node=RunListSweeperConf, provider="armeta_rl"
 )
-
-
-def read_jobs(jobs_file: str | Path) -> list[dict[str, Any]]:
-    """The jobs listed in ``jobs_file``: dicts with ``name``, ``overrides`` and ``done``."""
-    return OmegaConf.to_container(OmegaConf.load(jobs_file).jobs)
 
 
 class RunListSweeper(Sweeper):
