@@ -312,6 +312,11 @@ def main(argv: Sequence[str]) -> None:
     under ``turns`` in ``workloads.yaml`` (:func:`compare_in_turns`); an unknown name gets one
     line naming the known ones (exit code 2)."""
     names = list(workloads("turns"))
+    if argv and argv[0] in ("-h", "--help"):
+        print("usage: python -m benchmarks.timing NAME [--help] [option ...] [override ...]\n"
+              f"NAME: {', '.join(names)} (the comparisons under 'turns' in "
+              "benchmarks/workloads.yaml; NAME --help lists the options)")
+        return
     if not argv or argv[0] not in names:
         got = repr(argv[0]) if argv else "nothing"
         print(f"benchmarks.timing: NAME = {got}: allowed: {', '.join(names)} (the comparisons "
