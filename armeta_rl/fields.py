@@ -94,12 +94,12 @@ class Section:
         typed = self.typed()
         for spec in dataclasses.fields(self):  # type: ignore[arg-type]
             value = getattr(self, spec.name)
-            if made(value) or isinstance(value, str) and (
+            if nested(value) or isinstance(value, str) and (
                     value == MISSING or value.startswith("${")):
                 continue  # checked when made; a default to be filled or resolved when composed
             if isinstance(value, float) and not math.isfinite(value):
                 self.refuse(spec.name, "must be a finite number")
-            node = typed._get_node(spec.name)  # '0.5' for a number: OmegaConf converts it
+            node = typed._get_node(spec.name)  # converted ('0.5' to 0.5): the dataclass kept '0.5'
             if reads_as_boolean(node, value) or typed[spec.name] != value:
                 self.refuse(spec.name, f"must be {type_words(node)}")
             test = spec.metadata.get("test")
@@ -108,10 +108,10 @@ class Section:
 
     def typed(self) -> DictConfig:
         """This section's own values in its structured config, their types checked by OmegaConf
-        as a composed config's are; nested sections (:func:`made`) left out."""
+        as a composed config's are; nested sections (:func:`nested`) left out."""
         own = copy.copy(self)
         for spec in dataclasses.fields(self):  # type: ignore[arg-type]
-            if made(value := getattr(self, spec.name)):
+            if nested(value := getattr(self, spec.name)):
                 object.__setattr__(own, spec.name, {} if isinstance(value, dict) else MISSING)
         try:
             return OmegaConf.structured(own)
@@ -128,7 +128,7 @@ class Section:
         raise ConfigError(where, getattr(self, name), allowed)
 
 
-def made(value: Any) -> bool:
+def nested(value: Any) -> bool:
     """Whether ``value`` is a :class:`Section` or a mapping of them (``learner``): checked when
     it was made."""
     values = value.values() if isinstance(value, dict) and value else [value]
