@@ -149,11 +149,15 @@ def _node(cfg: DictConfig, key: str) -> Any:
 
 def compose_job(job: list[str], config_name: str = "train") -> DictConfig:
     """Compose ``config_name`` with the overrides ``job`` (inside Hydra's initialized config
-    dir). A key the config lacks, a value of the wrong type (for a boolean, anything but true or
-    false: OmegaConf would read ``off`` or ``1`` as one) is refused as one line
-    (:class:`Refused`)."""
+    dir). A key the config lacks or a value of the wrong type is refused as one line
+    (:class:`Refused`). Composing reads ``off`` or ``1`` as a boolean without a word, so a
+    boolean key's override is checked here, where its value is still the one given
+    (:func:`armeta_rl.fields.reads_as_boolean`)."""
     from hydra import compose
     from hydra.errors import ConfigCompositionException, HydraException
+
+    from armeta_rl.errors import ConfigError
+    from armeta_rl.fields import reads_as_boolean, type_words
 
     try:
         cfg = compose(config_name, overrides=job)
@@ -163,11 +167,10 @@ def compose_job(job: list[str], config_name: str = "train") -> DictConfig:
         raise Refused(" ".join(str(error).split())) from None
     for arg in job:
         override = _parse(arg)
-        node = _node(cfg, override.key_or_group)
-        value = override.value()
-        if type(node).__name__ == "BooleanNode" and not isinstance(value, (bool, type(None))):
-            raise Refused(f"config key '{override.key_or_group}' = {value!r}: "
-                           "must be a boolean (true or false)")
+        key, value = override.key_or_group, override.value()
+        node = _node(cfg, key)
+        if reads_as_boolean(node, value):
+            raise Refused(str(ConfigError(key, value, f"must be {type_words(node)}")))
     return cfg
 
 

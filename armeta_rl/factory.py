@@ -21,6 +21,7 @@ from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
+from armeta_rl.adversary.options import ArOptions
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.config import InitialConfig, MethodConfig, SpaceConfig
 from armeta_rl.devices import CPU
@@ -31,7 +32,7 @@ from armeta_rl.learners.cnp import build_cnp
 from armeta_rl.learners.maml import build_maml
 from armeta_rl.learners.maml_ppo import build_maml_ppo
 from armeta_rl.learners.maml_trpo import build_maml_trpo
-from armeta_rl.risk.adversarial import AdversarialPrinciple, ArOptions
+from armeta_rl.risk.adversarial import AdversarialPrinciple
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.risk.erm import ERMPrinciple
 from armeta_rl.risk.groups import GroupDROPrinciple, WorstCasePrinciple

@@ -1,5 +1,5 @@
 """Config sections as dataclasses: each key one field, with its default and, where it has one,
-its allowed range; Hydra checks the types, :class:`Section` the ranges.
+its allowed range; OmegaConf checks the types, :class:`Section` the ranges.
 
 A learner's, a risk principle's or the run's own section (``learner.maml``, ``risk.ar``,
 ``trainer``) is a dataclass of fields made with :func:`key` or a shorthand (:func:`at_least`,
@@ -9,20 +9,32 @@ A learner's, a risk principle's or the run's own section (``learner.maml``, ``ri
 defaults.
 Composing a config then checks every value's type and refuses unknown keys (Hydra), and making
 the dataclass (``OmegaConf.to_object``, or a constructor call from Python) checks every range
-(:meth:`Section.__post_init__`). Errors name the key, the value and what is allowed
-(:class:`~armeta_rl.errors.ConfigError`).
+(:meth:`Section.__post_init__`), and the types of its own values with the same OmegaConf
+check (:meth:`Section.typed`): a section made from Python has no other. Errors name the key, the
+value and what is allowed (:class:`~armeta_rl.errors.ConfigError`).
 """
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
+import re
 from collections.abc import Callable
 from dataclasses import field
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NoReturn
 
 from hydra.core.config_store import ConfigStore
-from omegaconf import MISSING, OmegaConf
+from omegaconf import (
+    MISSING,
+    BooleanNode,
+    DictConfig,
+    FloatNode,
+    IntegerNode,
+    ListConfig,
+    OmegaConf,
+    StringNode,
+)
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
 from armeta_rl.errors import ConfigError
@@ -70,42 +82,57 @@ def each(check: Any, nonempty: bool = False, default: Any = None) -> Any:
 
 class Section:
     """A config section: the dataclass of the keys under ``section`` (``"learner.maml"``,
-    ``"trainer"``). Making one checks each value against its field's range, so a bad value from
-    Python is refused with the line the CLI prints (``config key 'learner.maml.inner_lr' = 0:
-    must be > 0``); a subclass with rules between its keys extends :meth:`__post_init__`. A
-    learner's or a risk principle's constructor takes its section
+    ``"trainer"``). Making one checks each value's type and range, so a bad value from Python is
+    refused with the line the CLI prints (``config key 'learner.maml.inner_lr' = 0: must be >
+    0``); a subclass with rules between its keys extends :meth:`__post_init__`. A learner's or a
+    risk principle's constructor takes its section
     (``MAMLLeader(model, collector, MamlOptions(inner_lr=0.05))``)."""
 
     section: ClassVar[str]
 
     def __post_init__(self) -> None:
-        try:  # the types, as Hydra checks a composed config's (an object made from Python)
-            OmegaConf.structured(self)
-        except OmegaConfBaseException:
-            self._refuse_type()
+        typed = self.typed()
         for spec in dataclasses.fields(self):  # type: ignore[arg-type]
             value = getattr(self, spec.name)
-            if isinstance(value, str) and (value == MISSING or value.startswith("${")):
-                continue  # a default to be filled or resolved when composed
-            test = spec.metadata.get("test")
+            if nested(value) or isinstance(value, str) and (
+                    value == MISSING or value.startswith("${")):
+                continue  # checked when made; a default to be filled or resolved when composed
             if isinstance(value, float) and not math.isfinite(value):
                 self.refuse(spec.name, "must be a finite number")
+            node = typed._get_node(spec.name)  # converted ('0.5' to 0.5): the dataclass kept '0.5'
+            if reads_as_boolean(node, value) or typed[spec.name] != value:
+                self.refuse(spec.name, f"must be {type_words(node)}")
+            test = spec.metadata.get("test")
             if value is not None and test is not None and not test(value):
                 self.refuse(spec.name, spec.metadata["allowed"])
 
-    def _refuse_type(self) -> None:
-        """Refuse the first field whose value its annotation does not take."""
-        schema = OmegaConf.structured(type(self))
+    def typed(self) -> DictConfig:
+        """This section's own values in its structured config, their types checked by OmegaConf
+        as a composed config's are; nested sections (:func:`nested`) left out."""
+        own = copy.copy(self)
         for spec in dataclasses.fields(self):  # type: ignore[arg-type]
-            try:
-                OmegaConf.merge(schema, {spec.name: getattr(self, spec.name)})
-            except OmegaConfBaseException:
-                self.refuse(spec.name, f"must be {type_words(schema._get_node(spec.name))}")
+            if nested(value := getattr(self, spec.name)):
+                object.__setattr__(own, spec.name, {} if isinstance(value, dict) else MISSING)
+        try:
+            return OmegaConf.structured(own)
+        except OmegaConfBaseException as error:
+            name = re.match(r"\w*", str(error.full_key)).group()  # hidden[0]: the field hidden
+            if not hasattr(self, name):
+                raise config_error(error) from None
+            node = OmegaConf.structured(type(self))._get_node(name)
+            self.refuse(name, f"must be {type_words(node)}")
 
-    def refuse(self, name: str, allowed: str) -> None:
+    def refuse(self, name: str, allowed: str) -> NoReturn:
         """Raise the :class:`ConfigError` of this section's key ``name``."""
         where = f"{self.section}.{name}" if self.section else name
         raise ConfigError(where, getattr(self, name), allowed)
+
+
+def nested(value: Any) -> bool:
+    """Whether ``value`` is a :class:`Section` or a mapping of them (``learner``): checked when
+    it was made."""
+    values = value.values() if isinstance(value, dict) and value else [value]
+    return all(isinstance(v, Section) for v in values)
 
 
 def register(section: str) -> Callable[[type], type]:
@@ -127,11 +154,19 @@ def register(section: str) -> Callable[[type], type]:
     return store
 
 
+def reads_as_boolean(node: Any, value: Any) -> bool:
+    """Whether the config node ``node`` is a boolean that OmegaConf would take ``value`` for
+    only by reading it as one: it reads ``'off'``, ``'yes'``, ``1`` or ``0`` as a boolean
+    without a word, so ``learner.maml.first_order=off`` would silently train first-order. The
+    one rule for a boolean key, from the command line (:func:`armeta_rl.cli.compose_job`, which
+    sees the value before composing converts it) and from Python (:class:`Section`): true or
+    false, or null where the key allows it."""
+    return isinstance(node, BooleanNode) and value is not None and not isinstance(value, bool)
+
+
 def type_words(node: Any) -> str:
     """What a value of the config node ``node`` must be, in words (``an integer``, ``a list of
     numbers``, ...)."""
-    from omegaconf import BooleanNode, FloatNode, IntegerNode, ListConfig, StringNode
-
     if isinstance(node, ListConfig):
         element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
             node._metadata.element_type)

@@ -13,9 +13,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 from armeta_rl.cli import Refused, compose_job, config_dir, group_choices
-from armeta_rl.config import TrainConfig, load_run_config, schema, validate
+from armeta_rl.config import TrainConfig, TrainerConfig, load_run_config, schema, validate
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import check_method
+from armeta_rl.learners.maml import MamlOptions
 
 
 @pytest.fixture(scope="module")
@@ -126,6 +127,27 @@ def test_a_value_of_the_wrong_type_or_an_unknown_key_is_one_line_naming_the_key(
     key = override.split("=")[0]
     assert str(error.value).startswith(f"config key '{key}' = "), str(error.value)
     assert words in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.parametrize(("options", "key", "words"), [
+    ({"first_order": "off"}, "learner.maml.first_order", "must be a boolean (true or false)"),
+    ({"first_order": 1}, "learner.maml.first_order", "must be a boolean (true or false)"),
+    ({"inner_lr": "0.5"}, "learner.maml.inner_lr", "must be a number"),
+    ({"inner_lr": None}, "learner.maml.inner_lr", "must be a number"),
+    ({"hidden": [1.5]}, "learner.maml.hidden", "must be a list of integers"),
+    ({"hidden": ["4"]}, "learner.maml.hidden", "must be a list of integers"),
+    ({"iterations": "5"}, "trainer.iterations", "must be an integer"),
+    ({"progress": "yes"}, "trainer.progress", "must be a boolean (true or false)"),
+])
+def test_a_section_made_in_python_refuses_what_composing_would_refuse_or_convert(
+        options, key, words):
+    """The command line's type rules, from Python: a value OmegaConf takes only by converting
+    it (which the dataclass would keep unconverted) is refused as a wrong type."""
+    section = TrainerConfig if key.startswith("trainer.") else MamlOptions
+    with pytest.raises(ConfigError) as error:
+        section(**options)
+    value = next(iter(options.values()))
+    assert str(error.value) == f"config key '{key}' = {value!r}: {words}"
 
 
 def test_a_saved_config_with_a_key_this_version_lacks_is_refused_in_one_line(tmp_path, composed):

@@ -83,10 +83,21 @@ def test_bad_input():
     with pytest.raises(TrainingDiverged, match="non-finite losses"):
         sampler.update(tasks, torch.tensor([1.0, float("nan"), 0.0, 0.0]))
     assert all(torch.equal(a, b) for a, b in zip(before, sampler.adversary.parameters()))
-    for kwargs, key in (({"lam": -1.0}, "lam"), ({"lr": 0.0}, "lr"),
-                        ({"baseline": "median"}, "baseline"), ({"total_updates": 0},
-                                                              "total_updates")):
-        with pytest.raises(ConfigError, match=f"'{key}'"):
-            TaskSampler(make_adversary(), **kwargs)
+    with pytest.raises(ConfigError, match="'total_updates' = 0"):
+        TaskSampler(make_adversary(), total_updates=0)
     with pytest.raises(ConfigError, match="'n' = 0"):
         sampler.sample(0)
+
+
+@pytest.mark.parametrize(("name", "value"), [
+    ("lam", -1.0), ("lam", float("inf")), ("lr", 0.0), ("lr", 2.0), ("grad_clip", 0.0),
+    ("baseline", "median"), ("initial_samples", 0), ("initial_samples", True),
+])
+def test_the_sampler_refuses_what_risk_ar_refuses_naming_its_argument(name, value):
+    """risk.ar's ranges (ArOptions) are the sampler's: the same refusal, keyed by the argument."""
+    with pytest.raises(ConfigError) as ours:
+        TaskSampler(make_adversary(), **{name: value})
+    with pytest.raises(ConfigError) as theirs:
+        ArOptions(**{name: value})
+    assert (ours.value.key, ours.value.allowed) == (name, theirs.value.allowed)
+    assert theirs.value.key == f"risk.ar.{name}"

@@ -34,7 +34,7 @@ from armeta_rl.tasks.space import TaskSpace
 
 FLOW_KINDS = ("spline", "planar")
 DEFAULT_FLOW = "spline"
-"""The flow of ``risk.ar.flow`` (:class:`~armeta_rl.risk.adversarial.ArOptions`),
+"""The flow of ``risk.ar.flow`` (:class:`~armeta_rl.adversary.options.ArOptions`),
 :class:`~armeta_rl.adversary.flow_adversary.FlowAdversary` and :func:`make_box_flow` unless
 told otherwise: exact and box-preserving."""
 

@@ -12,13 +12,12 @@ passed back with it.
 
 from __future__ import annotations
 
-import math
-
 import torch
 from tensordict import TensorDict, TensorDictBase
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import BASELINES, Follower, follower_step
+from armeta_rl.adversary.objective import Follower, follower_step
+from armeta_rl.adversary.options import ArOptions
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TASK_KEY
 
@@ -30,12 +29,15 @@ class TaskSampler:
         adversary: p_φ (its ``base`` is p0), e.g. ``FlowAdversary(space, BoxUniform(space))``.
         lam: Lagrange multiplier λ ≥ 0 of the KL(p0 ‖ p_φ) constraint (the paper uses 0 for
             continuous control).
-        lr: Adam learning rate (> 0).
+        lr: Adam learning rate, in (0, 1].
         total_updates: ``T_max`` of a cosine schedule that takes the rate to 0 after that many
             updates, or ``None`` for a constant rate.
         grad_clip: maximum gradient norm, or ``None`` for no clipping.
         baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
         initial_samples: M, the fresh p0 samples of the λ term's gradient (≥ 1).
+
+    ``lam``, ``lr``, ``grad_clip``, ``baseline`` and ``initial_samples`` are ``risk.ar``'s keys,
+    checked by :class:`~armeta_rl.adversary.options.ArOptions` (a refusal names the argument).
 
     Examples:
         >>> from armeta_rl.adversary import FlowAdversary, TaskSampler
@@ -58,29 +60,26 @@ class TaskSampler:
         baseline: str = "mean",
         initial_samples: int = 256,
     ) -> None:
-        if not (math.isfinite(lam) and lam >= 0):
-            raise ConfigError("lam", lam, "must be a finite number >= 0")
-        if not (math.isfinite(lr) and lr > 0):
-            raise ConfigError("lr", lr, "must be a finite number > 0")
+        try:
+            options = ArOptions(lam=lam, lr=lr, grad_clip=grad_clip, baseline=baseline,
+                                initial_samples=initial_samples)
+        except ConfigError as error:
+            raise ConfigError(error.key.removeprefix(f"{ArOptions.section}."), error.value,
+                              error.allowed) from None
         if total_updates is not None and not (isinstance(total_updates, int)
                                                and total_updates >= 1):
             raise ConfigError("total_updates", total_updates, "an integer >= 1 or null")
-        if grad_clip is not None and not grad_clip > 0:
-            raise ConfigError("grad_clip", grad_clip, "must be > 0 or null")
-        if baseline not in BASELINES:
-            raise ConfigError("baseline", baseline, "allowed: " + ", ".join(BASELINES))
-        if isinstance(initial_samples, bool) or not (isinstance(initial_samples, int)
-                                                     and initial_samples >= 1):
-            raise ConfigError("initial_samples", initial_samples, "must be an integer >= 1")
         self.adversary = adversary
-        optimizer = torch.optim.Adam(adversary.parameters(), lr=lr, maximize=True, fused=True)
+        optimizer = torch.optim.Adam(adversary.parameters(), lr=options.lr, maximize=True,
+                                     fused=True)
         scheduler = (
             None if total_updates is None
             else torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates)
         )
-        self.follower = Follower(adversary, optimizer, scheduler, lam=float(lam),
-                                 baseline=baseline, initial_samples=initial_samples,
-                                 grad_clip=grad_clip)
+        self.follower = Follower(adversary, optimizer, scheduler, lam=float(options.lam),
+                                 baseline=options.baseline,
+                                 initial_samples=options.initial_samples,
+                                 grad_clip=options.grad_clip)
 
     def sample(self, n: int) -> TensorDict:
         """``n`` tasks ``{"params": [n, d], "log_prob": [n]}`` drawn from p_φ."""
