@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Callable
 
@@ -44,13 +45,33 @@ def train_config(*overrides: str) -> TrainConfig:
     return validate(compose_train(*overrides))
 
 
+def in_process(command: Callable[[list[str]], int], args: list[str],
+               capsys: pytest.CaptureFixture) -> tuple[int, str, str]:
+    """``command`` (:func:`armeta_rl.cli.train` or ``evaluate``) run in this process on the
+    command line ``args``: its exit code, stdout and stderr. A process of its own costs a second
+    or more of imports per case; the tests that run the programs as processes check that their
+    exit codes and streams are these. A command that got as far as Hydra's job set up logging to
+    the captured streams, which close with the test: the loggers are restored as they were, so
+    that a later test's logs do not go to a closed stream."""
+    known = logging.Logger.manager.loggerDict.values()
+    loggers = [logging.getLogger(), *(lg for lg in known if isinstance(lg, logging.Logger))]
+    saved = [(logger, logger.handlers[:], logger.level, logger.propagate) for logger in loggers]
+    try:
+        code = command(list(args))
+    finally:
+        for logger, handlers, level, propagate in saved:
+            logger.handlers[:] = handlers
+            logger.setLevel(level)
+            logger.propagate = propagate
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
 def refusal(command: Callable[[list[str]], int], args: list[str],
             capsys: pytest.CaptureFixture) -> str:
-    """The one line ``command`` (:func:`armeta_rl.cli.train` or ``evaluate``, run in this
-    process on the command line ``args``) writes to stderr when it refuses them with exit code
-    2. A process of its own is a second or more of imports per case; the tests that run the
-    programs as processes check that their exit code and stderr are these."""
-    code, err = command(list(args)), capsys.readouterr().err
+    """The one line :func:`in_process` ``command`` writes to stderr when it refuses ``args``
+    with exit code 2."""
+    code, _, err = in_process(command, args, capsys)
     assert code == 2, err
     lines = err.strip().splitlines()
     assert len(lines) == 1, err

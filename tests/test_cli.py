@@ -8,7 +8,7 @@ import pytest
 
 from armeta_rl.cli import evaluate, train
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, refusal, train_config
+from conftest import SMALL_RUN, in_process, refusal, train_config
 
 TRAIN = [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())"]
 EVAL = [sys.executable, "-c",
@@ -95,9 +95,7 @@ def test_override_keys_are_checked_for_the_chosen_benchmark_and_sweep(tmp_path, 
     monkeypatch.chdir(tmp_path)
 
     def run(*args: str) -> tuple[int, str, str]:
-        code = train(list(args))
-        out, err = capsys.readouterr()
-        return code, out, err
+        return in_process(train, list(args), capsys)
 
     code, out, _ = run("benchmark=pendulum_uniform", "benchmark.collector.episodes=10",
                        "--cfg", "job")
