@@ -39,12 +39,27 @@ def imported(node: ast.AST, modules: dict[str, Path]) -> list[str]:
     return found
 
 
+def packages_run_first(target: str, importer: str) -> set[str]:
+    """The packages whose ``__init__`` runs when ``importer`` imports ``target``: those above
+    ``target``, but the package root (every module is under it) and the packages above
+    ``importer`` (they are already being imported)."""
+    def above(name: str) -> set[str]:
+        parts = name.split(".")
+        return {".".join(parts[:i]) for i in range(2, len(parts))}
+
+    return above(target) - above(importer) - {importer}
+
+
 def import_graph() -> dict[str, set[str]]:
-    """Module → the package's modules it imports, at module level or inside a function."""
+    """Module → the package's modules it imports, at module level or inside a function, with
+    the packages whose ``__init__`` such an import runs first."""
     modules = module_files()
-    return {name: {target for node in ast.walk(ast.parse(path.read_text()))
+    graph = {}
+    for name, path in modules.items():
+        targets = {target for node in ast.walk(ast.parse(path.read_text()))
                    for target in imported(node, modules) if target != name}
-            for name, path in modules.items()}
+        graph[name] = targets.union(*(packages_run_first(t, name) for t in targets))
+    return graph
 
 
 def test_the_graph_holds_module_level_and_function_level_imports():
@@ -52,6 +67,9 @@ def test_the_graph_holds_module_level_and_function_level_imports():
     assert "armeta_rl.config_files" in graph["armeta_rl.tasks.shifts"]  # module level
     assert "armeta_rl.trainers.training" in graph["armeta_rl.cli"]  # inside a function
     assert "armeta_rl.tasks.transform" in graph["armeta_rl.tasks"]  # a package's __init__
+    # importing armeta_rl.adversary.flow_adversary runs armeta_rl/adversary/__init__.py first
+    assert "armeta_rl.adversary" in graph["armeta_rl.risk.adversarial"]
+    assert packages_run_first("armeta_rl.tasks.shifts", "armeta_rl.tasks.transform") == set()
 
 
 def test_no_import_circle():
