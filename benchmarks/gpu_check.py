@@ -1,25 +1,22 @@
 """The GPU check: the CUDA and MuJoCo Warp tests, meta-iterations of the benchmark families on the
-CPU and on CUDA, and the MuJoCo Warp envs' throughput, each workload one line under ``gpu_check``
-in ``benchmarks/workloads.yaml``; it writes the ``gpu_check`` section of docs/benchmarks.md, the
-machine named.
+CPU and on CUDA, and the MuJoCo Warp envs' throughput (each workload one line under ``gpu_check``
+in ``benchmarks/workloads.yaml``); it writes the ``gpu_check`` section of docs/benchmarks.md.
 
 ``benchmarks/gpu_check.sh`` runs it on a lent GPU machine and sets its environment: the repository
-is the working directory and is not pip-installed (the root and benchmarks/ on ``PYTHONPATH``, in
-front of e.g. a ``pip install --target`` directory of carried wheels), there is no network, and
-torch with CUDA, pytest, tqdm and matplotlib are preinstalled (the preflight names any module
-that is missing). Every part (the preflight, each test file, each workload line) runs in its own
-process under ``timeout`` (which ends the process group) and never stops the others; the test
-files run one after the other beside the timings; all stay within ``--budget`` seconds (a part
-that would start with too little left is skipped and says so). Everything goes under ``--out``:
-``gpu_check.log`` and ``tests.log`` (the parts' output), ``junit/`` (pytest's reports),
-``results.jsonl`` (one JSON row per measurement), ``summary.txt`` and a copy of the page.
+root and benchmarks/ on ``PYTHONPATH`` (not pip-installed; in front of e.g. a ``pip install
+--target`` directory of carried wheels); no network; torch with CUDA, pytest, tqdm and matplotlib
+preinstalled (the preflight names any module that is missing). Every part (the preflight, each
+test file, each workload line) runs in its own process under ``timeout``, which ends its process
+group, and never stops the others; the test files run one after the other beside the timings; all
+stay within ``--budget`` seconds (a part with too little left is skipped and says so). Under
+``--out``: ``gpu_check.log`` and ``tests.log`` (the parts' output), ``junit/`` (pytest's
+reports), ``results.jsonl`` (one JSON row per measurement), ``summary.txt``, a copy of the page.
 
-Without CUDA the CUDA rows say ``skipped: no CUDA`` and the rest runs. ``--dry-run`` runs every
-workload in this process at tiny sizes and lists the test files without running them: the check
-of the check, seconds on a CPU machine (``tests/test_gpu_check.py``); ``--warp-device cpu`` runs
-the MuJoCo Warp lines on warp's CPU device; ``--only BENCHMARK ...`` runs those lines only.
-Timing rows report the peak RSS of their process and, on CUDA, the peak of
-``torch.cuda.max_memory_allocated`` over the timed calls.
+Without CUDA the CUDA rows say ``skipped: no CUDA``. ``--dry-run`` runs every workload in this
+process at tiny sizes and lists the test files without running them (seconds on a CPU machine:
+``tests/test_gpu_check.py``); ``--warp-device cpu`` runs the MuJoCo Warp lines on warp's CPU
+device; ``--only BENCHMARK ...`` runs those lines only. Timing rows give their process's peak RSS
+and, on CUDA, the peak ``torch.cuda.max_memory_allocated`` over the timed calls.
 """
 
 from __future__ import annotations
@@ -42,18 +39,7 @@ import xml.etree.ElementTree as ElementTree
 from collections.abc import Callable
 from pathlib import Path
 
-from timing import (
-    BENCHMARKS_PAGE,
-    REFERENCE_ROWS,
-    ROOT,
-    as_trained,
-    markdown_table,
-    peak_rss_mib,
-    trainer_for,
-    wall_times,
-    workloads,
-    write_section,
-)
+import timing
 
 REPORT_RESERVE_S, MIN_PART_S, TESTS_LIMIT_S = 25, 15, 200
 TINY = {"tasks": 1, "episodes": 1, "steps": 2}
@@ -94,12 +80,12 @@ def measured(fn: Callable[[], object], calls: int, warmup: int, device: str) -> 
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     start = time.perf_counter()
-    times = wall_times(fn, calls, warmup, budget_s=5,
-                       sync=torch.cuda.synchronize if cuda else lambda: None)
+    times = timing.wall_times(fn, calls, warmup, budget_s=5,
+                              sync=torch.cuda.synchronize if cuda else lambda: None)
     return {"first_call_s": time.perf_counter() - start - sum(times), "calls": len(times),
             "median_s": statistics.median(times), "min_s": min(times),
             "peak_gpu_mib": torch.cuda.max_memory_allocated() / 2**20 if cuda else float("nan"),
-            "peak_rss_mib": peak_rss_mib()}
+            "peak_rss_mib": timing.peak_rss_mib()}
 
 
 def failure(row: dict, error: BaseException) -> dict:
@@ -110,7 +96,7 @@ def failure(row: dict, error: BaseException) -> dict:
 
 def meta(entry: dict, results: Path) -> None:
     """Meta-iterations of one benchmark on each of the entry's devices, one row per device."""
-    as_trained()
+    timing.as_trained()
     for device in entry["devices"]:
         row = {"part": "meta", "device": device,
                **{key: entry[key] for key in ("benchmark", "method", "variant")}}
@@ -118,9 +104,9 @@ def meta(entry: dict, results: Path) -> None:
             append_row(results, {**row, "status": "skipped", "reason": reason})
             continue
         try:
-            trainer, _ = trainer_for(f"benchmark={entry['benchmark']}",
-                                     f"method={entry['method']}", f"device={device}",
-                                     *entry["overrides"])
+            trainer, _ = timing.trainer_for(f"benchmark={entry['benchmark']}",
+                                            f"method={entry['method']}", f"device={device}",
+                                            *entry["overrides"])
             row.update(status="ok", **measured(trainer.train_iteration, entry["iterations"],
                                                entry["warmup"], device))
         except Exception as error:  # one failed row must not stop the others
@@ -139,10 +125,10 @@ def warp(entry: dict, results: Path) -> None:
         for part in WARP_PARTS:
             append_row(results, {"part": part, **size, "status": "skipped", "reason": reason})
         return
-    as_trained()
+    timing.as_trained()
 
     def built(tasks: int, episodes: int, steps: int):
-        return trainer_for(
+        return timing.trainer_for(
             f"benchmark={entry['benchmark']}", f"method={entry['method']}",
             f"device={entry['device']}",
             f"{entry.get('device_key', DEVICE_KEY)}={entry['warp_device']}",
@@ -223,7 +209,7 @@ CHECKS = {"preflight": preflight, "meta": meta, "warp": warp}
 def plan(args: argparse.Namespace) -> list[dict]:
     """The parts of the check, in order: each a check's entry with its ``name``, ``kind`` and
     ``limit_s``."""
-    spec, tiny = workloads("gpu_check"), args.dry_run
+    spec, tiny = timing.workloads("gpu_check"), args.dry_run
     lines = {kind: [line for line in spec[kind] if not args.only or line["benchmark"] in args.only]
              for kind in ("meta", "warp")}
 
@@ -265,7 +251,7 @@ def bounded(command: list[str], name: str, limit_s: float, deadline: float, log:
     with log.open("a") as handle:
         handle.write(f"\n===== {name}\n$ {shlex.join(command)}\n")
         handle.flush()
-        code = subprocess.run(["timeout", "-k", "5", f"{limit:.0f}", *command], cwd=ROOT,
+        code = subprocess.run(["timeout", "-k", "5", f"{limit:.0f}", *command], cwd=timing.ROOT,
                               env={**os.environ, **env}, stdout=handle,
                               stderr=subprocess.STDOUT).returncode
         outcome = ("ok" if code == 0 else f"timed out after {limit:.0f} s" if code in (124, 137)
@@ -303,7 +289,8 @@ def run(args: argparse.Namespace) -> None:
                 command = ([sys.executable, "-m", "pytest", part["path"], "-v", "-rfEs", "-p",
                             "no:cacheprovider", f"--junitxml={out}/junit/{part['name']}.xml"]
                            if part["kind"] == "tests" else
-                           [sys.executable, __file__, "part", str(results), json.dumps(part)])
+                           [sys.executable, str(Path(__file__).resolve()), "part", str(results),
+                            json.dumps(part)])
                 outcomes[part["name"]] = bounded(command, part["name"], part["limit_s"],
                                                  deadline, log, env)
 
@@ -361,9 +348,9 @@ def meta_table(rows: list[dict]) -> str:
                      fmt(row["first_call_s"]), fmt(row["peak_rss_mib"], 0),
                      fmt(row["peak_gpu_mib"], 0), "–"]
         table.append((benchmark, row["method"], device, variant, *cells))
-    return markdown_table(("benchmark", "method", "device", "form", "median ms", "min ms",
-                           "× CPU", "first iterations s", "peak RSS MiB", "peak GPU MiB",
-                           "notes"), table)
+    return timing.markdown_table(("benchmark", "method", "device", "form", "median ms", "min ms",
+                                  "× CPU", "first iterations s", "peak RSS MiB", "peak GPU MiB",
+                                  "notes"), table)
 
 
 def warp_table(rows: list[dict]) -> str:
@@ -389,8 +376,8 @@ def warp_table(rows: list[dict]) -> str:
                      (f"{r['env']} on {r['env_device']}, " if steps else "")
                      + f"median of {r['calls']} ({r['median_s']:.2f} s)")
         table.append((benchmark, part, *cells))
-    return markdown_table(("MuJoCo Warp", "part", "tasks × episodes × steps", "measured",
-                           "first call s", "peak RSS MiB", "peak GPU MiB", "notes"), table)
+    return timing.markdown_table(("MuJoCo Warp", "part", "tasks × episodes × steps", "measured",
+                                  "first call s", "peak RSS MiB", "peak GPU MiB", "notes"), table)
 
 
 def targets(spec: dict, rows: list[dict]) -> list[str]:
@@ -419,7 +406,8 @@ def targets(spec: dict, rows: list[dict]) -> list[str]:
                 text = f"{ok[-1][field]:,.2f} ({verdict})"
             lines.append(f"{line['benchmark']} {'>=' if better > 0 else '<='} {line[key]:,} "
                          f"{unit}: {text}")
-    reference = json.loads(REFERENCE_ROWS.read_text()) if REFERENCE_ROWS.exists() else {}
+    rows_json = timing.REFERENCE_ROWS
+    reference = json.loads(rows_json.read_text()) if rows_json.exists() else {}
     for line in (line for line in spec["meta"] if "target_speedup" in line):
         name, ours = line["benchmark"], reference.get(line["reference"])
         cuda = [r["median_s"] for r in rows if r["part"] == "meta" and r["status"] == "ok"
@@ -439,7 +427,7 @@ def targets(spec: dict, rows: list[dict]) -> list[str]:
     return lines
 
 
-def report(results: Path, out: Path, page: Path = BENCHMARKS_PAGE) -> str:
+def report(results: Path, out: Path, page: Path = timing.BENCHMARKS_PAGE) -> str:
     """Write the GPU section of ``page`` (copied to ``out``) and the summary; return the
     section's body."""
     rows = [json.loads(line) for line in results.read_text().splitlines() if line.strip()]
@@ -449,7 +437,7 @@ def report(results: Path, out: Path, page: Path = BENCHMARKS_PAGE) -> str:
                f"{pre.get('python', '?')}, torch {torch_version} (CUDA {pre.get('torch_cuda')}), "
                f"warp devices {pre.get('warp_devices', '–')}")
     missing = f" Missing modules: {'; '.join(pre['missing'])}." if pre.get("missing") else ""
-    spec = workloads("gpu_check")
+    spec = timing.workloads("gpu_check")
     goals = targets(spec, rows)
     parts = [(r["name"], r["outcome"], f"{r['wall_s']:.0f}") for r in rows
              if r["part"] == "outcome"]
@@ -457,21 +445,21 @@ def report(results: Path, out: Path, page: Path = BENCHMARKS_PAGE) -> str:
     body = "\n\n".join([
         f"Machine: {machine}.{missing}",
         "Targets:\n\n" + "\n".join(f"- {goal}" for goal in goals),
-        markdown_table(("tests", "result", "passed", "failed", "skipped", "failing tests",
-                        "skip reasons"),
-                       [test_row(name, outcome, out / "junit" / f"{name}.xml")
-                        for name, outcome, _ in parts if name in tested]),
+        timing.markdown_table(("tests", "result", "passed", "failed", "skipped", "failing tests",
+                               "skip reasons"),
+                              [test_row(name, outcome, out / "junit" / f"{name}.xml")
+                               for name, outcome, _ in parts if name in tested]),
         warp_table(rows),
         "Meta-iterations, one torch thread, the CPU and CUDA rows of a benchmark in one process "
         "(its peak RSS covers both; peak GPU memory is `torch.cuda.max_memory_allocated`):\n\n"
         + meta_table(rows),
         "Parts (each in its own process under its own time limit; the test files ran beside the "
         "timings; a dry run runs them all in one):\n\n"
-        + markdown_table(("part", "outcome", "wall s"), parts)])
+        + timing.markdown_table(("part", "outcome", "wall s"), parts)])
     command = next(r["command"] for r in rows if r["part"] == "command")
     where = (f"{pre.get('machine', '?')}, {pre.get('cpus', '?')} logical CPUs, torch "
              f"{torch_version}, 1 thread")
-    write_section("gpu_check", "GPU check (gpu_check.sh)", body, page, command, where)
+    timing.write_section("gpu_check", "GPU check (gpu_check.sh)", body, page, command, where)
     shutil.copy(page, out / "benchmarks.md")
     summary = [f"gpu_check {datetime.datetime.now().isoformat(timespec='seconds')}: {machine}"]
     summary += [f"  part {name}: {outcome} ({wall} s)" for name, outcome, wall in parts]
@@ -494,7 +482,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("command", choices=["run"])
     parser.add_argument("--out", default=os.environ.get("OUT") or "/tmp/gpu_check")
-    parser.add_argument("--page", default=str(BENCHMARKS_PAGE),
+    parser.add_argument("--page", default=str(timing.BENCHMARKS_PAGE),
                         help="the page whose gpu_check section is written")
     parser.add_argument("--budget", type=float, default=430, help="seconds for the whole check")
     parser.add_argument("--warp-device", default="cuda")
