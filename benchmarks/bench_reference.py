@@ -89,8 +89,9 @@ def cpu_seconds() -> float:
 class Gate:
     """Called at the start of every meta-iteration of a side's own loop: records each iteration's
     wall and CPU time and, after the warm-up and after every turn, answers the driver (the turn's
-    times) and waits for its next command: ``run N``, ``profile N`` (where the side can answer
-    it) or ``quit``. The time spent waiting is not counted. Whatever the code under test prints
+    times) and waits for its next command: ``run N`` or ``profile N`` (where the side can answer
+    it); anything else, or the end of stdin, ends the process. The time spent waiting is not
+    counted. Whatever the code under test prints
     goes to stderr (the worker's log): file descriptor 1 is kept for the answers."""
 
     def __init__(self, profile: Callable[[int], dict] | None = None) -> None:
@@ -119,7 +120,7 @@ class Gate:
             while command[:1] == ["profile"] and self.profile is not None:
                 self.reply(self.profile(int(command[1])))
                 command = sys.stdin.readline().split()
-            if command[:1] != ["run"]:  # quit, or the driver is gone
+            if command[:1] != ["run"]:  # the driver is done, or gone
                 for child in multiprocessing.active_children():  # pytorch-maml-rl's samplers
                     child.terminate()
                 os._exit(0)  # the references' loops have no clean stop
@@ -241,13 +242,12 @@ class Worker:
         return json.loads(line)
 
     def stop(self) -> None:
-        if self.process.poll() is None:
-            self.process.stdin.write("quit\n")
-            self.process.stdin.flush()
-            try:
-                self.process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
+        """End the worker: its stdin closed (its gate's cue), killed if still there in 30 s."""
+        self.process.stdin.close()
+        try:
+            self.process.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
         self.log.close()
 
 
