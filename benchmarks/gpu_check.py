@@ -16,7 +16,7 @@ Without CUDA the CUDA rows say ``skipped: no CUDA``. ``--dry-run`` runs every wo
 process at tiny sizes and lists the test files without running them (seconds on a CPU machine:
 ``tests/test_gpu_check.py``); ``--warp-device cpu`` runs the MuJoCo Warp lines on warp's CPU
 device; ``--only BENCHMARK ...`` runs those lines only. Timing rows give their process's peak RSS
-and, on CUDA, the peak ``torch.cuda.max_memory_allocated`` over the timed calls.
+and, on CUDA, the peak ``torch.cuda.max_memory_allocated`` over its calls.
 """
 
 from __future__ import annotations
@@ -70,17 +70,18 @@ def no_cuda(*devices: str) -> str | None:
     return "no CUDA" if cuda and not torch.cuda.is_available() else None
 
 
-def measured(fn: Callable[[], object], calls: int, warmup: int, device: str) -> dict:
-    """``fn``'s timing (:func:`timing.wall_times`, at most 5 s of timed calls): the warm-up's
-    seconds, the calls' median and min, the process's peak RSS and, on CUDA, the peak GPU
-    memory allocated over the calls."""
+def measured(fn: Callable[[], object], calls: int, warmup: int, device: str,
+             budget_s: float = float("inf")) -> dict:
+    """``fn``'s timing (:func:`timing.wall_times`, no call started after ``budget_s`` seconds of
+    timed calls): the warm-up's seconds, the calls' median and min, the process's peak RSS and,
+    on CUDA, the peak GPU memory allocated over the calls (warm-up included)."""
     import torch
 
     cuda = device.startswith("cuda")
     if cuda:
         torch.cuda.reset_peak_memory_stats()
     start = time.perf_counter()
-    times = timing.wall_times(fn, calls, warmup, budget_s=5,
+    times = timing.wall_times(fn, calls, warmup, budget_s=budget_s,
                               sync=torch.cuda.synchronize if cuda else lambda: None)
     return {"first_call_s": time.perf_counter() - start - sum(times), "calls": len(times),
             "median_s": statistics.median(times), "min_s": min(times),
@@ -108,7 +109,7 @@ def meta(entry: dict, results: Path) -> None:
                                             f"method={entry['method']}", f"device={device}",
                                             *entry["overrides"])
             row.update(status="ok", **measured(trainer.train_iteration, entry["iterations"],
-                                               entry["warmup"], device))
+                                               entry["warmup"], device, budget_s=5))
         except Exception as error:  # one failed row must not stop the others
             row = failure(row, error)
         append_row(results, row)
