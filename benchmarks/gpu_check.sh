@@ -8,7 +8,7 @@
 # arguments go to `gpu_check.py run` (e.g. --budget 300, --only point_nav, --dry-run).
 set -u
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-export OUT="${OUT:-/tmp/gpu_check}" OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true
+export OUT="${OUT:-/tmp/gpu_check}" OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true HYDRA_FULL_ERROR=1
 export PYTHONPATH="$ROOT:$ROOT/benchmarks${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
 mkdir -p "$OUT" && cd "$ROOT" || exit 1
 LIMIT=470
