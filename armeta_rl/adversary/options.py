@@ -5,11 +5,16 @@ their types, ranges and defaults, in one place for both of their users,
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import torch
+from torch import Tensor
+
+from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
-from armeta_rl.adversary.objective import BASELINES, SIGNALS
+from armeta_rl.adversary.objective import BASELINES, SIGNALS, Follower
 from armeta_rl.fields import Section, above, at_least, inside, key, one_of, register
 
 
@@ -63,3 +68,18 @@ class ArOptions(Section):
     signal: str = one_of(*SIGNALS, default="loss")  # loss (the paper's) or regret
     standardize: bool = key(default=False)  # λ relative to the loss scale
     compile: Any = key(default=False)  # checked by armeta_rl.compiling
+
+
+def follower_of(adversary: FlowAdversary, options: ArOptions, total_updates: int | None,
+                log_prob: Callable[[Tensor], Tensor] | None = None) -> Follower:
+    """The :class:`~armeta_rl.adversary.objective.Follower` of ``adversary`` with ``options``'
+    settings: Adam ascending J in φ at rate ``options.lr``, cosine-annealed to 0 over
+    ``total_updates`` updates (``None``: a constant rate); ``log_prob`` as the follower's."""
+    optimizer = torch.optim.Adam(adversary.parameters(), lr=options.lr, maximize=True,
+                                 fused=True)
+    scheduler = (None if total_updates is None
+                 else torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates))
+    return Follower(adversary, optimizer, scheduler, lam=float(options.lam),
+                    baseline=options.baseline, initial_samples=options.initial_samples,
+                    grad_clip=options.grad_clip, log_prob=log_prob,
+                    standardize=options.standardize)

@@ -16,8 +16,8 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import Follower, follower_step
-from armeta_rl.adversary.options import ArOptions
+from armeta_rl.adversary.objective import follower_step
+from armeta_rl.adversary.options import ArOptions, follower_of
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TASK_KEY
 
@@ -70,16 +70,7 @@ class TaskSampler:
                                                and total_updates >= 1):
             raise ConfigError("total_updates", total_updates, "an integer >= 1 or null")
         self.adversary = adversary
-        optimizer = torch.optim.Adam(adversary.parameters(), lr=options.lr, maximize=True,
-                                     fused=True)
-        scheduler = (
-            None if total_updates is None
-            else torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates)
-        )
-        self.follower = Follower(adversary, optimizer, scheduler, lam=float(options.lam),
-                                 baseline=options.baseline,
-                                 initial_samples=options.initial_samples,
-                                 grad_clip=options.grad_clip)
+        self.follower = follower_of(adversary, options, total_updates)
 
     def sample(self, n: int) -> TensorDict:
         """``n`` tasks ``{"params": [n, d], "log_prob": [n]}`` drawn from p_φ."""

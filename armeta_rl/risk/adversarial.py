@@ -17,8 +17,8 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
-from armeta_rl.adversary.objective import Follower, follower_step, regret
-from armeta_rl.adversary.options import ArOptions
+from armeta_rl.adversary.objective import follower_step, regret
+from armeta_rl.adversary.options import ArOptions, follower_of
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
 from armeta_rl.risk.erm import uniform_weights
@@ -80,15 +80,8 @@ class AdversarialPrinciple(nn.Module):
         self.update_every = options.update_every
         backend = compile_backend("risk.ar.compile", options.compile)
         self._push_forward = maybe_compile(adversary.push_forward, backend)
-        optimizer = torch.optim.Adam(adversary.parameters(), lr=options.lr, maximize=True,
-                                     fused=True)
-        self.follower = Follower(
-            adversary, optimizer,
-            torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates),
-            lam=float(options.lam), baseline=options.baseline,
-            initial_samples=options.initial_samples, grad_clip=options.grad_clip,
-            log_prob=maybe_compile(adversary.log_prob, backend), standardize=options.standardize,
-        )
+        self.follower = follower_of(adversary, options, total_updates,
+                                    log_prob=maybe_compile(adversary.log_prob, backend))
 
     @property
     def initial(self) -> TaskDistribution:
