@@ -636,8 +636,8 @@ def test_an_attack_by_a_method_without_an_adversary_is_refused(monkeypatch):
 
 def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_path):
     """With CSV logs, the report's curve file holds one row per run and logged iteration, the
-    gain is return after − before (an attack run trains no leader: no returns), and a run whose
-    logs are gone keeps its rows."""
+    gain is return after − before (an attack run trains no leader: no returns), the batch's
+    spread is MPTS's alone, and a run whose logs are gone keeps its rows."""
     from armeta_rl.reproduce.curves import curves_path, read_curves
 
     experiment, extra = "meta_rl_cheetah_mass", ("logger=csv", "trainer.iterations=2",
@@ -654,6 +654,7 @@ def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_pa
             assert row["gain"] == pytest.approx(row["return_post"] - row["return_pre"],
                                                 abs=1e-4)
         assert (row["adversary_entropy"] is None) == (not row["run"].startswith("ar_maml"))
+        assert (row["task_spread"] is None) == (not row["run"].startswith("mpts_maml"))
     assert (tmp_path / f"{experiment}_curves.png").stat().st_size > 0
     assert "## Learning curves" in (tmp_path / f"{experiment}.md").read_text()
     shutil.rmtree(tmp_path / plan.runs[0].subdir / "logs")

@@ -29,9 +29,12 @@ CURVES = {
     "task_loss_mean": "train/task_loss_mean",
     "adversary_entropy": "adversary/entropy",
     "adversary_kl_p0": "adversary/kl_p0",
+    "task_spread": "risk/spread",
 }
 """A curve file's columns and the scalars they hold (absent scalars are left empty: the
-returns and gain are meta-RL's, the adversary's entropy and KL from p0 AR methods')."""
+returns and gain are meta-RL's, the adversary's entropy and KL from p0 AR methods', the spread
+of the training batch's identifiers (their mean pairwise distance in the unit box; 1/3 for a
+uniform batch in one dimension) MPTS's and PDTS's)."""
 KEYS = ("benchmark", "run", "seed", "iteration")
 """A row's run: its benchmark, its name (``<method>[-<variant>]``, ``<method>-vs-<target>`` for
 an attack run: :attr:`~armeta_rl.reproduce.plan.TrainRun.name`), seed and iteration."""
@@ -63,11 +66,12 @@ def run_curve(run_dir: Path) -> dict[int, dict[str, float]]:
 
 
 def read_curves(path: Path) -> list[dict[str, Any]]:
-    """The rows of a curve file (numbers parsed, empty cells ``None``); none if it is absent."""
+    """The rows of a curve file (numbers parsed, empty cells and columns the file predates
+    ``None``); none if it is absent."""
     if not path.is_file():
         return []
     with gzip.open(path, "rt", newline="") as text:
-        return [{key: _parse(key, value) for key, value in row.items()}
+        return [{key: _parse(key, row.get(key) or "") for key in (*KEYS, *CURVES)}
                 for row in csv.DictReader(text)]
 
 

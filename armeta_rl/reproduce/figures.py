@@ -160,7 +160,8 @@ def image_grid(images: dict[tuple[str, str], Path], rows: Sequence[str],
 
 
 CURVE_PANELS = {"gain": "adaptation gain", "return_post": "return after adaptation",
-                "task_loss_mean": "task loss", "adversary_kl_p0": "adversary KL(p0 ‖ p_φ)"}
+                "task_loss_mean": "task loss", "adversary_kl_p0": "adversary KL(p0 ‖ p_φ)",
+                "task_spread": "training batch's spread (unit box)"}
 """The learning-curve panels: a curve file's column and its axis label."""
 
 
