@@ -244,8 +244,11 @@ def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_
     if not rows:
         return ""
     write_curves(rows, path)
-    names = dict.fromkeys(run.name for run in (*plan.runs, *plan.attacks))
-    labels = {name: plan.spec.get("learner_labels", {}).get(name, display(name)) for name in names}
+    named = plan.spec.get("learner_labels", {})
+    labels = {run.name: named.get(run.name, display(run.name)) for run in plan.runs}
+    labels |= {run.name: f"{display(run.method)}'s flow against "
+               f"{named.get(run.target.name, display(run.target.name))} (attack)"
+               for run in plan.attacks}
     figures.learning_curves(rows, labels, results / f"{plan.experiment}_curves.png")
     return (f"\n\n## Learning curves\n\n![learning curves]({plan.experiment}_curves.png)\n\n"
             "Mean over seeds (their number in brackets) of 10-iteration means, band ± one "

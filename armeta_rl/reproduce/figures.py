@@ -187,7 +187,7 @@ def learning_curves(rows: Sequence[dict[str, Any]], labels: dict[str, str], path
     for row, benchmark in enumerate(benchmarks):
         for col, column in enumerate(panels[benchmark]):
             ax = axes[row][col]
-            for name, label in labels.items():
+            for index, (name, label) in enumerate(labels.items()):
                 seeds: dict[int, list[tuple[int, float]]] = {}
                 for r in rows:
                     if (r["benchmark"], r["run"]) == (benchmark, name) and r[column] is not None:
@@ -199,14 +199,19 @@ def learning_curves(rows: Sequence[dict[str, Any]], labels: dict[str, str], path
                 spread = [over_seeds([c[i] for c in curves]) for i in shared]
                 mean = [s.mean for s in spread]
                 std = [0.0 if s.n < 2 else s.std for s in spread]
-                ax.plot(shared, mean, label=f"{label} ({len(curves)})")
+                color = f"C{index % 10}"  # a run's colour is the same in every panel
+                ax.plot(shared, mean, color=color, label=f"{label} ({len(curves)})")
                 ax.fill_between(shared, [m - s for m, s in zip(mean, std)],
-                                [m + s for m, s in zip(mean, std)], alpha=0.2)
+                                [m + s for m, s in zip(mean, std)], color=color, alpha=0.2)
             if column == "gain":
                 ax.axhline(0.0, color="black", linewidth=0.6)
             ax.set_title(f"{display(benchmark)}: {CURVE_PANELS[column]}", fontsize=9)
             ax.set_xlabel("meta-iteration")
-        axes[row][0].legend(fontsize=7)
+        drawn: dict[str, Any] = {}  # every run drawn in the row, once (an attack run has no gain)
+        for ax in axes[row]:
+            for handle, text in zip(*ax.get_legend_handles_labels(), strict=True):
+                drawn.setdefault(text, handle)
+        axes[row][0].legend(drawn.values(), drawn.keys(), fontsize=7)
     for row, benchmark in enumerate(benchmarks):
         for col in range(len(panels[benchmark]), columns):
             axes[row][col].set_visible(False)
