@@ -662,6 +662,23 @@ def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_pa
     assert read_curves(curves_path(tmp_path, experiment)) == rows
 
 
+def test_a_curve_file_written_before_a_column_existed_reads_it_as_empty(tmp_path):
+    """A committed curve file whose header predates a column (here the batch's spread) reads
+    with that column ``None`` in every row, and is written back with it, empty."""
+    import gzip
+
+    from armeta_rl.reproduce.curves import CURVES, KEYS, read_curves, write_curves
+
+    old = [*KEYS, *(c for c in CURVES if c != "task_spread")]
+    path = tmp_path / "old_curves.csv.gz"
+    path.write_bytes(gzip.compress((",".join(old) + "\nhalf_cheetah_vel,maml,0,1,"
+                                    + ",".join(["-1.5"] * (len(old) - 4)) + "\n").encode()))
+    (row,) = read_curves(path)
+    assert row["task_spread"] is None and row["gain"] == -1.5 and row["iteration"] == 1
+    write_curves([row], path)
+    assert read_curves(path) == [row]
+
+
 @pytest.mark.parametrize(("edit", "words"), [
     ("another method", "it is the report of method 'dr_maml', not this run's 'maml'"),
     ("another seed", "it is the report of seed 1, not this run's 0"),
