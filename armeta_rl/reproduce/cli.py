@@ -66,7 +66,7 @@ from armeta_rl.reproduce.plan import (
     report_path,
     report_problem,
 )
-from armeta_rl.reproduce.reports import LAYOUTS
+from armeta_rl.reproduce.reports import LAYOUTS, learner_label
 from armeta_rl.trainers.run_dir import write_text_atomically
 
 PROG = "armeta-reproduce"
@@ -244,10 +244,9 @@ def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_
     if not rows:
         return ""
     write_curves(rows, path)
-    named = plan.spec.get("learner_labels", {})
-    labels = {run.name: named.get(run.name, display(run.name)) for run in plan.runs}
+    labels = {run.name: learner_label(plan, (run.method, run.variant)) for run in plan.runs}
     labels |= {run.name: f"{display(run.method)}'s flow against "
-               f"{named.get(run.target.name, display(run.target.name))} (attack)"
+               f"{learner_label(plan, (run.target.method, run.target.variant))} (attack)"
                for run in plan.attacks}
     figures.learning_curves(rows, labels, results / f"{plan.experiment}_curves.png")
     return (f"\n\n## Learning curves\n\n![learning curves]({plan.experiment}_curves.png)\n\n"

@@ -258,7 +258,7 @@ def _learners(plan: Plan) -> list[Learner]:
     return list(dict.fromkeys((run.method, run.variant) for run in plan.runs))
 
 
-def _learner_label(plan: Plan, learner: Learner) -> str:
+def learner_label(plan: Plan, learner: Learner) -> str:
     """``AR-MAML``, or the experiment's label of a learner (``learner_labels: {ar_maml-best:
     …}``)."""
     method, variant = learner
@@ -362,10 +362,10 @@ def adaptation_section(plan: Plan, records: list[dict[str, Any]]) -> str:
                            distribution=distribution, noisy=False) for m, v in learners]
             rows.append([display(benchmark), label, *(cell for cell, _, _ in cells)])
             if distribution == INITIAL:
-                idle += [f"{_learner_label(plan, learner)} on {display(benchmark)} "
+                idle += [f"{learner_label(plan, learner)} on {display(benchmark)} "
                          f"({k}/{n} seeds adapt)"
                          for learner, (_, k, n) in zip(learners, cells) if n and k < n]
-    header = ["Benchmark", "Distribution", *(_learner_label(plan, lr) for lr in learners)]
+    header = ["Benchmark", "Distribution", *(learner_label(plan, lr) for lr in learners)]
     verdict = ("**Every learner adapts on p0** at every finished seed (its gain beyond twice "
                "its standard error over tasks)." if not idle else
                "**Not adapting on p0** (a seed adapts when its gain is beyond twice its "
@@ -387,7 +387,7 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     reference = (plan.spec.get("paired", {}).get("against", learners[0][0]), "")
     distributions = _distributions(plan, records)
     higher = _higher_better(records)
-    labels = [_learner_label(plan, learner) for learner in learners]
+    labels = [learner_label(plan, learner) for learner in learners]
     level_rows, diff_rows = [], []
     for benchmark in _benchmarks(plan):
         for distribution, label in _distributions(plan, records, benchmark).items():
@@ -405,16 +405,16 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     cvar_label = _cvar_label(plan)
     level_header = ["Benchmark", "Distribution", *(f"{name} avg" for name in labels),
                     *(f"{name} {cvar_label}" for name in labels)]
-    others = [_learner_label(plan, learner) for learner in learners if learner != reference]
+    others = [learner_label(plan, learner) for learner in learners if learner != reference]
     diff_header = ["Benchmark", "Distribution", *(f"{name} Δavg" for name in others),
                    *(f"{name} Δ{cvar_label}" for name in others)]
-    key = [{**r, "method": _learner_label(plan, (r["method"], r["variant"]))} for r in records]
+    key = [{**r, "method": learner_label(plan, (r["method"], r["variant"]))} for r in records]
     groups = [(f"{label}, {name}", {"distribution": distribution, "noisy": False}, column)
               for distribution, label in distributions.items()
               for name, column in (("average", "mean"), (cvar_label, cvar))]
     figures.bars(key, _benchmarks(plan), labels, groups, results / f"{plan.experiment}.png",
                  records[0]["metric"])
-    reference_label = _learner_label(plan, reference)
+    reference_label = learner_label(plan, reference)
     better = "higher" if higher else "lower"
     adaptation = adaptation_section(plan, records)
     return ((adaptation + "\n\n" if adaptation else "")
