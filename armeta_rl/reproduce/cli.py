@@ -237,15 +237,14 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
 
 def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) -> str:
     """Every training run's learning curve into ``<experiment>_curves.csv.gz`` (rows of runs
-    whose logs are gone kept from the file as it was) and their figure, drawn from the file as
-    written (so that a checkout without the logs redraws it byte for byte); the report's section
-    that shows them, empty when no run has logged one."""
+    whose logs are gone kept from the file as it was) and their figure, drawn from rows at the
+    file's precision (so that a checkout without the logs redraws it byte for byte); the report's
+    section that shows them, empty when no run has logged one."""
     path = curves_path(results, plan.experiment)
     rows = collect_curves(plan, results, read_curves(path), packed)
     if not rows:
         return ""
     write_curves(rows, path)
-    rows = read_curves(path)
     labels = {run.name: learner_label(plan, (run.method, run.variant)) for run in plan.runs}
     labels |= {run.name: f"{display(run.method)}'s flow against "
                f"{learner_label(plan, (run.target.method, run.target.variant))} (attack)"

@@ -87,7 +87,7 @@ def collect_curves(plan: Plan, results: Path, kept: Sequence[dict[str, Any]] = (
                    packed: Packed = NOTHING_PACKED) -> list[dict[str, Any]]:
     """One row per iteration of every finished training run of ``plan`` (attack runs included;
     a run still training is left out; a packed run is finished): from the run's log where it has
-    one, else its rows in ``kept`` (the experiment's file as it was)."""
+    one (at the file's precision), else its rows in ``kept`` (the experiment's file as it was)."""
     old: dict[tuple, list[dict[str, Any]]] = {}
     for row in kept:
         old.setdefault(_identity(row), []).append(row)
@@ -102,8 +102,14 @@ def collect_curves(plan: Plan, results: Path, kept: Sequence[dict[str, Any]] = (
             continue
         for iteration in sorted(curve):
             rows.append({**dict(zip(KEYS, (*identity, iteration))),
-                         **{column: curve[iteration].get(column) for column in CURVES}})
+                         **{column: _kept(curve[iteration].get(column)) for column in CURVES}})
     return rows
+
+
+def _kept(value: float | None) -> float | None:
+    """``value`` at the file's :data:`DIGITS` significant digits: a row from a log equals the
+    row its file gives back, so that whatever is drawn from it is drawn alike without the log."""
+    return None if value is None else float(f"{value:.{DIGITS}g}")
 
 
 def _identity(row: dict[str, Any]) -> tuple:
