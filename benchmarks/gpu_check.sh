@@ -1,23 +1,31 @@
 #!/usr/bin/env bash
-# The GPU check (benchmarks/gpu_check.py, whose docstring says what it assumes of the machine;
-# its workloads are the lines under gpu_check in benchmarks/workloads.yaml): it writes the GPU section of
-# docs/benchmarks.md and everything else under ${OUT:-/tmp/gpu_check}. This wrapper puts the
-# repository root and benchmarks/ on PYTHONPATH (in front of what is there, e.g. the carried
-# wheels' --target directory), runs one thread and bounds the whole run: --budget seconds
-# (default 430) for the parts and a hard stop 40 s later (under 8 minutes by default). Extra
-# arguments go to `gpu_check.py run` (e.g. --budget 300, --only point_nav, --dry-run).
+# The GPU check, for a lent GPU machine: the CUDA and MuJoCo Warp tests, beside the GPU
+# comparisons of benchmarks/workloads.yaml (gpu_meta: meta-iterations on the CPU and on CUDA;
+# gpu_warp: the MuJoCo Warp families), each in its own process under its own time limit, so that
+# a hang or a crash loses only its own part (a comparison writes its docs/benchmarks.md section
+# after every benchmark). Logs and the summary go to ${OUT:-/tmp/gpu_check}. Extra arguments go to
+# both comparisons (e.g. --tiny --cuda-as cpu: a dry run on any machine; --benchmarks point_nav).
 set -u
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-export OUT="${OUT:-/tmp/gpu_check}" OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true HYDRA_FULL_ERROR=1
-export PYTHONPATH="$ROOT:$ROOT/benchmarks${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+export OUT="${OUT:-/tmp/gpu_check}" OMP_NUM_THREADS=1 WANDB_MODE=offline WANDB_SILENT=true
+export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}" PYTHONUNBUFFERED=1
+PYTHON="${PYTHON:-python}"
 mkdir -p "$OUT" && cd "$ROOT" || exit 1
-LIMIT=470
-for ((i = 1; i < $#; i++)); do
-    if [ "${!i}" = "--budget" ]; then j=$((i + 1)); LIMIT=$(( ${!j%.*} + 40 )); fi
+WARP_CACHE_PATH="$(mktemp -d)" timeout -k 5 "${TESTS_LIMIT:-240}" "$PYTHON" -m pytest -rfEs \
+    -p no:cacheprovider tests/test_ant_goal_warp.py tests/test_warp_families.py \
+    tests/test_devices.py >"$OUT/tests.log" 2>&1 &
+tests=$!
+: >"$OUT/summary.txt"
+failed=0
+for entry in gpu_meta gpu_warp; do
+    timeout -k 5 "${ENTRY_LIMIT:-300}" "$PYTHON" -m benchmarks.timing "$entry" "$@" \
+        >>"$OUT/timing.log" 2>&1
+    code=$?
+    [ "$code" -eq 0 ] || failed=1
+    [ "$code" -eq 124 ] && code="124, stopped at its time limit"
+    echo "$entry: exit code $code" | tee -a "$OUT/summary.txt"
 done
-timeout -k 10 "$LIMIT" "${PYTHON:-python}" benchmarks/gpu_check.py run --out "$OUT" \
-    --command-line "benchmarks/gpu_check.sh $*" "$@"
-code=$?
-[ "$code" -eq 0 ] || echo "gpu_check: exit code $code (124: the hard stop at $LIMIT s)" \
-    | tee -a "$OUT/summary.txt"
-exit "$code"
+wait "$tests" || failed=1
+echo "tests: $(tail -n 1 "$OUT/tests.log")" | tee -a "$OUT/summary.txt"
+cp docs/benchmarks.md "$OUT/"
+exit "$failed"

@@ -1,33 +1,30 @@
-"""The benchmark harness, and the entry of every comparison declared as data:
-``python -m benchmarks.timing NAME [--rounds N] [--calls N] [override ...]`` runs the comparison
-``NAME`` under ``turns`` in ``benchmarks/workloads.yaml`` (no script of its own). The other
-benchmark scripts (``python benchmarks/<name>.py``) take their workloads, timing and tables from
-here too.
+"""The benchmark harness: ``python -m benchmarks.timing NAME [option ...] [override ...]`` runs
+comparison ``NAME`` of ``benchmarks/workloads.yaml`` (the workloads as data; no script of its own)
+and writes its table into its section of the docs pages it names.
 
-* workloads: :func:`workloads` reads a benchmark's part of ``benchmarks/workloads.yaml`` (the
-  workloads as data), :func:`trainer_for` builds a run's trainer from config overrides as
-  ``armeta-train`` builds it, :func:`as_trained` sets the process up as ``armeta-train`` does;
-* timing: :func:`wall_times` and :func:`median_s` (calls of one function), :func:`in_turns`
-  (several functions taking turns in one session, so that a shared machine's slow spells fall on
-  all alike: the way two forms are compared) with :func:`ratio_cell` for the ratios of turns,
-  :func:`compare_in_turns` (trainers of config overrides in turns, from ``workloads.yaml``),
-  :func:`peak_rss_mib` and :func:`reference_product_ms` (a yardstick of the machine's speed);
-* tables: :func:`markdown_table` and :func:`write_section`, which replaces the script's section of
-  docs/benchmarks.md (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables,
-  its command, the date and the machine.
+* workloads: :func:`workloads` reads the file, :func:`trainer_for` builds a run's trainer from
+  config overrides as ``armeta-train`` builds it, :func:`timed_call` picks what a row times;
+* timing: :func:`wall_times` (calls of one function) and :func:`in_turns` (several functions
+  taking turns in one session, so that a shared machine's slow spells fall on all alike: the way
+  two forms are compared), with :func:`reference_product_ms`, a yardstick of the machine's speed,
+  taken between turns;
+* tables: :func:`markdown_table` and :func:`write_section`, which replaces a section of a page
+  (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables, its command, the
+  date and the machine (the studies in ``studies/`` write their pages with it too).
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import datetime
 import os
 import platform
-import resource
 import shlex
 import statistics
 import sys
 import time
+import traceback
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -40,20 +37,18 @@ if TYPE_CHECKING:
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = ROOT / "docs"
-BENCHMARKS_PAGE = DOCS / "benchmarks.md"
 WORKLOADS = Path(__file__).with_name("workloads.yaml")
-REFERENCE_ROWS = DOCS / "results" / "reference" / "rows.json"
-"""Each reference workload's latest medians (``bench_reference.py`` writes them; the GPU check's
-point-robot target reads them)."""
+SIZE_KEYS = ("trainer.meta_batch", "benchmark.collector.episodes", "benchmark.collector.max_steps")
+"""What a group's ``size`` (tasks x episodes x steps) sets."""
 
 
 # -- workloads ----------------------------------------------------------------------------------
 
-def workloads(key: str) -> dict:
-    """The workloads of ``key`` (a benchmark's part of ``benchmarks/workloads.yaml``)."""
+def workloads() -> dict:
+    """The comparisons of ``benchmarks/workloads.yaml``, by name."""
     import yaml
 
-    return yaml.safe_load(WORKLOADS.read_text())[key]
+    return yaml.safe_load(WORKLOADS.read_text())
 
 
 def trainer_for(*overrides: str) -> tuple[GameTrainer, Players]:
@@ -85,91 +80,75 @@ def as_trained() -> None:
     torch.manual_seed(0)
 
 
+def timed_call(call: str, trainer: GameTrainer, players: Players) -> Callable[[], object]:
+    """What a row times: ``iteration``, a meta-iteration; ``rollout``, one collection of the
+    meta-batch's tasks drawn from p0 with the leader's policy (the unit an iteration is made
+    of); ``physics``, the env's physics alone for an episode's steps (a MuJoCo Warp env's
+    ``sim.step``: no policy, no TorchRL, the ceiling of ``rollout``)."""
+    if call == "iteration":
+        return trainer.train_iteration
+    collector, tasks = players.leader.collector, trainer.options.meta_batch
+    if call == "rollout":
+        drawn = players.initial.sample(tasks)
+        return lambda: collector.collect(drawn, None, policy=players.leader.net)
+    env = collector.env(tasks)
+    return lambda: [env.sim.step(env.frame_skip) for _ in range(collector.max_steps)]
+
+
 # -- timing -------------------------------------------------------------------------------------
 
-def wall_times(
-    fn: Callable[[], object],
-    repeats: int,
-    warmup: int = 1,
-    sync: Callable[[], object] = lambda: None,
-    budget_s: float = float("inf"),
-) -> list[float]:
-    """Wall seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls;
-    ``sync`` waits for queued device work before each reading (e.g.
-    ``torch.cuda.synchronize``); no call starts after ``budget_s`` seconds of timed calls once
-    one has been timed."""
+def wall_times(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
+    """Wall seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed
+    calls."""
     for _ in range(warmup):
         fn()
-    sync()
     times: list[float] = []
-    while len(times) < repeats and (not times or sum(times) < budget_s):
+    for _ in range(repeats):
         start = time.perf_counter()
         fn()
-        sync()
         times.append(time.perf_counter() - start)
     return times
 
 
-def median_s(fn: Callable[[], object], repeats: int, warmup: int = 1, **kwargs) -> float:
-    """Median seconds of ``repeats`` calls of ``fn`` (:func:`wall_times`)."""
-    return statistics.median(wall_times(fn, repeats, warmup, **kwargs))
-
-
-def in_turns(
-    rows: dict[str, Callable[[], object]],
-    calls: int,
-    rounds: int,
-    warmup: int = 1,
-    between: Callable[[], float] | None = None,
-) -> tuple[dict[str, list[list[float]]], dict[str, list[float]]]:
-    """Every row's ``rounds`` turns of ``calls`` timed calls, the rows taking turns (after
-    ``warmup`` untimed calls of each; the first row of a round rotates, so that no row always
-    follows the same one), so that a shared machine's slow spells fall on all rows alike.
-    Returns each row's turns (their calls' seconds) and, where ``between`` is given (a yardstick
-    taken after every turn and once before the first), each turn's mean of the yardsticks taken
-    just before and just after it."""
-    for fn in rows.values():
-        for _ in range(warmup):
-            fn()
+def in_turns(rows: dict[str, Callable[[], object]], calls: int, rounds: int,
+             between: Callable[[], float]) -> tuple[dict[str, list[list[float]]],
+                                                    dict[str, list[float]]]:
+    """Every row's ``rounds`` turns of ``calls`` timed calls, the rows taking turns (the first
+    row of a round rotates, so that no row always follows the same one), so that a shared
+    machine's slow spells fall on all rows alike. Returns each row's turns (their calls'
+    seconds) and each turn's mean of the yardstick ``between`` taken just before and just after
+    it."""
     labels = list(rows)
     turns: dict[str, list[list[float]]] = {label: [] for label in labels}
     marks: dict[str, list[float]] = {label: [] for label in labels}
-    before = between() if between else float("nan")
+    before = between()
     for index in range(rounds):
         for label in labels[index % len(labels):] + labels[:index % len(labels)]:
             turns[label].append(wall_times(rows[label], calls, warmup=0))
-            after = between() if between else float("nan")
+            after = between()
             marks[label].append((before + after) / 2)
             before = after
     return turns, marks
 
 
-def turn_medians(turns: list[list[float]]) -> list[float]:
-    """The median seconds of each turn."""
-    return [statistics.median(turn) for turn in turns]
-
-
-def ratio_cell(numerators: Sequence[float], denominators: Sequence[float],
-               digits: int = 2) -> str:
+def ratio_cell(numerators: Sequence[float], denominators: Sequence[float]) -> str:
     """The median of the per-round ratios and their range, as a table cell: ``**1.23×**
     (1.10–1.40)``."""
     ratios = [a / b for a, b in zip(numerators, denominators, strict=True)]
-    return (f"**{statistics.median(ratios):.{digits}f}×** ({min(ratios):.{digits}f}–"
-            f"{max(ratios):.{digits}f})")
+    return f"**{statistics.median(ratios):.2f}×** ({min(ratios):.2f}–{max(ratios):.2f})"
 
 
-def peak_rss_mib() -> float:
-    """This process's peak resident set size in MiB (Linux reports ``ru_maxrss`` in KiB)."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+def resident_mib() -> float:
+    """This process's resident set now, in MiB."""
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def reference_product_ms(repeats: int = 50) -> float:
+def reference_product_ms(repeats: int = 5) -> float:
     """Median ms of one ``[16, 190, 128] × [16, 128, 128]`` float32 ``bmm``, the largest product of
     the system-identification MAML step: a yardstick of how fast the machine runs at the moment
-    (a shared machine has fast and slow spells), so that tables taken at different times can be
-    compared."""
+    (a shared machine has fast and slow spells)."""
     activations, weights = torch.randn(16, 190, 128), torch.randn(16, 128, 128)
-    return 1000 * median_s(lambda: torch.bmm(activations, weights), repeats, warmup=5)
+    return 1000 * statistics.median(wall_times(lambda: torch.bmm(activations, weights), repeats))
 
 
 # -- tables and sections ------------------------------------------------------------------------
@@ -182,7 +161,7 @@ def markdown_table(header: Sequence[str], rows: Iterable[Sequence[object]]) -> s
 
 
 def markers(name: str) -> tuple[str, str]:
-    """The HTML comments that open and close script ``name``'s section of a page."""
+    """The HTML comments that open and close section ``name`` of a page."""
     return f"<!-- {name}:start -->", f"<!-- {name}:end -->"
 
 
@@ -200,127 +179,195 @@ def replace_section(page: str, name: str, section: str) -> str:
 
 
 def this_machine() -> str:
-    """This machine as the benchmark pages name it: architecture, CPUs, torch, its CPU kernels
-    and threads."""
-    return (f"{platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__} "
-            f"({torch.backends.cpu.get_cpu_capability()} kernels), {torch.get_num_threads()} "
-            f"thread")
+    """This machine as the benchmark pages name it: architecture, CPUs, GPU, torch, its CPU
+    kernels and threads."""
+    gpu = f", {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""
+    return (f"{platform.machine()}, {os.cpu_count()} logical CPUs{gpu}, torch "
+            f"{torch.__version__} ({torch.backends.cpu.get_cpu_capability()} kernels), "
+            f"{torch.get_num_threads()} thread")
 
 
-def section(title: str, command: str, body: str, machine: str | None = None) -> str:
-    """A script's section: its title, the command that produced it, the date, the machine and its
-    load (other processes slow a shared machine down; ``machine`` where the figures were measured
-    elsewhere, e.g. rows of a GPU machine reported here), and ``body`` (the tables)."""
-    if machine is None:
-        load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-        machine = f"{this_machine()}; load average at the end {load}"
-    return (f"## {title}\n\n`{command}`, run on {datetime.date.today().isoformat()} "
-            f"({machine}).\n\n{body.strip()}\n")
-
-
-def write_section(name: str, title: str, body: str, page: Path = BENCHMARKS_PAGE,
-                  command: str | None = None, machine: str | None = None) -> None:
-    """Write script ``name``'s section of ``page`` (docs/benchmarks.md by default), leaving the
-    other scripts' sections untouched; the command is ``command``, by default this process's own
-    command line, and the machine ``machine``, by default this one."""
+def write_section(name: str, title: str, body: str, page: Path, command: str | None = None,
+                  ) -> None:
+    """Write section ``name`` of ``page``, leaving the other sections untouched: its title, the
+    command (by default this process's command line), the date, this machine and its load (other
+    processes slow a shared machine down), and ``body``."""
     if command is None:
         script = Path(sys.argv[0]).resolve()
         shown = ("-m benchmarks.timing" if script == Path(__file__).resolve()
-                 else script.relative_to(ROOT) if script.is_relative_to(ROOT)
-                 else Path("benchmarks", script.name))
-        command = "OMP_NUM_THREADS=1 python " + " ".join(
-            [str(shown), *map(shlex.quote, sys.argv[1:])])
-    text = page.read_text() if page.exists() else ""
-    page.write_text(replace_section(text, name, section(title, command, body, machine)))
+                 else script.relative_to(ROOT) if script.is_relative_to(ROOT) else script.name)
+        command = "OMP_NUM_THREADS=1 python " + " ".join([str(shown),
+                                                           *map(shlex.quote, sys.argv[1:])])
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    text = (f"## {title}\n\n`{command}`, run on {datetime.date.today().isoformat()} "
+            f"({this_machine()}; load average at the end {load}).\n\n{body.strip()}\n")
+    page.write_text(replace_section(page.read_text() if page.exists() else "", name, text))
     print(f"wrote the {name} section of {page}")
 
 
-# -- trainers in turns: the comparisons under ``turns`` in workloads.yaml ----------------------
+# -- a comparison: groups of rows in turns ------------------------------------------------------
+
+def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: str | None,
+               compiling: bool, warmup: int,
+               ) -> tuple[dict[str, Callable[[], object]], dict[str, tuple[float, str] | str]]:
+    """A group's rows built and warmed up (``warmup`` calls), each with its warm-up's seconds and
+    notes (its peak GPU memory on CUDA), or why it did not run: ``skipped: no CUDA`` for a row
+    on CUDA without one, the error's line for a row that failed to build or warm up (the others
+    still run). A row is a list of config overrides (a meta-iteration), or ``{call: ...,
+    overrides: [...]}`` (:func:`timed_call`); its config is the comparison's ``base``, the
+    group's size and base, the row's overrides and ``last``, with ``cuda`` read as ``cuda_as``
+    where given; rows that compile are left out unless ``compiling``."""
+    sized = [f"{key}={n}" for key, n in zip(SIZE_KEYS, group["size"].split("x"), strict=True)
+             ] if "size" in group else []
+    rows, warm = {}, {}
+    for label, row in group["rows"].items():
+        row = {"overrides": row} if isinstance(row, list) else row
+        every = [f"benchmark={group['benchmark']}", *base, *sized, *group.get("base", []),
+                 *row["overrides"], *last]
+        if cuda_as:
+            every = [o.removesuffix("=cuda") + f"={cuda_as}" if o.endswith("=cuda") else o
+                     for o in every]
+        if any(o.endswith("compile=true") for o in every) and not compiling:
+            continue
+        if any(o.partition("=")[2].startswith("cuda") for o in every) \
+                and not torch.cuda.is_available():
+            warm[label] = "skipped: no CUDA"
+            continue
+        try:
+            trainer, players = trainer_for(*every)
+            fn = timed_call(row.get("call", "iteration"), trainer, players)
+            cuda = torch.cuda.is_initialized()
+            rows[label] = (lambda fn=fn: (fn(), torch.cuda.synchronize())) if cuda else fn
+            if cuda:
+                torch.cuda.reset_peak_memory_stats()
+            seconds = sum(wall_times(rows[label], warmup, warmup=0))
+            warm[label] = (seconds, f"peak GPU {torch.cuda.max_memory_allocated() / 2**20:,.0f} "
+                           "MiB in the warm-up " if cuda else "")
+        except Exception as error:  # noqa: BLE001 — one failed row must not stop the others
+            traceback.print_exc()
+            rows.pop(label, None)
+            warm[label] = " ".join(f"error: {type(error).__name__}: {error}".split())[:300]
+    return rows, warm
+
+
+def growth_tracked(rows: dict[str, Callable[[], object]]) -> tuple[dict, dict[str, float]]:
+    """``rows`` each adding its calls' change of the resident set to its entry of the returned
+    dict: for a row alone in its group, its resident set at the end minus at the start of its
+    turns. A run that keeps references to old iterations' tensors (a leak) grows with their
+    count; one that does not stays within allocator noise."""
+    grown = dict.fromkeys(rows, 0.0)
+
+    def tracked(label: str, fn: Callable[[], object]) -> Callable[[], None]:
+        def call() -> None:
+            before = resident_mib()
+            fn()
+            grown[label] += resident_mib() - before
+        return call
+
+    return {label: tracked(label, fn) for label, fn in rows.items()}, grown
+
 
 def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
-    """Run comparison ``name`` under ``turns`` in ``workloads.yaml`` (command-line options
-    ``--rounds``, ``--calls``, ``--benchmarks``, ``--compile``/``--no-compile``, ``--no-doc``;
-    other arguments are config overrides of every row), write its table into its section of each
-    of its pages (unless ``--no-doc``), and return the section's body.
+    """Run comparison ``name`` of ``workloads.yaml`` (options: ``--help``; other arguments are
+    config overrides of every row), write its table into its section of each of its pages after
+    every group (a run stopped later keeps the groups it finished; not with ``--no-doc``), and
+    return the section's body.
 
-    Every row's trainer runs its warm-up calls (timed together: compiles, actors' starts and env
-    builds fall there), then the rows of a group take turns (:func:`in_turns`), with the
-    machine's yardstick (:func:`reference_product_ms`) taken between turns. A row's ms are the
+    Every row runs its warm-up calls (timed together: compiles, actors' starts and env builds
+    fall there), then the rows of a group take turns (:func:`in_turns`). A row's ms are the
     median of its turn medians; its fast-spell median is the median of its turns whose yardstick
     is at most the lower quartile of the group's (the code's cost in the run's fastest spells);
     its ratio is its turn over the group's first row's turn of the same round."""
-    import argparse
-
-    spec = workloads("turns")[name]
-    parser = argparse.ArgumentParser(description=spec["about"])
+    spec = workloads()[name]
+    parser = argparse.ArgumentParser(prog=f"python -m benchmarks.timing {name}",
+                                     description=spec["about"])
     parser.add_argument("--rounds", "--turns", type=int, default=spec["rounds"])
     parser.add_argument("--calls", type=int, default=spec["calls"], help="calls per turn")
+    parser.add_argument("--warmup", type=int, default=spec["warmup"], help="calls before turns")
     parser.add_argument("--benchmarks", nargs="+", help="the groups run (default: all)")
     parser.add_argument("--compile", action="store_true", help="run the rows that compile")
     parser.add_argument("--no-compile", action="store_true", help="skip the rows that compile")
+    parser.add_argument("--tiny", action="store_true",
+                        help="a dry run: one call of each row, with the comparison's tiny "
+                        "overrides; writes no section")
+    parser.add_argument("--cuda-as", help="run the rows written for CUDA on this device instead")
     parser.add_argument("--no-doc", action="store_true", help="print the table only")
     args, overrides = parser.parse_known_args(argv)
-    if args.rounds < 1:
-        parser.error(f"--rounds must be at least 1, got {args.rounds}")
+    if min(args.rounds, args.calls) < 1:
+        parser.error(f"--rounds and --calls must be at least 1, got {args.rounds}, {args.calls}")
+    if args.tiny:
+        args.rounds = args.calls = args.warmup = 1
+        args.no_doc = True
     compiling = args.compile or (spec.get("compile") != "opt-in" and not args.no_compile)
+    last = [*overrides, *(spec.get("tiny", []) if args.tiny else [])]
     as_trained()
-    table, marks_seen = [], []
+    table, marks_seen, body = [], [], ""
     for group in spec["groups"]:
-        wanted = {label: row for label, row in group["rows"].items()
-                  if compiling or not any(o.endswith("compile=true") for o in row)}
-        if args.benchmarks and group["benchmark"] not in args.benchmarks or len(wanted) < 2:
+        if args.benchmarks and group["benchmark"] not in args.benchmarks:
+            continue
+        built, warm = group_rows(group, spec.get("base", []), last, args.cuda_as, compiling,
+                                 args.warmup)
+        if len(warm) < min(2, len(group["rows"])):
             continue  # a group left without a row to compare
-        rows, warmups = {}, {}
-        for label, row in wanted.items():
-            trainer, _ = trainer_for(f"benchmark={group['benchmark']}", *spec.get("base", []),
-                                     *row, *overrides)
-            warmups[label] = sum(wall_times(trainer.train_iteration, spec["warmup"], warmup=0))
-            rows[label] = trainer.train_iteration
-        turns, marks = in_turns(rows, args.calls, args.rounds, warmup=0,
-                                between=lambda: reference_product_ms(repeats=5))
+        rows, grown = growth_tracked(built) if spec.get("memory") else (built, {})
+        turns, marks = in_turns(rows, args.calls, args.rounds, reference_product_ms
+                                ) if rows else ({}, {})
         every = [mark for label in rows for mark in marks[label]]
-        fast = statistics.quantiles(every, n=4)[0] if len(every) > 1 else every[0]
+        fast = statistics.quantiles(every, n=4)[0] if len(every) > 1 else max(every, default=0)
         marks_seen += every
-        first = turn_medians(turns[next(iter(rows))])
-        for label in rows:
-            medians = turn_medians(turns[label])
+        first = [statistics.median(turn) for turn in turns[next(iter(rows))]] if rows else []
+        shown = f"{group['benchmark']} {group.get('size', '').replace('x', ' × ')}".strip() + (
+            " (tiny)" if args.tiny else "")
+        for label, note in warm.items():
+            if label not in rows:
+                table.append((shown, label, *["–"] * 5, note))
+                continue
+            medians = [statistics.median(turn) for turn in turns[label]]
             quick = [t for mark, turn in zip(marks[label], turns[label]) if mark <= fast
                      for t in turn]
-            table.append((group["benchmark"], label, f"{1000 * statistics.median(medians):.1f}",
+            table.append((shown, label, f"{1000 * statistics.median(medians):.1f}",
                           f"{1000 * min(min(turn) for turn in turns[label]):.1f}",
                           f"{1000 * statistics.median(quick):.1f}" if quick else "–",
-                          ratio_cell(medians, first), f"{warmups[label]:.1f}"))
+                          ratio_cell(medians, first), f"{note[0]:.1f}", (note[1] + (
+                              f"resident set {grown[label]:+,.0f} MiB over the turns"
+                              if label in grown else "")).strip() or "–"))
             print(" | ".join(table[-1]), flush=True)
-    body = (f"{spec['about']} Per row: {spec['warmup']} warm-up calls (their seconds in the last "
-            f"column, compiles included), then {args.rounds} rounds of {args.calls} calls, the "
-            "rows of a benchmark taking turns (`timing.compare_in_turns`); ms: median of the turn "
-            "medians; fast-spell: the turns whose machine yardstick (`timing.reference_product_ms`"
-            f", median {statistics.median(marks_seen):.2f} ms, range {min(marks_seen):.2f}–"
-            f"{max(marks_seen):.2f} ms) was at most the benchmark's lower quartile; ratio: the "
-            "row's turn over the first row's turn of the same round.\n\n"
-            + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
-                              "× first row (median, range)", f"first {spec['warmup']} calls s"),
-                             table))
+        body = turns_body(spec, args, marks_seen, table)
+        for page in [] if args.no_doc else spec["pages"]:
+            write_section(name, spec["title"], body, DOCS / page)
     print(body)
-    for page in [] if args.no_doc else spec["pages"]:
-        write_section(name, spec["title"], body, DOCS / page)
     return body
 
 
+def turns_body(spec: dict, args: argparse.Namespace, marks: list[float], table: list) -> str:
+    """A comparison's section body: what it times and how, and its table."""
+    yardstick = (f", median {statistics.median(marks):.2f} ms, range {min(marks):.2f}–"
+                 f"{max(marks):.2f} ms" if marks else "")
+    return (f"{spec['about']} Per row: {args.warmup} warm-up calls (their seconds in the "
+            f"last-but-one column, compiles included), then {args.rounds} rounds of {args.calls} "
+            "calls, the rows of a benchmark taking turns (`timing.compare_in_turns`); ms: median "
+            "of the turn medians; fast-spell: the turns whose machine yardstick "
+            f"(`timing.reference_product_ms`{yardstick}) was at most the benchmark's lower "
+            "quartile; ratio: the row's turn over the first row's turn of the same round.\n\n"
+            + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
+                              "× first row (median, range)", f"first {args.warmup} calls s",
+                              "notes"), table))
+
+
 def main(argv: Sequence[str]) -> None:
-    """``python -m benchmarks.timing NAME [option ...] [override ...]``: comparison ``NAME``
-    under ``turns`` in ``workloads.yaml`` (:func:`compare_in_turns`); an unknown name gets one
-    line naming the known ones (exit code 2)."""
-    names = list(workloads("turns"))
+    """``python -m benchmarks.timing NAME [option ...] [override ...]``: comparison ``NAME`` of
+    ``workloads.yaml`` (:func:`compare_in_turns`); an unknown name gets one line naming the
+    known ones (exit code 2)."""
+    names = list(workloads())
     if argv and argv[0] in ("-h", "--help"):
         print("usage: python -m benchmarks.timing NAME [--help] [option ...] [override ...]\n"
-              f"NAME: {', '.join(names)} (the comparisons under 'turns' in "
-              "benchmarks/workloads.yaml; NAME --help lists the options)")
+              f"NAME: {', '.join(names)} (the comparisons of benchmarks/workloads.yaml; NAME "
+              "--help lists the options)")
         return
     if not argv or argv[0] not in names:
         got = repr(argv[0]) if argv else "nothing"
         print(f"benchmarks.timing: NAME = {got}: allowed: {', '.join(names)} (the comparisons "
-              "under 'turns' in benchmarks/workloads.yaml)", file=sys.stderr)
+              "of benchmarks/workloads.yaml)", file=sys.stderr)
         sys.exit(2)
     compare_in_turns(argv[0], argv[1:])
 

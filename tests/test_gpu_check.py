@@ -1,60 +1,82 @@
-"""The GPU check's dry run (``benchmarks/gpu_check.py run --dry-run``): every workload line under
-``gpu_check`` in ``benchmarks/workloads.yaml`` at tiny size in one process, on a machine with or
-without CUDA. The section it writes names the machine and has a row for every check; without CUDA
-the CUDA rows say so instead of failing, and the MuJoCo Warp lines run on warp's CPU device where
-it has one."""
+"""The GPU check (``benchmarks/gpu_check.sh``) on any machine: its comparisons (``gpu_meta`` and
+``gpu_warp`` in ``benchmarks/workloads.yaml``) at tiny size. Without CUDA the CUDA rows say so
+instead of failing; with ``--cuda-as cpu`` every row runs, the MuJoCo Warp families on warp's CPU
+device."""
 
 from __future__ import annotations
 
-import importlib
 import importlib.util
-import os
-import platform
+import re
 from pathlib import Path
 
+import pytest
 import torch
-import yaml
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_a_dry_run_writes_a_row_for_every_check_and_names_the_machine(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    gpu_check = importlib.import_module("gpu_check")
-    warp_cpu = importlib.util.find_spec("mujoco_warp") is not None
-    page = tmp_path / "benchmarks.md"
-    page.write_text("# Benchmarks\n\n<!-- other:start -->\nkept\n<!-- other:end -->\n")
-    gpu_check.main(["run", "--dry-run", "--out", str(tmp_path / "out"), "--page", str(page),
-                    "--warp-device", "cpu" if warp_cpu else "cuda",
-                    "--command-line", "benchmarks/gpu_check.sh --dry-run"])
-    text = page.read_text()
-    assert "<!-- other:start -->\nkept\n<!-- other:end -->" in text
-    section = text.split("<!-- gpu_check:start -->")[1].split("<!-- gpu_check:end -->")[0]
-    assert f"({platform.machine()}, {os.cpu_count()} logical CPUs, torch {torch.__version__}" \
-        in section
-    assert "`benchmarks/gpu_check.sh --dry-run`, run on" in section
-    assert "Machine: " + ("no GPU" if not torch.cuda.is_available() else "") in section
-    assert "| error" not in section and "error:" not in section
-    cuda = "| ok |" if torch.cuda.is_available() else "skipped: no CUDA |"
-    spec = yaml.safe_load((BENCHMARKS / "workloads.yaml").read_text())["gpu_check"]
-    for path in spec["tests"]:
-        assert f"| {Path(path).stem} | skipped: dry run |" in section
-    for line in spec["meta"]:
-        cpu_row = f"| {line['benchmark']} | {line['method']} | cpu | eager | "
-        assert cpu_row in section and f"{cpu_row}– |" not in section, line
-        rows = [row for row in section.splitlines()
-                if row.startswith(f"| {line['benchmark']} | {line['method']} | cuda |")]
-        variants = 1 + bool(line.get("no_graphs")) + bool(line.get("compiled"))
-        assert len(rows) == variants, line
-        assert torch.cuda.is_available() or all(row.endswith(cuda) for row in rows), rows
-    for line in spec["warp"]:
-        for part in gpu_check.WARP_PARTS:
-            row = next(row for row in section.splitlines()
-                       if row.startswith(f"| {line['benchmark']} | {part} |"))
-            assert ("skipped" not in row) if warp_cpu else row.endswith(cuda), row
-        if "target_steps_per_s" in line:
-            assert f"{line['benchmark']} >= {line['target_steps_per_s']:,} env steps/s: " in section
-    assert "not the target's size" in section or not warp_cpu
-    for part in ("preflight", "meta-point_nav", "compiled-sinusoid_uniform"):
-        assert f"| {part} | ok |" in section
-    assert (tmp_path / "out" / "summary.txt").read_text().startswith("gpu_check ")
+@pytest.fixture(scope="module")
+def timing():
+    spec = importlib.util.spec_from_file_location("timing", ROOT / "benchmarks" / "timing.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def table_rows(body: str) -> dict[tuple[str, str], list[str]]:
+    """The table's rows by (benchmark, row label): their remaining cells."""
+    rows = [line.strip("|").split(" | ") for line in body.splitlines() if line.startswith("| ")]
+    return {(cells[0].strip(), cells[1]): [c.strip() for c in cells[2:]] for cells in rows[1:]}
+
+
+def expected(timing, name: str, compiled: bool) -> set[tuple[str, str]]:
+    """Every row of comparison ``name`` as the tiny table shows it."""
+    return {(f"{group['benchmark']} {group.get('size', '').replace('x', ' × ')}".strip()
+             + " (tiny)", label)
+            for group in timing.workloads()[name]["groups"] for label, row in group["rows"].items()
+            if compiled or "compile=true" not in str(row)}
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks what a machine without CUDA does")
+def test_without_cuda_the_cuda_rows_say_so_and_the_others_run(timing):
+    body = timing.compare_in_turns("gpu_meta", ["--tiny", "--no-doc"])
+    rows = table_rows(body)
+    assert set(rows) == expected(timing, "gpu_meta", compiled=True)
+    for (_, label), cells in rows.items():
+        if label.startswith("cuda"):
+            assert cells[-1] == "skipped: no CUDA", (label, cells)
+        else:
+            assert float(cells[0]) > 0 and cells[-1] == "–", (label, cells)
+
+
+@pytest.mark.skipif(importlib.util.find_spec("mujoco_warp") is None,
+                    reason="the MuJoCo Warp rows need mujoco-warp (the gpu extra)")
+@pytest.mark.parametrize("name", ["gpu_meta", "gpu_warp"])
+def test_every_row_of_the_check_runs_in_place_of_cuda(timing, name):
+    body = timing.compare_in_turns(name, ["--tiny", "--cuda-as", "cpu", "--no-compile",
+                                          "--no-doc"])
+    rows = table_rows(body)
+    assert set(rows) == expected(timing, name, compiled=False)
+    assert all(float(cells[0]) > 0 for cells in rows.values()), rows
+
+
+def test_the_check_runs_both_comparisons_and_test_files_that_exist(timing):
+    script = (ROOT / "benchmarks" / "gpu_check.sh").read_text()
+    entries = re.search(r"for entry in ([\w ]+); do", script).group(1).split()
+    assert entries == ["gpu_meta", "gpu_warp"]
+    assert all(name in timing.workloads() for name in entries)
+    tests = re.findall(r"tests/\w+\.py", script)
+    assert tests and all((ROOT / path).is_file() for path in tests)
+
+
+def test_a_row_that_fails_to_build_is_one_line_and_the_others_run(timing, tmp_path, monkeypatch):
+    workloads = tmp_path / "workloads.yaml"
+    workloads.write_text(
+        "broken:\n  title: t\n  about: a\n  pages: []\n  rounds: 1\n  calls: 1\n  warmup: 1\n"
+        "  base: [method=maml, trainer.meta_batch=2]\n  groups:\n"
+        "    - {benchmark: sinusoid_uniform, rows: {fine: [], wrong: [trainer.no_such_key=1]}}\n")
+    monkeypatch.setattr(timing, "WORKLOADS", workloads)
+    rows = table_rows(timing.compare_in_turns("broken", ["--no-doc"]))
+    assert float(rows[("sinusoid_uniform", "fine")][0]) > 0
+    assert rows[("sinusoid_uniform", "wrong")][-1].startswith("error: ConfigCompositionException")
+    assert "To append" in rows[("sinusoid_uniform", "wrong")][-1]  # the whole message, one line
