@@ -250,6 +250,12 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
     return rows, warm
 
 
+def group_label(group: dict, tiny: bool) -> str:
+    """A group's name in its table: its benchmark, its size, and whether it ran tiny."""
+    size = group.get("size", "").replace("x", " × ")
+    return f"{group['benchmark']} {size}".strip() + (" (tiny)" if tiny else "")
+
+
 def growth_tracked(rows: dict[str, Callable[[], object]]) -> tuple[dict, dict[str, float]]:
     """``rows`` each adding its calls' change of the resident set to its entry of the returned
     dict: for a row alone in its group, its resident set at the end minus at the start of its
@@ -315,20 +321,19 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
         every = [mark for label in rows for mark in marks[label]]
         fast = statistics.quantiles(every, n=4)[0] if len(every) > 1 else max(every, default=0)
         marks_seen += every
-        first = [statistics.median(turn) for turn in turns[next(iter(rows))]] if rows else []
-        shown = f"{group['benchmark']} {group.get('size', '').replace('x', ' × ')}".strip() + (
-            " (tiny)" if args.tiny else "")
+        medians = {label: [statistics.median(turn) for turn in turns[label]] for label in rows}
+        first = next(iter(medians.values()), [])
+        shown = group_label(group, args.tiny)
         for label, note in warm.items():
             if label not in rows:
                 table.append((shown, label, *["–"] * 5, note))
                 continue
-            medians = [statistics.median(turn) for turn in turns[label]]
             quick = [t for mark, turn in zip(marks[label], turns[label]) if mark <= fast
                      for t in turn]
-            table.append((shown, label, f"{1000 * statistics.median(medians):.1f}",
+            table.append((shown, label, f"{1000 * statistics.median(medians[label]):.1f}",
                           f"{1000 * min(min(turn) for turn in turns[label]):.1f}",
                           f"{1000 * statistics.median(quick):.1f}" if quick else "–",
-                          ratio_cell(medians, first), f"{note[0]:.1f}", (note[1] + (
+                          ratio_cell(medians[label], first), f"{note[0]:.1f}", (note[1] + (
                               f"resident set {grown[label]:+,.0f} MiB over the turns"
                               if label in grown else "")).strip() or "–"))
             print(" | ".join(table[-1]), flush=True)

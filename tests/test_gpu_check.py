@@ -31,8 +31,7 @@ def table_rows(body: str) -> dict[tuple[str, str], list[str]]:
 
 def expected(timing, name: str, compiled: bool) -> set[tuple[str, str]]:
     """Every row of comparison ``name`` as the tiny table shows it."""
-    return {(f"{group['benchmark']} {group.get('size', '').replace('x', ' × ')}".strip()
-             + " (tiny)", label)
+    return {(timing.group_label(group, tiny=True), label)
             for group in timing.workloads()[name]["groups"] for label, row in group["rows"].items()
             if compiled or "compile=true" not in str(row)}
 
