@@ -1,6 +1,14 @@
 """The follower's objective, its score-function surrogate and its ascent step (paper Eqs. (6),
 (17) and (14)).
 
+The ascent step is the paper's Adam step, or a natural-gradient step of fixed KL
+(:func:`natural_ascent_step`): the step direction F⁻¹∇_φJ with F the Fisher information of p_φ,
+scaled so that each update moves p_φ by KL δ. Adam moves each parameter by about its rate per
+update, so how far p_φ can move depends on how the flow is parametrized (a coordinate moved
+through a conditioner network moves tens of times further than one moved by direct spline
+parameters) and, under a rate divided by the run length, on the run length. The natural step
+measures the move in the distribution itself.
+
 The adversary maximizes J(φ) = E_{p_φ}[L(τ)] + λ·E_{p0}[ln p_φ(τ)] (Eq. (6)). Its gradient is
 
     ∇_φ J ≈ (1/K) Σ_k (L_k − V_k) ∇_φ ln p_φ(τ_k) + (λ/M) Σ_m ∇_φ ln p_φ(τ_m^0)
@@ -30,11 +38,16 @@ from torch import Tensor
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.errors import ConfigError, TrainingDiverged
+from armeta_rl.rl.trpo import flatten, trust_region_step, unflatten
 from armeta_rl.tasks.distributions import entropy_estimate, kl_estimate
 from armeta_rl.tasks.protocol import TASK_KEY
 
 BASELINES = ("mean", "leave_one_out")
 SIGNALS = ("loss", "regret")
+STEPS = ("adam", "natural")
+FISHER_DAMPING = 0.1
+"""Added to the Fisher matrix of the natural step: its estimate from M samples has rank at most
+M, and in the directions it misses the step would otherwise be unbounded."""
 
 
 def regret(losses: Tensor, reference_losses: Tensor) -> Tensor:
@@ -161,17 +174,60 @@ def surrogate_gradient(
     return torch.nn.utils.clip_grad_norm_(phi, max_norm, foreach=True)
 
 
+def fisher_vector_product(log_p: Tensor, phi: list[Tensor], damping: float = FISHER_DAMPING
+                          ) -> Callable[[Tensor], Tensor]:
+    """v ↦ (F̂ + damping·I) v, with F̂ = (1/n) Σ_i ∇_φ ln p_φ(τ_i) ∇_φ ln p_φ(τ_i)ᵀ the Fisher
+    information of p_φ (Amari 1998) estimated from ``log_p`` = ln p_φ(τ_i) ``[n]`` at draws τ_i of
+    p_φ (differentiable in ``phi``), for flat vectors over ``phi``. F̂ is positive semi-definite,
+    and ½ sᵀF s is the KL between p_φ and p_{φ+s} to second order. Each product is three backward
+    passes over the one forward pass behind ``log_p``: J v by the reverse-over-reverse trick
+    (differentiating Jᵀu in u), then Jᵀ(J v).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.adversary.objective import fisher_vector_product
+        >>> mu = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+        >>> draws = torch.randn(100_000, dtype=torch.float64)  # a unit Gaussian with mean mu
+        >>> product = fisher_vector_product(-0.5 * (draws - mu) ** 2, [mu], damping=0.0)
+        >>> round(float(product(torch.ones(1, dtype=torch.float64))), 1)  # its Fisher: 1
+        1.0
+    """
+    probe = torch.zeros_like(log_p, requires_grad=True)
+    pullback = torch.autograd.grad(log_p, phi, probe, create_graph=True)
+
+    def product(vector: Tensor) -> Tensor:
+        tangent = torch.autograd.grad(pullback, probe, unflatten(vector, phi),
+                                      retain_graph=True)[0]
+        back = torch.autograd.grad(log_p, phi, tangent / len(log_p), retain_graph=True)
+        return flatten(back).detach() + damping * vector
+
+    return product
+
+
+def natural_ascent_step(gradient: Tensor, fisher_product: Callable[[Tensor], Tensor],
+                        max_kl: float) -> Tensor:
+    """The step s = √(2δ / gᵀF⁻¹g)·F⁻¹g of natural-gradient ascent on J (Kakade 2001) with the
+    trust-region length of TRPO (Schulman et al. 2015, App. C; F⁻¹g by conjugate gradient): its
+    quadratic KL ½ sᵀF s is δ = ``max_kl``, whatever the flow's parametrization and the scale of
+    J's gradient ``g``. Added to φ, it is the follower's step of paper Eq. (14), second line, with
+    η_t ∇_φ J replaced by s."""
+    return trust_region_step(gradient, fisher_product, max_kl)
+
+
 @dataclass
 class Follower:
-    """The follower of the game: p_φ, the optimizer that ascends J in φ (``maximize=True``) and
-    its learning-rate schedule (``None``: a constant rate), and the settings of the estimate of
-    Eq. (17): λ, the baseline, the p0 sample size M and the clipping norm (``None``: none).
-    ``log_prob`` computes ln p_φ (default ``adversary.log_prob``; e.g. a compiled version);
-    ``standardize`` divides the advantages by the losses' batch standard deviation
-    (:func:`standardized`: λ relative to the loss scale)."""
+    """The follower of the game: p_φ, how it steps and the settings of the estimate of Eq. (17):
+    λ, the baseline, the p0 sample size M and the clipping norm (``None``: none).
+
+    It steps by ``optimizer`` (Adam ascending J, ``maximize=True``) with its learning-rate
+    ``scheduler`` (``None``: a constant rate), or, with ``max_kl`` = δ set (and no optimizer), by
+    the natural step of KL δ (:func:`natural_ascent_step`), whose Fisher matrix is estimated at
+    the M p0 draws pushed through the flow. ``log_prob`` computes ln p_φ (default
+    ``adversary.log_prob``; e.g. a compiled version); ``standardize`` divides the advantages by
+    the losses' batch standard deviation (:func:`standardized`: λ relative to the loss scale)."""
 
     adversary: FlowAdversary
-    optimizer: torch.optim.Optimizer
+    optimizer: torch.optim.Optimizer | None
     scheduler: torch.optim.lr_scheduler.LRScheduler | None = None
     lam: float = 0.0
     baseline: str = "mean"
@@ -179,16 +235,21 @@ class Follower:
     grad_clip: float | None = 1.0
     log_prob: Callable[[Tensor], Tensor] | None = None
     standardize: bool = False
+    max_kl: float | None = None
 
 
 def follower_step(follower: Follower, tasks: TensorDictBase | Tensor, losses: Tensor
                   ) -> dict[str, float]:
     """φ_{t+1} = φ_t + η_t ∇_φ J(θ_{t+1}, φ_t): the follower's ascent step (paper Eq. (14),
     second line), with the score-function estimate of Eq. (17) from the losses ``[K]`` of
-    ``tasks`` at θ_{t+1}; φ, the optimizer's state and the schedule step in place.
+    ``tasks`` at θ_{t+1}; φ, the optimizer's state and the schedule step in place. With
+    ``follower.max_kl`` set, η_t ∇_φ J is the natural step of that KL
+    (:func:`natural_ascent_step`), its Fisher matrix estimated at the M p0 draws pushed through
+    the flow.
 
     Returns the surrogate's statistics at φ_t (``objective``, ``loss_mean``, ``entropy``,
-    ``kl_p0``), ``lr`` (the rate used) and ``grad_norm`` (before clipping). It draws the M p0
+    ``kl_p0``), ``grad_norm`` (before clipping) and ``lr`` (Adam's rate used) or ``step_kl``
+    (the natural step's KL(p_φt ‖ p_φt+1), measured at its Fisher draws). It draws the M p0
     samples of the λ term and no other random numbers.
 
     Raises:
@@ -202,26 +263,53 @@ def follower_step(follower: Follower, tasks: TensorDictBase | Tensor, losses: Te
         raise TrainingDiverged(f"adversary update got non-finite losses: {losses.tolist()}")
     adversary, optimizer = follower.adversary, follower.optimizer
     log_prob = follower.log_prob or adversary.log_prob
-    phi = [p for group in optimizer.param_groups for p in group["params"]]
     initial = adversary.base.sample_params(follower.initial_samples)
     surrogate, stats = adversary_surrogate(adversary, params, losses, follower.lam, initial,
                                            follower.baseline, log_prob, follower.standardize)
-    grad_norm = surrogate_gradient(surrogate, optimizer, phi, follower.grad_clip)
-    if not (torch.isfinite(surrogate) and torch.isfinite(grad_norm)):
+    if follower.max_kl is None:
+        phi = [p for group in optimizer.param_groups for p in group["params"]]
+        grad_norm = surrogate_gradient(surrogate, optimizer, phi, follower.grad_clip)
+        if not _finite(surrogate, grad_norm):
+            optimizer.zero_grad(set_to_none=True)
+            raise _not_finite(surrogate, grad_norm)
+        step_stats = {"lr": float(optimizer.param_groups[0]["lr"])}
+        optimizer.step()
+        if follower.scheduler is not None:
+            follower.scheduler.step()
         optimizer.zero_grad(set_to_none=True)
-        raise TrainingDiverged(f"adversary surrogate or gradient is not finite (surrogate "
-                               f"{float(surrogate)}, norm {float(grad_norm)})")
-    lr = optimizer.param_groups[0]["lr"]
-    optimizer.step()
-    if follower.scheduler is not None:
-        follower.scheduler.step()
-    optimizer.zero_grad(set_to_none=True)
+        points = params
+    else:
+        phi = list(adversary.parameters())
+        gradient = flatten(torch.autograd.grad(surrogate, phi))
+        grad_norm = gradient.norm()
+        if not _finite(surrogate, grad_norm):
+            raise _not_finite(surrogate, grad_norm)
+        with torch.no_grad():
+            draws = adversary.push_forward(initial)[0]
+        log_p = log_prob(draws)
+        step = natural_ascent_step(gradient, fisher_vector_product(log_p, phi), follower.max_kl)
+        with torch.no_grad():
+            for parameter, change in zip(phi, unflatten(step, phi), strict=True):
+                parameter.add_(change)
+        points = torch.cat([params.to(draws), draws])
     largest = torch.nn.utils.get_total_norm(phi, norm_type=math.inf, foreach=True)
     with torch.no_grad():
         try:
-            new_log_prob = log_prob(params)
+            new_log_prob = log_prob(points)
         except AssertionError:  # normflows' spline asserts its bins are well formed
             new_log_prob = torch.full((1,), math.nan)
     if not (torch.isfinite(largest) and torch.isfinite(new_log_prob).all()):
         raise TrainingDiverged("adversary step produced non-finite parameters or log-densities")
-    return {**stats, "lr": float(lr), "grad_norm": float(grad_norm)}
+    if follower.max_kl is not None:
+        step_kl = kl_estimate(log_p.detach(), new_log_prob[len(params):])
+        step_stats = {"step_kl": float(step_kl)}
+    return {**stats, **step_stats, "grad_norm": float(grad_norm)}
+
+
+def _finite(surrogate: Tensor, grad_norm: Tensor) -> bool:
+    return bool(torch.isfinite(surrogate) and torch.isfinite(grad_norm))
+
+
+def _not_finite(surrogate: Tensor, grad_norm: Tensor) -> TrainingDiverged:
+    return TrainingDiverged(f"adversary surrogate or gradient is not finite (surrogate "
+                            f"{float(surrogate)}, norm {float(grad_norm)})")

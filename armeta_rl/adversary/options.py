@@ -14,7 +14,7 @@ from torch import Tensor
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.adversary.flows import DEFAULT_FLOW, FLOW_KINDS
-from armeta_rl.adversary.objective import BASELINES, SIGNALS, Follower
+from armeta_rl.adversary.objective import BASELINES, SIGNALS, STEPS, Follower
 from armeta_rl.fields import Section, above, at_least, inside, key, one_of, register
 
 
@@ -32,8 +32,13 @@ class ArOptions(Section):
             ``blocks``; planar: ``layers``, ``activation``, ``eps``), checked by the flow.
         lam: Lagrange multiplier λ ≥ 0 of E_{p0}[ln p_φ(τ)].
         update_every: follower update interval u in leader steps.
+        step: how the follower steps: ``"adam"`` (the paper's: Adam at rate ``lr``,
+            cosine-annealed over the run) or ``"natural"`` (natural-gradient steps that each
+            move p_φ by KL ``max_kl``, whatever the run's length and the flow's parametrization;
+            :func:`~armeta_rl.adversary.objective.natural_ascent_step`).
         lr: Adam learning rate of the follower, cosine-annealed over the run.
-        grad_clip: maximum norm of φ's gradient, or ``None`` for no clipping.
+        max_kl: the natural step's KL δ between p_φ before and after each update.
+        grad_clip: maximum norm of φ's gradient for Adam, or ``None`` for no clipping.
         baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
         initial_samples: M, the number of fresh p0 samples for the λ term of the gradient.
         signal: what the adversary ascends: ``"loss"`` (the paper's task loss L) or
@@ -57,9 +62,11 @@ class ArOptions(Section):
     # the paper's: 0.2 regression/sys-id, 0 for RL (the RL benchmarks set it)
     lam: float = key("must be >= 0 (λ ≥ 0)", lambda v: v >= 0, default=0.2)
     update_every: int = at_least(1, default=1)
+    step: str = one_of(*STEPS, default="adam")  # adam (the paper's) or natural
     # the follower's step size, cosine-annealed over the run (docs/notes/history.md: the
     # authors' code's schedule and this default)
     lr: float = inside(0, 1, "(]", default=0.001)
+    max_kl: float = inside(0, 1, "(]", default=0.005)  # the natural step's KL per update
     # clips φ's gradient norm (null: off); it acts in nearly every update
     # (docs/notes/history.md)
     grad_clip: float | None = above(0, default=1.0)
@@ -74,12 +81,16 @@ def follower_of(adversary: FlowAdversary, options: ArOptions, total_updates: int
                 log_prob: Callable[[Tensor], Tensor] | None = None) -> Follower:
     """The :class:`~armeta_rl.adversary.objective.Follower` of ``adversary`` with ``options``'
     settings: Adam ascending J in φ at rate ``options.lr``, cosine-annealed to 0 over
-    ``total_updates`` updates (``None``: a constant rate); ``log_prob`` as the follower's."""
+    ``total_updates`` updates (``None``: a constant rate), or with ``options.step ==
+    "natural"`` natural steps of KL ``options.max_kl`` (no optimizer, no schedule);
+    ``log_prob`` as the follower's."""
+    settings = {"lam": float(options.lam), "baseline": options.baseline,
+                "initial_samples": options.initial_samples, "grad_clip": options.grad_clip,
+                "log_prob": log_prob, "standardize": options.standardize}
+    if options.step == "natural":
+        return Follower(adversary, None, max_kl=float(options.max_kl), **settings)
     optimizer = torch.optim.Adam(adversary.parameters(), lr=options.lr, maximize=True,
                                  fused=True)
     scheduler = (None if total_updates is None
                  else torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=total_updates))
-    return Follower(adversary, optimizer, scheduler, lam=float(options.lam),
-                    baseline=options.baseline, initial_samples=options.initial_samples,
-                    grad_clip=options.grad_clip, log_prob=log_prob,
-                    standardize=options.standardize)
+    return Follower(adversary, optimizer, scheduler, **settings)

@@ -30,13 +30,17 @@ class TaskSampler:
         lam: Lagrange multiplier λ ≥ 0 of the KL(p0 ‖ p_φ) constraint (the paper uses 0 for
             continuous control).
         lr: Adam learning rate, in (0, 1].
-        total_updates: ``T_max`` of a cosine schedule that takes the rate to 0 after that many
-            updates, or ``None`` for a constant rate.
+        total_updates: ``T_max`` of a cosine schedule that takes Adam's rate to 0 after that
+            many updates, or ``None`` for a constant rate.
+        step: ``"adam"`` or ``"natural"`` (each update moves p_φ by KL ``max_kl``,
+            :func:`~armeta_rl.adversary.objective.natural_ascent_step`).
+        max_kl: the natural step's KL per update, in (0, 1].
         grad_clip: maximum gradient norm, or ``None`` for no clipping.
         baseline: score-function baseline, ``"mean"`` or ``"leave_one_out"``.
         initial_samples: M, the fresh p0 samples of the λ term's gradient (≥ 1).
 
-    ``lam``, ``lr``, ``grad_clip``, ``baseline`` and ``initial_samples`` are ``risk.ar``'s keys,
+    ``lam``, ``lr``, ``grad_clip``, ``baseline``, ``initial_samples``, ``step`` and ``max_kl``
+    are ``risk.ar``'s keys,
     checked by :class:`~armeta_rl.adversary.options.ArOptions` (a refusal names the argument).
 
     Examples:
@@ -48,6 +52,11 @@ class TaskSampler:
         >>> stats = sampler.update(tasks, losses=tasks["params"][:, 0])  # one ascent step of φ
         >>> sorted(stats)
         ['entropy', 'grad_norm', 'kl_p0', 'loss_mean', 'lr', 'objective']
+        >>> natural = TaskSampler(FlowAdversary(space, BoxUniform(space)), step="natural",
+        ...                       max_kl=0.01)
+        >>> tasks = natural.sample(16)
+        >>> round(natural.update(tasks, losses=tasks["params"][:, 0])["step_kl"], 2)  # ≈ δ
+        0.01
     """
 
     def __init__(
@@ -59,10 +68,12 @@ class TaskSampler:
         grad_clip: float | None = 1.0,
         baseline: str = "mean",
         initial_samples: int = 256,
+        step: str = "adam",
+        max_kl: float = 0.005,
     ) -> None:
         try:
             options = ArOptions(lam=lam, lr=lr, grad_clip=grad_clip, baseline=baseline,
-                                initial_samples=initial_samples)
+                                initial_samples=initial_samples, step=step, max_kl=max_kl)
         except ConfigError as error:
             raise ConfigError(error.key.removeprefix(f"{ArOptions.section}."), error.value,
                               error.allowed) from None
@@ -84,8 +95,8 @@ class TaskSampler:
         """One ascent step of φ on the losses ``[K]`` of ``tasks`` (``{"params": [K, d]}`` or the
         params themselves; they need not come from :meth:`sample`, but the estimate is unbiased
         only for samples of the current p_φ). Returns the surrogate's statistics at the φ before
-        the step (``objective``, ``loss_mean``, ``entropy``, ``kl_p0``), ``lr`` and
-        ``grad_norm`` (before clipping).
+        the step (``objective``, ``loss_mean``, ``entropy``, ``kl_p0``), ``grad_norm`` (before
+        clipping) and ``lr`` (Adam) or ``step_kl`` (natural steps).
 
         Raises:
             ValueError: losses that are not one per task.

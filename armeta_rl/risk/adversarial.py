@@ -4,7 +4,8 @@ Tasks come from p_φ and weigh equally in the leader's objective (paper Eq. (15)
 the leader's step the follower takes one stochastic gradient *ascent* step on
 J(θ_{t+1}, φ) = E_{p_φ}[L] + λ·E_{p0}[ln p_φ] (paper Eq. (6) and the alternating GDA of Eq.
 (14)) with the score-function estimate of Eq. (17), Adam and a
-cosine learning-rate schedule (paper appendix "Distribution Adversary Implementations").
+cosine learning-rate schedule (paper appendix "Distribution Adversary Implementations"), or
+natural-gradient steps of a fixed KL (``risk.ar.step=natural``).
 """
 
 from __future__ import annotations
@@ -30,16 +31,16 @@ class AdversarialPrinciple(nn.Module):
     """AR-MAML / AR-CNP's task source: the flow adversary, updated every ``update_every`` steps.
 
     ``state_dict()`` holds the adversary's parameters plus, as torch's ``_extra_state``, the Adam
-    and scheduler states (plain tensors, numbers and lists: ``torch.load(weights_only=True)``
-    reads it). Like any ``nn.Module`` state dict its tensors alias the live ones; copy before
-    mutating.
+    and scheduler states, none for natural steps (plain tensors, numbers and lists:
+    ``torch.load(weights_only=True)`` reads it). Like any ``nn.Module`` state dict its tensors
+    alias the live ones; copy before mutating.
 
     Args:
         adversary: p_φ (its ``base`` is p0).
         options: the keys of ``risk.ar`` (:class:`ArOptions`): λ, the follower's step, its
             baseline and schedule.
-        total_updates: ``T_max`` of the cosine schedule (≥ 1); the rate reaches 0 after that many
-            follower updates (the builder: ``trainer.iterations // update_every``).
+        total_updates: ``T_max`` of Adam's cosine schedule (≥ 1); the rate reaches 0 after that
+            many follower updates (the builder: ``trainer.iterations // update_every``).
         reference_loss: the benchmark's reference loss L*(τ) ``[K]`` of identifiers ``[K, d]``,
             needed by ``signal="regret"`` (the builder: the collector's ``reference_loss``).
 
@@ -107,8 +108,9 @@ class AdversarialPrinciple(nn.Module):
 
         Logs ``adversary/objective`` (the estimate of J), ``adversary/entropy`` (from the K task
         samples) and ``adversary/kl_p0`` (from the ``initial_samples`` p0 samples), all of p_φ
-        before the step and free by-products of the surrogate; ``adversary/lr`` (the rate used)
-        and ``adversary/grad_norm`` (before clipping). Precise entropy and KL of the final p_φ go
+        before the step and free by-products of the surrogate; ``adversary/grad_norm`` (before
+        clipping) and ``adversary/lr`` (Adam's rate used) or ``adversary/step_kl`` (the natural
+        step's KL). Precise entropy and KL of the final p_φ go
         to the evaluation report. With ``signal="regret"`` the follower ascends L − L* against
         the benchmark's reference loss (:func:`~armeta_rl.adversary.objective.regret`)."""
         if self.signal == "regret":
@@ -116,26 +118,32 @@ class AdversarialPrinciple(nn.Module):
             losses = regret(losses, self.reference_loss(tasks[TASK_KEY]).to(losses))
         stats = follower_step(self.follower, tasks, losses)
         return {f"adversary/{name}": stats[name]
-                for name in ("objective", "entropy", "kl_p0", "lr", "grad_norm")}
+                for name in ("objective", "entropy", "kl_p0", "lr", "step_kl", "grad_norm")
+                if name in stats}
 
     @property
-    def optimizer(self) -> torch.optim.Optimizer:
-        """The follower's Adam (ascent)."""
+    def optimizer(self) -> torch.optim.Optimizer | None:
+        """The follower's Adam (ascent); ``None`` for natural steps."""
         return self.follower.optimizer
 
     @property
-    def scheduler(self) -> torch.optim.lr_scheduler.CosineAnnealingLR:
-        """The follower's cosine learning-rate schedule."""
+    def scheduler(self) -> torch.optim.lr_scheduler.CosineAnnealingLR | None:
+        """The follower's cosine learning-rate schedule; ``None`` for natural steps."""
         return self.follower.scheduler
 
     def get_extra_state(self) -> dict[str, Any]:
-        """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``."""
+        """Optimizer and learning-rate schedule, stored in ``state_dict()["_extra_state"]``
+        (empty for natural steps, which keep no state besides φ)."""
+        if self.optimizer is None:
+            return {}
         return {"optimizer": self.optimizer.state_dict(), "scheduler": self.scheduler.state_dict()}
 
     def set_extra_state(self, state: dict[str, Any]) -> None:
         """Restore what :meth:`get_extra_state` returned. A schedule saved with another horizon
         (a run resumed with more ``trainer.iterations``) is re-planned for this one's
         (:meth:`replan`)."""
+        if self.optimizer is None:
+            return
         total_updates = self.scheduler.T_max
         self.optimizer.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])

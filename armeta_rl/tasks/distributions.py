@@ -28,11 +28,20 @@ def entropy_estimate(log_prob: Tensor) -> Tensor:
     return -log_prob.mean()
 
 
+def kl_terms(initial_log_prob: Tensor, log_prob: Tensor) -> Tensor:
+    """The terms r − 1 − ln r ``[n]``, r = p(τ)/p0(τ), at samples τ of p0 from the log-densities
+    ``[n]`` of p0 and of p there: each is ≥ 0, and since E_{p0}[r] = 1 their mean is an unbiased
+    estimate of D_KL[p0 ‖ p] = E_{p0}[−ln r] (Schulman's "k3" estimator), which unlike the mean of
+    −ln r cannot come out negative; their spread gives its standard error. Infinite where p
+    leaves out part of p0's support."""
+    log_ratio = log_prob - initial_log_prob
+    return torch.expm1(log_ratio) - log_ratio
+
+
 def kl_estimate(initial_log_prob: Tensor, log_prob: Tensor) -> Tensor:
-    """Monte-Carlo D_KL[p0 ‖ p] = E_{p0}[ln p0(τ) − ln p(τ)] from the log-densities ``[n]`` of p0
-    and of p at samples of p0: the distribution shift that the constraint of paper Eq. (4)
-    bounds by δ."""
-    return (initial_log_prob - log_prob).mean()
+    """Monte-Carlo D_KL[p0 ‖ p], the mean of :func:`kl_terms` at samples of p0: the
+    distribution shift that the constraint of paper Eq. (4) bounds by δ."""
+    return kl_terms(initial_log_prob, log_prob).mean()
 
 
 class TaskDistribution(nn.Module):
@@ -101,11 +110,13 @@ class TaskDistribution(nn.Module):
         return entropy_estimate(self.log_prob(self.sample_params(n)))
 
     @torch.no_grad()
-    def kl_from(self, initial: TaskDistribution, n: int = 4096) -> Tensor:
+    def kl_from(self, initial: TaskDistribution, n: int = 4096) -> tuple[Tensor, Tensor]:
         """Monte-Carlo KL(p0 ‖ p) (:func:`kl_estimate`, paper Eq. (4)) from ``n`` fresh samples of
-        ``initial`` (p0): how far p has moved from p0; a detached scalar."""
+        ``initial`` (p0), and its standard error: how far p has moved from p0; detached
+        scalars."""
         params = initial.sample_params(n)
-        return kl_estimate(initial.log_prob(params), self.log_prob(params))
+        terms = kl_terms(initial.log_prob(params), self.log_prob(params))
+        return terms.mean(), terms.std() / math.sqrt(n)
 
     def _inside(self, params: Tensor) -> Tensor:
         return ((params >= self.low) & (params <= self.high)).all(-1)

@@ -79,14 +79,17 @@ def evaluate_players(
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
                        samples: int = 4096, device: torch.device = CPU
                        ) -> dict[str, float | None]:
-    """Entropy H[p] and KL(p0 ‖ p) of a task distribution on ``device`` (Monte Carlo with exact
-    log-densities; the paper's entropy table reports H of p0 and of the learned p_φ). The KL is
-    ``None`` where it is infinite: a shift that leaves part of p0's support out."""
+    """Entropy H[p], KL(p0 ‖ p) and the KL's standard error of a task distribution on ``device``
+    (Monte Carlo with exact log-densities; the paper's entropy table reports H of p0 and of the
+    learned p_φ). The KL is ``None`` where it is infinite: a shift that leaves part of p0's
+    support out."""
     with forked_rng(device), torch.no_grad():
         torch.manual_seed(seed)
         entropy = float(distribution.entropy(samples))
-        kl = float(distribution.kl_from(initial, samples))
-    return {"entropy": entropy, "kl_p0": kl if math.isfinite(kl) else None}
+        kl, kl_sem = (float(value) for value in distribution.kl_from(initial, samples))
+    finite = math.isfinite(kl)
+    return {"entropy": entropy, "kl_p0": kl if finite else None,
+            "kl_p0_sem": kl_sem if finite else None}
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
