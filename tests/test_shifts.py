@@ -33,6 +33,7 @@ BOXES = {
     "half_cheetah_mass_vel": TaskSpace(["goal_velocity", "mass_scale"], [0.0, 0.75],
                                        [2.0, 1.25]),
     "acrobot": TaskSpace(["m1", "m2"], [0.4, 0.4], [1.6, 1.6]),
+    "ant_goal": TaskSpace(["goal_x", "goal_y"], [-3.0, -3.0], [3.0, 3.0]),
 }
 
 
