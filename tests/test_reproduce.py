@@ -626,6 +626,23 @@ def test_a_malformed_attack_is_refused(monkeypatch, attacks, key, allowed):
     assert allowed in str(error.value)
 
 
+def test_an_attacks_own_overrides_follow_its_targets(monkeypatch):
+    """An attack's ``overrides`` (its adversary's settings) come after its target's, so the
+    target's run need not carry them: the target trains as before, the attack with them."""
+    spec = {"groups": [{"benchmarks": ["sinusoid_uniform"], "methods": ["maml"]},
+                       {"benchmarks": ["sinusoid_uniform"], "methods": ["ar_maml"],
+                        "variants": {"": ["risk.ar.step=natural"]}}],
+            "attacks": {"maml": {"method": "ar_maml", "target": "maml",
+                                 "overrides": ["risk.ar.step=natural"]}}}
+    monkeypatch.setattr(plan_module, "load_spec", lambda experiment: spec)
+    plan = make_plan("table1", "tiny")
+    (maml,) = [run for run in plan.runs if run.method == "maml" and run.seed == 0]
+    (attack,) = [run for run in plan.attacks if run.seed == 0]
+    assert "risk.ar.step=natural" not in maml.overrides
+    assert attack.overrides == (*maml.overrides, "risk.ar.step=natural")
+    assert attack.target == maml
+
+
 def test_an_attack_by_a_method_without_an_adversary_is_refused(monkeypatch):
     spec = {"groups": [{"benchmarks": ["sinusoid_uniform"], "methods": ["maml"]}],
             "attacks": {"maml": {"method": "dr_maml", "target": "maml"}}}

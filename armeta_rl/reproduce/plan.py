@@ -203,15 +203,19 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
 def attack_runs(spec: dict[str, Any], runs: list[TrainRun]) -> list[TrainRun]:
     """For every attack of ``spec["attacks"]`` (``{name: {method, target}}``) and every run of its
     target method, the run of ``method`` (an AR method) with the target's benchmark, variant, seed
-    and overrides that trains its adversary against the target's finished learner."""
+    and overrides, then the attack's own ``overrides`` (its adversary's settings, which the
+    target's run need not carry), that trains its adversary against the target's finished
+    learner."""
     attacks = spec.get("attacks", {})
     methods = list(dict.fromkeys(run.method for run in runs))
     found = []
     for name, attack in attacks.items():
         if not isinstance(attack, dict) or not (
-                {"method", "target"} <= set(attack) <= {"method", "target", "variant"}):
+                {"method", "target"} <= set(attack) <= {"method", "target", "variant",
+                                                        "overrides"}):
             raise ConfigError(f"attacks.{name}", attack, "allowed: {method: <AR method>, "
-                              "target: <a method of the experiment>[, variant: <its variant>]}")
+                              "target: <a method of the experiment>[, variant: <its variant>]"
+                              "[, overrides: [<key>=<value>, ...]]}")
         if name in spec.get("adversaries", {}):
             raise ConfigError(f"attacks.{name}", attack,
                               "an adversary of the experiment has that name already")
@@ -219,7 +223,8 @@ def attack_runs(spec: dict[str, Any], runs: list[TrainRun]) -> list[TrainRun]:
             raise ConfigError(f"attacks.{name}.target", attack["target"],
                               f"allowed: {', '.join(methods)}")
         found += [TrainRun(run.benchmark, attack["method"], run.variant, run.seed,
-                           run.overrides, run.config, target=run)
+                           (*run.overrides, *attack.get("overrides", [])), run.config,
+                           target=run)
                   for run in runs if run.method == attack["target"]
                   and run.variant == attack.get("variant", run.variant)]
     return found
