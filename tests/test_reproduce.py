@@ -536,14 +536,14 @@ def test_the_quick_profile_trains_the_paper_profiles_configs():
 @pytest.mark.parametrize("profile,config", [("paper_ray", "ant_goal_ray"),
                                             ("paper_warp", "ant_goal_warp")])
 def test_the_ant_experiment_plans_for_bigger_hardware_and_others_refuse_it(profile, config):
-    """ant_pos at the Ray and Warp profiles trains those configs in the ``ant_goal`` rows (the
-    paper's 4 seeds, 40 tasks a batch); the Ray workers divide the meta-batch and the evaluation
+    """ant_pos at the Ray and Warp profiles trains those configs in the ``ant_goal`` rows (5
+    seeds, 40 tasks a batch); the Ray workers divide the meta-batch and the evaluation
     tasks (the Warp runs ask for CUDA, which the config check wants present). An experiment
     without Ant has no settings there: one line."""
     plan = make_plan("ant_pos", profile)
     assert {run.config for run in plan.runs} == {config}
     assert {run.benchmark for run in plan.runs} == {"ant_goal"}
-    assert sorted({run.seed for run in plan.runs}) == [0, 1, 2, 3]
+    assert sorted({run.seed for run in plan.runs}) == [0, 1, 2, 3, 4]
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = compose("train", overrides=list(plan.runs[0].command()))
     assert cfg.benchmark.name == config
