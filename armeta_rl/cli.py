@@ -238,11 +238,12 @@ RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
 continue on another device (its checkpoint loads there)."""
 NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "trainer.progress",
                   "trainer.log_every", "trainer.density_every", "trainer.keep_freed_memory",
-                  "trainer.stop_signals", "threads")
+                  "trainer.stop_signals", "threads", "adopt")
 """The keys a resumed run may change that change no result (``eval.json`` and every logged
 value stay those of the uninterrupted run): where and how often it logs and draws, the progress
-bar, the allocator, the stop signals, and torch's thread count (which the seeded benchmark
-families were measured not to change: tests/test_faults.py)."""
+bar, the allocator, the stop signals, torch's thread count (which the seeded benchmark
+families were measured not to change: tests/test_faults.py) and ``adopt`` (taking checkpoints
+that record no run as the run's own)."""
 
 
 def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:
@@ -253,14 +254,15 @@ def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:
 
 def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, list[str]]:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under, validated:
-    its saved config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised
+    its saved config, ``trainer.stop_at`` and ``adopt`` as given (default none, false: a
+    resume's own), ``trainer.iterations`` raised
     and ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given; and ``key=value`` of
     each key of :data:`NO_RESULT_KEYS` it changes. Any other override, or fewer iterations, is
     refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
     from armeta_rl.config import load_run_config, validate
 
     saved = load_run_config(run_dir, "resume")
-    changes: dict[str, Any] = {"resume": run_dir, "trainer": {"stop_at": None}}
+    changes: dict[str, Any] = {"resume": run_dir, "adopt": False, "trainer": {"stop_at": None}}
     for arg in overrides:
         override = _parse(arg)
         name = override.key_or_group
@@ -530,7 +532,7 @@ def _train(args: list[str]) -> None:
                        "train a method on a benchmark (armeta-train [group=option ...] "
                        "[key=value ...] [-m])"):
         return
-    from armeta_rl.trainers.run_dir import check_run_dir, run_lock
+    from armeta_rl.trainers.run_dir import check_contents, check_run_dir, run_lock
 
     for arg in args:
         name, _, value = arg.partition("=")
@@ -560,6 +562,8 @@ def _train(args: list[str]) -> None:
     task = _report_errors(prog, lambda _composed: _train_task(config, run_dir, taken))
     key = "resume" if resume else "hydra.run.dir"
     check_run_dir(run_dir, key)
+    if resume:  # before Hydra appends to its job log there
+        check_contents(run_dir, key)
     given = [a for a in args if a.startswith("hydra.run.dir=")]
     if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
         args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
@@ -604,10 +608,13 @@ def _eval_task(cfg: DictConfig) -> None:
 
     if not isinstance(cfg.initial, bool):
         raise ConfigError("initial", cfg.initial, "must be true or false")
+    if not isinstance(cfg.adopt, bool):
+        raise ConfigError("adopt", cfg.adopt, "must be true or false")
     overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    learner = saved_run(cfg.learner, "learner", cfg.device, {"eval": overrides})
+    learner = saved_run(cfg.learner, "learner", cfg.device,
+                        {"eval": overrides, "adopt": cfg.adopt})
     adversary = (None if cfg.adversary is None
-                 else saved_run(cfg.adversary, "adversary", cfg.device))
+                 else saved_run(cfg.adversary, "adversary", cfg.device, {"adopt": cfg.adopt}))
     shifts = OmegaConf.to_container(cfg.shifts) if OmegaConf.is_list(cfg.shifts) else cfg.shifts
     suffix = ("" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}") or (
         "" if shifts is None else "_shifts")
