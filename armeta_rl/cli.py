@@ -198,6 +198,54 @@ def _composition_message(job: list[str], config_name: str, error: Exception) -> 
     return " ".join(text.split())
 
 
+def check_hydra(args: Sequence[str], config_name: str) -> None:
+    """Compose ``config_name`` with the ``hydra.*`` and ``hydra/<group>=`` words of ``args`` and
+    its Hydra config, as Hydra will before its first job: a word Hydra would refuse (a value of
+    the wrong type, a key its launcher lacks, a choice it does not have) is refused here as one
+    line naming its key and value, where Hydra's own message spans several."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    words = [a for a in args if "=" in a and not a.startswith("-")
+             and _is_hydra_key(a.split("=", 1)[0].lstrip("+~"))]
+    if not words:
+        return
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        try:
+            compose(config_name, overrides=words, return_hydra_config=True)
+        except (HydraException, OmegaConfBaseException) as error:
+            texts, cause = [], error  # Hydra prints the chain of causes: the reason is in it
+            while cause is not None:
+                texts.append(str(cause))
+                cause = cause.__cause__
+            raise Refused(_hydra_message(words, "\n".join(texts))) from None
+
+
+def _hydra_message(words: Sequence[str], text: str) -> str:
+    """One line for Hydra's refusal ``text`` of one of ``words``: its key and value, and what
+    Hydra says is wrong or allows."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    options = []
+    if any(line.startswith("Available options") for line in lines):
+        start = next(i for i, line in enumerate(lines) if line.startswith("Available options"))
+        options = [line for line in lines[start + 1:] if not line.startswith(
+            ("Config search path", "provider="))]
+        options = options[:next((i for i, o in enumerate(options) if " " in o), len(options))]
+    reason = next((line for line in lines if not line.startswith((
+        "Error merging override", "Could not override", "To append", "full_key:",
+        "object_type=", "In '", "Available options", "Config search path", "provider="))),
+        lines[0] if lines else "refused by Hydra")
+    named = [word for word in words if f"override {word}" in text
+             or f"{word.lstrip('+~').replace('=', '/', 1)}'" in text]
+    for word in named or [word for word in reversed(words)
+                          if word.lstrip("+~").split("=", 1)[0] in text]:
+        key, value = word.lstrip("+~").split("=", 1)
+        allowed = f"allowed: {', '.join(options)}" if options else reason
+        return f"config key '{key}' = {value!r}: {allowed}"
+    return " ".join(text.split())
+
+
 def checked(cfg: DictConfig) -> TrainConfig:
     """The composed ``cfg`` validated (:func:`armeta_rl.config.validate`) with its method's
     names checked against the registries (:func:`armeta_rl.factory.check_method`)."""
@@ -549,6 +597,7 @@ def _train(args: list[str]) -> None:
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     else:
         configs, taken = check_jobs(args), []
+    check_hydra(args, "train")
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
         _run_hydra(args, "train", _report_errors(prog, _sweep_job))
         return
@@ -670,4 +719,5 @@ def _evaluate(args: list[str]) -> None:
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         for job in job_overrides(args, groups=()):
             compose_job(job, "eval")
+    check_hydra(args, "eval")
     _run_hydra(args, "eval", task)

@@ -9,6 +9,7 @@ import json
 import os
 import resource
 import shutil
+import signal
 import zlib
 
 import pytest
@@ -17,6 +18,7 @@ import torch
 from armeta_rl.cli import Refused, check_jobs, evaluate, resume_config, train
 from armeta_rl.config import read_run_config
 from armeta_rl.errors import ConfigError
+from armeta_rl.trainers import training
 from armeta_rl.trainers.checkpoint import MANIFEST, seal
 from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.run_dir import LOCK_FILE, run_lock, write_text_atomically
@@ -263,6 +265,17 @@ def test_a_path_component_the_file_system_cannot_hold_is_one_line(tmp_path, caps
     assert "its config.yaml cannot be read (File name too long)" in line
 
 
+@pytest.mark.parametrize("override,words", [
+    ("hydra.launcher.n_jobs=abc", "'hydra.launcher.n_jobs' = 'abc': Key 'n_jobs' not in"),
+    ("hydra/launcher=nope", "'hydra/launcher' = 'nope': allowed: basic, joblib"),
+])
+def test_hydras_own_refusals_are_one_line_naming_key_and_value(tmp_path, capsys, override,
+                                                                words):
+    line = refusal(train, ["-m", "trainer.iterations=1", override,
+                           f"hydra.sweep.dir={tmp_path}"], capsys)
+    assert words in line
+
+
 def test_a_write_the_file_size_limit_stops_names_its_file(tmp_path):
     """Under ``ulimit -f`` a write fails with EFBIG (Python ignores SIGXFSZ): the error names
     the file being written, not its hidden staging sibling."""
@@ -286,3 +299,20 @@ def test_a_fallback_to_the_previous_checkpoint_is_said_on_stderr(run_dir, capsys
     assert code == 0
     assert "checkpoint-000000000004 is broken (components/0000-leader/state.pt does not " \
            "match its SHA-256): moved to checkpoint-000000000004.broken" in err
+
+
+def test_a_stop_request_during_the_final_evaluation_is_acknowledged(tmp_path, capsys,
+                                                                     monkeypatch):
+    from armeta_rl.preemption import StopRequest
+
+    stop, evaluate_players = StopRequest(), training.evaluate_players
+
+    def interrupted(*args, **kwargs):
+        stop.request(signal.SIGTERM)
+        return evaluate_players(*args, **kwargs)
+
+    monkeypatch.setattr(training, "evaluate_players", interrupted)
+    run_training(train_config(*RUN), tmp_path / "run", progress=False, stop=stop)
+    assert (tmp_path / "run" / "eval.json").is_file()
+    assert ("SIGTERM arrived during the final evaluation: the run finished first (eval.json "
+            "written)") in capsys.readouterr().out

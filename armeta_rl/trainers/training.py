@@ -63,7 +63,8 @@ def run_training(config: TrainConfig, run_dir: str | Path, progress: bool = True
 
     ``stop`` is checked after every iteration (the CLI sets it on a preemption signal,
     :mod:`armeta_rl.preemption`): once it is requested, the run checkpoints the iteration it
-    finished and stops.
+    finished and stops; one requested during the final evaluation lets the run finish, and the
+    run says so.
 
     Returns the evaluation report, or ``None`` when the run stopped early at ``trainer.stop_at``.
 
@@ -196,7 +197,11 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
             say(f"stopped at iteration {trainer.iteration}; continue with: "
                 f"armeta-train resume={run_dir}")
             return None
-        return _finish(config, run_dir, players, logger, frames, reached, checkpoint.identity)
+        report = _finish(config, run_dir, players, logger, frames, reached, checkpoint.identity)
+        if stop.requested:  # it came after the last checkpoint: finishing was the quicker way
+            say(f"{stop.name} arrived during the final evaluation: the run finished first "
+                f"({EVAL_FILE} written)")
+        return report
 
 
 def _selected(values: dict[str, Any], key: str) -> Any:
