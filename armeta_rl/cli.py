@@ -198,6 +198,54 @@ def _composition_message(job: list[str], config_name: str, error: Exception) -> 
     return " ".join(text.split())
 
 
+def check_hydra(args: Sequence[str], config_name: str) -> None:
+    """Compose ``config_name`` with the ``hydra.*`` and ``hydra/<group>=`` words of ``args`` and
+    its Hydra config, as Hydra will before its first job: a word Hydra would refuse (a value of
+    the wrong type, a key its launcher lacks, a choice it does not have) is refused here as one
+    line naming its key and value, where Hydra's own message spans several."""
+    from hydra import compose, initialize_config_dir
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    words = [a for a in args if "=" in a and not a.startswith("-")
+             and _is_hydra_key(a.split("=", 1)[0].lstrip("+~"))]
+    if not words:
+        return
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        try:
+            compose(config_name, overrides=words, return_hydra_config=True)
+        except (HydraException, OmegaConfBaseException) as error:
+            texts, cause = [], error  # Hydra prints the chain of causes: the reason is in it
+            while cause is not None:
+                texts.append(str(cause))
+                cause = cause.__cause__
+            raise Refused(_hydra_message(words, "\n".join(texts))) from None
+
+
+def _hydra_message(words: Sequence[str], text: str) -> str:
+    """One line for Hydra's refusal ``text`` of one of ``words``: its key and value, and what
+    Hydra says is wrong or allows."""
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    options = []
+    if any(line.startswith("Available options") for line in lines):
+        start = next(i for i, line in enumerate(lines) if line.startswith("Available options"))
+        options = [line for line in lines[start + 1:] if not line.startswith(
+            ("Config search path", "provider="))]
+        options = options[:next((i for i, o in enumerate(options) if " " in o), len(options))]
+    reason = next((line for line in lines if not line.startswith((
+        "Error merging override", "Could not override", "To append", "full_key:",
+        "object_type=", "In '", "Available options", "Config search path", "provider="))),
+        lines[0] if lines else "refused by Hydra")
+    named = [word for word in words if f"override {word}" in text
+             or f"{word.lstrip('+~').replace('=', '/', 1)}'" in text]
+    for word in named or [word for word in reversed(words)
+                          if word.lstrip("+~").split("=", 1)[0] in text]:
+        key, value = word.lstrip("+~").split("=", 1)
+        allowed = f"allowed: {', '.join(options)}" if options else reason
+        return f"config key '{key}' = {value!r}: {allowed}"
+    return " ".join(text.split())
+
+
 def checked(cfg: DictConfig) -> TrainConfig:
     """The composed ``cfg`` validated (:func:`armeta_rl.config.validate`) with its method's
     names checked against the registries (:func:`armeta_rl.factory.check_method`)."""
@@ -238,11 +286,12 @@ RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
 continue on another device (its checkpoint loads there)."""
 NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "trainer.progress",
                   "trainer.log_every", "trainer.density_every", "trainer.keep_freed_memory",
-                  "trainer.stop_signals", "threads")
+                  "trainer.stop_signals", "threads", "adopt")
 """The keys a resumed run may change that change no result (``eval.json`` and every logged
 value stay those of the uninterrupted run): where and how often it logs and draws, the progress
-bar, the allocator, the stop signals, and torch's thread count (which the seeded benchmark
-families were measured not to change: tests/test_faults.py)."""
+bar, the allocator, the stop signals, torch's thread count (which the seeded benchmark
+families were measured not to change: tests/test_faults.py) and ``adopt`` (taking checkpoints
+that record no run as the run's own)."""
 
 
 def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:
@@ -253,14 +302,15 @@ def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:
 
 def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, list[str]]:
     """The config a run resumed from ``run_dir`` with ``overrides`` continues under, validated:
-    its saved config, ``trainer.stop_at`` as given (default none), ``trainer.iterations`` raised
+    its saved config, ``trainer.stop_at`` and ``adopt`` as given (default none, false: a
+    resume's own), ``trainer.iterations`` raised
     and ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given; and ``key=value`` of
     each key of :data:`NO_RESULT_KEYS` it changes. Any other override, or fewer iterations, is
     refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
     from armeta_rl.config import load_run_config, validate
 
     saved = load_run_config(run_dir, "resume")
-    changes: dict[str, Any] = {"resume": run_dir, "trainer": {"stop_at": None}}
+    changes: dict[str, Any] = {"resume": run_dir, "adopt": False, "trainer": {"stop_at": None}}
     for arg in overrides:
         override = _parse(arg)
         name = override.key_or_group
@@ -530,7 +580,7 @@ def _train(args: list[str]) -> None:
                        "train a method on a benchmark (armeta-train [group=option ...] "
                        "[key=value ...] [-m])"):
         return
-    from armeta_rl.trainers.run_dir import check_run_dir, run_lock
+    from armeta_rl.trainers.run_dir import check_contents, check_run_dir, run_lock
 
     for arg in args:
         name, _, value = arg.partition("=")
@@ -547,6 +597,7 @@ def _train(args: list[str]) -> None:
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     else:
         configs, taken = check_jobs(args), []
+    check_hydra(args, "train")
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
         _run_hydra(args, "train", _report_errors(prog, _sweep_job))
         return
@@ -560,6 +611,8 @@ def _train(args: list[str]) -> None:
     task = _report_errors(prog, lambda _composed: _train_task(config, run_dir, taken))
     key = "resume" if resume else "hydra.run.dir"
     check_run_dir(run_dir, key)
+    if resume:  # before Hydra appends to its job log there
+        check_contents(run_dir, key)
     given = [a for a in args if a.startswith("hydra.run.dir=")]
     if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
         args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
@@ -604,10 +657,13 @@ def _eval_task(cfg: DictConfig) -> None:
 
     if not isinstance(cfg.initial, bool):
         raise ConfigError("initial", cfg.initial, "must be true or false")
+    if not isinstance(cfg.adopt, bool):
+        raise ConfigError("adopt", cfg.adopt, "must be true or false")
     overrides = {k: v for k, v in OmegaConf.to_container(cfg.eval).items() if v is not None}
-    learner = saved_run(cfg.learner, "learner", cfg.device, {"eval": overrides})
+    learner = saved_run(cfg.learner, "learner", cfg.device,
+                        {"eval": overrides, "adopt": cfg.adopt})
     adversary = (None if cfg.adversary is None
-                 else saved_run(cfg.adversary, "adversary", cfg.device))
+                 else saved_run(cfg.adversary, "adversary", cfg.device, {"adopt": cfg.adopt}))
     shifts = OmegaConf.to_container(cfg.shifts) if OmegaConf.is_list(cfg.shifts) else cfg.shifts
     suffix = ("" if cfg.adversary is None else f"_vs_{Path(cfg.adversary).name}") or (
         "" if shifts is None else "_shifts")
@@ -663,4 +719,5 @@ def _evaluate(args: list[str]) -> None:
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         for job in job_overrides(args, groups=()):
             compose_job(job, "eval")
+    check_hydra(args, "eval")
     _run_hydra(args, "eval", task)

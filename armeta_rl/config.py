@@ -14,6 +14,7 @@ docs/configuration.md.
 
 from __future__ import annotations
 
+import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,16 +32,22 @@ from armeta_rl.fields import Section, above, at_least, config_error, each, insid
 from armeta_rl.preemption import STOP_SIGNALS
 from armeta_rl.resources import (
     FLOAT32_BYTES,
+    FLOAT64_BYTES,
     hidden_units,
     machine_memory,
     sample_bytes,
+    sample_counts,
     samples_per_task,
     size_words,
+    spline_layer_parameters,
     task_batch_bytes,
     usable_cpus,
 )
+from armeta_rl.run_files import FileRefused, plain_yaml, read_text
 
 CONFIG_FILE = "config.yaml"
+CONFIG_BYTES = 2**20
+"""The most a run's ``config.yaml`` is read (a few KiB in practice)."""
 SEED_RANGE = (-(2**63), 2**64 - 1)
 """The seeds ``torch.manual_seed`` accepts."""
 
@@ -205,6 +212,10 @@ class TrainConfig(Section):
     # may run on (more only slow it down, and far more crash torch's thread pool)
     threads: int = at_least(1, 1)
     resume: str | None = key()  # a run directory to continue from its latest checkpoint
+    # take a checkpoint that records no run (written before checkpoints recorded theirs) as
+    # this run's, on resume= and of trainer.frozen_leader; not kept by a resume
+    # (docs/configuration.md, "The trust model")
+    adopt: bool = key(default=False)
     trainer: TrainerConfig = field(default_factory=TrainerConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     method: MethodConfig = field(default_factory=MethodConfig)
@@ -242,16 +253,24 @@ class TrainConfig(Section):
         sections = {f"learner.{name}": options for name, options in self.learner.items()
                     if name == self.method.learner or name.startswith(f"{self.method.learner}_")}
         units = min((hidden_units(options) for options in sections.values()), default=1)
-        for name, tasks, collector in (
-                ("trainer.meta_batch", self.trainer.meta_batch, self.benchmark.collector),
-                ("eval.n_tasks", self.eval.n_tasks, self.benchmark.eval_collector)):
-            need = task_batch_bytes(tasks, collector, units)
-            if need > memory:
-                each = task_batch_bytes(1, collector, units)
+        for name, tasks, collector, section in (
+                ("trainer.meta_batch", self.trainer.meta_batch, self.benchmark.collector,
+                 "benchmark.collector"),
+                ("eval.n_tasks", self.eval.n_tasks, self.benchmark.eval_collector,
+                 "benchmark.eval_collector")):
+            each = task_batch_bytes(1, collector, units, section)
+            samples = samples_per_task(collector, section)
+            if each > memory:  # one task is too large: the collector's count says so
+                counts = sample_counts(collector, section)
+                largest = max(counts, key=counts.get)
+                raise ConfigError(f"{section}.{largest}", counts[largest], (
+                    f"a task's {samples} samples x {units} hidden units x 4 bytes need at "
+                    f"least {size_words(each)} of this device's {size_words(memory)}"))
+            if tasks * each > memory:
                 raise ConfigError(name, tasks, (
-                    f"needs at least {size_words(need)} ({samples_per_task(collector)} samples "
-                    f"x {units} hidden units x 4 bytes per task) of this device's "
-                    f"{size_words(memory)}: allowed: at most {memory // each}"))
+                    f"needs at least {size_words(tasks * each)} ({samples} samples x {units} "
+                    f"hidden units x 4 bytes per task) of this device's {size_words(memory)}: "
+                    f"allowed: at most {memory // each}"))
         for section, options in sections.items():
             self.check_learner_sizes(section, options, memory)
         adversary = self.risk.get(self.method.risk) if self.method.risk == "ar" else None
@@ -262,14 +281,42 @@ class TrainConfig(Section):
                 raise ConfigError(f"risk.{self.method.risk}.initial_samples", samples, (
                     f"needs at least {size_words(sample_bytes(samples, dim))} of this device's "
                     f"{size_words(memory)}: allowed: at most {memory // sample_bytes(1, dim)}"))
-            layers = adversary.flow_kwargs.get("layers")
-            each = sample_bytes(samples + self.trainer.meta_batch, dim)
-            if isinstance(layers, int) and not isinstance(layers, bool) and (
-                    layers * each > memory):
-                raise ConfigError("risk.ar.flow_kwargs.layers", layers, (
-                    f"needs at least {size_words(layers * each)} (every layer keeps its "
-                    f"{samples + self.trainer.meta_batch} samples for the gradient) of this "
-                    f"device's {size_words(memory)}: allowed: at most {memory // each}"))
+            self.check_flow_sizes(adversary, samples, dim, memory)
+
+    def check_flow_sizes(self, adversary: Any, samples: int, dim: int, memory: int) -> None:
+        """The flow adversary's sizes within the device's memory: every layer keeps its samples
+        (the p0 sample and the meta-batch, float64) for the gradient, and a spline layer's
+        parameters (float64) take four times their size with their gradients and Adam's two
+        moments (:func:`~armeta_rl.resources.spline_layer_parameters`); a size that is not an
+        integer is left to the flow to refuse."""
+        from armeta_rl.adversary.flows import SplineBoxFlow
+
+        kwargs = dict(adversary.flow_kwargs)
+        sizes = {name: kwargs.get(name, argument.default) for name, argument
+                 in inspect.signature(SplineBoxFlow).parameters.items()
+                 if name in ("layers", "bins", "hidden", "blocks")}
+        if any(v is not None and (isinstance(v, bool) or not isinstance(v, int))
+               for v in sizes.values()):
+            return
+        parameters = 0
+        if adversary.flow == "spline":
+            parameters = 4 * FLOAT64_BYTES * spline_layer_parameters(
+                dim, sizes["bins"], sizes["hidden"], sizes["blocks"])
+            if parameters > memory:
+                given = {k: v for k, v in kwargs.items() if k in ("bins", "hidden", "blocks")}
+                raise ConfigError("risk.ar.flow_kwargs", given or kwargs, (
+                    f"one spline layer's parameters need at least {size_words(parameters)} of "
+                    f"this device's {size_words(memory)}"))
+        layers = sizes["layers"]
+        each = sample_bytes(samples + self.trainer.meta_batch, dim) + parameters
+        if layers is not None and layers * each > memory:
+            raise ConfigError("risk.ar.flow_kwargs.layers", layers, (
+                f"needs at least {size_words(layers * each)} (every layer keeps its "
+                f"{samples + self.trainer.meta_batch} samples for the gradient"
+                + (", and its parameters with their gradients and Adam's moments"
+                   if parameters else "")
+                + f") of this device's {size_words(memory)}: allowed: at most "
+                f"{memory // each}"))
 
     def check_learner_sizes(self, section: str, options: Any, memory: int) -> None:
         """A learner section's sizes within the device's memory: its hidden widths' weights
@@ -359,15 +406,16 @@ def load_run_config(run_dir: str | Path, key: str) -> DictConfig:
     (:data:`SAVED_SECTIONS`: an empty or truncated file), is refused: merged into the schema it
     would silently take defaults."""
     path = Path(run_dir) / CONFIG_FILE
-    if not path.is_file():
-        raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})")
     try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as error:
-        reason = " ".join(str(error).split())
-        raise ConfigError(
-            key, str(run_dir), f"its {CONFIG_FILE} cannot be read: {reason}"
-        ) from None
+        text = read_text(path, CONFIG_BYTES, run_dir)
+    except FileNotFoundError:
+        raise ConfigError(key, str(run_dir), f"is not a run directory (no {CONFIG_FILE})"
+                          ) from None
+    except FileRefused as error:
+        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} {error.reason}") from None
+    except OSError as error:  # e.g. a name the file system cannot hold
+        raise ConfigError(key, str(run_dir), f"its {CONFIG_FILE} cannot be read "
+                          f"({error.strerror or error})") from None
     return read_run_config(text, key, str(run_dir))
 
 
@@ -376,9 +424,11 @@ def read_run_config(text: str, key: str, where: str) -> DictConfig:
     merged into this version's schema, so keys added since take their defaults; ``key`` and
     ``where`` name it in a refusal: a text that does not parse, is not a mapping, lacks a section
     every run's config has (:data:`SAVED_SECTIONS`: an empty or truncated file) or does not fit
-    the schema."""
+    the schema, or uses YAML anchors or aliases (:func:`~armeta_rl.run_files.plain_yaml`)."""
     try:
-        saved = OmegaConf.create(text)
+        saved = OmegaConf.create(plain_yaml(text, CONFIG_FILE))
+    except FileRefused as error:
+        raise ConfigError(key, where, f"its {CONFIG_FILE} {error.reason}") from None
     except yaml.YAMLError as error:
         reason = " ".join(str(error).split())
         raise ConfigError(key, where, f"its {CONFIG_FILE} cannot be read: {reason}") from None

@@ -12,6 +12,7 @@ work headless and from any thread.
 
 from __future__ import annotations
 
+import io
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -27,6 +28,7 @@ from matplotlib.image import imread
 from torch import Tensor
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.run_files import read_file
 from armeta_rl.tasks.distributions import TaskDistribution
 
 GRID_POINTS = 2**15
@@ -262,12 +264,29 @@ def _marginals(picture: DensityPicture, norms: dict[tuple[int, int], Normalize],
     return figure
 
 
+IMAGE_BYTES = 2**26
+"""The most a PNG of a run (a density frame or figure, a few hundred KiB) is read."""
+
+
+def read_image(path: str | Path, below: str | Path | None = None) -> Any:
+    """The pixels of the PNG ``path``, read as every file of a run or results directory is
+    (:func:`~armeta_rl.run_files.read_file`: a regular file of one link, at most
+    :data:`IMAGE_BYTES`, reached from ``below`` through no link).
+
+    Raises:
+        FileNotFoundError: ``path`` does not exist.
+        FileRefused: it is not such a file.
+        OSError, SyntaxError, ValueError: its bytes are not a PNG.
+    """
+    return imread(io.BytesIO(read_file(path, IMAGE_BYTES, below)), format="png")
+
+
 def write_animation(frames: Sequence[str | Path], path: str | Path, fps: float = 2.0) -> None:
-    """An animated GIF of the PNG ``frames`` (all of one size), in order, with matplotlib's
-    ``PillowWriter``."""
+    """An animated GIF of the PNG ``frames`` (all of one size, read by :func:`read_image`), in
+    order, with matplotlib's ``PillowWriter``."""
     if not frames:
         raise ConfigError("plots.frames", [], "needs at least one PNG frame")
-    first = imread(frames[0])
+    first = read_image(frames[0])
     height, width = first.shape[:2]
     dpi = 100
     figure = Figure(figsize=(width / dpi, height / dpi), dpi=dpi)
@@ -278,5 +297,5 @@ def write_animation(frames: Sequence[str | Path], path: str | Path, fps: float =
     writer = PillowWriter(fps=fps)
     with writer.saving(figure, str(path), dpi):
         for frame in frames:
-            image.set_data(imread(frame))
+            image.set_data(read_image(frame))
             writer.grab_frame()

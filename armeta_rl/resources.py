@@ -11,6 +11,7 @@ let through can still be too large; one refused could never run.
 
 from __future__ import annotations
 
+import math
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -48,16 +49,39 @@ def machine_memory(device: str = "cpu") -> int:
     return total
 
 
-def samples_per_task(collector: Mapping[str, Any]) -> int:
-    """The samples a collector gathers per task, from its arguments: ``n_transitions``
-    (system identification), ``n_support + n_query`` (regression), or ``episodes × max_steps``
-    (episodes); 1 when it names none."""
-    if "n_transitions" in collector:
-        return int(collector["n_transitions"])
-    if "n_support" in collector or "n_query" in collector:
-        return int(collector.get("n_support", 0)) + int(collector.get("n_query", 0))
-    if "episodes" in collector and "max_steps" in collector:
-        return int(collector["episodes"]) * int(collector["max_steps"])
+SAMPLE_COUNTS = ("n_transitions", "n_support", "n_query", "episodes", "max_steps")
+"""A collector's arguments that count its samples per task."""
+
+
+def sample_counts(collector: Mapping[str, Any], section: str) -> dict[str, int]:
+    """The collector's :data:`SAMPLE_COUNTS` it names, as integers; ``section`` names the
+    collector (``benchmark.collector``) in the :class:`~armeta_rl.errors.ConfigError` for one
+    that is not a whole number (``inf``, ``2.5``, ``"ten"``)."""
+    from armeta_rl.errors import ConfigError
+
+    counts = {}
+    for name in SAMPLE_COUNTS:
+        if name not in collector:
+            continue
+        value = collector[name]
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (
+                math.isfinite(value) and value == int(value) and value >= 0):
+            raise ConfigError(f"{section}.{name}", value, "must be a whole number >= 0")
+        counts[name] = int(value)
+    return counts
+
+
+def samples_per_task(collector: Mapping[str, Any], section: str = "benchmark.collector") -> int:
+    """The samples a collector gathers per task, from its arguments (:func:`sample_counts`):
+    ``n_transitions`` (system identification), ``n_support + n_query`` (regression), or
+    ``episodes × max_steps`` (episodes); 1 when it names none."""
+    counts = sample_counts(collector, section)
+    if "n_transitions" in counts:
+        return counts["n_transitions"]
+    if "n_support" in counts or "n_query" in counts:
+        return counts.get("n_support", 0) + counts.get("n_query", 0)
+    if "episodes" in counts and "max_steps" in counts:
+        return counts["episodes"] * counts["max_steps"]
     return 1
 
 
@@ -72,10 +96,26 @@ def hidden_units(section: Any) -> int:
     return max(units, 1)
 
 
-def task_batch_bytes(tasks: int, collector: Mapping[str, Any], units: int) -> int:
+def task_batch_bytes(tasks: int, collector: Mapping[str, Any], units: int,
+                     section: str = "benchmark.collector") -> int:
     """The least memory a batch of ``tasks`` tasks needs: one forward pass's activations over
     every task's samples, in float32."""
-    return FLOAT32_BYTES * tasks * samples_per_task(collector) * units
+    return FLOAT32_BYTES * tasks * samples_per_task(collector, section) * units
+
+
+def spline_layer_parameters(dim: int, bins: int, hidden: int, blocks: int) -> int:
+    """At least the parameters of one layer of the spline flow on a ``dim``-dimensional box
+    (:class:`~armeta_rl.adversary.flows.SplineBoxFlow`): an unconditional spline of ``3 bins +
+    1`` numbers per coordinate in one dimension; in more, a coupling whose residual network
+    (``hidden`` units, ``blocks`` blocks of two layers) maps the half it conditions on to every
+    spline of the other half, beside unconditional splines of that half."""
+    spline = 3 * bins + 1
+    if dim == 1:
+        return spline
+    kept, moved = dim - dim // 2, dim // 2
+    network = (kept + 1) * hidden + blocks * 2 * (hidden + 1) * hidden + (hidden + 1) * (
+        moved * spline)
+    return network + kept * spline
 
 
 def sample_bytes(samples: int, dim: int) -> int:

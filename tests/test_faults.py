@@ -29,6 +29,7 @@ import armeta_rl.trainers.checkpoint as checkpoint_module
 from armeta_rl.cli import Refused, _eval_task, _report_errors, config_dir, resume_config, train
 from armeta_rl.config import validate
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
+from armeta_rl.run_files import FileRefused
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
 from armeta_rl.trainers.players import load_players
@@ -1068,7 +1069,7 @@ def test_a_report_or_out_that_is_no_regular_file_is_refused(tmp_path, whole, cap
         os.mkfifo(path)
     else:
         path.symlink_to("/dev/zero")
-    with pytest.raises(ReportInvalid, match="it is not a regular file"):
+    with pytest.raises(ReportInvalid, match="not a regular file"):
         read_report(path)
     assert evaluate([f"learner={whole}", f"out={path}"]) == 2
     assert "is not a regular file" in capsys.readouterr().err
@@ -1128,31 +1129,21 @@ def test_checkpoints_that_are_a_file_are_refused_before_training(tmp_path, stopp
     assert not (run_dir / EVAL_FILE).exists()
 
 
-def test_an_unreadable_newest_checkpoint_falls_back_with_one_warning(tmp_path, whole, stopped,
-                                                                     caplog):
-    """The newest checkpoint's leader payload replaced by a directory (it cannot be read): the
-    resume falls back to the previous one and still ends as the uninterrupted run."""
+@pytest.mark.parametrize("where", ["leader", "manifest"])
+def test_a_folder_or_link_where_a_checkpoint_file_belongs_is_refused_naming_it(
+        tmp_path, stopped, where):
+    """The newest checkpoint's leader payload replaced by a folder, or its manifest by a link to
+    /dev/zero (read without bound it would never end): no write of a run leaves either, so the
+    checkpoint is refused naming the file, not taken for a broken one an older checkpoint
+    stands in for; nothing is trained."""
     run_dir = tmp_path / "run"
     shutil.copytree(stopped, run_dir)
-    payload = run_dir / "checkpoints" / "checkpoint-000000000004" / FILES["leader"]
-    payload.unlink()
-    payload.mkdir()
-    with caplog.at_level(logging.WARNING):
+    newest = run_dir / "checkpoints" / "checkpoint-000000000004"
+    path = newest / (FILES["leader"] if where == "leader" else MANIFEST)
+    path.unlink()
+    path.mkdir() if where == "leader" else path.symlink_to("/dev/zero")
+    with pytest.raises(FileRefused, match="is a link|is not part of a checkpoint"):
+        verify(newest)
+    with pytest.raises(ConfigError, match=f"its {path.relative_to(run_dir)} is"):
         finish(run_dir)
-    warnings = [r for r in caplog.records if r.levelno == logging.WARNING and "broken" in
-                r.getMessage()]
-    assert len(warnings) == 1 and "checkpoint-000000000004" in warnings[0].getMessage()
-    assert outcome(run_dir) == outcome(whole)
-
-
-def test_a_manifest_that_is_a_link_to_dev_zero_is_a_broken_checkpoint(tmp_path, whole, stopped):
-    """Read without bound, a manifest linked to /dev/zero would never end: it is broken, and the
-    resume falls back to the previous checkpoint."""
-    run_dir = tmp_path / "run"
-    shutil.copytree(stopped, run_dir)
-    manifest = run_dir / "checkpoints" / "checkpoint-000000000004" / MANIFEST
-    manifest.unlink()
-    manifest.symlink_to("/dev/zero")
-    assert "is not a regular file" in verify(manifest.parent)
-    finish(run_dir)
-    assert outcome(run_dir) == outcome(whole)
+    assert newest.is_dir() and not (run_dir / EVAL_FILE).exists()

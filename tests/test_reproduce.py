@@ -6,6 +6,7 @@ code 2)."""
 import json
 import math
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -228,6 +229,11 @@ def test_cvar_curves_by_hand():
     assert all(math.isclose(p.se, 0.5) for p in points)
 
 
+HAND_SCORED = ("eval.n_tasks=4", "eval.alphas=[0.5]")
+"""The evaluation settings of :func:`_report`'s hand-made reports: a plan whose runs are scored
+so (these as ``+train`` overrides) takes them."""
+
+
 def _report(mean: float, cvar: float, adversarial: tuple[float, float] | None = None) -> dict:
     """A report that passes the schema (check_report): p0's ``mean`` and CVaR_0.5 over 4 tasks
     (sem |cvar - mean|, at least the spread they imply), and an adversary's if given."""
@@ -243,7 +249,7 @@ def _report(mean: float, cvar: float, adversarial: tuple[float, float] | None = 
 
 
 def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
-    plan = make_plan("cnp_table", "quick")
+    plan = make_plan("cnp_table", "quick", HAND_SCORED)
     numbers = {("cnp", 0): (0.5, 1.0), ("cnp", 1): (0.7, 1.4), ("ar_cnp", 0): (0.4, 0.8),
                ("ar_cnp", 1): (0.6, 1.0)}
     for (method, seed), (mean, cvar) in numbers.items():
@@ -272,7 +278,7 @@ def test_table_cells_are_mean_and_std_over_seeds_by_hand(tmp_path):
 def test_each_benchmark_lists_only_its_own_shift_suite(tmp_path):
     """Two benchmarks with different shift suites: a benchmark's rows name its own shifts, not
     the other's (as rows of '–')."""
-    plan = make_plan("table1", "quick")
+    plan = make_plan("table1", "quick", HAND_SCORED)
     for benchmark, shift in (("sinusoid_uniform", "shift/high_amplitude"),
                              ("pendulum_uniform", "shift/rim")):
         run = tmp_path / f"runs/{benchmark}/maml/seed0"
@@ -288,10 +294,19 @@ def test_each_benchmark_lists_only_its_own_shift_suite(tmp_path):
 
 
 def _of(plan, run_dir: Path, report: dict) -> str:
-    """``report`` as JSON, naming the benchmark config and method of the plan's run in
-    ``run_dir`` (a report is taken only where it is that run's)."""
+    """``report`` as JSON, as the plan's run in ``run_dir`` writes it, beside the config.yaml the
+    plan gives that run: with its identity (benchmark config, method, seed and the digest of its
+    config), as a report is taken only where it is that run's."""
+    from armeta_rl.reproduce.plan import composed, run_command, saved_config
+    from armeta_rl.trainers.run_dir import write_config
+
     run = next(r for r in (*plan.runs, *plan.attacks) if run_dir.as_posix().endswith(r.subdir))
-    return json.dumps({**report, "benchmark": run.config, "method": run.method})
+    config = run_dir / "config.yaml"
+    if not config.exists():
+        values = OmegaConf.to_container(composed(run_command(run)), resolve=True)
+        write_config({**values, "seed": run.seed}, config)
+    return json.dumps({**report, "benchmark": run.config, "method": run.method,
+                       "seed": run.seed, "config_sha256": saved_config(config.read_text())[0]})
 
 
 def _paired_report(per_task: list[float], section: str = "initial", seed: int = 1234) -> dict:
@@ -306,7 +321,7 @@ def _paired_report(per_task: list[float], section: str = "initial", seed: int = 
 def test_paired_differences_over_seeds_by_hand(tmp_path):
     """Per seed, AR-MAML minus MAML on the same tasks, then mean ± std over seeds, the RMS of the
     per-seed paired standard errors over tasks and the seeds where AR-MAML is better."""
-    plan = make_plan("meta_rl_point", "paper")
+    plan = make_plan("meta_rl_point", "paper", ("eval.n_tasks=2", "eval.alphas=[0.5]"))
     scores = {("maml", 0): [-10.0, -12.0], ("ar_maml", 0): [-9.0, -12.0],
               ("maml", 1): [-11.0, -13.0], ("ar_maml", 1): [-10.0, -11.0]}
     for (method, seed), per_task in scores.items():
@@ -496,7 +511,7 @@ def test_a_killed_sweep_keeps_its_wall_time_up_to_the_clocks_last_write(tmp_path
 def test_a_profile_entry_may_train_another_config_for_a_row(tmp_path):
     """``{config: sinusoid_normal_paper, overrides: [...]}`` under ``sinusoid_normal``: the runs
     train that config, while the row's name keys their directories and the paper's numbers."""
-    plan = make_plan("table1", "paper", benchmarks=("sinusoid_normal",))
+    plan = make_plan("table1", "paper", HAND_SCORED, benchmarks=("sinusoid_normal",))
     run = next(r for r in plan.runs if r.method == "maml" and r.seed == 0)
     assert run.benchmark == "sinusoid_normal" and run.config == "sinusoid_normal_paper"
     assert run.subdir == "runs/sinusoid_normal/maml/seed0"
@@ -710,11 +725,18 @@ def test_a_curve_file_written_before_a_column_existed_reads_it_as_empty(tmp_path
     ("another seed", "it is the report of seed 1, not this run's 0"),
     ("a section that is a string", "'initial' = 'str' is not a distribution's section"),
     ("another config", "it is the report of another config (config_sha256 "),
+    ("no identity", "it records no seed or config_sha256: a report that does not say which"),
+    ("not the plan's config", "its run's config has trainer.iterations = 2, not the 1 this "
+                              "experiment's plan gives it"),
+    ("scored otherwise", "it was scored with support_noise 0.1, not the 0.0 the plan gives"),
 ])
 def test_a_report_that_is_not_this_runs_is_unfinished_and_left_out(tmp_path, table1_dir, edit,
                                                                    words):
-    """An eval.json copied from another run's directory (another method or seed) or with a
-    section of the wrong type marks its run unfinished, and the aggregate leaves it out."""
+    """An eval.json copied from another run's directory (another method or seed), with a
+    section of the wrong type, without the identity of the run that wrote it (another method's
+    relabelled), or whose run's config or scoring is not what the experiment's plan gives it
+    (another experiment's or profile's) marks its run unfinished, and the aggregate leaves it
+    out."""
     from armeta_rl.reproduce.aggregate import collect
     from armeta_rl.reproduce.plan import report_problem
 
@@ -723,10 +745,18 @@ def test_a_report_that_is_not_this_runs_is_unfinished_and_left_out(tmp_path, tab
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
     maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
     source = {"another method": "dr_maml/seed0", "another seed": "maml/seed1",
-              "a section that is a string": "maml/seed0", "another config": "maml/seed0"}[edit]
+              "no identity": "dr_maml/seed0"}.get(edit, "maml/seed0")
     report = json.loads((results / "runs/sinusoid_uniform" / source / "eval.json").read_text())
     if edit == "a section that is a string":
         report["initial"] = "str"
+    if edit == "no identity":  # as copied from another method, its identity removed
+        report = {**{k: v for k, v in report.items() if k not in ("seed", "config_sha256")},
+                  "method": "maml"}
+    if edit == "not the plan's config":  # a key the plan sets; iterations are not digested
+        config = results / maml.subdir / "config.yaml"
+        config.write_text(config.read_text().replace("  iterations: 1\n", "  iterations: 2\n"))
+    if edit == "scored otherwise":  # as the noise experiment scores the same training runs
+        report["support_noise"] = 0.1
     if edit == "another config":  # as a variant's report: same method and seed, other settings
         config = results / maml.subdir / "config.yaml"
         config.write_text(config.read_text().replace("inner_lr: 0.01", "inner_lr: 0.02"))
@@ -782,13 +812,13 @@ def test_a_run_directorys_report_wins_over_its_packed_copy(table1_dir, tmp_path)
     reads its own reports): another run's report copied there marks the run unfinished although
     its packed copy is its own, and the packed copy counts again once the file is gone."""
     from armeta_rl.reproduce.packed import pack, read_packed
-    from armeta_rl.reproduce.plan import finished, report_problem
+    from armeta_rl.reproduce.plan import finished, packable, report_problem
 
     results = tmp_path / "results"
     shutil.copytree(table1_dir, results)
-    pack(results)
-    packed = read_packed(results)
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    pack(results, packable(results, plan))
+    packed = read_packed(results)
     maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
     report = results / maml.subdir / "eval.json"
     shutil.copy(results / "runs/sinusoid_uniform/dr_maml/seed0/eval.json", report)
@@ -853,3 +883,111 @@ def test_a_run_saved_before_a_key_existed_keeps_its_report(tmp_path, table1_dir)
     assert older != config.read_text()
     config.write_text(older)
     assert report_problem(results, maml) is None
+
+
+def test_pack_packs_only_the_reports_the_plan_accepts(tmp_path, table1_dir):
+    """A report refused (another method's, its identity removed) is not packed, and the packed
+    files then hold every other report: pack=true never turns a refused report into a packed
+    one the run directories no longer contradict."""
+    from armeta_rl.reproduce.packed import read_packed
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    maml = results / "runs/sinusoid_uniform/maml/seed0"
+    report = json.loads((maml.parent.parent / "dr_maml/seed0/eval.json").read_text())
+    report = {**{k: v for k, v in report.items() if k not in ("seed", "config_sha256")},
+              "method": "maml"}
+    (maml / "eval.json").write_text(json.dumps(report))
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",), pack=True) == 1
+    packed = read_packed(results)
+    assert ("runs/sinusoid_uniform/maml/seed0", "eval.json") not in packed.reports
+    assert len(packed.reports) == 16 + 56 - 1
+
+
+def test_another_experiments_packed_files_are_refused(tmp_path, table1_dir):
+    """Packed files whose reports were scored otherwise than this experiment's plan scores them
+    (the noise experiment trains the same runs and scores them with noisy labels too): none of
+    their runs is finished here, and the report aggregates none."""
+    from armeta_rl.reproduce.packed import Packed, pack, read_packed
+    from armeta_rl.reproduce.plan import packable
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    packed = packable(results, plan)
+    pack(results, Packed({place: {**report, "support_noise": 0.1}
+                          for place, report in packed.reports.items()}, packed.configs))
+    shutil.rmtree(results / "runs")
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1
+    assert "No run finished." in (results / "table1.md").read_text()
+    assert len(read_packed(results).reports) == 16 + 56
+
+
+@pytest.mark.parametrize(("damage", "words"), [
+    ("truncated", "its reports.jsonl.gz is cut short (its gzip stream does not end)"),
+    ("bit flipped", "its reports.jsonl.gz is damaged"),
+    ("a line too long", "its reports.jsonl.gz has a line (1) longer than the 64 bytes"),
+    ("not JSON", "its reports.jsonl.gz has a line (1) that is not JSON"),
+])
+def test_a_damaged_packed_file_is_one_line_naming_it(tmp_path, table1_dir, monkeypatch, damage,
+                                                     words):
+    import gzip
+
+    import armeta_rl.reproduce.packed as packed_module
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",), pack=True) == 0
+    path = results / "reports.jsonl.gz"
+    data = bytearray(path.read_bytes())
+    if damage == "truncated":
+        data = data[: len(data) // 2]
+    elif damage == "bit flipped":
+        data[len(data) // 2] ^= 0x10
+    elif damage == "a line too long":
+        monkeypatch.setattr(packed_module, "LINE_BYTES", 64)
+    else:
+        data = bytearray(gzip.compress(b"{not json\n"))
+    path.write_bytes(bytes(data))
+    with pytest.raises(ConfigError, match=re.escape(f"'results' = '{results}': {words}")):
+        reproduce("table1", "tiny", results, launcher="none", benchmarks=("sinusoid_uniform",))
+
+
+def test_a_partial_sweep_names_on_stderr_what_is_missing_and_why(tmp_path, table1_dir, capsys):
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    shutil.rmtree(results / "runs/sinusoid_uniform/maml/seed0")
+    capsys.readouterr()
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1
+    err = capsys.readouterr().err
+    assert ("armeta-reproduce: missing runs/sinusoid_uniform/maml/seed0/eval.json: it does not "
+            "exist") in err
+    assert ("armeta-reproduce: missing runs/sinusoid_uniform/maml/seed0/eval_vs_same_seed.json: "
+            "it waits for runs/sinusoid_uniform/maml/seed0, not finished") in err
+
+
+def test_the_staging_files_a_killed_process_left_are_removed(tmp_path, table1_dir):
+    """A kill while packing leaves ``.reports.jsonl.<pid>.gz``: the next run removes those of
+    processes that are gone, and leaves a live process's own."""
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    stale = results / f".reports.jsonl.{gone.pid}.gz"
+    live = results / f".reports.jsonl.{os.getpid()}.gz"
+    for path in (stale, live):
+        path.write_bytes(b"half a packed file")
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 0
+    assert not stale.exists() and live.exists()
+
+
+def test_a_results_directory_that_is_a_link_loop_is_one_line(tmp_path):
+    loop = tmp_path / "results"
+    loop.symlink_to(loop)
+    with pytest.raises(ConfigError, match=f"'results' = '{loop}': cannot be used"):
+        reproduce("table1", "tiny", loop, launcher="none", benchmarks=("sinusoid_uniform",))

@@ -1,6 +1,7 @@
 """``armeta-reproduce <experiment> [profile=quick|paper|paper_ray|paper_warp|tiny]
 [benchmarks=a,b] [seeds=0,1] [results=DIR] [launcher=local|basic|ray|slurm|none] [jobs=N]
-[pack=true] [hydra.launcher.…=…] [+train.<key>=<value>]``: one artefact of the paper.
+[pack=true [adopt=true]] [hydra.launcher.…=…] [+train.<key>=<value>]``: one artefact of the
+paper.
 
 It trains the experiment's runs (one ``armeta-train`` multirun), then its attack runs against the
 finished ones (a second), scores them on the adversaries (one ``armeta-eval`` multirun) and
@@ -13,14 +14,17 @@ same command again continues a sweep.
 report keeps the other benchmarks' finished runs), ``launcher=none`` only aggregates, ``hydra.*``
 and ``hydra/<group>=`` arguments go to both multiruns (launcher settings) and
 ``+train.<key>=<value>`` is appended to every training run's overrides.
-``pack=true`` packs the run directories' reports and configs into ``reports.jsonl.gz`` and
-``configs.jsonl.gz``; the report is then rebuilt from those files alone where the run directories
-are gone (``launcher=none``), and runs packed there are never run again.
+``pack=true`` packs the reports the plan accepts, with their runs' configs, into
+``reports.jsonl.gz`` and ``configs.jsonl.gz``; the report is then rebuilt from those files alone
+where the run directories are gone (``launcher=none``), and runs packed there are never run
+again. ``adopt=true`` packs reports written before reports recorded their run too, recording it.
+A sweep that leaves runs missing exits 1 and names each on stderr with why.
 """
 
 from __future__ import annotations
 
 import copy
+import os
 import sys
 import threading
 import time
@@ -30,6 +34,7 @@ from typing import NoReturn
 
 from omegaconf import OmegaConf
 
+from armeta_rl.config import CONFIG_BYTES
 from armeta_rl.errors import ConfigError
 from armeta_rl.preemption import listening
 from armeta_rl.reproduce import experiment_names, figures, help_text
@@ -60,18 +65,30 @@ from armeta_rl.reproduce.packed import (
 )
 from armeta_rl.reproduce.packed import pack as pack_runs
 from armeta_rl.reproduce.plan import (
+    EvalJob,
     Plan,
+    TrainRun,
+    composed,
     finished,
     make_plan,
+    packable,
     report_path,
     report_problem,
+    run_command,
 )
 from armeta_rl.reproduce.reports import LAYOUTS, learner_label
-from armeta_rl.trainers.run_dir import write_text_atomically
+from armeta_rl.run_files import FileRefused, plain_yaml, read_text
+from armeta_rl.trainers.run_dir import (
+    check_contents,
+    staged_leftovers,
+    write_text_atomically,
+)
 
 PROG = "armeta-reproduce"
 MANIFEST = "reproduce.yaml"
-OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs", "pack")
+OPTIONS = ("profile", "benchmarks", "seeds", "results", "launcher", "jobs", "pack", "adopt")
+MISSING_SHOWN = 20
+"""The most missing runs and evaluations a partial sweep names on stderr, each with why."""
 DEFAULT_STOP_SIGNALS = ("SIGTERM", "SIGUSR1")
 """The signals (besides SIGINT) on which a sweep stops: its runs in flight finish their
 iteration and checkpoint, no further job starts, and the command exits 75 (SIGINT: 130)."""
@@ -91,7 +108,7 @@ def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
 
     check_run_dir(results, "results")
     path = results / MANIFEST
-    if path.is_file():
+    if path.exists() or path.is_symlink():
         manifest = read_manifest(results)
         allowed = {plan.experiment, *plan.spec.get("shares_runs_with", [])}
         if manifest["experiment"] not in allowed:
@@ -117,8 +134,12 @@ def read_manifest(results: Path) -> dict:
 
     path = results / MANIFEST
     try:
-        manifest = OmegaConf.to_container(OmegaConf.load(path))
-    except (yaml.YAMLError, UnicodeDecodeError, ValueError) as error:
+        text = plain_yaml(read_text(path, CONFIG_BYTES, results), path)
+        manifest = OmegaConf.to_container(OmegaConf.create(text))
+    except FileRefused as error:
+        raise ConfigError("results", str(results), f"its {MANIFEST} {error.reason}: delete "
+                          "it to start the directory's manifest again") from None
+    except (OSError, yaml.YAMLError, ValueError) as error:
         raise ConfigError("results", str(results), f"its {MANIFEST} cannot be read "
                           f"({' '.join(str(error).split())[:120]}): delete it to start the "
                           "directory's manifest again") from None
@@ -185,14 +206,13 @@ def check_runs(plan: Plan) -> None:
     """Compose and check the config of every distinct run (seeds aside) before launching, so a
     bad override in an experiment's YAML fails with one line instead of in every job; with
     ``shifts:`` in the YAML, each run's benchmark must have those shifts in its suite."""
-    from armeta_rl.cli import check_jobs
+    from armeta_rl.cli import checked
     from armeta_rl.factory import build_space
     from armeta_rl.tasks.shifts import suite_shifts
 
-    distinct = {(*run.command()[:2], *run.overrides): run.target is not None
-                for run in (*plan.runs, *plan.attacks)}
-    for overrides, attack in distinct.items():
-        (config,) = check_jobs(list(overrides))
+    distinct = {run_command(run): run.target is not None for run in (*plan.runs, *plan.attacks)}
+    for command, attack in distinct.items():
+        config = checked(composed(command))
         benchmark = config.benchmark
         if plan.spec.get("shifts") is not None and not attack:
             suite_shifts(build_space(benchmark.space), benchmark.shift_suite, benchmark.name,
@@ -241,7 +261,12 @@ def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_
     file's precision (so that a checkout without the logs redraws it byte for byte); the report's
     section that shows them, empty when no run has logged one."""
     path = curves_path(results, plan.experiment)
-    rows = collect_curves(plan, results, read_curves(path), packed)
+    try:
+        kept = read_curves(path)
+    except FileRefused as error:
+        raise ConfigError("results", str(results), f"its {path.name} {error.reason}: restore "
+                          "it from where it was committed, or delete it") from None
+    rows = collect_curves(plan, results, kept, packed)
     if not rows:
         return ""
     write_curves(rows, path)
@@ -273,37 +298,51 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
               launcher: str = "local", jobs: int | None = None,
               hydra_args: tuple[str, ...] = (), extra: tuple[str, ...] = (),
               benchmarks: tuple[str, ...] | None = None,
-              seeds: tuple[int, ...] | None = None, pack: bool = False) -> int:
+              seeds: tuple[int, ...] | None = None, pack: bool = False,
+              adopt: bool = False) -> int:
     """Run what is missing of ``experiment`` at ``profile`` (restricted to ``benchmarks`` and
     ``seeds``) and aggregate over all seeds the benchmarks of :func:`reported_plan`; the exit
-    code (0 when every run and evaluation of the restriction finished). Runs packed in the
-    results directory's compact files (:mod:`armeta_rl.reproduce.packed`) count as finished and
-    are aggregated from them; with ``pack``, every run directory's reports and config are packed
-    into those files before aggregating.
+    code (0 when every run and evaluation of the restriction finished; 1 otherwise, with each
+    missing one and why on stderr). Runs packed in the results directory's compact files
+    (:mod:`armeta_rl.reproduce.packed`) count as finished and are aggregated from them; with
+    ``pack``, every report the plan accepts, in the run directories or packed, is packed with
+    its run's config into those files before aggregating (``adopt``: reports that record no
+    identity too, recording it: :func:`~armeta_rl.reproduce.plan.packable`).
 
     Raises:
         ConfigError: an unknown experiment, profile or launcher, a results directory that is not
-            this experiment's, or a run config that does not compose.
+            this experiment's or cannot be read, or a run config that does not compose.
     """
-    from armeta_rl.cli import evaluate, train
+    from armeta_rl.cli import check_hydra, evaluate, train
 
     plan = make_plan(experiment, profile, extra, benchmarks, seeds)
-    results = (results or Path("results") / experiment).resolve()
+    if adopt and not pack:
+        raise ConfigError("adopt", True, "records the identity of reports as it packs them: "
+                          "add pack=true")
+    results = resolved_results(results or Path("results") / experiment)
     selected = launcher_overrides(launcher, jobs, hydra_args)
     address = ray_address(hydra_args) if launcher == "ray" else None
     if address is not None:
         given = any(arg.startswith("hydra.launcher.ray.init.address=") for arg in hydra_args)
         check_ray_address(address, "hydra.launcher.ray.init.address" if given else "RAY_ADDRESS")
+    for config_name in ("train", "eval"):
+        check_hydra((*selected, *hydra_args), config_name)
     manifest = claim(results, plan, extra)
+    if results.is_dir():
+        check_contents(results, "results")
     check_runs(plan)
     results.mkdir(parents=True, exist_ok=True)
+    for path in stale_leftovers(results):
+        path.unlink(missing_ok=True)
     save_manifest(results, manifest)
     for item in (*plan.runs, *plan.attacks, *plan.evals):
+        if isinstance(item, EvalJob) and not finished(results, item.learner):
+            continue  # made again once its learner has finished, whatever it holds
         refused = report_problem(results, item)
         if refused is not None and report_path(results, item).exists():
             print(f"{PROG}: {report_path(results, item)} is not a finished report ({refused}): "
                   "made again", file=sys.stderr)
-    packed = read_packed(results)
+    packed = packed_runs(results)
     runs = [r for r in plan.runs if not finished(results, r, packed)]
     attack_note = (f", {len(plan.attacks)} attack runs" if plan.attacks else "")
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
@@ -339,7 +378,8 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
         wall[experiment] = clock.before + clock.seconds
     if pack:
-        packed = pack_runs(results)
+        packed = pack_runs(results, packable(results, make_plan(experiment, profile, extra),
+                                             packed, adopt))
         print(f"{PROG}: packed {len(packed.reports)} reports and {len(packed.configs)} configs "
               f"into {results / REPORTS_FILE} and {results / CONFIGS_FILE}")
     whole = reported_plan(results, experiment, profile, extra, benchmarks, packed)
@@ -352,9 +392,66 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
         print(f"{PROG}: stopped by {stop.name}: the runs in flight wrote checkpoints; the same "
               "command continues the sweep", file=sys.stderr)
         return stop.exit_code
-    incomplete = any(not finished(results, r, packed)
-                     for r in (*plan.runs, *plan.attacks, *plan.evals))
-    return code or int(incomplete)
+    missing = [(item, missing_why(results, item, packed))
+               for item in (*plan.runs, *plan.attacks, *plan.evals)]
+    missing = [(item, problem) for item, problem in missing if problem is not None]
+    code = code or int(bool(missing))
+    if code == 1:  # a partial sweep (a job refused as bad input has said why: exit 2)
+        for item, problem in missing[:MISSING_SHOWN]:
+            print(f"{PROG}: missing {report_path(results, item).relative_to(results)}: "
+                  f"{problem}", file=sys.stderr)
+        if len(missing) > MISSING_SHOWN:
+            print(f"{PROG}: missing {len(missing) - MISSING_SHOWN} more (the report counts "
+                  "every run finished)", file=sys.stderr)
+    return code
+
+
+def missing_why(results: Path, item: TrainRun | EvalJob, packed: Packed) -> str | None:
+    """Why ``item`` has not finished (:func:`report_problem`; an evaluation that could not run
+    names the run it waits for), or ``None``."""
+    problem = report_problem(results, item, packed)
+    if problem is None or not isinstance(item, EvalJob):
+        return problem
+    waits = [run for run in (item.learner, item.adversary)
+             if run is not None and not finished(results, run, packed)]
+    return f"it waits for {waits[0].subdir}, not finished" if waits else problem
+
+
+def resolved_results(results: Path) -> Path:
+    """The results directory ``results`` as an absolute path without links; a link loop or a
+    name the file system cannot hold is refused as one line."""
+    try:
+        return results.resolve()
+    except (OSError, RuntimeError) as error:
+        reason = getattr(error, "strerror", None) or " ".join(str(error).split())
+        raise ConfigError("results", str(results), f"cannot be used ({reason})") from None
+
+
+def packed_runs(results: Path) -> Packed:
+    """The runs packed in ``results``' compact files (:func:`read_packed`); a compact file that
+    cannot be read as one is refused as one line naming it."""
+    try:
+        return read_packed(results)
+    except FileRefused as error:
+        raise ConfigError("results", str(results), f"its {Path(error.path).name} "
+                          f"{error.reason}: restore it from where it was committed, or delete "
+                          "it to make its runs again") from None
+
+
+def stale_leftovers(results: Path) -> list[Path]:
+    """The hidden files that an atomic write into ``results`` itself (a report, a figure, a
+    compact file: ``.reports.jsonl.<pid>.gz``) left when its process was killed: those of
+    processes no longer running (a live one is still writing its own)."""
+    stale = []
+    for path in staged_leftovers(results, (".",)):
+        pid = next(int(part) for part in path.name.split(".")[2:] if part.isdigit())
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            stale.append(path)
+        except PermissionError:
+            continue
+    return stale
 
 
 def parse(args: list[str]) -> dict:
@@ -381,10 +478,10 @@ def parse(args: list[str]) -> dict:
             if not all(part.isdigit() for part in value.split(",")):
                 _fail(f"config key 'seeds' = {value!r}: must be comma-separated integers")
             options["seeds"] = tuple(int(part) for part in value.split(","))
-        elif key == "pack":
+        elif key in ("pack", "adopt"):
             if value not in ("true", "false"):
-                _fail(f"config key 'pack' = {value!r}: allowed: true, false")
-            options["pack"] = value == "true"
+                _fail(f"config key '{key}' = {value!r}: allowed: true, false")
+            options[key] = value == "true"
         elif key == "results":
             options["results"] = Path(value)
         elif key in OPTIONS:
@@ -401,8 +498,8 @@ def parse(args: list[str]) -> dict:
 
 def main() -> None:
     """``armeta-reproduce``: exit code 0 when the experiment is complete, 1 when runs failed or
-    are missing, 2 for bad input (one line)."""
-    from armeta_rl.cli import Refused
+    are missing or a file could not be written, 2 for bad input (one line)."""
+    from armeta_rl.cli import OUT_OF_MEMORY, Refused, out_of_memory
 
     if any(arg in ("--help", "-h") for arg in sys.argv[1:]):
         print(help_text())
@@ -412,4 +509,10 @@ def main() -> None:
         code = reproduce(**options)
     except (ConfigError, Refused) as error:
         _fail(str(error))
+    except (MemoryError, OSError) as error:  # a write the disk refused (EFBIG, ENOSPC, ...)
+        if out_of_memory(error):
+            _fail(OUT_OF_MEMORY)
+        print(f"{PROG}: error: cannot write {error.filename or 'a file'}: "
+              f"{error.strerror or error}", file=sys.stderr)
+        sys.exit(1)
     sys.exit(code)

@@ -20,7 +20,8 @@ from typing import Any
 
 from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
 from armeta_rl.reproduce.plan import Plan, finished
-from armeta_rl.trainers.run_dir import CSV_LOG_DIR, write_atomically
+from armeta_rl.run_files import FileRefused, gunzip, read_file, read_text
+from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOG_BYTES, write_atomically
 
 CURVES = {
     "return_pre": "train/return_pre",
@@ -40,6 +41,9 @@ KEYS = ("benchmark", "run", "seed", "iteration")
 an attack run: :attr:`~armeta_rl.reproduce.plan.TrainRun.name`), seed and iteration."""
 DIGITS = 6
 """Significant digits kept of every value."""
+CURVE_BYTES = 2**28
+"""The most a curve file is read, compressed and decompressed (256 MiB; HalfCheetah-Vel's 40
+runs of 400 iterations hold 1.2 MiB)."""
 
 
 def curves_path(results: Path, experiment: str) -> Path:
@@ -53,10 +57,11 @@ def run_curve(run_dir: Path) -> dict[int, dict[str, float]]:
     scalars = run_dir / CSV_LOG_DIR / "scalars"
     rows: dict[int, dict[str, float]] = {}
     for column, name in CURVES.items():
-        path = scalars / f"{name}.csv"
-        if not path.is_file():
+        try:
+            text = read_text(scalars / f"{name}.csv", LOG_BYTES, run_dir)
+        except (OSError, FileRefused):
             continue
-        for line in csv.reader(path.read_text().splitlines()):
+        for line in csv.reader(text.splitlines()):
             if len(line) == 2 and line[0].isdigit():
                 rows.setdefault(int(line[0]), {})[column] = float(line[1])
     for row in rows.values():
@@ -67,12 +72,25 @@ def run_curve(run_dir: Path) -> dict[int, dict[str, float]]:
 
 def read_curves(path: Path) -> list[dict[str, Any]]:
     """The rows of a curve file (numbers parsed, empty cells and columns the file predates
-    ``None``); none if it is absent."""
-    if not path.is_file():
-        return []
-    with gzip.open(path, "rt", newline="") as text:
+    ``None``); none if it is absent. Read bounded (:data:`CURVE_BYTES`, compressed and
+    decompressed) as any file of a results directory.
+
+    Raises:
+        FileRefused: the file cannot be read as a curve file (not a regular file of one link,
+            larger than the bound, damaged or cut short, or a cell that is not a number).
+    """
+    try:
+        data = gunzip(read_file(path, CURVE_BYTES), CURVE_BYTES, path)
+        text = data.decode("utf-8")
         return [{key: _parse(key, row.get(key) or "") for key in (*KEYS, *CURVES)}
-                for row in csv.DictReader(text)]
+                for row in csv.DictReader(io.StringIO(text, newline=""))]
+    except FileNotFoundError:
+        return []
+    except (OSError, UnicodeDecodeError, ValueError, csv.Error) as error:
+        if isinstance(error, FileRefused):
+            raise
+        reason = error.strerror if isinstance(error, OSError) else error
+        raise FileRefused(path, f"cannot be read as a curve file ({reason})") from None
 
 
 def _parse(key: str, value: str) -> Any:

@@ -9,10 +9,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import matplotlib.image
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from armeta_rl.plots import read_image
 from armeta_rl.reproduce.aggregate import display, method_curve, select, summary
 from armeta_rl.trainers.run_dir import write_atomically
 
@@ -154,7 +154,7 @@ def image_grid(images: dict[tuple[str, str], Path], rows: Sequence[str],
             ax = axes[r][c]
             ax.axis("off")
             if (row, col) in images:
-                ax.imshow(matplotlib.image.imread(images[(row, col)]))
+                ax.imshow(read_image(images[(row, col)]))
                 ax.set_title(f"{display(row)}, {col}", fontsize=8)
     _save(figure, path, 110)
 

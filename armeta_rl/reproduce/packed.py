@@ -29,18 +29,23 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import yaml
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.config import CONFIG_FILE
+from armeta_rl.run_files import FileRefused, gunzip, read_file
 from armeta_rl.trainers.run_dir import write_atomically, write_text_atomically
 
 REPORTS_FILE = "reports.jsonl.gz"
 CONFIGS_FILE = "configs.jsonl.gz"
-RUN_GLOB = "runs/*/*/*"
-"""The run directories of a results directory: ``runs/<benchmark>/<name>/seed<k>``."""
-REPORT_GLOB = "eval*.json"
 LINE_KEYS = ("run", "file", "section", "position", "report")
 """A report line's own keys; a section's fields come after them."""
+PACKED_BYTES = 2**28
+"""The most a compact file is read, compressed and decompressed (256 MiB; the largest
+committed, table1 with its shift suite at the paper profile, holds 5 MiB)."""
+LINE_BYTES = 2**24
+"""The most a line of a compact file may hold (16 MiB; a section of a report holds a few KiB)."""
 
 RunFile = tuple[str, str]
 """A report's place: (its run's directory relative to the results directory, its file name)."""
@@ -187,41 +192,60 @@ def _write_lines(path: Path, lines: Iterable[dict[str, Any]]) -> None:
     write_atomically(path, lambda staged: staged.write_bytes(data))
 
 
-def _read_lines(path: Path) -> list[dict[str, Any]]:
-    if not path.is_file():
+def _read_lines(path: Path, results: Path) -> list[dict[str, Any]]:
+    """The JSON lines of the compact file ``path`` of ``results`` (none when it is absent), read
+    bounded (:data:`PACKED_BYTES` compressed and decompressed, :data:`LINE_BYTES` a line).
+
+    Raises:
+        FileRefused: ``path`` is not a regular file of one link, is larger, cut short, damaged,
+            or holds a line that is too long or not a JSON object.
+    """
+    try:
+        data = gunzip(read_file(path, PACKED_BYTES, results), PACKED_BYTES, path)
+    except FileNotFoundError:
         return []
-    with gzip.open(path, "rt", encoding="utf-8") as text:
-        return [json.loads(line) for line in text]
+    except OSError as error:
+        raise FileRefused(path, f"cannot be read ({error.strerror or error})") from None
+    lines = []
+    for number, line in enumerate(data.splitlines(), 1):
+        if len(line) > LINE_BYTES:
+            raise FileRefused(path, f"has a line ({number}) longer than the {LINE_BYTES} bytes "
+                              "a packed line may hold")
+        try:
+            lines.append(json.loads(line))
+        except ValueError as error:
+            raise FileRefused(path, f"has a line ({number}) that is not JSON ({error})"
+                              ) from None
+        if not isinstance(lines[-1], dict):
+            raise FileRefused(path, f"has a line ({number}) that is not a JSON object")
+    return lines
 
 
 def read_packed(results: Path) -> Packed:
-    """The packed runs of ``results`` (nothing when it has no compact files)."""
-    config_rows = _read_lines(results / CONFIGS_FILE)
-    return Packed(reports_of(_read_lines(results / REPORTS_FILE)),
-                  configs_of(config_rows) if config_rows else {})
+    """The packed runs of ``results`` (nothing when it has no compact files).
 
-
-def run_files(results: Path) -> Packed:
-    """Every report and ``config.yaml`` in the run directories of ``results`` (their text
-    as it is: a report that is not JSON is left out, as no run can be rebuilt from it)."""
-    reports = {}
-    for path in sorted(results.glob(f"{RUN_GLOB}/{REPORT_GLOB}")):
+    Raises:
+        FileRefused: a compact file that cannot be read as one (:func:`_read_lines`), or whose
+            lines are not what :func:`pack` writes, naming the file.
+    """
+    parts = []
+    for name, read in ((REPORTS_FILE, reports_of), (CONFIGS_FILE, configs_of)):
+        lines = _read_lines(results / name, results)
         try:
-            reports[(str(path.parent.relative_to(results)), path.name)] = json.loads(
-                path.read_text(encoding="utf-8"))
-        except (OSError, UnicodeDecodeError, ValueError):
-            continue
-    configs = {str(path.parent.relative_to(results)): path.read_text(encoding="utf-8")
-               for path in sorted(results.glob(f"{RUN_GLOB}/{CONFIG_FILE}"))}
-    return Packed(reports, configs)
+            parts.append(read(lines) if lines else {})
+        except (KeyError, TypeError, ValueError, AttributeError, StopIteration,
+                yaml.YAMLError, OmegaConfBaseException) as error:
+            raise FileRefused(results / name, "does not hold what armeta-reproduce packs "
+                              f"({type(error).__name__}: {' '.join(str(error).split())[:80]})"
+                              ) from None
+    return Packed(*parts)
 
 
-def pack(results: Path) -> Packed:
-    """Write the compact files of ``results``: its packed runs with every report and config of
-    its run directories (which win over a packed one of the same run), checked to read back
-    equal; the runs now packed. The run directories are left as they are."""
-    old, found = read_packed(results), run_files(results)
-    packed = Packed({**old.reports, **found.reports}, {**old.configs, **found.configs})
+def pack(results: Path, packed: Packed) -> Packed:
+    """Write ``packed`` as the compact files of ``results``, checked to read back equal; the
+    runs now packed. The caller chooses what to pack (``armeta-reproduce``: the packed runs and
+    every report and config of its run directories that its plan accepts); the run directories
+    are left as they are."""
     _write_lines(results / REPORTS_FILE, report_lines(packed.reports))
     _write_lines(results / CONFIGS_FILE, config_lines(packed.configs))
     again = read_packed(results)

@@ -20,14 +20,15 @@ from pathlib import Path
 from typing import Any
 
 import yaml
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from armeta_rl.config import CONFIG_FILE
+from armeta_rl.config import CONFIG_BYTES, CONFIG_FILE
 from armeta_rl.config_files import config_files
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce import PROFILES_FILE, experiment_names
 from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
+from armeta_rl.run_files import FileRefused, read_text
 
 EVAL_FILE = "eval.json"
 
@@ -294,8 +295,9 @@ def report_problem(results: Path, run: TrainRun | EvalJob,
                    packed: Packed = NOTHING_PACKED) -> str | None:
     """Why the report of ``run`` (its ``eval.json``; an evaluation job's own report) does not
     mark it finished, or ``None`` when it does: the file is missing (from the run's directory
-    and from ``packed``), unreadable, or fails its schema
-    (:func:`~armeta_rl.trainers.evaluation.check_report`; a hand-edited mean or a NaN)."""
+    and from ``packed``), unreadable, fails its schema
+    (:func:`~armeta_rl.trainers.evaluation.check_report`; a hand-edited mean or a NaN), or is
+    not what the plan gives this run (:func:`identity_problem`)."""
     from armeta_rl.trainers.evaluation import ReportInvalid
 
     path = report_path(results, run)
@@ -307,13 +309,14 @@ def report_problem(results: Path, run: TrainRun | EvalJob,
 
 def load_report(results: Path, path: Path, packed: Packed = NOTHING_PACKED) -> dict[str, Any]:
     """The report at ``path`` (in a run directory of ``results``) if it passes its schema: the
-    file where it exists, else its packed copy in ``packed``, else :class:`ReportInvalid`
-    (a run's own files win, so a sweep writing into a packed directory reads its new reports)."""
+    file where it exists (read from ``results`` through no link), else its packed copy in
+    ``packed``, else :class:`ReportInvalid` (a run's own files win, so a sweep writing into a
+    packed directory reads its new reports)."""
     from armeta_rl.trainers.evaluation import ReportInvalid, check_report, read_report
 
     place = (str(path.parent.relative_to(results)), path.name)
     if path.exists() or path.is_symlink() or place not in packed.reports:
-        return read_report(path, report_sections(path.name))
+        return read_report(path, report_sections(path.name), results)
     report = packed.reports[place]
     try:
         check_report(report, report_sections(path.name))
@@ -322,49 +325,192 @@ def load_report(results: Path, path: Path, packed: Packed = NOTHING_PACKED) -> d
     return report
 
 
+REPORT_IDENTITY = ("benchmark", "method", "seed", "config_sha256")
+"""What a report records of the run that wrote it; a report without any of them is not
+finished."""
+
+
+def _select(values: dict[str, Any], dotted: str) -> Any:
+    node: Any = values
+    for part in dotted.split("."):
+        node = node.get(part) if isinstance(node, dict) else None
+    return node
+
+
+@functools.lru_cache(maxsize=256)
+def composed(command: tuple[str, ...]) -> DictConfig:
+    """The ``armeta-train`` config of a run's ``command`` (its overrides but the seed), composed
+    as the CLI composes it (:func:`armeta_rl.cli.compose_job`), once per command: composing is
+    most of an aggregation's time (the config returned is shared: not to be changed).
+
+    Raises:
+        Refused: an override that does not compose, as one line.
+    """
+    from hydra import initialize_config_dir
+
+    from armeta_rl.cli import compose_job, config_dir, job_overrides
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        job_overrides(list(command))
+        return compose_job(list(command))
+
+
+def run_command(run: TrainRun) -> tuple[str, ...]:
+    """``run``'s overrides but its seed: runs that differ only in their seed share one
+    :func:`composed` config."""
+    return tuple(arg for arg in run.command() if not arg.startswith("seed="))
+
+
 @functools.lru_cache(maxsize=4096)
-def config_digest(text: str) -> str:
-    """The ``config_sha256`` (:func:`~armeta_rl.trainers.checkpoint.run_identity`) of a run's
-    ``config.yaml`` text as the run sees it, read as a resume reads it
-    (:func:`~armeta_rl.config.read_run_config`: merged into this version's schema), so a run
+def planned_values(run: TrainRun) -> dict[str, Any]:
+    """What the plan gives ``run``, by dotted key: the value of every key its command line sets
+    (its benchmark's and method's names for their groups, its seed, each override), and under
+    ``eval`` its whole ``eval`` section (how its reports are scored), from its :func:`composed`
+    config. Keys the command leaves to their defaults are not among them: a run saved by an
+    earlier version, whose defaults differed, is still the run its plan names (the values
+    returned are shared: not to be changed)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from armeta_rl.cli import GROUPS
+
+    command = run_command(run)
+    values = OmegaConf.to_container(composed(command), resolve=True)
+    values["seed"] = run.seed
+    keys = ["seed", "eval"]
+    for override in OverridesParser.create().parse_overrides(list(command)):
+        if not override.is_delete():
+            name = override.key_or_group
+            keys.append(f"{name}.name" if name in GROUPS and name != "logger" else name)
+    return {key: _select(values, key) for key in dict.fromkeys(keys)}
+
+
+@functools.lru_cache(maxsize=4096)
+def saved_config(text: str) -> tuple[str, dict[str, Any]]:
+    """The ``config_sha256`` (:func:`~armeta_rl.trainers.checkpoint.run_identity`) and the
+    resolved values of a run's ``config.yaml`` text as the run sees it, read as a resume reads
+    it (:func:`~armeta_rl.config.read_run_config`: merged into this version's schema), so a run
     saved before a key was added (with its default) and evaluated after keeps its identity;
     ``ConfigError`` for a damaged text (its run's own refusal). Remembered by text, as a report
-    asks for every run's several times and composing a config is most of an aggregation's
-    time."""
+    asks for every run's several times and composing a config is most of an aggregation's time
+    (the values returned are shared: not to be changed)."""
     from armeta_rl.config import read_run_config
     from armeta_rl.trainers.checkpoint import run_identity
 
-    return run_identity(read_run_config(text, "config", "config.yaml"))["config_sha256"]
+    values = OmegaConf.to_container(read_run_config(text, "config", CONFIG_FILE), resolve=True)
+    return run_identity(values)["config_sha256"], values
+
+
+def _config_text(results: Path, run: TrainRun, packed: Packed) -> str:
+    """The run's ``config.yaml`` (read from ``results`` through no link), else its packed copy;
+    :class:`~armeta_rl.trainers.evaluation.ReportInvalid` when it has neither or it cannot be
+    read."""
+    from armeta_rl.trainers.evaluation import ReportInvalid
+
+    path = results / run.subdir / CONFIG_FILE
+    try:
+        return read_text(path, CONFIG_BYTES, results)
+    except FileNotFoundError:
+        if run.subdir in packed.configs:
+            return packed.configs[run.subdir]
+        raise ReportInvalid(f"its run has no {CONFIG_FILE} to check it against") from None
+    except FileRefused as error:
+        raise ReportInvalid(f"its run's {CONFIG_FILE} {error.reason}") from None
+    except OSError as error:
+        raise ReportInvalid(f"its run's {CONFIG_FILE} cannot be read "
+                            f"({error.strerror or error})") from None
 
 
 def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
                      results: Path, packed: Packed = NOTHING_PACKED) -> str | None:
-    """Why ``report``, found where ``run`` keeps its report, is another run's (its benchmark,
-    method or seed differ from the run's, or an evaluation job's learner's; or the digest of
-    the result-changing keys it records differs from the run's ``config.yaml``'s, as a variant's
-    does; the run's packed config where its directory has none), or ``None``: a report copied
-    from another run's directory is not this run's result."""
+    """Why ``report``, found where ``run`` keeps its report, is not this run's result in this
+    experiment, or ``None``: it records no identity (:data:`REPORT_IDENTITY`); its benchmark,
+    method or seed differ from the run's (an evaluation job's learner's); the digest of the
+    result-changing keys it records differs from the run's ``config.yaml``'s (its packed config
+    where its directory has none), as a variant's does; that config does not hold what the plan
+    gives the run (:func:`planned_values`: another experiment's or profile's run copied in); or
+    the report was scored with other evaluation settings than the plan's (another experiment's
+    report, :func:`scored_problem`)."""
+    from armeta_rl.trainers.evaluation import ReportInvalid
+
     learner = run.learner if isinstance(run, EvalJob) else run
+    missing = [key for key in REPORT_IDENTITY if key not in report]
+    if missing:
+        return (f"it records no {' or '.join(missing)}: a report that does not say which run "
+                "wrote it is not finished")
     expected = {"benchmark": learner.config, "method": learner.method, "seed": learner.seed}
     for key, value in expected.items():
-        if key in report and report[key] != value:
+        if report[key] != value:
             return f"it is the report of {key} {report[key]!r}, not this run's {value!r}"
-    config = results / learner.subdir / CONFIG_FILE
-    if "config_sha256" not in report:
-        return None
     try:
-        if config.is_file():
-            ours = config_digest(config.read_text(encoding="utf-8"))
-        elif learner.subdir in packed.configs:
-            ours = config_digest(packed.configs[learner.subdir])
-        else:
-            return None
-    except (OSError, ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException):
-        return None  # a damaged config.yaml is its run's own refusal (resume says so)
-    if report["config_sha256"] != ours:
+        digest, saved = saved_config(_config_text(results, learner, packed))
+    except ReportInvalid as error:
+        return str(error)
+    except (ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException) as error:
+        return f"its run's {CONFIG_FILE} cannot be read ({' '.join(str(error).split())})"
+    if report["config_sha256"] != digest:
         return (f"it is the report of another config (config_sha256 "
-                f"{str(report['config_sha256'])[:12]}…, not this run's {ours[:12]}…)")
+                f"{str(report['config_sha256'])[:12]}…, not this run's {digest[:12]}…)")
+    planned = planned_values(learner)
+    differ = next((key for key, value in planned.items()
+                   if key != "eval" and _select(saved, key) != value), None)
+    if differ is not None:
+        return (f"its run's config has {differ} = {_short(_select(saved, differ))}, not the "
+                f"{_short(planned[differ])} this experiment's plan gives it")
+    return scored_problem(report, planned["eval"])
+
+
+def scored_problem(report: dict[str, Any], scoring: dict[str, Any]) -> str | None:
+    """Why ``report`` was not scored with the ``eval`` settings ``scoring`` (its support-label
+    noise, every section's number of tasks and CVaR levels), or ``None``."""
+    noise = report.get("support_noise", 0.0)
+    if noise != scoring["support_noise"]:
+        return (f"it was scored with support_noise {noise}, not the "
+                f"{scoring['support_noise']} the plan gives")
+    alphas = sorted(float(a) for a in scoring["alphas"])
+    for name, section in report.items():
+        if not isinstance(section, dict):
+            continue
+        if section.get("n_tasks") != scoring["n_tasks"]:
+            return (f"its {name} was scored on {section.get('n_tasks')} tasks, not the "
+                    f"{scoring['n_tasks']} the plan gives")
+        if sorted(float(a) for a in section.get("cvar", {})) != alphas:
+            return (f"its {name} holds CVaR at {sorted(section.get('cvar', {}))}, not at the "
+                    f"plan's {alphas}")
     return None
+
+
+def _short(value: Any, most: int = 80) -> str:
+    text = repr(value)
+    return text if len(text) <= most else text[: most - 1] + "…"
+
+
+def packable(results: Path, plan: Plan, packed: Packed = NOTHING_PACKED,
+             adopt: bool = False) -> Packed:
+    """What ``armeta-reproduce … pack=true`` packs: every report of ``plan`` (in its run's
+    directory, else in ``packed``) that marks its run or job finished
+    (:func:`report_problem`), with the configs of their runs; a report refused is not packed.
+    With ``adopt``, a report that records no identity (written before reports recorded one) is
+    taken as its run's own: its identity is recorded from its run and its run's config, which
+    must still be what the plan gives."""
+    from armeta_rl.trainers.evaluation import ReportInvalid
+
+    reports, configs = {}, {}
+    for item in (*plan.runs, *plan.attacks, *plan.evals):
+        learner = item.learner if isinstance(item, EvalJob) else item
+        path = report_path(results, item)
+        try:
+            report = load_report(results, path, packed)
+            text = _config_text(results, learner, packed)
+            if adopt and any(key not in report for key in REPORT_IDENTITY):
+                identity = {"benchmark": learner.config, "method": learner.method,
+                            "seed": learner.seed, "config_sha256": saved_config(text)[0]}
+                report = {**report, **{k: v for k, v in identity.items() if k not in report}}
+        except (ReportInvalid, ValueError):
+            continue
+        if identity_problem(report, item, results, packed) is None:
+            reports[(str(path.parent.relative_to(results)), path.name)] = report
+            configs[learner.subdir] = text
+    return Packed(reports, configs)
 
 
 def finished(results: Path, run: TrainRun | EvalJob, packed: Packed = NOTHING_PACKED) -> bool:

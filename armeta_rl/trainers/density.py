@@ -22,11 +22,9 @@ from __future__ import annotations
 
 import io
 import logging
-import pickle
 from pathlib import Path
 
 import torch
-from matplotlib.image import imread
 from torchrl.record.loggers import Logger, WandbLogger
 
 from armeta_rl.plots import (
@@ -34,10 +32,11 @@ from armeta_rl.plots import (
     density_picture,
     draw_density,
     picture_norms,
+    read_image,
     write_animation,
 )
 from armeta_rl.tasks.distributions import TaskDistribution
-from armeta_rl.trainers.checkpoint import write_file
+from armeta_rl.trainers.checkpoint import load_tensors, write_file
 from armeta_rl.trainers.run_dir import write_atomically
 
 log = logging.getLogger(__name__)
@@ -132,16 +131,17 @@ class DensityFrames:
         """The numbers drawn in ``frame``, or ``None`` when they are missing or unreadable (a run
         killed while saving them): the animation then keeps every frame's own scale."""
         try:
-            state = torch.load(frame.with_suffix(".pt"), weights_only=True)
-        except (OSError, RuntimeError, EOFError, pickle.UnpicklingError):
+            return DensityPicture.from_state_dict(
+                load_tensors(frame.with_suffix(".pt"), None, frame.parent))
+        except (OSError, KeyError, TypeError, ValueError, RuntimeError):
             return None
-        return DensityPicture.from_state_dict(state)
 
 
 def readable(frame: Path) -> bool:
-    """Whether ``frame`` is a PNG that can be read back (e.g. not a 0-byte file)."""
+    """Whether ``frame`` is a PNG that can be read back (:func:`~armeta_rl.plots.read_image`:
+    e.g. not a 0-byte file, nor a link or a pipe)."""
     try:
-        imread(frame)
+        read_image(frame)
     except (OSError, SyntaxError, ValueError):
         return False
     return True

@@ -6,8 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -19,6 +17,7 @@ from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.devices import CPU, forked_rng
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.tail import tail_size
+from armeta_rl.run_files import FileRefused, read_text
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.protocol import per_rollout, repeat_tasks
 
@@ -392,26 +391,23 @@ def spread_bound(mean: float, tail_mean: float, n: int, k: int) -> float:
     return k * (tail_mean - mean) ** 2 + (n - k) * (rest - mean) ** 2
 
 
-def read_report(path: Path, sections: tuple[str, ...] = ("initial",)) -> dict[str, Any]:
+def read_report(path: Path, sections: tuple[str, ...] = ("initial",),
+                below: Path | None = None) -> dict[str, Any]:
     """The evaluation report at ``path`` if it passes :func:`check_report`; at most
-    :data:`REPORT_BYTES` are read, from a regular file only.
+    :data:`REPORT_BYTES` are read, from a regular file of one link reached from ``below``
+    through no link (:func:`~armeta_rl.run_files.read_file`).
 
     Raises:
-        ReportInvalid: ``path`` is missing, not a regular file (a device, a pipe), larger than
-            a report can be, unreadable, not UTF-8 JSON, or fails the schema.
+        ReportInvalid: ``path`` is missing, not such a file (a link, a device, a pipe), larger
+            than a report can be, unreadable, not UTF-8 JSON, or fails the schema.
     """
     try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a pipe does not block the open
-        with os.fdopen(fd, "rb") as file:
-            if not stat.S_ISREG(os.fstat(fd).st_mode):
-                raise ReportInvalid("it is not a regular file")
-            data = file.read(REPORT_BYTES + 1)
-        if len(data) > REPORT_BYTES:
-            raise ReportInvalid(f"it is larger than a report can be ({REPORT_BYTES} bytes)")
-        report = json.loads(data.decode("utf-8"))
+        report = json.loads(read_text(path, REPORT_BYTES, below))
     except FileNotFoundError:
         raise ReportInvalid("it does not exist") from None
-    except (OSError, UnicodeDecodeError, ValueError) as error:
+    except FileRefused as error:
+        raise ReportInvalid(f"it {error.reason}") from None
+    except (OSError, ValueError) as error:
         raise ReportInvalid(f"it cannot be read: {' '.join(str(error).split())}") from None
     check_report(report, sections)
     return report

@@ -27,6 +27,7 @@ from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
 from armeta_rl.trainers.checkpoint import RunCheckpoint, run_identity
+from armeta_rl.trainers.run_dir import check_contents
 
 
 @dataclass
@@ -135,8 +136,10 @@ def load_frozen_leader(config: TrainConfig, players: Players) -> None:
             f"its {first} = {theirs.get(first)!r} differs from this run's {ours.get(first)!r}: "
             "the learner attacked must have this run's benchmark and learner settings",
         )
+    check_contents(Path(source), FROZEN_KEY)
     checkpoint = RunCheckpoint(Path(source) / "checkpoints", players.leader, players.principle,
-                               device=players.device, identity=run_identity(saved))
+                               device=players.device, identity=run_identity(saved),
+                               adopt=config.adopt)
     checkpoint.restore(FROZEN_KEY, ("leader",), fallback=False)
 
 
@@ -153,9 +156,11 @@ def saved_run(run_dir: str | Path, key: str, device: str | None = None,
 def restore_players(run_dir: str | Path, key: str, config: TrainConfig) -> Players:
     """The players of ``config`` (:func:`saved_run`) with the latest checkpoint of ``run_dir``
     loaded onto its device, wherever it was saved."""
+    check_contents(Path(run_dir), key)
     players = build_players(config)
     checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle,
-                               device=players.device, identity=run_identity(config.values()))
+                               device=players.device, identity=run_identity(config.values()),
+                               adopt=config.adopt)
     if not checkpoint.checkpoints():
         raise ConfigError(key, str(run_dir), "has no checkpoint")
     checkpoint.restore(key, ("leader", "principle"), fallback=False)

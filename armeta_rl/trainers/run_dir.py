@@ -19,10 +19,14 @@ from typing import Any
 from omegaconf import OmegaConf
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.run_files import FileRefused, read_file
 from armeta_rl.trainers.checkpoint import write_file
 
 LOCK_FILE = "run.lock"
 CSV_LOG_DIR = "logs"
+LOG_BYTES = 2**28
+"""The most a CSV log of one scalar is read on resume (256 MiB; a row takes a few dozen
+bytes)."""
 
 
 def check_run_dir(run_dir: Path, key: str) -> None:
@@ -48,6 +52,36 @@ def check_run_dir(run_dir: Path, key: str) -> None:
     problem = unwritable(existing)
     if problem is not None:
         raise ConfigError(key, str(run_dir), f"cannot be written in {existing} ({problem})")
+
+
+def check_contents(run_dir: Path, key: str) -> None:
+    """Refuse, before anything in it is read or written, a run directory that holds anything but
+    folders and regular files of one link: a symbolic link (which a run would read or write
+    through, outside its directory), a hard link (a file shared with another place, which a log
+    appended to would change there too) or a special file (a pipe, which a read would wait on
+    forever). A run writes none of them; the lock file is checked as it is taken
+    (:func:`run_lock`)."""
+    pending = [run_dir]
+    while pending:
+        folder = pending.pop()
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                info = entry.stat(follow_symlinks=False)
+                name = Path(entry.path).relative_to(run_dir)
+                if stat.S_ISDIR(info.st_mode):
+                    pending.append(Path(entry.path))
+                elif entry.name == LOCK_FILE and folder == run_dir:
+                    continue
+                elif stat.S_ISLNK(info.st_mode):
+                    raise ConfigError(key, str(run_dir), f"its {name} is a link: a run "
+                                      "directory holds no links (remove it)")
+                elif not stat.S_ISREG(info.st_mode):
+                    raise ConfigError(key, str(run_dir), f"its {name} is not a regular file (a "
+                                      "pipe, a device, a socket): remove it")
+                elif info.st_nlink != 1:
+                    raise ConfigError(key, str(run_dir), f"its {name} has {info.st_nlink} hard "
+                                      "links: a run's files have one (copy the run with cp -r, "
+                                      "not cp -l)")
 
 
 def _shown(path: Path, most: int = 120) -> str:
@@ -87,16 +121,20 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
     held_here = False
     while True:
         try:  # never through a link: the lock file is the run's own
-            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
+                         | os.O_NOCTTY, 0o644)
         except OSError as error:
             if error.errno != errno.ELOOP:
                 raise
             raise ConfigError(key, str(run_dir), f"its {LOCK_FILE} is a link, not a lock file "
                               "a run made: remove it") from None
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode) or info.st_nlink != 1:
             os.close(fd)
-            raise ConfigError(key, str(run_dir), f"its {LOCK_FILE} is not a regular file: "
-                              "remove it")
+            what = ("is not a regular file" if not stat.S_ISREG(info.st_mode) else
+                    f"has {info.st_nlink} hard links (a run's lock has one; a run would write "
+                    "its pid into the file it shares)")
+            raise ConfigError(key, str(run_dir), f"its {LOCK_FILE} {what}: remove it")
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as error:
@@ -150,7 +188,8 @@ def write_atomically(path: Path, write: Callable[[Path], object]) -> None:
     """Have ``write`` write the file ``path`` into a hidden sibling ``.<stem>.<pid><suffix>``
     (the suffix kept: matplotlib and Pillow choose the format by it), fsync it and rename it over
     ``path``: a crash or a full disk leaves the old file or none, never a partial one (the
-    sibling is removed, or by the next run, :func:`staged_leftovers`)."""
+    sibling is removed, or by the next run, :func:`staged_leftovers`). An ``OSError`` of the
+    write names ``path``."""
     staged = path.with_name(f".{path.stem}.{os.getpid()}{path.suffix}")
     try:
         write(staged)
@@ -160,6 +199,10 @@ def write_atomically(path: Path, write: Callable[[Path], object]) -> None:
         finally:
             os.close(fd)
         os.replace(staged, path)
+    except OSError as error:  # named as the file it was writing (EFBIG, ENOSPC, ...)
+        if error.filename in (None, str(staged)):
+            raise OSError(error.errno, error.strerror or str(error), str(path)) from error
+        raise
     finally:
         staged.unlink(missing_ok=True)
 
@@ -192,7 +235,15 @@ def drop_csv_rows_after(run_dir: Path, iteration: int, evaluated: bool = False) 
     scalars = run_dir / CSV_LOG_DIR / "scalars"
     for path in scalars.rglob("*.csv"):
         last = iteration - (not evaluated and path.relative_to(scalars).parts[0] == "eval")
-        rows = path.read_text(errors="replace").splitlines(keepends=True)
+        try:
+            text = read_file(path, LOG_BYTES, run_dir).decode(errors="replace")
+        except FileRefused as error:
+            raise ConfigError("resume", str(run_dir), f"its log {path.relative_to(run_dir)} "
+                              f"{error.reason}") from None
+        except OSError as error:
+            raise ConfigError("resume", str(run_dir), f"its log {path.relative_to(run_dir)} "
+                              f"cannot be read ({error.strerror or error})") from None
+        rows = text.splitlines(keepends=True)
         if rows and not rows[-1].endswith("\n"):
             rows[-1] = ""
         kept = [row for row in rows if row and _csv_step(row, path, run_dir) <= last]

@@ -31,6 +31,7 @@ from armeta_rl.trainers.players import Players, build_players, load_frozen_leade
 from armeta_rl.trainers.report import EVAL_FILE, eval_scalars, evaluate_players
 from armeta_rl.trainers.run_dir import (
     CSV_LOG_DIR,
+    check_contents,
     check_run_dir,
     drop_csv_rows_after,
     run_lock,
@@ -62,7 +63,8 @@ def run_training(config: TrainConfig, run_dir: str | Path, progress: bool = True
 
     ``stop`` is checked after every iteration (the CLI sets it on a preemption signal,
     :mod:`armeta_rl.preemption`): once it is requested, the run checkpoints the iteration it
-    finished and stops.
+    finished and stops; one requested during the final evaluation lets the run finish, and the
+    run says so.
 
     Returns the evaluation report, or ``None`` when the run stopped early at ``trainer.stop_at``.
 
@@ -156,7 +158,8 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
                           "step's own losses, not fresh rollouts")
     values = config.values()
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
-                               device=players.device, identity=run_identity(values))
+                               device=players.device, identity=run_identity(values),
+                               adopt=config.adopt)
     trainer_options = config.trainer
     if trainer_options.frozen_leader is not None and not (
         config.resume and checkpoint.checkpoints()
@@ -194,7 +197,11 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
             say(f"stopped at iteration {trainer.iteration}; continue with: "
                 f"armeta-train resume={run_dir}")
             return None
-        return _finish(config, run_dir, players, logger, frames, reached, checkpoint.identity)
+        report = _finish(config, run_dir, players, logger, frames, reached, checkpoint.identity)
+        if stop.requested:  # it came after the last checkpoint: finishing was the quicker way
+            say(f"{stop.name} arrived during the final evaluation: the run finished first "
+                f"({EVAL_FILE} written)")
+        return report
 
 
 def _selected(values: dict[str, Any], key: str) -> Any:
@@ -222,6 +229,8 @@ def _open_run(config: TrainConfig, values: dict[str, Any], run_dir: Path,
     if checkpoint.directory.exists() and not checkpoint.directory.is_dir():
         raise ConfigError("resume" if config.resume else "hydra.run.dir", str(run_dir),
                           f"its {checkpoint.directory.name} is not a directory: move it away")
+    if config.resume:
+        check_contents(run_dir, "resume")
     checkpoint.clean_staging()
     for path in staged_leftovers(run_dir, (".", CSV_LOG_DIR, FRAMES_DIR)):
         path.unlink()  # what an atomic write left when a crash interrupted it
