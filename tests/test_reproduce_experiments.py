@@ -4,8 +4,9 @@ so that the two halves run side by side under ``pytest -n 2 --dist loadfile``.""
 
 import pytest
 
+from armeta_rl.config import validate
 from armeta_rl.reproduce.cli import reproduce
-from armeta_rl.reproduce.plan import experiment_names, make_plan
+from armeta_rl.reproduce.plan import composed, experiment_names, make_plan, run_command
 
 FIRST_BENCHMARK = {
     "table1": "sinusoid_uniform",
@@ -34,5 +35,21 @@ def test_every_experiment_runs_at_tiny_size(tmp_path, experiment):
     assert list(tmp_path.glob("*.png"))
 
 
+SETTINGS_VARIANTS = {"meta_rl_cheetah_validation", "meta_rl_cheetah_fair"}
+"""Experiments that train meta_rl_cheetah's learners on its benchmark with other settings (its
+tiny run already runs their code paths): each of their runs at the paper profile composes and
+passes the config check."""
+
+
+@pytest.mark.parametrize("experiment", sorted(SETTINGS_VARIANTS))
+def test_every_run_of_a_settings_variant_composes_and_validates(experiment):
+    plan = make_plan(experiment, "paper")
+    commands = {run_command(run) for run in (*plan.runs, *plan.attacks)}
+    assert len(commands) > 1
+    for command in commands:
+        validate(composed(command))
+
+
 def test_every_experiment_is_covered():
-    assert set(experiment_names()) == {*FIRST_BENCHMARK, "cvar_curves", "scatter"}
+    assert set(experiment_names()) == {*FIRST_BENCHMARK, *SETTINGS_VARIANTS, "cvar_curves",
+                                       "scatter"}
