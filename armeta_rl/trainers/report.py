@@ -78,18 +78,21 @@ def evaluate_players(
 
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
                        samples: int = 4096, device: torch.device = CPU
-                       ) -> dict[str, float | None]:
+                       ) -> dict[str, Any]:
     """Entropy H[p], KL(p0 ‖ p) and the KL's standard error of a task distribution on ``device``
     (Monte Carlo with exact log-densities; the paper's entropy table reports H of p0 and of the
-    learned p_φ). The KL is ``None`` where it is infinite: a shift that leaves part of p0's
-    support out."""
+    learned p_φ), and its mass in each quarter of the box (``quarter_mass``,
+    :meth:`~armeta_rl.tasks.TaskDistribution.quarter_mass`: how much of an adversary sits where
+    a learner does worst), all under ``seed`` in a forked RNG. The KL is ``None`` where it is
+    infinite: a shift that leaves part of p0's support out."""
     with forked_rng(device), torch.no_grad():
         torch.manual_seed(seed)
         entropy = float(distribution.entropy(samples))
         kl, kl_sem = (float(value) for value in distribution.kl_from(initial, samples))
+        mass = distribution.quarter_mass(samples).tolist()
     finite = math.isfinite(kl)
     return {"entropy": entropy, "kl_p0": kl if finite else None,
-            "kl_p0_sem": kl_sem if finite else None}
+            "kl_p0_sem": kl_sem if finite else None, "quarter_mass": mass}
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
