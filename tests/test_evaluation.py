@@ -26,7 +26,7 @@ from armeta_rl.trainers.evaluation import (
     standard_error,
     summarize,
 )
-from armeta_rl.trainers.report import evaluate_players
+from armeta_rl.trainers.report import eval_scalars, evaluate_players
 from conftest import SMALL_RUN, compose_train, players_of
 
 
@@ -244,8 +244,8 @@ def test_a_point_robot_evaluation_scores_the_goal_blind_gap_of_its_own_episodes(
     assert goal["achieved"] == pytest.approx(report["mean"], rel=1e-6)
     assert goal["oracle"] == pytest.approx(float(oracle.mean()))
     assert goal["blind"] < goal["oracle"]
-    share = (goal["achieved"] - goal["blind"]) / (goal["oracle"] - goal["blind"])
-    assert goal["gap_closed"] == pytest.approx(share)
+    assert goal["gap_closed"] == pytest.approx(
+        (goal["achieved"] - goal["blind"]) / (goal["oracle"] - goal["blind"]))
     quarters = initial.space.quarter(tasks["params"])
     scores = torch.tensor(report["per_task"], dtype=torch.float64)
     assert report["quarter_scores"] == pytest.approx(
@@ -253,6 +253,8 @@ def test_a_point_robot_evaluation_scores_the_goal_blind_gap_of_its_own_episodes(
          for q in range(4)], rel=1e-5)
     base = {"metric": "return", "benchmark": "point_nav", "method": "maml"}
     check_report({**base, "initial": report})
+    assert eval_scalars({**base, "initial": report})["eval/initial/gap_closed"] == goal[
+        "gap_closed"]
     with pytest.raises(ReportInvalid, match="goal.blind"):
         check_report({**base, "initial": {**report, "goal": {**goal, "blind": 1.0}}})
     with pytest.raises(ReportInvalid, match="quarter_mass"):

@@ -97,7 +97,9 @@ def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
     """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``; in meta-RL
-    also ``…/before`` (the score before adaptation) and ``…/gain`` (the adaptation gain)."""
+    also ``…/before`` (the score before adaptation), ``…/gain`` (the adaptation gain) and, where
+    the benchmark knows its goal references, ``…/gap_closed`` (the share of the goal-blind gap
+    closed)."""
     scalars = {}
     for name, section in report.items():
         if isinstance(section, dict) and "mean" in section:
@@ -108,6 +110,8 @@ def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
             if "adaptation" in section:
                 scalars[f"eval/{name}/before"] = section["adaptation"]["before"]
                 scalars[f"eval/{name}/gain"] = section["adaptation"]["gain"]
+            if (section.get("goal") or {}).get("gap_closed") is not None:
+                scalars[f"eval/{name}/gap_closed"] = section["goal"]["gap_closed"]
     return scalars
 
 
