@@ -17,7 +17,7 @@ from torchrl.envs.utils import RandomPolicy, check_env_specs, step_mdp
 from armeta_rl.collectors.episodes import valid_mask
 from armeta_rl.collectors.parallel_episodes import TaskSplitEpisodeCollector
 from armeta_rl.config import validate
-from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model
+from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, standing_goal_term
 from armeta_rl.envs.locomotion import AntDirEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
@@ -84,6 +84,9 @@ def test_step_equals_direct_mujoco_computation():
             reward = td["next", "reward"].reshape(4)[i].item()
             np.testing.assert_allclose(obs, expected_obs, rtol=1e-5, atol=1e-5)
             assert reward == pytest.approx(expected_reward, rel=1e-5, abs=1e-5)
+            forward = td["next", "reward_forward"].reshape(4)[i].item()
+            expected_forward = -np.abs(data.xpos[torso, :2] - flat_goals[i]).sum()
+            assert forward == pytest.approx(expected_forward, rel=1e-5, abs=1e-5)
             height_ok = 0.2 <= data.qpos[2] <= 1.0
             assert td["next", "terminated"].reshape(4)[i].item() == (not height_ok)
             max_force = max(max_force, np.abs(data.cfrc_ext).max())
@@ -307,3 +310,25 @@ def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):
     assert report["metric"] == "return" and "adversarial" in report
     for curve in ("return_pre", "return_post"):
         assert (tmp_path / "logs" / "scalars" / "train" / f"{curve}.csv").is_file()
+
+
+def test_the_blind_standing_point_by_hand_and_the_collectors_references():
+    """Goals (0, 0), (2, 0), (0, 4) over 5 steps: the coordinate-wise median (0, 0) gives 0, −10
+    and −20 (no other point of a grid does better on average); the Ant collector's references
+    are its episodes' summed goal terms, that blind reference and the oracle's 0."""
+    goals = torch.tensor([[0.0, 0.0], [2.0, 0.0], [0.0, 4.0]])
+    torch.testing.assert_close(standing_goal_term(goals, 5),
+                               torch.tensor([0.0, -10.0, -20.0], dtype=torch.float64))
+    axis = torch.linspace(-3, 5, 81, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 1, 2)
+    assert float((-5 * (grid - goals.double()).abs().sum(-1)).mean(-1).max()) <= -10.0 + 1e-9
+    collector = TaskSplitEpisodeCollector(partial(AntGoalEnv, threads=1), episodes=2,
+                                          max_steps=6)
+    torch.manual_seed(0)
+    episodes = collector.collect(TensorDict({"params": goals}, [3]),
+                                 policy=GaussianMLP(collector.in_features, 8))
+    references = collector.goal_references(goals, episodes)
+    summed = (episodes["reward_forward"].squeeze(-1) * episodes["mask"]).sum(-1).mean(-1)
+    torch.testing.assert_close(references["achieved"], summed.double())
+    torch.testing.assert_close(references["blind"], standing_goal_term(goals, 6))
+    assert bool((references["oracle"] == 0).all())

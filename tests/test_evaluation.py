@@ -20,11 +20,13 @@ from armeta_rl.trainers.evaluation import (
     cvar,
     cvar_influence,
     evaluate_on,
+    gap_closed,
     paired_difference,
+    quarter_scores,
     standard_error,
     summarize,
 )
-from armeta_rl.trainers.report import evaluate_players
+from armeta_rl.trainers.report import eval_scalars, evaluate_players
 from conftest import SMALL_RUN, compose_train, players_of
 
 
@@ -209,3 +211,68 @@ def test_regression_reports_no_adaptation_gain():
     report = evaluate_on(players.leader, players.initial, players.eval_collector, 4, [0.5],
                          seed=0)
     assert "adaptation" not in report
+
+
+def test_the_share_of_the_goal_blind_gap_closed_by_hand():
+    """Goal terms achieved −1 and −3 against a blind −4 and an oracle 0 on both tasks: the
+    adapted policy closes (−2 + 4) / (0 + 4) = half the gap; the influence values
+    ((a − b) − ½(o − b)) / 4 are ¼ and −¼, so the standard error is std / √2 = ¼. No gap
+    (the blind policy as good as the oracle): no share."""
+    share, sem = gap_closed(torch.tensor([-1.0, -3.0]), torch.tensor([-4.0, -4.0]),
+                            torch.zeros(2))
+    assert share == pytest.approx(0.5) and sem == pytest.approx(0.25)
+    assert gap_closed(torch.tensor([-1.0]), torch.zeros(1), torch.zeros(1)) == (None, None)
+
+
+def test_quarter_scores_average_the_tasks_of_each_quarter_by_hand():
+    scores = torch.tensor([1.0, 3.0, 5.0, 7.0])
+    assert quarter_scores(scores, torch.tensor([0, 0, 3, 2])) == [2.0, None, 7.0, 5.0]
+
+
+def test_a_point_robot_evaluation_scores_the_goal_blind_gap_of_its_own_episodes():
+    """The report's goal section on the point robot: the adapted return is all goal term (its
+    mean is the section's), the oracle the full-speed path (minus the reference loss) and the
+    blind reference no better than it; each quarter's score the mean of its tasks' scores; and
+    the schema refuses a goal section whose blind policy beats the oracle, and quarter masses
+    that do not sum to 1."""
+    leader, initial, collector = point_robot()
+    report = evaluate_on(leader, initial, collector, 8, [0.5], seed=3, rollouts=2)
+    goal = report["goal"]
+    torch.manual_seed(3)
+    tasks = initial.sample(8)
+    oracle = -collector.reference_loss(tasks["params"].double())
+    assert goal["achieved"] == pytest.approx(report["mean"], rel=1e-6)
+    assert goal["oracle"] == pytest.approx(float(oracle.mean()))
+    assert goal["blind"] < goal["oracle"]
+    assert goal["gap_closed"] == pytest.approx(
+        (goal["achieved"] - goal["blind"]) / (goal["oracle"] - goal["blind"]))
+    quarters = initial.space.quarter(tasks["params"])
+    scores = torch.tensor(report["per_task"], dtype=torch.float64)
+    assert report["quarter_scores"] == pytest.approx(
+        [float(scores[quarters == q].mean()) if (quarters == q).any() else None
+         for q in range(4)], rel=1e-5)
+    base = {"metric": "return", "benchmark": "point_nav", "method": "maml"}
+    check_report({**base, "initial": report})
+    assert eval_scalars({**base, "initial": report})["eval/initial/gap_closed"] == goal[
+        "gap_closed"]
+    with pytest.raises(ReportInvalid, match="goal.blind"):
+        check_report({**base, "initial": {**report, "goal": {**goal, "blind": 1.0}}})
+    with pytest.raises(ReportInvalid, match="quarter_mass"):
+        check_report({**base, "initial": {**report, "quarter_mass": [0.5, 0.5, 0.5, 0.0]}})
+
+
+def test_an_evaluation_without_episodes_has_no_goal_section():
+    players = players_of(compose_train("trainer.meta_batch=2"))
+    report = evaluate_on(players.leader, players.initial, players.eval_collector, 4, [0.5],
+                         seed=0)
+    assert "goal" not in report and len(report["quarter_scores"]) == 4
+
+
+def test_every_section_records_its_distributions_mass_in_each_quarter():
+    """p0 uniform puts a quarter of its mass on each quarter of the box (within 4 standard
+    errors of 4096 draws), and the masses sum to 1, in every section of eval.json."""
+    report = evaluate_players(validate(compose_train("trainer.meta_batch=2", "eval.n_tasks=4")),
+                              players_of(compose_train("trainer.meta_batch=2")))
+    mass = report["initial"]["quarter_mass"]
+    assert sum(mass) == pytest.approx(1.0)
+    assert all(abs(m - 0.25) < 4 * math.sqrt(0.25 * 0.75 / 4096) for m in mass)

@@ -21,7 +21,12 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 from armeta_rl.config import validate
 from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
-from armeta_rl.envs.locomotion import HalfCheetahDirEnv, HalfCheetahVelEnv, Walker2dVelEnv
+from armeta_rl.envs.locomotion import (
+    HalfCheetahDirEnv,
+    HalfCheetahVelEnv,
+    Walker2dVelEnv,
+    constant_speed_goal_term,
+)
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
@@ -181,3 +186,43 @@ def test_the_docs_example_runs():
     assert blocks
     for block in blocks:
         exec(compile(block, str(page), "exec"), {})
+
+
+def test_the_blind_constant_speed_by_hand_and_against_a_grid_of_speeds():
+    """Targets 0, 1, 2 and 0.5 over 10 steps: the median 0.5 (any speed in [0.5, 1] is as good)
+    gives −5, −5, −15 and 0, mean −6.25. On 50 random targets no constant speed of a grid
+    over [0, 2] has a better mean goal term than the blind reference."""
+    hand = constant_speed_goal_term(torch.tensor([0.0, 1.0, 2.0, 0.5]), 10)
+    torch.testing.assert_close(hand, torch.tensor([-5.0, -5.0, -15.0, 0.0], dtype=torch.float64))
+    torch.manual_seed(0)
+    targets = 2 * torch.rand(50, dtype=torch.float64)
+    blind = constant_speed_goal_term(targets, 200).mean()
+    speeds = torch.linspace(0, 2, 401, dtype=torch.float64)
+    on_grid = (-200 * (speeds[:, None] - targets).abs()).mean(-1)
+    assert float(blind) >= float(on_grid.max()) - 1e-9
+
+
+@pytest.mark.parametrize("benchmark,tasks,alive", [
+    ("half_cheetah_vel", [[0.2], [1.0], [1.9]], 0.0),
+    ("walker2d_mass_vel", [[0.2, 0.8], [1.0, 1.0], [1.9, 1.2]], 1.0)])
+def test_the_goal_term_is_the_return_less_its_goal_independent_parts(benchmark, tasks, alive):
+    """The collector's goal references of a velocity family (through the mass transform too):
+    the achieved goal term is each episode's return plus its control cost (0.05‖a‖² of the
+    episodes' actions) less its alive bonus, averaged over episodes; the blind one the best
+    constant speed of the batch; the oracle 0."""
+    from armeta_rl.rl.policy import GaussianMLP
+
+    collector = collector_of(compose_train(
+        f"benchmark={benchmark}", "benchmark.collector.episodes=2",
+        "benchmark.collector.max_steps=10", "benchmark.collector.make_env.threads=1"))
+    params = torch.tensor(tasks)
+    torch.manual_seed(0)
+    episodes = collector.collect(TensorDict({"params": params}, [3]),
+                                 policy=GaussianMLP(collector.in_features, 6))
+    references = collector.goal_references(params, episodes)
+    step_goal = (episodes["reward"].squeeze(-1)
+                 + 0.05 * episodes["action"].square().sum(-1) - alive) * episodes["mask"]
+    torch.testing.assert_close(references["achieved"], step_goal.sum(-1).mean(-1).double(),
+                               atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(references["blind"], constant_speed_goal_term(params[:, 0], 10))
+    assert bool((references["oracle"] == 0).all())

@@ -15,6 +15,8 @@ from armeta_rl.collectors.episodes import PointNavigationCollector, episode_retu
 from armeta_rl.envs.point_navigation import (
     PAPER_SPARSE_REGIONS,
     PointNavigationEnv,
+    blind_return,
+    fixed_path_return,
     reference_return,
 )
 from armeta_rl.errors import ConfigError
@@ -377,3 +379,51 @@ def test_cuda_graphs_are_a_switch_for_cuda_only() -> None:
         PointNavigationCollector(graphs="maybe")
     assert not PointNavigationCollector(episodes=1, graphs=True).env(1).graphs
     assert not PointNavigationEnv((1, 1), graphs=None).graphs
+
+
+@pytest.mark.parametrize("squared", [False, True])
+def test_a_fixed_paths_return_is_its_rollout_in_the_env(squared):
+    """Stepping the env toward a fixed point at full speed (each coordinate's action clipped to
+    ±0.1), then staying, gives fixed_path_return's return on every goal, the episode's end at a
+    goal included; with the point at the goal it is reference_return."""
+    goals = torch.tensor([[0.3, -0.2], [0.05, 0.0], [-0.45, 0.4], [0.4, -0.4]])
+    points = torch.tensor([[0.05, 0.0], [0.3, -0.2], [0.2, 0.2]])
+    max_steps = 12
+    for point in points:
+        env = PointNavigationEnv((len(goals), 1), max_steps=max_steps,
+                                 sparse_regions=PAPER_SPARSE_REGIONS, squared_distance=squared,
+                                 seed=0)
+        reset_with_goals(env, goals[:, None])
+        position = torch.zeros(len(goals), 1, 2)
+        total, alive = torch.zeros(len(goals)), torch.ones(len(goals), dtype=torch.bool)
+        for _ in range(max_steps):
+            action = (point - position).clamp(-0.1, 0.1)
+            out = env.step(TensorDict({"action": action}, env.batch_size))["next"]
+            total += out["reward"].reshape(-1) * alive
+            alive &= ~out["done"].reshape(-1)
+            position = out["observation"]
+        expected = fixed_path_return(point.double(), goals.double(), max_steps,
+                                     PAPER_SPARSE_REGIONS, squared_distance=squared)
+        torch.testing.assert_close(total.double(), expected, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(
+        fixed_path_return(goals.double(), goals.double(), max_steps, PAPER_SPARSE_REGIONS),
+        reference_return(goals.double(), max_steps, PAPER_SPARSE_REGIONS))
+
+
+def test_the_blind_reference_by_hand_and_against_every_point_of_a_grid():
+    """Goals (±0.2, 0) over 2 steps: every point between them is as good on average, −0.4 (at
+    the origin: 0.2 at both steps for both goals). On 60 goals of the paper's env no fixed point
+    of a 41 × 41 grid over the box does better on average than the blind reference, which is no
+    better than the oracle on any goal; repeated goals do not move it."""
+    pair = torch.tensor([[0.2, 0.0], [-0.2, 0.0]], dtype=torch.float64)
+    assert float(blind_return(pair, 2).mean()) == pytest.approx(-0.4)
+    torch.manual_seed(0)
+    goals = torch.rand(60, 2, dtype=torch.float64) - 0.5
+    blind = blind_return(goals, 100, PAPER_SPARSE_REGIONS)
+    axis = torch.linspace(-0.5, 0.5, 41, dtype=torch.float64)
+    grid = torch.stack(torch.meshgrid(axis, axis, indexing="ij"), -1).reshape(-1, 2)
+    on_grid = fixed_path_return(grid[:, None], goals, 100, PAPER_SPARSE_REGIONS).mean(-1)
+    assert float(blind.mean()) >= float(on_grid.max()) - 1e-9
+    assert bool((blind <= reference_return(goals, 100, PAPER_SPARSE_REGIONS) + 1e-9).all())
+    torch.testing.assert_close(blind_return(goals.repeat(3, 1), 100, PAPER_SPARSE_REGIONS),
+                               blind.repeat(3))

@@ -991,3 +991,149 @@ def test_a_results_directory_that_is_a_link_loop_is_one_line(tmp_path):
     loop.symlink_to(loop)
     with pytest.raises(ConfigError, match=f"'results' = '{loop}': cannot be used"):
         reproduce("table1", "tiny", loop, launcher="none", benchmarks=("sinusoid_uniform",))
+
+
+def test_the_verdict_rule_on_hand_made_differences():
+    """The docs' rule: helps when the mean difference is on the better side, beyond twice its
+    standard error over seeds, and better on at least 80 % of the seeds; hurts with the sign
+    reversed; otherwise does not help."""
+    from armeta_rl.reproduce.reports import HELPS, HURTS, NO_HELP, verdict
+
+    assert verdict([2.0, 2.0, 2.0, 2.0, 1.0], higher_better=True) == HELPS
+    # beyond twice the error (mean 1.76, se 0.76) but better at 3 of 5 seeds only
+    assert verdict([3.0, 3.0, 3.0, -0.1, -0.1], higher_better=True) == NO_HELP
+    # worse at 4 of 5 seeds, mean −0.8 beyond 2 · 0.255
+    assert verdict([-1.0, -1.2, -0.9, -1.1, 0.2], higher_better=True) == HURTS
+    assert verdict([-1.0, -1.2, -0.9, -1.1, 0.2], higher_better=False) == HELPS  # losses
+    assert verdict([1.0, 1.1, 0.9, 1.0, 8.0], higher_better=True) == NO_HELP  # within spread
+    assert verdict([5.0], higher_better=True) == NO_HELP  # one seed: no standard error
+    eight_of_ten = [1.0, 1.1, 0.9, 1.2, 1.0, 0.8, 1.1, 1.0, -0.1, -0.2]
+    assert verdict(eight_of_ten, higher_better=True) == HELPS
+    assert verdict([*eight_of_ten[:7], -0.1, -0.2, -0.1], higher_better=True) == NO_HELP
+
+
+def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
+    """Five seeds where AR-MAML beats MAML on every task of p0 by 1 to 1.4 and loses on the rim
+    at 4 of 5 seeds: the report and the verdicts file say it helps on p0 and hurts on the rim,
+    with the differences over seeds and the seeds better; DR-MAML, level with MAML, does not
+    help anywhere; the option, worse on p0 at every seed but within the spread (one seed far
+    off) and level on the rim, does not help, worse at every seed on p0."""
+    from armeta_rl.reproduce.reports import verdicts_path
+
+    plan = make_plan("meta_rl_point", "paper")
+    for seed in range(5):
+        gain = 1.0 + 0.1 * seed
+        rim = -0.5 - 0.1 * seed if seed else 0.1
+        for method, shift, p0 in (("maml", 0.0, 0.0), ("ar_maml", rim, gain),
+                                  ("dr_maml", 0.1 * (-1) ** seed, 0.1 * (-1) ** seed),
+                                  ("ar_maml-best", 0.0, -5.0 if seed == 3 else -0.1)):
+            run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
+            run.mkdir(parents=True)
+            (run / "eval.json").write_text(_of(plan, run, _paired_report(
+                [-10.0 + p0, -12.0 + p0])))
+            (run / "eval_shifts.json").write_text(_of(plan, run, _paired_report(
+                [-11.0 + shift, -13.0 + shift], "shift/rim", seed=7)))
+    text = paired(plan, collect(plan, tmp_path, {}), tmp_path)
+    lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
+    assert lines[0] == "- **DR-MAML** (5 seeds): does not help on any of the 2 distributions."
+    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.158, 5/5 seeds "
+                        "better; CVaR0.5 +1.200 ± 0.158, 5/5 seeds better); hurts on shift: rim "
+                        "(avg -0.580 ± 0.396, 1/5 seeds better; CVaR0.5 -0.580 ± 0.396, 1/5 "
+                        "seeds better).")
+    assert lines[2] == ("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on any of the 2 "
+                        "distributions, though it is worse than MAML at every seed on p0 (avg "
+                        "-1.080 ± 2.191, 0/5 seeds better; CVaR0.5 -1.080 ± 2.191, 0/5 seeds "
+                        "better), within the spread.")
+    assert all(line in text for line in lines)
+
+
+def _strength_records() -> list[dict]:
+    """MAML at two seeds: its worst quarter on p0 is 1 (returns −20 and −30), where the attack
+    puts 0.6 and 0.7; the co-trained AR-MAML's worst is quarter 3; the attack's KL 0.5 and 0.6
+    against the co-trained 0.2 and 0.3; MAML's mean return −12 on p0 and −18 on the attack."""
+    base = {"benchmark": "point_nav", "noisy": False, "metric": "return"}
+    records = []
+    for seed, (attack_kl, cotrained_kl, attack_mass) in enumerate(((0.5, 0.2, 0.6),
+                                                                   (0.6, 0.3, 0.7))):
+        quarters = {f"quarter_scores_{q}": s for q, s in enumerate((-10.0, -20 - 10 * seed,
+                                                                    -5.0, None))}
+        p0_mass = {f"quarter_mass_{q}": 0.25 for q in range(4)}
+        records += [
+            {**base, "method": "maml", "variant": "", "seed": seed, "distribution": "initial",
+             "mean": -12.0, **quarters, **p0_mass},
+            {**base, "method": "maml", "variant": "", "seed": seed, "distribution": "maml",
+             "mean": -18.0, "kl_p0": attack_kl, "kl_p0_sem": 0.01,
+             **{f"quarter_mass_{q}": m for q, m in enumerate(
+                 (0.1, attack_mass, 0.2, 0.7 - attack_mass))}},
+            {**base, "method": "ar_maml", "variant": "", "seed": seed,
+             "distribution": "initial", "mean": -13.0,
+             **{f"quarter_scores_{q}": s for q, s in enumerate((-1.0, -2.0, -3.0, -9.0))}},
+            {**base, "method": "ar_maml", "variant": "", "seed": seed,
+             "distribution": "same_seed", "mean": -13.0, "kl_p0": cotrained_kl}]
+    return records
+
+
+def test_the_adversaries_strength_and_the_attack_check_by_hand():
+    """p_φ's mass on the learner's worst quarter (0.6 and 0.7 → 0.65 ± 0.07, p0 0.25), the loss
+    ratio 18 / 12 = 1.5 and the KL ratio (0.5 + 0.6) / (0.2 + 0.3) = 2.2, whose delta-method
+    influence values are ±0.24 (standard error 0.24): the attack moved clearly further. A
+    section without masses (an evaluation before they were recorded) shows –."""
+    from armeta_rl.reproduce.reports import adversary_section, kl_ratio
+
+    plan = make_plan("meta_rl_point", "paper")
+    ratio, se = kl_ratio([0.5, 0.6], [0.2, 0.3])
+    assert ratio == pytest.approx(2.2) and se == pytest.approx(0.24)
+    text = adversary_section(plan, _strength_records())
+    row = next(line for line in text.splitlines() if "| p_φ vs MAML |" in line)
+    assert row.split(" | ")[2:] == ["MAML (attack)", "0.550 ± 0.071 [0.010]",
+                                    "0.65 ± 0.07 (p0: 0.25 ± 0.00)", "1.50 ± 0.00 |"]
+    same = next(line for line in text.splitlines() if "| p_φ same seed |" in line)
+    assert same.split(" | ")[4] == "–"  # no masses recorded: –, not a crash
+    assert "KL ratio 2.20 ± 0.24" in text and "It moved clearly further" in text
+    cotrained_moved_as_far = [
+        {**r, "kl_p0": 0.55} if r["distribution"] == "same_seed" else r
+        for r in _strength_records()]
+    assert "It did not move clearly further" in adversary_section(plan, cotrained_moved_as_far)
+
+
+def test_the_share_of_the_goal_blind_gap_is_a_column_only_where_recorded():
+    from armeta_rl.reproduce.reports import gap_closed_section
+
+    plan = make_plan("meta_rl_point", "paper")
+    base = {"benchmark": "point_nav", "noisy": False, "variant": "", "distribution": "initial"}
+    records = [{**base, "method": "maml", "seed": s, "gap_closed": g, "gap_closed_sem": 0.02}
+               for s, g in ((0, 0.64), (1, 0.68))]
+    assert gap_closed_section(plan, [{**r, "gap_closed": None} for r in records]) == ""
+    row = next(line for line in gap_closed_section(plan, records).splitlines()
+               if line.startswith("| point_nav | initial |"))
+    assert row.split(" | ")[2:4] == ["66 ± 3 % [2]", "–"]  # MAML; DR-MAML has no record
+
+
+def test_the_curve_file_holds_the_natural_steps_kl(tmp_path):
+    """The follower's ``adversary/step_kl`` scalar (natural steps) is a column of the curve
+    file."""
+    from armeta_rl.reproduce.curves import run_curve
+    from armeta_rl.trainers.run_dir import CSV_LOG_DIR
+
+    scalars = tmp_path / CSV_LOG_DIR / "scalars" / "adversary"
+    scalars.mkdir(parents=True)
+    (scalars / "step_kl.csv").write_text("step,value\n1,0.0049\n2,0.0051\n")
+    curve = run_curve(tmp_path)
+    assert [curve[i]["adversary_step_kl"] for i in (1, 2)] == [0.0049, 0.0051]
+
+
+def test_a_section_evaluated_before_the_evidence_fields_keeps_its_csv_columns():
+    """A section without the KL's error, the quarters or the goal references adds no column (a
+    committed CSV rebuilt from old reports is unchanged); a new one adds each."""
+    from armeta_rl.reproduce.aggregate import evidence_columns
+
+    assert evidence_columns({"mean": -1.0, "kl_p0": 0.3}) == {}
+    goal = {"achieved": -12.0, "blind": -33.0, "oracle": -1.0, "gap_closed": 0.66,
+            "gap_closed_sem": 0.02}
+    columns = evidence_columns({"kl_p0_sem": None, "quarter_mass": [0.1, 0.2, 0.3, 0.4],
+                                "quarter_scores": [-1.0, None, -3.0, -4.0], "goal": goal})
+    assert columns == {"kl_p0_sem": None, "quarter_mass_0": 0.1, "quarter_mass_1": 0.2,
+                       "quarter_mass_2": 0.3, "quarter_mass_3": 0.4, "quarter_scores_0": -1.0,
+                       "quarter_scores_1": None, "quarter_scores_2": -3.0,
+                       "quarter_scores_3": -4.0, "goal_achieved": -12.0, "goal_blind": -33.0,
+                       "goal_oracle": -1.0, "gap_closed": 0.66, "gap_closed_sem": 0.02}

@@ -27,13 +27,14 @@ from functools import partial
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.envs import EnvBase
+from torchrl.envs import EnvBase, TransformedEnv
 
 from armeta_rl.devices import CPU
 from armeta_rl.envs.point_navigation import (
     TRUNCATED_KEY,
     PointNavigationEnv,
     Region,
+    blind_return,
     check_regions,
     reference_return,
 )
@@ -158,6 +159,35 @@ class EpisodeCollector:
             finally:
                 env.close()
 
+    def goal_references(self, params: torch.Tensor,
+                        trajectories: TensorDictBase) -> dict[str, torch.Tensor] | None:
+        """Per task ``[K]`` (float64), for the tasks ``params`` ``[K, d]`` and their episodes
+        ``trajectories`` ``[K, E, T]``: ``"achieved"``, the goal term the episodes collected
+        (their summed ``"reward_forward"``, the env's goal-dependent reward term, averaged over
+        the episodes: :func:`episode_goal_terms`), ``"blind"``, that of the best goal-blind policy
+        for this batch of tasks (the env class's ``blind_goal_term(params, steps)``: the best
+        constant speed of the velocity families, standing at the goals' median for Ant-Pos), and
+        ``"oracle"``, the best with the goal known (0: on target from the first step). ``None``
+        where the env defines no goal-blind reference or reports no goal term."""
+        blind = self._blind_goal_term()
+        if blind is None or trajectories.get(FORWARD_REWARD, None) is None:
+            return None
+        achieved = episode_goal_terms(trajectories).to(torch.float64).mean(-1)
+        reference = blind(params.to(achieved.device), self.max_steps).to(achieved)
+        return {"achieved": achieved, "blind": reference, "oracle": torch.zeros_like(reference)}
+
+    def _blind_goal_term(self) -> Callable[[torch.Tensor, int], torch.Tensor] | None:
+        """The env class's ``blind_goal_term``, read once from a probe env (built under a
+        forked RNG, transforms unwrapped); ``None`` if it has none."""
+        if not hasattr(self, "_blind"):
+            with torch.random.fork_rng(devices=[]):
+                env = self.probe_env()
+                try:
+                    self._blind = getattr(type(_unwrapped(env)), "blind_goal_term", None)
+                finally:
+                    env.close()
+        return self._blind
+
     def env(self, tasks: int) -> EnvBase:
         """The env of batch size ``[tasks, episodes]``, kept per batch shape (a value, not an
         object's identity). It carries nothing from one :meth:`collect` to the next: every call
@@ -263,6 +293,20 @@ class PointNavigationCollector(EpisodeCollector):
         return -reference_return(params, self.max_steps, self.sparse_regions,
                                  self.truncated_regions, self.squared_distance)
 
+    def goal_references(self, params: torch.Tensor,
+                        trajectories: TensorDictBase) -> dict[str, torch.Tensor]:
+        """Per goal ``[K]`` (float64), for goals ``params`` ``[K, 2]`` and their episodes
+        ``[K, E, T]``: ``"achieved"``, the episodes' mean return (the reward is all goal term),
+        ``"blind"``, the return of the one fixed path best on average over the batch
+        (:func:`~armeta_rl.envs.point_navigation.blind_return`), and ``"oracle"``, the best
+        return of any policy (:meth:`reference_loss`'s straight path at full speed)."""
+        achieved = episode_returns(trajectories).to(torch.float64).mean(-1)
+        goals = params.to(achieved)
+        regions = (self.max_steps, self.sparse_regions, self.truncated_regions,
+                   self.squared_distance)
+        return {"achieved": achieved, "blind": blind_return(goals, *regions),
+                "oracle": reference_return(goals, *regions)}
+
 
 def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:
     """Undiscounted return of every episode ``[K, episodes]``.
@@ -278,3 +322,30 @@ def episode_returns(trajectories: TensorDictBase) -> torch.Tensor:
     """
     reward = trajectories["reward"].squeeze(-1)
     return (reward * trajectories["mask"]).sum(-1)
+
+
+def episode_goal_terms(trajectories: TensorDictBase) -> torch.Tensor:
+    """The goal term of every episode ``[K, episodes]``: its summed ``"reward_forward"`` (the
+    env's goal-dependent reward term, :data:`~armeta_rl.tasks.protocol.FORWARD_REWARD`) over
+    its steps, the return less its goal-independent parts (control and contact costs, alive
+    bonus).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors.episodes import episode_goal_terms
+        >>> forward = torch.tensor([[[-0.5, -0.25, -9.0]]]).unsqueeze(-1)  # [K=1, E=1, T=3, 1]
+        >>> mask = torch.tensor([[[True, True, False]]])
+        >>> episode_goal_terms(TensorDict({"reward_forward": forward, "mask": mask}, [1, 1, 3]))
+        tensor([[-0.7500]])
+    """
+    forward = trajectories[FORWARD_REWARD].squeeze(-1)
+    return (forward * trajectories["mask"]).sum(-1)
+
+
+def _unwrapped(env: EnvBase) -> EnvBase:
+    """The env under every ``TransformedEnv`` wrapping ``env`` (a physics family's
+    transform), where its class's task attributes are."""
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    return env

@@ -13,7 +13,9 @@ steps. The reward of a step, with ``a`` the action as given (MuJoCo clamps the a
         + survive_reward                       default 0.05 (pytorch-maml-rl's Ant), every step
 
 An episode terminates when the state (qpos, qvel) is non-finite or the torso height leaves
-``healthy_z_range`` = [0.2, 1.0], and is truncated after ``max_steps`` (200) steps.
+``healthy_z_range`` = [0.2, 1.0], and is truncated after ``max_steps`` (200) steps. The goal term
+is also reported after every step as ``"reward_forward"``, so that the episodes carry the goal's
+own part of their return (:func:`standing_goal_term` is its goal-blind reference).
 
 Observation (119 values, float in the default torch dtype), all evaluated at the state *after* the
 step (``mj_forward`` then ``mj_rnePostConstraint``, so the contact forces are real, not zeros):
@@ -184,6 +186,17 @@ class AntTaskEnv(BatchedMujocoEnv):
         return (abs(state) < math.inf).all(-1) & (height >= low) & (height <= high)
 
 
+def standing_goal_term(goal: torch.Tensor, steps: int) -> torch.Tensor:
+    """R_blind ``[K]`` of goals ``[K, 2]``: −T·‖m − goal‖₁, the goal term (the summed
+    −‖xy − goal‖₁) of a torso standing at m from the first of T steps, with m the goals'
+    coordinate-wise median, the point that minimizes the batch's mean L1 distance: the best
+    goal-blind policy of the goal term. A bound (the reference teleports to m; with the oracle's
+    0, standing on the goal from the first step, both ends of the gap are), so the share of the
+    goal-blind gap an adapted policy closes, measured against it, is conservative."""
+    goal = goal.to(torch.float64)
+    return -steps * (goal - goal.median(0).values).abs().sum(-1)
+
+
 class AntGoalEnv(AntTaskEnv):
     """MuJoCo Ant goal-position env with batch size ``[tasks, episodes]``; see the module docstring.
 
@@ -247,5 +260,17 @@ class AntGoalEnv(AntTaskEnv):
     def _reward(self, action: np.ndarray, qpos_before: np.ndarray,
                 task: np.ndarray) -> np.ndarray:
         """The AntPos reward of the module docstring."""
+        return self.ant_reward(self._forward_reward(qpos_before, task), action)
+
+    def _forward_reward(self, qpos_before: np.ndarray, task: np.ndarray) -> np.ndarray:
+        """The goal term −‖torso_xy − goal‖₁ ``[n_sims]``, reported after every step as
+        ``"reward_forward"``."""
         xy = self._xpos[:, self._torso, :2]
-        return self.ant_reward(-abs(xy - task).sum(-1), action)
+        return -abs(xy - task).sum(-1)
+
+    @staticmethod
+    def blind_goal_term(params: torch.Tensor, steps: int) -> torch.Tensor:
+        """R_blind ``[K]`` of the tasks ``params`` ``[K, d]`` (the goal first, as any physics
+        parameter comes after the env's own identifiers) over ``steps`` steps:
+        :func:`standing_goal_term`."""
+        return standing_goal_term(params[..., :2], steps)

@@ -159,13 +159,32 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         return self._forward_reward(qpos_before, task) - self.ctrl_cost(action) + self.alive_bonus
 
 
+def constant_speed_goal_term(goal_velocity: torch.Tensor, steps: int) -> torch.Tensor:
+    """R_blind ``[K]`` of target velocities ``[K]``: −T·|c − v_goal|, the goal term (the summed
+    −|v − v_goal|) of running at the constant speed c from the first of T steps, with c the
+    batch's median target, the constant that minimizes the batch's mean |c − v_goal|: the best
+    goal-blind policy of the family's goal term. A bound (no runner is at speed c from its first
+    step), so the share of the goal-blind gap an adapted policy closes, measured against it, is
+    conservative."""
+    target = goal_velocity.to(torch.float64)
+    return -steps * (target.median() - target).abs()
+
+
 class TargetVelocity:
     """The velocity task of HalfCheetah-Vel and Walker2d-Vel: a hidden target velocity
     ``goal_velocity`` ∈ [0, 2] m/s (drawn from U(0, 2) where never set), reward term
-    ``−|v − goal_velocity|``."""
+    ``−|v − goal_velocity|``, reported after every step as ``"reward_forward"``; its goal-blind
+    reference is the best constant speed (:meth:`blind_goal_term`)."""
 
     identifier_names = ("goal_velocity",)
     task_boxes = {"goal_velocity": (0.0, 2.0)}
+
+    @staticmethod
+    def blind_goal_term(params: torch.Tensor, steps: int) -> torch.Tensor:
+        """R_blind ``[K]`` of the tasks ``params`` ``[K, d]`` (the target velocity first, as
+        any physics parameter comes after the env's own identifiers) over ``steps`` steps:
+        :func:`constant_speed_goal_term`."""
+        return constant_speed_goal_term(params[..., 0], steps)
 
     def _default_identifiers(self) -> torch.Tensor:
         return 2 * torch.rand(*self.batch_size, 1, generator=self._generator, dtype=torch.float64)

@@ -24,6 +24,8 @@ of it say where it is: a sparse reward, as PEARL's sparse point robot, on the de
 
 :func:`reference_return` is the best return any policy gets on a goal, that of the straight
 path at full speed, in closed form: the reference of the adversary's regret signal.
+:func:`blind_return` is the best a policy that does not know the goal gets on a batch of goals:
+one fixed path, to the point best on average over the batch (:func:`blind_point`).
 """
 
 from __future__ import annotations
@@ -192,6 +194,88 @@ def reference_return(goal: torch.Tensor, max_steps: int, sparse_regions: Sequenc
     reached = (offset < GOAL_TOLERANCE).all(-1)
     before_end = (reached.cumsum(-1) - reached.long()) == 0
     return (reward * before_end).sum(-1)
+
+
+def fixed_path_return(point: torch.Tensor, goal: torch.Tensor, max_steps: int,
+                      sparse_regions: Sequence[Region] = (),
+                      truncated_regions: Sequence[Region] = (),
+                      squared_distance: bool = False) -> torch.Tensor:
+    """The return ``[...]`` on goals ``[..., 2]`` of one fixed path, the same whatever the goal:
+    every coordinate moves toward ``point`` ``[..., 2]`` (broadcast against ``goal``) at full
+    speed, then the robot stays there; the episode ends as the env ends it (within 0.01 of the
+    goal on both axes, or after ``max_steps``).
+
+    After t steps the robot is at sign(m)·min(|m|, 0.1·t) per axis. With ``point = goal`` this
+    is the full-speed path of :func:`reference_return`, the best return of any policy; with
+    one point for every goal it is a goal-blind policy's return (:func:`blind_return`). The
+    steps until every point is reached are summed one by one, the rest in closed form: the robot
+    stays, so each of them has the reward of the last step summed, unless the episode ended."""
+    point = point.to(goal)
+    moving = min(max_steps, math.ceil(float(point.abs().max()) / MAX_SPEED) + 1)
+    steps = torch.arange(1, moving + 1, dtype=goal.dtype, device=goal.device)
+    path = point.sign().unsqueeze(-2) * torch.minimum(
+        point.abs().unsqueeze(-2), MAX_SPEED * steps.unsqueeze(-1))
+    offset = path - goal.unsqueeze(-2)
+    scale = goal_reward_scale(goal, sparse_regions)[..., None, None]
+    cap = goal_distance_cap(goal, truncated_regions, squared_distance)[..., None, None]
+    reward = step_reward(offset, scale, cap, squared_distance).squeeze(-1)
+    reached = (offset.abs() < GOAL_TOLERANCE).all(-1)
+    before_end = (reached.cumsum(-1) - reached.long()) == 0
+    staying = (max_steps - moving) * reward[..., -1] * ~reached.any(-1)
+    return (reward * before_end).sum(-1) + staying
+
+
+BLIND_SEARCH_POINTS = 21
+"""Grid points per axis in each round of :func:`blind_point`'s search."""
+BLIND_SEARCH_ROUNDS = 3
+"""Rounds of :func:`blind_point`'s search: each narrows the grid to two cells of the last one
+around its best point (a spacing of 0.05, 0.005 and 0.0005 on the goal box)."""
+BLIND_SEARCH_CHUNK = 64
+"""Candidate points scored at once by :func:`blind_point` (bounds its memory)."""
+
+
+def blind_point(goal: torch.Tensor, max_steps: int, sparse_regions: Sequence[Region] = (),
+                truncated_regions: Sequence[Region] = (), squared_distance: bool = False,
+                weights: torch.Tensor | None = None) -> torch.Tensor:
+    """The point m ``[2]`` of the goal box whose fixed path (:func:`fixed_path_return`) has the
+    largest mean return over the goals ``[K, 2]`` (weighted by ``weights`` ``[K]`` if given): the
+    best goal-blind policy of this kind for the batch, found by a coarse-to-fine grid search
+    (:data:`BLIND_SEARCH_POINTS` per axis, :data:`BLIND_SEARCH_ROUNDS` rounds). With the plain
+    reward and a long horizon m is near the goals' geometric median; the search also handles the
+    regions' scales and caps, the squared distance and the episode's end at the goal."""
+    goal = goal.to(torch.float64)
+    weights = (torch.ones(len(goal), dtype=goal.dtype, device=goal.device) if weights is None
+               else weights.to(goal))
+    centre = torch.zeros(2, dtype=goal.dtype, device=goal.device)
+    half_width = (GOAL_HIGH - GOAL_LOW) / 2
+    offsets = torch.linspace(-1.0, 1.0, BLIND_SEARCH_POINTS, dtype=goal.dtype, device=goal.device)
+    for _ in range(BLIND_SEARCH_ROUNDS):
+        axis = (centre.unsqueeze(-1) + half_width * offsets).clamp(GOAL_LOW, GOAL_HIGH)
+        candidates = torch.stack(torch.meshgrid(axis[0], axis[1], indexing="ij"), -1)
+        candidates = candidates.reshape(-1, 2)
+        means = torch.cat([
+            fixed_path_return(chunk[:, None], goal, max_steps, sparse_regions,
+                              truncated_regions, squared_distance) @ weights
+            for chunk in candidates.split(BLIND_SEARCH_CHUNK)]) / weights.sum()
+        centre = candidates[means.argmax()]
+        half_width *= 2 / (BLIND_SEARCH_POINTS - 1)
+    return centre
+
+
+def blind_return(goal: torch.Tensor, max_steps: int, sparse_regions: Sequence[Region] = (),
+                 truncated_regions: Sequence[Region] = (),
+                 squared_distance: bool = False) -> torch.Tensor:
+    """R_blind ``[K]`` (float64) on goals ``[K, 2]``: on each goal, the return of the one fixed
+    path that is best on average over the batch (:func:`blind_point`): the reference a policy
+    that does not know the goal can reach, against which an adapted policy's return says how
+    much of the gap to :func:`reference_return` adaptation closes. Repeated goals (the R copies
+    of a task) weigh as often as they occur."""
+    goal = goal.to(torch.float64)
+    unique, counts = torch.unique(goal, dim=0, return_counts=True)
+    point = blind_point(unique, max_steps, sparse_regions, truncated_regions, squared_distance,
+                        counts)
+    return fixed_path_return(point, goal, max_steps, sparse_regions, truncated_regions,
+                             squared_distance)
 
 
 class PointNavigationEnv(TaskEnvMixin, EnvBase):

@@ -95,6 +95,13 @@ class Leader(Protocol):
         a leader that reports none."""
         ...
 
+    def adapted_episodes(self, data: Any) -> TensorDict | None:
+        """The adapted learner's episodes in ``data`` ``[K, E, T]`` (meta-RL), whose returns
+        :meth:`evaluate` scores, so that an evaluation can split them into what the goal and
+        what the rest of the reward gives (:func:`~armeta_rl.trainers.evaluation.gap_closed`);
+        ``None`` for a leader without episodes."""
+        ...
+
     def state_dict(self) -> dict[str, Any]:
         """Parameters and optimizer state, for checkpoints."""
         ...
@@ -123,6 +130,10 @@ class OneNetworkLeader:
     def evaluate_before(self, data: TensorDict) -> None:
         """No loss before adaptation is reported for regression and system identification (the
         adaptation gain is a meta-RL metric)."""
+        return None
+
+    def adapted_episodes(self, data: TensorDict) -> None:
+        """No episodes in regression and system identification."""
         return None
 
     def descend(self, losses: Tensor, weights: TaskWeights) -> None:

@@ -428,6 +428,11 @@ class MAMLTRPOLeader:
         pre-adaptation episodes of ``batch``, the data the inner step adapts on."""
         return -episode_returns(batch.train).mean(-1)
 
+    def adapted_episodes(self, batch: MetaBatch) -> TensorDictBase:
+        """The adapted policies' episodes of ``batch`` ``[K, E, T]``, those :meth:`evaluate`
+        scores."""
+        return batch.valid
+
     def state_dict(self) -> dict[str, Any]:
         return {"policy": self.net.state_dict()}
 

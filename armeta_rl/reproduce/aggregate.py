@@ -35,6 +35,15 @@ NUMBER_COLUMNS = ("mean", "sem", "entropy", "kl_p0", "n_tasks", "rollouts", "rol
 ADAPTATION_COLUMNS = ("before", "before_sem", "gain", "gain_sem", "improved")
 """A meta-RL section's score before adaptation and adaptation gain (its ``adaptation``,
 :func:`~armeta_rl.trainers.evaluation.adaptation_gain`); empty for other benchmarks."""
+QUARTER_FIELDS = ("quarter_mass", "quarter_scores")
+"""A section's masses and the learner's mean scores in the four quarters of the box, as the
+columns ``quarter_mass_<q>`` and ``quarter_scores_<q>`` (q = 0 … 3; sections evaluated before
+they were recorded have none)."""
+GOAL_COLUMNS = {"achieved": "goal_achieved", "blind": "goal_blind", "oracle": "goal_oracle",
+                "gap_closed": "gap_closed", "gap_closed_sem": "gap_closed_sem"}
+"""A meta-RL section's ``goal`` (the share of the goal-blind gap closed and the mean goal terms
+it is made of, :func:`~armeta_rl.trainers.evaluation.goal_section`) → its columns; only where
+the benchmark knows the references."""
 KEPT_OUT_OF_CSV = ("per_task",)
 """Record fields the CSV leaves out: the per-task scores (in the runs' reports)."""
 
@@ -129,8 +138,26 @@ def section_records(report: dict[str, Any], section: str, distribution: str,
     record.update({f"cvar_sem_{float(a)}": v for a, v in data.get("cvar_sem", {}).items()})
     adaptation = data.get("adaptation") or {}
     record.update({key: adaptation.get(key) for key in ADAPTATION_COLUMNS})
+    record.update(evidence_columns(data))
     record["per_task"] = data.get("per_task")
     return [record]
+
+
+def evidence_columns(section: dict[str, Any]) -> dict[str, Any]:
+    """The columns of the fields a section holds only where its evaluation recorded them: the
+    KL's standard error (``kl_p0_sem``), the quarters (:data:`QUARTER_FIELDS`) and the goal
+    references (:data:`GOAL_COLUMNS`); none for a section evaluated before them, so its CSV
+    row keeps its columns."""
+    columns: dict[str, Any] = {}
+    if "kl_p0_sem" in section:
+        columns["kl_p0_sem"] = section["kl_p0_sem"]
+    for field in QUARTER_FIELDS:
+        if section.get(field) is not None:
+            columns.update({f"{field}_{q}": value for q, value in enumerate(section[field])})
+    goal = section.get("goal")
+    if goal is not None:
+        columns.update({column: goal.get(key) for key, column in GOAL_COLUMNS.items()})
+    return columns
 
 
 def run_seconds(run_dir: Path) -> float | None:

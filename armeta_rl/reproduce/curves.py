@@ -31,11 +31,13 @@ CURVES = {
     "adversary_entropy": "adversary/entropy",
     "adversary_kl_p0": "adversary/kl_p0",
     "task_spread": "risk/spread",
+    "adversary_step_kl": "adversary/step_kl",
 }
 """A curve file's columns and the scalars they hold (absent scalars are left empty: the
 returns and gain are meta-RL's, the adversary's entropy and KL from p0 AR methods', the spread
 of the training batch's identifiers (their mean pairwise distance in the unit box; 1/3 for a
-uniform batch in one dimension) MPTS's and PDTS's)."""
+uniform batch in one dimension) MPTS's and PDTS's, the KL between p_φ before and after each
+update the natural-step follower's (``risk.ar.step=natural``))."""
 KEYS = ("benchmark", "run", "seed", "iteration")
 """A row's run: its benchmark, its name (``<method>[-<variant>]``, ``<method>-vs-<target>`` for
 an attack run: :attr:`~armeta_rl.reproduce.plan.TrainRun.name`), seed and iteration."""

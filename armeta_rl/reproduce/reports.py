@@ -24,6 +24,7 @@ from armeta_rl.reproduce.aggregate import (
     summary,
 )
 from armeta_rl.reproduce.plan import Plan
+from armeta_rl.trainers.run_dir import write_text_atomically
 
 
 def _methods(plan: Plan) -> list[str]:
@@ -372,17 +373,60 @@ def adaptation_section(plan: Plan, records: list[dict[str, Any]]) -> str:
                "standard error over tasks): " + "; ".join(idle) + ". A comparison between "
                "learners that do not adapt compares policies, not meta-learners: it is no "
                "robustness result.")
+    gap = gap_closed_section(plan, records)
     return ("**Adaptation gain**: return after the inner step minus return before it, on the "
             "same episodes, mean ± std over seeds [root-mean-square over seeds of its "
             "standard error over tasks] (seeds whose gain is beyond twice that error / "
-            "seeds).\n\n" + markdown_table(header, rows) + "\n\n" + verdict)
+            "seeds).\n\n" + markdown_table(header, rows) + "\n\n" + verdict
+            + ("\n\n" + gap if gap else ""))
+
+
+def _share(records: list[dict[str, Any]], **where: Any) -> str:
+    """The share of the goal-blind gap closed over seeds, in percent: ``mean ± std [RMS s.e.
+    over tasks]``; "–" where no seed's evaluation recorded it."""
+    chosen = [r for r in select(records, **where) if r.get("gap_closed") is not None]
+    if not chosen:
+        return "–"
+    spread = over_seeds([100 * r["gap_closed"] for r in chosen])
+    text = f"{spread.mean:.0f} %" if spread.n < 2 else f"{spread.mean:.0f} ± {spread.std:.0f} %"
+    sems = [100 * r["gap_closed_sem"] for r in chosen if r.get("gap_closed_sem") is not None]
+    if sems:
+        text += f" [{(sum(e * e for e in sems) / len(sems)) ** 0.5:.0f}]"
+    return text
+
+
+def gap_closed_section(plan: Plan, records: list[dict[str, Any]]) -> str:
+    """Meta-RL: every learner's share of the goal-blind gap closed per distribution, (R_adapted
+    − R_blind) / (R_oracle − R_blind) on the distribution's evaluation tasks
+    (:func:`~armeta_rl.trainers.evaluation.gap_closed`; the references: docs/meta-rl.md), so
+    that a gain reads against what the goal is worth. Empty where no evaluation recorded it (a
+    benchmark without references, or evaluations made before they were recorded)."""
+    if not any(r.get("gap_closed") is not None for r in records):
+        return ""
+    learners = _learners(plan)
+    rows = [[display(benchmark), label, *(
+        _share(records, benchmark=benchmark, method=m, variant=v, distribution=distribution,
+               noisy=False) for m, v in learners)]
+        for benchmark in _benchmarks(plan)
+        for distribution, label in _distributions(plan, records, benchmark).items()]
+    header = ["Benchmark", "Distribution", *(learner_label(plan, lr) for lr in learners)]
+    return ("**Share of the goal-blind gap closed**: (R_adapted − R_blind) / (R_oracle − "
+            "R_blind) of the goal term on each distribution's evaluation tasks, R_blind the "
+            "best goal-blind policy for those tasks and R_oracle the best with the goal known "
+            "(0 %: no better than ignoring the goal; 100 %: as good as knowing it), mean ± std "
+            "over seeds [root-mean-square over seeds of its standard error over tasks]; – "
+            "where the evaluation predates the references.\n\n"
+            + markdown_table(header, rows))
 
 
 def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     """Meta-RL reports (docs/meta-rl.md): every learner's average and CVaR_α on p0, the
     adversaries and the shift suite (mean ± std over seeds [standard error over tasks]), then
     each learner minus the reference learner (``paired: {against: <method>}``) on the same tasks
-    and random streams, per seed, summarized over seeds; figures of both."""
+    and random streams, per seed, summarized over seeds; figures of both. Before them the
+    adaptation gain and the share of the goal-blind gap closed (:func:`adaptation_section`);
+    after them each learner's verdicts by the docs' rule (:func:`verdict_lines`, also written to
+    ``<experiment>_verdicts.md``) and the adversaries' strength (:func:`adversary_section`)."""
     learners, cvar, alpha = _learners(plan), _cvar_key(plan), float(plan.spec.get("alpha", 0.5))
     reference = (plan.spec.get("paired", {}).get("against", learners[0][0]), "")
     distributions = _distributions(plan, records)
@@ -417,6 +461,9 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     reference_label = learner_label(plan, reference)
     better = "higher" if higher else "lower"
     adaptation = adaptation_section(plan, records)
+    verdicts = verdict_lines(plan, records, reference, alpha)
+    write_text_atomically(verdicts_path(results, plan.experiment), "\n".join(verdicts) + "\n")
+    adversaries = adversary_section(plan, records)
     return ((adaptation + "\n\n" if adaptation else "")
             + markdown_table(level_header, level_rows)
             + f"\n\n![{plan.experiment}]({plan.experiment}.png)\n\nBars: mean over seeds, "
@@ -426,7 +473,315 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             f"the learner), mean ± std over seeds, [root-mean-square over seeds of the paired "
             f"standard error over tasks], (seeds where the learner is better / seeds). Bold: "
             "the mean is more than twice its standard error over seeds from 0.\n\n"
-            + markdown_table(diff_header, diff_rows))
+            + markdown_table(diff_header, diff_rows)
+            + f"\n\n**In short, by the rule** (docs/meta-rl.md, \"Results\"): a learner "
+            f"*helps* on a distribution when its paired difference to {reference_label} is "
+            "on the better side, beyond twice its standard error over seeds and better on at "
+            "least 80 % of the seeds; it *hurts* when the same holds on the worse side; "
+            f"otherwise it *does not help* (average and {_cvar_label(plan)} each; also in "
+            f"`{verdicts_path(results, plan.experiment).name}`):\n\n" + "\n".join(verdicts)
+            + ("\n\n" + adversaries if adversaries else ""))
+
+
+HELPS, HURTS, NO_HELP = "helps", "hurts", "does not help"
+"""The three verdicts of the docs' rule (:func:`verdict`)."""
+SEED_SHARE = (4, 5)
+"""The least share of seeds on which a learner must be better (worse) to help (hurt): 4 of 5,
+80 % of the seeds."""
+
+
+def seeds_on_each_side(values: Sequence[float], higher_better: bool) -> tuple[int, int]:
+    """How many of the paired differences ``values`` are on the learner's better side and how
+    many on its worse side (a difference of exactly 0 on neither)."""
+    better = sum((v > 0) == higher_better and v != 0 for v in values)
+    worse = sum((v < 0) == higher_better and v != 0 for v in values)
+    return better, worse
+
+
+def verdict(values: Sequence[float], higher_better: bool) -> str:
+    """The docs' rule (docs/meta-rl.md, "Results") on one learner's paired differences to the
+    reference learner over seeds ``values``: :data:`HELPS` when their mean is on the better side
+    and beyond twice its standard error over seeds and the learner is better on at least
+    :data:`SEED_SHARE` of the seeds, :data:`HURTS` when the same holds on the worse side,
+    :data:`NO_HELP` otherwise (one seed: no standard error, no verdict but this)."""
+    spread = over_seeds(values) if values else None
+    if spread is None or spread.n < 2 or not abs(spread.mean) > 2 * spread.se:
+        return NO_HELP
+    better, worse = seeds_on_each_side(values, higher_better)
+    share, of = SEED_SHARE
+    if (spread.mean > 0) == higher_better:
+        return HELPS if better * of >= share * len(values) else NO_HELP
+    return HURTS if worse * of >= share * len(values) else NO_HELP
+
+
+def verdicts_path(results: Path, experiment: str) -> Path:
+    """``<results>/<experiment>_verdicts.md``: the report's verdicts alone, for pages that
+    include them (docs/meta-rl.md)."""
+    return results / f"{experiment}_verdicts.md"
+
+
+def _finding(values: Sequence[float], name: str, higher_better: bool) -> str:
+    """``avg +1.3 ± 1.1, 5/5 seeds better`` of paired differences over seeds."""
+    spread = over_seeds(values)
+    places = decimals(spread.mean)
+    better, _ = seeds_on_each_side(values, higher_better)
+    return (f"{name} {spread.mean:+.{places}f} ± {spread.std:.{places}f}, "
+            f"{better}/{len(values)} seeds better")
+
+
+def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
+                  alpha: float) -> list[str]:
+    """One Markdown bullet per learner other than ``reference``: where it helps and where it
+    hurts by :func:`verdict` (average and CVaR_α, with its paired difference over seeds and the
+    seeds on which it is better), on how many distributions it does not help, which of those it
+    is better or worse on at every seed within the spread, and, for a learner that does not
+    adapt on p0 at every seed, that the comparison is no robustness result; generated from the
+    records, so that prose and tables cannot drift."""
+    higher = _higher_better(records)
+    benchmarks = _benchmarks(plan)
+    lines = []
+    for learner in _learners(plan):
+        if learner == reference:
+            continue
+        found: dict[str, list[str]] = {HELPS: [], HURTS: [], "better": [], "worse": []}
+        compared = neutral = seeds = 0
+        for benchmark in benchmarks:
+            for distribution, label in _distributions(plan, records, benchmark).items():
+                pairs = paired_seeds(records, learner, reference, alpha, benchmark=benchmark,
+                                     distribution=distribution, noisy=False)
+                if not pairs:
+                    continue
+                compared, seeds = compared + 1, max(seeds, len(pairs))
+                where = "p0" if distribution == INITIAL else label
+                if len(benchmarks) > 1:
+                    where = f"{display(benchmark)} {where}"
+                judged: dict[str, list[str]] = {key: [] for key in found}
+                for column, name in (("mean", "avg"), ("cvar", _cvar_label(plan))):
+                    values = [p[column] for p in pairs]
+                    outcome = verdict(values, higher)
+                    better, worse = seeds_on_each_side(values, higher)
+                    if outcome == NO_HELP and len(values) > 1 and len(values) in (better, worse):
+                        outcome = "better" if better else "worse"  # unanimous, within spread
+                    if outcome != NO_HELP:
+                        judged[outcome].append(_finding(values, name, higher))
+                is_neutral = not (judged[HELPS] or judged[HURTS])
+                for outcome, findings in judged.items():
+                    if findings and (is_neutral or outcome in (HELPS, HURTS)):
+                        found[outcome].append(f"{where} ({'; '.join(findings)})")
+                neutral += is_neutral
+        name = f"- **{learner_label(plan, learner)}**"
+        if seeds < 2:
+            lines.append(f"{name} ({seeds} seed{'s' if seeds != 1 else ''} paired with "
+                         f"{learner_label(plan, reference)}): no verdict, as the rule needs "
+                         "a standard error over at least two seeds.")
+            continue
+        parts = [f"{outcome} on {', '.join(found[outcome])}" for outcome in (HELPS, HURTS)
+                 if found[outcome]]
+        if neutral:
+            unanimous = [f"{side} than {learner_label(plan, reference)} at every seed on "
+                         f"{', '.join(found[side])}" for side in ("better", "worse")
+                         if found[side]]
+            parts.append((f"does not help on the other {neutral} distributions" if parts else
+                          f"does not help on any of the {compared} distributions")
+                         + (f", though it is {' and '.join(unanimous)}, within the spread"
+                            if unanimous else ""))
+        text = f"{name} ({seeds} seeds): " + "; ".join(parts)
+        lines.append(text + "." + _adaptation_caveat(plan, records, learner))
+    return lines
+
+
+def _adaptation_caveat(plan: Plan, records: list[dict[str, Any]], learner: Learner) -> str:
+    """`` It adapts on p0 at k of S seeds: …`` for a learner with a seed whose p0 gain is not
+    beyond twice its standard error over tasks; empty otherwise."""
+    caveats = []
+    for benchmark in _benchmarks(plan):
+        _, adapting, seeds = _gain(records, benchmark=benchmark, method=learner[0],
+                                   variant=learner[1], distribution=INITIAL, noisy=False)
+        if seeds and adapting < seeds:
+            caveats.append(f"{adapting} of {seeds} seeds"
+                           + (f" on {display(benchmark)}" if len(_benchmarks(plan)) > 1 else ""))
+    if not caveats:
+        return ""
+    return (f" It adapts on p0 at {', '.join(caveats)} only: where it does not, the comparison "
+            "is between policies, not meta-learners.")
+
+
+ADVERSARY_NOTE = ("MPTS-MAML's and PDTS-MAML's training batches are drawn by a risk "
+                  "predictor, not from a density over the box: they have no KL from p0 and no "
+                  "mass to read, and are left out.")
+"""Why the predictive samplers' batches have no row among the adversaries."""
+
+
+def adversary_learners(plan: Plan) -> dict[str, tuple[Learner, bool]]:
+    """Each adversary distribution of the experiment → the learner it was trained against and
+    whether it is an attack: an AR adversary's co-trained learner (its method and variant),
+    an attack's target (the finished learner it was trained against alone)."""
+    found: dict[str, tuple[Learner, bool]] = {}
+    for name, adversary in plan.spec.get("adversaries", {}).items():
+        found[name] = ((adversary["method"], adversary.get("variant", "")), False)
+    for name, attack in plan.spec.get("attacks", {}).items():
+        found[name] = ((attack["target"], attack.get("variant", "")), True)
+    return found
+
+
+def worst_quarter_mass(records: list[dict[str, Any]], learner: Learner, distribution: str,
+                       **where: Any) -> list[tuple[float, float | None]]:
+    """Per seed, the mass ``distribution`` puts on the quarter of the box where ``learner``
+    scores worst on p0 (its p0 section's ``quarter_scores``), beside p0's own mass there
+    (``None`` if its section predates the masses); seeds without both are left out."""
+    higher = _higher_better(records)
+    initial = {r["seed"]: r for r in select(records, method=learner[0], variant=learner[1],
+                                            distribution=INITIAL, **where)}
+    found = []
+    for record in select(records, method=learner[0], variant=learner[1],
+                         distribution=distribution, **where):
+        base = initial.get(record["seed"])
+        scores = None if base is None else [base.get(f"quarter_scores_{q}") for q in range(4)]
+        if scores is None or record.get("quarter_mass_0") is None:
+            continue
+        present = [(s, q) for q, s in enumerate(scores) if s is not None]
+        if not present:
+            continue
+        worst = (min if higher else max)(present)[1]
+        found.append((record[f"quarter_mass_{worst}"], base.get(f"quarter_mass_{worst}")))
+    return found
+
+
+def loss_ratios(records: list[dict[str, Any]], learner: Learner, distribution: str,
+                **where: Any) -> list[float]:
+    """Per seed, E_{p_φ}[loss] / E_{p0}[loss] of ``learner`` from its sections' means (for
+    returns the loss is −return): how much harder the adversary made the tasks. Seeds whose
+    mean loss on p0 is not positive are left out: the ratio of a loss that changes sign
+    measures nothing."""
+    sign = -1.0 if _higher_better(records) else 1.0
+    initial = {r["seed"]: r["mean"] for r in select(records, method=learner[0],
+                                                     variant=learner[1], distribution=INITIAL,
+                                                     **where)}
+    return [(sign * r["mean"]) / (sign * initial[r["seed"]])
+            for r in select(records, method=learner[0], variant=learner[1],
+                            distribution=distribution, **where)
+            if r["seed"] in initial and sign * initial[r["seed"]] > 0]
+
+
+def kl_ratio(attack: Sequence[float],
+             cotrained: Sequence[float]) -> tuple[float | None, float | None]:
+    """mean(attack) / mean(co-trained) of per-seed KLs paired by seed, and its standard error
+    over seeds by the delta method, std(z)/√n with z_s = (a_s − ratio·c_s) / mean(c); ``None``
+    for the ratio where the co-trained mean is not positive (an adversary that did not move),
+    for the error with one seed."""
+    n = len(attack)
+    mean_a, mean_c = sum(attack) / n, sum(cotrained) / n
+    if not mean_c > 0:
+        return None, None
+    ratio = mean_a / mean_c
+    if n < 2:
+        return ratio, None
+    z = [(a - ratio * c) / mean_c for a, c in zip(attack, cotrained)]
+    return ratio, over_seeds(z).se
+
+
+def _spread(values: Sequence[float], places: int = 2) -> str:
+    if not values:
+        return "–"
+    spread = over_seeds(values)
+    return (f"{spread.mean:.{places}f}" if spread.n < 2
+            else f"{spread.mean:.{places}f} ± {spread.std:.{places}f}")
+
+
+def adversary_section(plan: Plan, records: list[dict[str, Any]]) -> str:
+    """Meta-RL: the strength of every adversary, a row per adversary distribution with the
+    learner it was trained against (:func:`adversary_learners`): KL(p0 ‖ p_φ) (its non-negative
+    estimate, mean ± std over seeds [root-mean-square Monte-Carlo standard error]), p_φ's mass
+    on the quarter of the box where that learner does worst on p0
+    (:func:`worst_quarter_mass`), and E_{p_φ}[loss] / E_{p0}[loss] (:func:`loss_ratios`);
+    then, for each attack, whether it moved clearly further than the co-trained adversary of
+    its kind (:func:`attack_check`). Empty without adversaries."""
+    adversaries = adversary_learners(plan)
+    if not adversaries:
+        return ""
+    labels = _distributions(plan)
+    rows = []
+    for benchmark in _benchmarks(plan):
+        for name, (learner, attack) in adversaries.items():
+            where = {"benchmark": benchmark, "noisy": False}
+            masses = worst_quarter_mass(records, learner, name, **where)
+            base = [b for _, b in masses if b is not None]
+            mass = _spread([m for m, _ in masses])
+            if masses and len(base) == len(masses):
+                mass += f" (p0: {_spread(base)})"
+            rows.append([display(benchmark), labels[name],
+                         learner_label(plan, learner) + (" (attack)" if attack else ""),
+                         _level(records, "kl_p0", "kl_p0_sem", method=learner[0],
+                                variant=learner[1], distribution=name, **where),
+                         mass, _spread(loss_ratios(records, learner, name, **where))])
+    header = ["Benchmark", "Adversary", "trained against", "KL(p0 ‖ p_φ)",
+              "mass on the learner's worst quarter", "E_{p_φ}[loss] / E_{p0}[loss]"]
+    predictive = any(method.startswith(("mpts", "pdts")) for method, _ in _learners(plan))
+    checks = [attack_check(plan, records, benchmark) for benchmark in _benchmarks(plan)]
+    return ("**The adversaries' strength**, each read against the learner it was trained "
+            "against (for a p_φ of another seed: the learner of its method at the evaluating "
+            "seed): KL(p0 ‖ p_φ), mean ± std over seeds [root-mean-square of its Monte-Carlo "
+            "standard error, recorded with the non-negative estimator; a cell without it comes "
+            "from evaluations that took the plain Monte-Carlo mean of ln p0/p_φ]; p_φ's mass on "
+            "the quarter of the box where that learner scores worst on p0 (quarters: four equal "
+            "intervals of a 1-D box, the 2 × 2 cells of the halves of the first two identifiers "
+            "otherwise), beside p0's mass there; E_{p_φ}[loss] / E_{p0}[loss] of that learner "
+            "from the sections' means (for returns the loss is minus the return; undefined "
+            "where the mean loss on p0 is not positive). – where the evaluations predate the "
+            "field.\n\n"
+            + markdown_table(header, rows)
+            + "".join(f"\n\n{check}" for check in checks if check)
+            + (f"\n\n{ADVERSARY_NOTE}" if predictive else ""))
+
+
+def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> str:
+    """Whether each attack adversary (trained against a finished learner, nothing holding it
+    but its step rule) moved clearly further from p0 than the co-trained adversary of its kind
+    (the ``adversaries`` entry of the same method and variant at the same seed): the ratio of
+    their KLs over the seeds both have (:func:`kl_ratio`) beyond 1 by more than twice its
+    standard error. If so, the game, not the step, holds the co-trained adversary."""
+    sentences = []
+    adversaries = plan.spec.get("adversaries", {})
+    labels = _distributions(plan)
+    for name, attack in plan.spec.get("attacks", {}).items():
+        kind = (attack["method"], attack.get("variant", ""))
+        twin = next((other for other, spec in adversaries.items()
+                     if (spec["method"], spec.get("variant", "")) == kind
+                     and spec.get("seed_shift", 0) == 0), None)
+        if twin is None:
+            continue
+        target = (attack["target"], attack.get("variant", ""))
+        where = {"benchmark": benchmark, "noisy": False}
+        attacked = {r["seed"]: r["kl_p0"] for r in select(
+            records, method=target[0], variant=target[1], distribution=name, **where)
+            if r.get("kl_p0") is not None}
+        cotrained = {r["seed"]: r["kl_p0"] for r in select(
+            records, method=kind[0], variant=kind[1], distribution=twin, **where)
+            if r.get("kl_p0") is not None}
+        seeds = sorted(attacked.keys() & cotrained.keys())
+        if not seeds:
+            continue
+        a, c = [attacked[s] for s in seeds], [cotrained[s] for s in seeds]
+        ratio, se = kl_ratio(a, c)
+        lead = (f"On {display(benchmark)}, the attack" if len(_benchmarks(plan)) > 1
+                else "The attack")
+        compared = (f"**{lead} against {learner_label(plan, target)}** ({labels[name]}, KL "
+                    f"{sum(a) / len(a):.2f}) against the co-trained adversary ({labels[twin]}, "
+                    f"KL {sum(c) / len(c):.2f})")
+        if ratio is None:
+            sentences.append(f"{compared}: the co-trained adversary did not move from p0, so "
+                             "there is no ratio.")
+            continue
+        further = se is not None and ratio - 1 > 2 * se
+        error = "" if se is None else f" ± {se:.2f}"
+        sentences.append(
+            f"{compared}: KL ratio {ratio:.2f}{error} (ratio of the means over {len(seeds)} "
+            "seeds, standard error over seeds). "
+            + ("It moved clearly further (beyond 1 by more than twice its error): the game, "
+               "not the step rule, holds the co-trained adversary." if further else
+               "It did not move clearly further (not beyond 1 by twice its error): the step "
+               "rule, not the game, may be what holds the co-trained adversary."))
+    return "\n\n".join(sentences)
 
 
 LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {

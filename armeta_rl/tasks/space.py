@@ -94,6 +94,27 @@ class TaskSpace:
         low, high = self.bounds(params.dtype, params.device)
         return (params - low) / (high - low)
 
+    def quarter(self, params: Tensor) -> Tensor:
+        """The quarter of the box ``[n]`` (long, 0 to 3) of each row of ``params``: for a 1-D
+        box its four equal intervals in order; for d ≥ 2 the 2×2 cells of the halves of the
+        first two identifiers, 2·(upper half of the first) + (upper half of the second). Four
+        parts of equal volume, so p0 uniform puts 1/4 on each, and where a learner does worst
+        and where an adversary puts its mass can be read on the same cells.
+
+        Examples:
+            >>> import torch
+            >>> from armeta_rl.tasks import TaskSpace
+            >>> TaskSpace(["v"], low=[0.0], high=[2.0]).quarter(torch.tensor([[0.1], [1.9]]))
+            tensor([0, 3])
+            >>> square = TaskSpace(["x", "y"], low=[-1.0, -1.0], high=[1.0, 1.0])
+            >>> square.quarter(torch.tensor([[-0.5, 0.5], [0.5, -0.5]]))
+            tensor([1, 2])
+        """
+        unit = self.to_unit(params.to(torch.float64))
+        if self.dim == 1:
+            return (4 * unit[..., 0]).floor().long().clamp(0, 3)
+        return 2 * (unit[..., 0] >= 0.5).long() + (unit[..., 1] >= 0.5).long()
+
     def contains(self, params: Tensor) -> Tensor:
         """Boolean ``[n]``: whether each row of ``params`` lies in the closed box."""
         low, high = self.bounds(params.dtype, params.device)

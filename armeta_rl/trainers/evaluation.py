@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
@@ -19,7 +20,7 @@ from armeta_rl.learners.base import Leader
 from armeta_rl.risk.tail import tail_size
 from armeta_rl.run_files import FileRefused, read_text
 from armeta_rl.tasks import TaskDistribution
-from armeta_rl.tasks.protocol import per_rollout, repeat_tasks
+from armeta_rl.tasks.protocol import TASK_KEY, per_rollout, repeat_tasks
 
 REPORT_BYTES = 64 * 2**20
 """The most an evaluation report is read (its per-task scores of 500 tasks × every section
@@ -171,6 +172,50 @@ def adapts(gain: float, gain_sem: float | None) -> bool:
     return gain_sem is not None and gain > 2.0 * gain_sem
 
 
+def gap_closed(achieved: Tensor, blind: Tensor, oracle: Tensor) -> tuple[float | None,
+                                                                        float | None]:
+    """The share of the goal-blind gap the adapted policy closes on a batch of tasks, and its
+    standard error over tasks: (R̄_adapted − R̄_blind) / (R̄_oracle − R̄_blind) from the per-task
+    goal terms ``[n]`` of the adapted policy, of the best goal-blind policy for the batch and of
+    the best policy with the goal known (a collector's ``goal_references``).
+
+    0 is a policy no better than one that ignores the goal, 1 one as good as knowing it: how much
+    of what the goal is worth one inner step recovers. A ratio of means (not a mean of per-task
+    ratios, which a task whose goal the blind policy meets would blow up); its standard error is
+    the delta method's, std(z)/√n with z_i = ((a_i − b_i) − share·(o_i − b_i)) / mean(o − b).
+    ``(None, None)`` where the blind policy is as good as the oracle on average (no gap)."""
+    adapted, blind, oracle = (v.detach().to(torch.float64).flatten()
+                              for v in (achieved, blind, oracle))
+    gap = (oracle - blind).mean()
+    if not gap > 0:
+        return None, None
+    share = (adapted - blind).mean() / gap
+    influence = ((adapted - blind) - share * (oracle - blind)) / gap
+    return float(share), standard_error(influence)
+
+
+def goal_section(achieved: Tensor, blind: Tensor, oracle: Tensor) -> dict[str, Any]:
+    """A report's ``goal``: the mean goal terms over tasks (``achieved``, ``blind``,
+    ``oracle``) and the share of the goal-blind gap closed with its standard error
+    (:func:`gap_closed`), from per-task values ``[n]`` or, with R rollouts per task,
+    ``[R, n]`` (a task's value is the mean of its rollouts)."""
+    per_task = [v.detach().to(torch.float64).reshape(-1, v.shape[-1]).mean(0)
+                for v in (achieved, blind, oracle)]
+    share, sem = gap_closed(*per_task)
+    return {"achieved": float(per_task[0].mean()), "blind": float(per_task[1].mean()),
+            "oracle": float(per_task[2].mean()), "gap_closed": share, "gap_closed_sem": sem}
+
+
+def quarter_scores(scores: Tensor, quarters: Tensor) -> list[float | None]:
+    """The mean score ``[4]`` of the tasks in each quarter of the box (their
+    :meth:`~armeta_rl.tasks.TaskSpace.quarter` ``[n]``), ``None`` for a quarter without
+    tasks: where on the box the learner does worst, which an adversary's
+    ``quarter_mass`` is read against."""
+    values = scores.detach().to(torch.float64).flatten()
+    return [float(values[quarters == q].mean()) if bool((quarters == q).any()) else None
+            for q in range(4)]
+
+
 def paired_difference(first: Sequence[float], second: Sequence[float], metric: str,
                       alphas: Sequence[float]) -> dict[str, Any]:
     """First learner minus second on the same tasks (their reports' ``per_task`` scores, in
@@ -209,7 +254,11 @@ def evaluate_on(
     learner's loss), all on ``device``: with ``distribution`` the trained adversary p_φ*, the mean
     is the estimate of E_{p_φ*}[L] of paper Eq. (48). Where the leader reports its loss before
     adaptation (meta-RL), the report's ``"adaptation"`` holds the score before adaptation and the
-    paired gain on the same data (:func:`adaptation_gain`).
+    paired gain on the same data (:func:`adaptation_gain`); where the collector knows the
+    goal-blind and the oracle references of its tasks (``goal_references``), ``"goal"`` holds
+    the share of the goal-blind gap the adapted policy closes (:func:`goal_section`).
+    ``"quarter_scores"`` is the mean score of the tasks in each quarter of the box
+    (:func:`quarter_scores`).
 
     The R copies of every task are collected and adapted in one batch (rollout-major,
     :func:`~armeta_rl.tasks.protocol.repeat_tasks`). Runs under its own seed inside a forked RNG
@@ -232,14 +281,36 @@ def evaluate_on(
     with forked_rng(device):
         torch.manual_seed(seed)
         tasks = distribution.sample(n_tasks)
+        repeated = repeat_tasks(tasks, rollouts)
         with torch.no_grad():
-            data = leader.collect(repeat_tasks(tasks, rollouts), collector)
+            data = leader.collect(repeated, collector)
             losses, before = leader.evaluate(data), leader.evaluate_before(data)
+            references = goal_references(collector, repeated[TASK_KEY],
+                                         leader.adapted_episodes(data))
     report = summarize(per_rollout(losses, rollouts), leader.metric, alphas)
     if before is not None:
         report["adaptation"] = adaptation_gain(per_rollout(before, rollouts),
                                                per_rollout(losses, rollouts), leader.metric)
+    if references is not None:
+        report["goal"] = goal_section(*(per_rollout(references[key], rollouts)
+                                        for key in ("achieved", "blind", "oracle")))
+    sign = -1.0 if higher_is_better(leader.metric) else 1.0
+    scores = sign * per_rollout(losses, rollouts).to(torch.float64).mean(0)
+    report["quarter_scores"] = quarter_scores(
+        scores, distribution.space.quarter(tasks[TASK_KEY]).to(scores.device))
     return report
+
+
+def goal_references(collector: TaskCollector, params: Tensor,
+                    episodes: TensorDictBase | None) -> dict[str, Tensor] | None:
+    """The collector's goal references of the tasks ``params`` ``[K, d]`` and their adapted
+    episodes (``goal_references(params, episodes)``: per task the goal term achieved, the best
+    goal-blind policy's and the oracle's), or ``None`` for a leader without episodes or a
+    collector that knows none."""
+    known = getattr(collector, "goal_references", None)
+    if episodes is None or known is None:
+        return None
+    return known(params, episodes)
 
 
 def format_table(report: dict[str, Any]) -> str:
@@ -324,11 +395,14 @@ def _check_section(name: str, section: dict[str, Any], higher: bool) -> None:
         raise ReportInvalid(f"'{name}.n_tasks' = {n!r} is not an integer >= 1")
     if (sem is None) != (n == 1) or (sem is not None and not (_number(sem) and sem >= 0)):
         raise ReportInvalid(f"'{name}.sem' = {sem!r} is not a standard error of {n} tasks")
-    for key in ("entropy", "kl_p0"):  # null where undefined (a shift's support is not p0's)
-        if section.get(key) is not None and not _number(section[key]):
+    for key in ("entropy", "kl_p0", "kl_p0_sem"):  # null where undefined (a shift's support
+        if section.get(key) is not None and not _number(section[key]):  # is not p0's)
             raise ReportInvalid(f"'{name}.{key}' = {section[key]!r} is not a finite number")
     if "adaptation" in section:
         _check_adaptation(name, section["adaptation"], n)
+    if "goal" in section:
+        _check_goal(name, section["goal"])
+    _check_quarters(name, section)
     per_task = section.get("per_task")
     if per_task is not None and not (isinstance(per_task, list) and len(per_task) == n
                                      and all(_number(v) for v in per_task)):
@@ -374,6 +448,41 @@ def _check_adaptation(name: str, adaptation: Any, n: int) -> None:
     if not isinstance(improved, int) or isinstance(improved, bool) or not 0 <= improved <= n:
         raise ReportInvalid(f"'{name}.adaptation.improved' = {improved!r} is not a count of "
                             f"tasks in [0, {n}]")
+
+
+def _check_goal(name: str, goal: Any) -> None:
+    """The ``goal`` of a section must be what :func:`goal_section` makes: finite mean goal
+    terms, the blind one no better than the oracle's, and a share with a non-negative error (or
+    both null)."""
+    if not isinstance(goal, dict):
+        raise ReportInvalid(f"'{name}.goal' is not an object")
+    for key in ("achieved", "blind", "oracle"):
+        if not _number(goal.get(key)):
+            raise ReportInvalid(f"'{name}.goal.{key}' = {goal.get(key)!r} is not a finite number")
+    if goal["blind"] > goal["oracle"] + _slack(goal["blind"], goal["oracle"]):
+        raise ReportInvalid(f"'{name}.goal.blind' = {goal['blind']!r} is better than the "
+                            f"oracle's {goal['oracle']!r}")
+    share, sem = goal.get("gap_closed"), goal.get("gap_closed_sem")
+    if share is not None and not _number(share):
+        raise ReportInvalid(f"'{name}.goal.gap_closed' = {share!r} is not a finite number")
+    if sem is not None and not (_number(sem) and sem >= 0):
+        raise ReportInvalid(f"'{name}.goal.gap_closed_sem' = {sem!r} is not a standard error")
+
+
+def _check_quarters(name: str, section: dict[str, Any]) -> None:
+    """A section's ``quarter_mass`` must be 4 shares in [0, 1] summing to 1, its
+    ``quarter_scores`` 4 finite numbers or nulls (a quarter without tasks)."""
+    mass = section.get("quarter_mass")
+    if mass is not None and not (
+            isinstance(mass, list) and len(mass) == 4
+            and all(_number(m) and 0 <= m <= 1 for m in mass)
+            and abs(math.fsum(mass) - 1) < 1e-6):
+        raise ReportInvalid(f"'{name}.quarter_mass' = {mass!r} is not the mass of 4 quarters")
+    scores = section.get("quarter_scores")
+    if scores is not None and not (
+            isinstance(scores, list) and len(scores) == 4
+            and all(v is None or _number(v) for v in scores)):
+        raise ReportInvalid(f"'{name}.quarter_scores' = {scores!r} is not 4 quarters' scores")
 
 
 def _slack(a: float, b: float) -> float:

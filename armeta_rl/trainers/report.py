@@ -78,23 +78,28 @@ def evaluate_players(
 
 def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution, seed: int,
                        samples: int = 4096, device: torch.device = CPU
-                       ) -> dict[str, float | None]:
+                       ) -> dict[str, Any]:
     """Entropy H[p], KL(p0 ‖ p) and the KL's standard error of a task distribution on ``device``
     (Monte Carlo with exact log-densities; the paper's entropy table reports H of p0 and of the
-    learned p_φ). The KL is ``None`` where it is infinite: a shift that leaves part of p0's
-    support out."""
+    learned p_φ), and its mass in each quarter of the box (``quarter_mass``,
+    :meth:`~armeta_rl.tasks.TaskDistribution.quarter_mass`: how much of an adversary sits where
+    a learner does worst), all under ``seed`` in a forked RNG. The KL is ``None`` where it is
+    infinite: a shift that leaves part of p0's support out."""
     with forked_rng(device), torch.no_grad():
         torch.manual_seed(seed)
         entropy = float(distribution.entropy(samples))
         kl, kl_sem = (float(value) for value in distribution.kl_from(initial, samples))
+        mass = distribution.quarter_mass(samples).tolist()
     finite = math.isfinite(kl)
     return {"entropy": entropy, "kl_p0": kl if finite else None,
-            "kl_p0_sem": kl_sem if finite else None}
+            "kl_p0_sem": kl_sem if finite else None, "quarter_mass": mass}
 
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
     """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``; in meta-RL
-    also ``…/before`` (the score before adaptation) and ``…/gain`` (the adaptation gain)."""
+    also ``…/before`` (the score before adaptation), ``…/gain`` (the adaptation gain) and, where
+    the benchmark knows its goal references, ``…/gap_closed`` (the share of the goal-blind gap
+    closed)."""
     scalars = {}
     for name, section in report.items():
         if isinstance(section, dict) and "mean" in section:
@@ -105,6 +110,8 @@ def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
             if "adaptation" in section:
                 scalars[f"eval/{name}/before"] = section["adaptation"]["before"]
                 scalars[f"eval/{name}/gain"] = section["adaptation"]["gain"]
+            if (section.get("goal") or {}).get("gap_closed") is not None:
+                scalars[f"eval/{name}/gap_closed"] = section["goal"]["gap_closed"]
     return scalars
 
 
