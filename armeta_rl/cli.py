@@ -236,9 +236,9 @@ def check_jobs(args: Sequence[str]) -> list[TrainConfig]:
 RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
 """The keys a resumed run may change that change what it computes: train longer, stop earlier,
 continue on another device (its checkpoint loads there)."""
-NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "trainer.progress",
-                  "trainer.log_every", "trainer.density_every", "trainer.keep_freed_memory",
-                  "trainer.stop_signals", "threads")
+NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "logger.tracking_uri",
+                  "trainer.progress", "trainer.log_every", "trainer.density_every",
+                  "trainer.keep_freed_memory", "trainer.stop_signals", "threads")
 """The keys a resumed run may change that change no result (``eval.json`` and every logged
 value stay those of the uninterrupted run): where and how often it logs and draws, the progress
 bar, the allocator, the stop signals, and torch's thread count (which the seeded benchmark
@@ -273,7 +273,8 @@ def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, lis
                           f"(only {', '.join(allowed)} can); train a new run to change it")
         if name == "logger":  # a group: its file's keys
             chosen = OmegaConf.load(config_files() / "logger" / f"{value}.yaml")
-            changes["logger"] = {"project": None, **OmegaConf.to_container(chosen)}
+            changes["logger"] = {"project": None, "tracking_uri": None,
+                                 **OmegaConf.to_container(chosen)}
             continue
         *groups, leaf = name.split(".")
         node = changes

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torchrl.record.loggers import Logger, WandbLogger
+from torchrl.record.loggers import Logger
 
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, TrainConfig, run_values
@@ -23,10 +23,10 @@ from armeta_rl.errors import (
 )
 from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, run_identity
-from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames, readable
-from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_report
+from armeta_rl.trainers.density import FRAMES_DIR, PICTURE_KEY, DensityFrames, readable
+from armeta_rl.trainers.evaluation import ReportInvalid, curve_steps, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.loggers import run_logger
+from armeta_rl.trainers.loggers import log_picture, run_logger
 from armeta_rl.trainers.players import Players, build_players, load_frozen_leader
 from armeta_rl.trainers.report import EVAL_FILE, eval_scalars, evaluate_players
 from armeta_rl.trainers.run_dir import (
@@ -150,6 +150,7 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
         raise ConfigError(section, "last_step", f"needs an env that reports its forward reward "
                           f"after every step (the locomotion families), not "
                           f"{config.benchmark.name}'s")
+    curve_steps(players.leader, config.eval.adaptation_steps)  # refused before training
     if config.trainer.follower_rollouts > 1 and config.trainer.follower_at == "step":
         raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
                           "must be 1 with trainer.follower_at=step: the follower reads the "
@@ -269,7 +270,4 @@ def _save_density(players: Players, path: Path, logger: Logger | None, iteration
     title = f"p_φ after {iteration} meta-iterations"
     write_atomically(path, lambda staged: plot_density(players.adversary, players.initial,
                                                        staged, title=title))
-    if isinstance(logger, WandbLogger):
-        import wandb
-
-        logger.experiment.log({"adversary/density": wandb.Image(str(path))})
+    log_picture(logger, PICTURE_KEY, path)
