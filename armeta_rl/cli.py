@@ -531,8 +531,6 @@ def _train(args: list[str]) -> None:
                        "train a method on a benchmark (armeta-train [group=option ...] "
                        "[key=value ...] [-m])"):
         return
-    from armeta_rl.trainers.run_dir import check_run_dir, run_lock
-
     for arg in args:
         name, _, value = arg.partition("=")
         if name in ("hydra.run.dir", "hydra.sweep.dir") and not value.strip():
@@ -548,6 +546,8 @@ def _train(args: list[str]) -> None:
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     else:
         configs, taken = check_jobs(args), []
+    from armeta_rl.trainers.run_dir import check_run_dir, run_lock  # torch: after the checks
+
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
         _run_hydra(args, "train", _report_errors(prog, _sweep_job))
         return

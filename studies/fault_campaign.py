@@ -1,6 +1,6 @@
 """The fault campaign: preemption signals, damaged artefacts, bad inputs and resume
 keys, each case run through the command-line tools exactly as a user types it, on this checkout
-and on an earlier revision (``--before``), written as a table into docs/configuration.md (the
+and on an earlier revision (``--before``), written as a table into docs/failures.md (the
 ``fault_campaign`` section) and its raw outcomes into ``studies/fault_campaign.json``.
 
     OMP_NUM_THREADS=1 python studies/fault_campaign.py [--before REV] [--rerun-before]
@@ -36,7 +36,7 @@ from timing import DOCS, markdown_table, write_section  # noqa: E402 (the benchm
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).with_name("fault_campaign.json")
-PAGE = DOCS / "configuration.md"
+PAGE = DOCS / "failures.md"
 TOOLS = {
     "armeta-train": "from armeta_rl.cli import train; train()",
     "armeta-eval": "from armeta_rl.cli import evaluate; evaluate()",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import textwrap
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -182,7 +183,8 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
         options = trainer_options if progress else replace(trainer_options, progress=False)
         trainer = GameTrainer(players.leader, players.principle, options,
                               log=lambda scalars, step: _log_scalars(logger, scalars, step),
-                              checkpoint=checkpoint, after_iteration=frames)
+                              checkpoint=checkpoint, after_iteration=frames,
+                              label=run_dir.name)
         trainer.iteration = start
         reached = trainer.run(stop=stop)
         planned = min(trainer_options.iterations,
@@ -260,8 +262,26 @@ def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger
     if frames is not None:
         frames.finish(iteration)
     write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
-    say(format_table(report))
+    say(end_of_run(config, run_dir, report, players.adversary is not None))
     return report
+
+
+TABLE_LEGEND = ("R: rollouts per task, a task's score their mean; ± one standard error over "
+                "tasks; cvar_α: the mean over the worst 1 − α of tasks; gain: after adaptation − "
+                "before ('not adapting': within two standard errors of 0)")
+"""What the end-of-run table's columns are, said once under it."""
+
+
+def end_of_run(config: TrainConfig, run_dir: Path, report: dict, drew: bool) -> str:
+    """What a finished run prints: its name, the table (with its adaptation curve), what the
+    columns are, and where the run directory, the report and the density picture (``drew``) are;
+    a ``-m`` sweep's jobs each print theirs under their own run's name."""
+    pictures = (f"; the adversary's density (p_φ against p0): {run_dir / DENSITY_FILE}, "
+                "density.gif" if drew else "")
+    return "\n".join([
+        f"{run_dir.name}: {config.method.name} on {config.benchmark.name}, seed {config.seed}",
+        format_table(report), textwrap.fill(TABLE_LEGEND, 100),
+        f"run directory: {run_dir} (report: {EVAL_FILE}{pictures})"])
 
 
 def _save_density(players: Players, path: Path, logger: Logger | None, iteration: int) -> None:
