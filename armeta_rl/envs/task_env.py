@@ -170,7 +170,7 @@ class TaskBatchedEnv:
         if any(value != values[0] for value in values):
             raise ConfigError("env", type(self).__name__,
                               f"its workers differ in their {name.replace('_', ' ')} "
-                              f"({', '.join(map(str, dict.fromkeys(map(str, values))))}): one "
+                              f"({', '.join(dict.fromkeys(map(str, values)))}): one "
                               "batched env holds tasks of one box")
         return values[0]
 

@@ -135,10 +135,10 @@ class IdentifierCheck:
         batch entry each, ``[...]`` or ``[..., 1]``), stacked in this check's order."""
         if not isinstance(params, TensorDictBase):
             return params
-        given = sorted(params.keys(include_nested=True, leaves_only=True), key=str)
-        if sorted(given, key=str) != sorted(self.names, key=str):
+        given = sorted(map(str, params.keys(include_nested=True, leaves_only=True)))
+        if given != sorted(self.names):
             raise IdentifierError(
-                TASK_KEY, f"nested keys {[str(k) for k in given]}",
+                TASK_KEY, f"nested keys {given}",
                 f"identifiers by name need exactly ({', '.join(self.names)}), or a float "
                 f"tensor [..., {len(self.names)}]")
         columns = []
