@@ -284,9 +284,9 @@ def check_jobs(args: Sequence[str]) -> list[TrainConfig]:
 RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
 """The keys a resumed run may change that change what it computes: train longer, stop earlier,
 continue on another device (its checkpoint loads there)."""
-NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "trainer.progress",
-                  "trainer.log_every", "trainer.density_every", "trainer.keep_freed_memory",
-                  "trainer.stop_signals", "threads", "adopt")
+NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "logger.tracking_uri",
+                  "trainer.progress", "trainer.log_every", "trainer.density_every",
+                  "trainer.keep_freed_memory", "trainer.stop_signals", "threads", "adopt")
 """The keys a resumed run may change that change no result (``eval.json`` and every logged
 value stay those of the uninterrupted run): where and how often it logs and draws, the progress
 bar, the allocator, the stop signals, torch's thread count (which the seeded benchmark
@@ -323,7 +323,8 @@ def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, lis
                           f"(only {', '.join(allowed)} can); train a new run to change it")
         if name == "logger":  # a group: its file's keys
             chosen = OmegaConf.load(config_files() / "logger" / f"{value}.yaml")
-            changes["logger"] = {"project": None, **OmegaConf.to_container(chosen)}
+            changes["logger"] = {"project": None, "tracking_uri": None,
+                                 **OmegaConf.to_container(chosen)}
             continue
         *groups, leaf = name.split(".")
         node = changes
@@ -580,8 +581,6 @@ def _train(args: list[str]) -> None:
                        "train a method on a benchmark (armeta-train [group=option ...] "
                        "[key=value ...] [-m])"):
         return
-    from armeta_rl.trainers.run_dir import check_contents, check_run_dir, run_lock
-
     for arg in args:
         name, _, value = arg.partition("=")
         if name in ("hydra.run.dir", "hydra.sweep.dir") and not value.strip():
@@ -598,6 +597,12 @@ def _train(args: list[str]) -> None:
     else:
         configs, taken = check_jobs(args), []
     check_hydra(args, "train")
+    from armeta_rl.trainers.run_dir import (  # torch: after the checks
+        check_contents,
+        check_run_dir,
+        run_lock,
+    )
+
     if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
         _run_hydra(args, "train", _report_errors(prog, _sweep_job))
         return

@@ -126,6 +126,9 @@ class EvalConfig(Section):
     # loss), averaged; the RL benchmarks set theirs from the noise-against-R curve
     # (docs/meta-rl.md)
     rollouts: int = at_least(1, 1)
+    # k: a meta-RL learner is also scored after 0, 1, ..., k inner steps (the report's
+    # adaptation_curve); null: the number it trains with and two more
+    adaptation_steps: int | None = at_least(1, None)
 
 
 @dataclass
@@ -145,8 +148,9 @@ class MethodConfig(Section):
 class LoggerConfig(Section):
     section = "logger"
 
-    kind: str = one_of("csv", "wandb", "none", default="csv")
+    kind: str = one_of("csv", "wandb", "tensorboard", "mlflow", "none", default="csv")
     project: str | None = key()
+    tracking_uri: str | None = key()  # mlflow's store (default: a SQLite file in the run)
 
 
 @dataclass

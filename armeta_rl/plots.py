@@ -1,5 +1,6 @@
 """Figures: the learned task distribution against p0 (paper figures "Task Structure Analysis"),
-and its evolution during training as PNG frames and an animated GIF.
+its evolution during training as PNG frames and an animated GIF, and a learner's adaptation
+curve from its evaluation reports (:func:`plot_adaptation_curves`).
 
 A figure is drawn from its numbers (:class:`DensityPicture`), so that an animation's frames can be
 redrawn on one colour scale at the end. Scales follow the densities' range
@@ -14,7 +15,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -202,6 +203,49 @@ def plot_density(distribution: TaskDistribution, initial: TaskDistribution, path
     space = distribution.space
     return draw_density(density_picture(distribution, initial, points_per_axis), path, title,
                         low=space.low, high=space.high)
+
+
+def plot_adaptation_curves(reports: Mapping[str, Mapping[str, Any]], path: str | Path,
+                           section: str = "initial", title: str | None = None) -> Figure:
+    """Plot the adaptation curves of evaluation reports (``eval.json``, ``eval_vs_<run>.json``):
+    each report's score on distribution ``section`` after 0, 1, ..., k inner steps, with one
+    standard error over tasks as a band, one line per report (its key the legend), saved as a
+    PNG at ``path``.
+
+    Raises:
+        ConfigError: a report without an adaptation curve for ``section`` (not a meta-RL
+            learner's, or written before reports had one).
+
+    Examples:
+        >>> import tempfile
+        >>> from pathlib import Path
+        >>> from armeta_rl.plots import plot_adaptation_curves
+        >>> report = {"metric": "return", "initial": {"adaptation_curve": {
+        ...     "inner_steps": [0, 1, 2], "mean": [-30.0, -21.0, -19.5], "sem": [1.0, 0.9, 0.9]}}}
+        >>> path = Path(tempfile.mkdtemp()) / "curve.png"
+        >>> figure = plot_adaptation_curves({"MAML": report}, path)
+    """
+    figure = _new_figure((6, 4))
+    axis = figure.add_subplot()
+    metric = None
+    for label, report in reports.items():
+        curve = (report.get(section) or {}).get("adaptation_curve")
+        if curve is None:
+            raise ConfigError("report", label, f"has no adaptation curve for '{section}': "
+                              "a meta-RL learner's evaluation report has one")
+        metric = report.get("metric")
+        mean = torch.tensor(curve["mean"], dtype=torch.float64)
+        sem = torch.tensor([0.0 if e is None else e for e in curve["sem"]], dtype=torch.float64)
+        axis.plot(curve["inner_steps"], mean, marker="o", label=label)
+        axis.fill_between(curve["inner_steps"], mean - sem, mean + sem, alpha=0.2)
+    axis.set_xlabel("inner steps")
+    axis.set_ylabel(f"{metric} on {section} (mean ± sem over tasks)")
+    axis.xaxis.get_major_locator().set_params(integer=True)
+    axis.legend()
+    if title:
+        axis.set_title(title)
+    figure.savefig(path, dpi=100)
+    return figure
 
 
 def _new_figure(size: tuple[float, float]) -> Figure:

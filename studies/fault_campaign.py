@@ -1,7 +1,7 @@
 """The fault campaign: preemption signals, damaged artefacts, bad inputs, resume keys and
 run directories handed over by a hostile colleague, each case run through the command-line tools
 exactly as a user types it, on this checkout and on the earlier revision its group of cases was
-first run against, written as tables into docs/configuration.md (the ``fault_campaign``
+first run against, written as tables into docs/failures.md (the ``fault_campaign``
 section) and its raw outcomes into ``studies/fault_campaign.json``.
 
     OMP_NUM_THREADS=1 python studies/fault_campaign.py [--rerun-before] [--only CASE,...]
@@ -39,7 +39,7 @@ from timing import DOCS, markdown_table, write_section  # noqa: E402 (the benchm
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path(__file__).with_name("fault_campaign.json")
-PAGE = DOCS / "configuration.md"
+PAGE = DOCS / "failures.md"
 TOOLS = {
     "armeta-train": "from armeta_rl.cli import train; train()",
     "armeta-eval": "from armeta_rl.cli import evaluate; evaluate()",
@@ -1295,7 +1295,7 @@ def main() -> None:
 
 
 def write_page(stored: dict) -> None:
-    """The ``fault_campaign`` section of docs/configuration.md: a table per group of cases."""
+    """The ``fault_campaign`` section of docs/failures.md: a table per group of cases."""
     now = stored["now"]
 
     def cell(cases: dict[str, str], name: str) -> str:
@@ -1320,9 +1320,9 @@ def write_page(stored: dict) -> None:
         f"signal: {crashes[0]} of {len(CASES)} before, {crashes[1]} now.\n\n" + table
         + "\n\n### A run directory is data\n\nA run directory or results folder handed over "
         "by a hostile colleague, to be resumed, scored, attacked, aggregated or packed "
-        "([the trust model](#the-trust-model)); RUN is the run directory the case damaged, "
-        "and a crafted payload's code would create a marker file. Harmful: wrong data trusted, "
-        "a file outside the run written, or a refused report packed. "
+        "([the trust model](configuration.md#the-trust-model)); RUN is the run directory the "
+        "case damaged, and a crafted payload's code would create a marker file. Harmful: "
+        "wrong data trusted, a file outside the run written, or a refused report packed. "
         f"{len(TRUST_CASES)} cases; before ({TRUST_BEFORE}): "
         f"{counts(trust, list(TRUST_CASES))}; now: {counts(now['cases'], list(TRUST_CASES))}."
         "\n\n" + trust_table), PAGE,

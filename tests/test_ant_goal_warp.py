@@ -2,7 +2,7 @@
 on warp's CPU device (and on CUDA where there is one). Ant-Dir shares the Ant's model and kernels,
 so it is checked here; the other families are in tests/test_warp_families.py.
 
-Tolerance (stated in docs/scale.md). Each check starts both engines from the same state and steps
+Tolerance (docs/scale-details.md). Each check starts both engines from the same state and steps
 them with the same controls ("teacher forcing": the CPU state is copied into warp before every
 step), for 200 physics steps of the gymnasium Ant MJCF with random controls, while the Ant falls,
 lands and kicks (0 to 3 contacts). MuJoCo Warp computes in float32, CPU MuJoCo in float64:

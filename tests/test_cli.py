@@ -20,7 +20,7 @@ EVAL = [sys.executable, "-c",
     [
         ("benchmark=sinusoid_square", "benchmark", "sinusoid_uniform"),
         ("method=super_maml", "method", "ar_maml"),
-        ("logger=tensorboard", "logger", "csv"),
+        ("logger=tensorbored", "logger", "tensorboard"),
         ("benchmark.space.low=[5.0,0.0]", "benchmark.space.low", "must be <"),
         ("risk.ar.lam=-0.5", "risk.ar.lam", ">= 0"),
         ("eval.alphas=[0.5,1.2]", "eval.alphas", "(0, 1)"),

@@ -49,7 +49,7 @@ from armeta_rl.envs import (
 from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError, IdentifierError
 from armeta_rl.tasks import TASK_KEY
-from armeta_rl.tasks.protocol import read_identifiers
+from armeta_rl.tasks.protocol import IdentifierCheck
 from conftest import collector_of, compose_train
 
 BATCH = (2, 1)
@@ -312,7 +312,7 @@ def test_bad_identifiers_raise_one_clear_line(name, entries, key, allowed):
 def test_identifiers_that_do_not_broadcast_to_the_batch_raise():
     reset = TensorDict({TASK_KEY: torch.ones(3, 2)}, [])
     with pytest.raises(IdentifierError, match=r"broadcasts to \[2, 1, 2\]"):
-        read_identifiers(reset, ("m1", "m2"), 0.0, 1.0, torch.Size(BATCH))
+        IdentifierCheck.uniform(("m1", "m2"), 0.0, 1.0).read(reset, torch.Size(BATCH))
 
 
 def test_transformed_reset_forwards_the_task_key_and_the_env_refuses_others():

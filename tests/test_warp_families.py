@@ -3,7 +3,7 @@ HalfCheetah-Dir, Walker2d-Vel, and HalfCheetah-MassVel, Walker2d-MassVel with pe
 against their CPU envs, on warp's CPU device (and on CUDA where there is one); Ant-Dir is checked
 with the Ant in tests/test_ant_goal_warp.py, whose kernels it shares.
 
-Tolerance (stated in docs/scale.md). Each check builds the CPU env and the Warp env with the same
+Tolerance (docs/scale-details.md). Each check builds the CPU env and the Warp env with the same
 seed and identifiers and steps them with the same actions, copying the CPU state into warp before
 every env step ("teacher forcing"), for 12 env steps (60 physics steps of HalfCheetah, 48 of
 Walker2d) while the robots touch the floor (contacts in most steps). Measured: the reset

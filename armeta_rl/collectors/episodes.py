@@ -149,8 +149,9 @@ class EpisodeCollector:
             env = self.probe_env()
             try:
                 for corner in (space.low, space.high):
-                    params = torch.tensor([[corner]], dtype=dtype, device=env.device)
-                    env.reset(TensorDict({TASK_KEY: params}, [1, 1]))
+                    params = torch.tensor(corner, dtype=dtype, device=env.device)
+                    env.reset(TensorDict({TASK_KEY: params.expand(*env.batch_size, -1)},
+                                         env.batch_size))
             except IdentifierError as error:
                 box = {"names": list(space.names), "low": list(space.low),
                        "high": list(space.high)}

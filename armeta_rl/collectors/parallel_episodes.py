@@ -26,11 +26,12 @@ from functools import partial
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import EnvBase, ParallelEnv, SerialEnv, TransformedEnv
+from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.transforms import BatchSizeTransform
 
 from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.devices import CPU
+from armeta_rl.envs.task_env import TaskParallelEnv, TaskSerialEnv
 from armeta_rl.errors import ConfigError
 
 WORKERS_KEY = "benchmark.collector.workers"
@@ -51,8 +52,9 @@ def make_task_split_env(
 ) -> TransformedEnv:
     """An env of batch size ``batch_size = (K, episodes)`` made of ``workers`` envs
     ``make_env(batch_size=(K // workers, episodes), max_steps=max_steps, seed=seed)``, each in
-    its own process (``ParallelEnv``, one torch thread per worker) or all in this process
-    (``in_process``: ``SerialEnv``, same results)."""
+    its own process (:class:`~armeta_rl.envs.TaskParallelEnv`, one torch thread per worker) or
+    all in this process (``in_process``: :class:`~armeta_rl.envs.TaskSerialEnv`, same results);
+    a reset the workers' envs would refuse is refused here, the workers alive."""
     tasks, episodes = (int(n) for n in batch_size)
     if int(workers) < 1 or tasks % int(workers):
         raise ConfigError(WORKERS_KEY, workers, f"must be >= 1 and divide the task count {tasks}")
@@ -60,10 +62,10 @@ def make_task_split_env(
     make = partial(make_env, batch_size=(tasks // workers, episodes), max_steps=max_steps,
                    seed=seed)
     if in_process:
-        split = SerialEnv(workers, make)
+        split = TaskSerialEnv(workers, make)
     else:
         # one torch thread per worker; this process keeps its own thread count
-        split = ParallelEnv(workers, make, mp_start_method=mp_start_method, num_sub_threads=1,
+        split = TaskParallelEnv(workers, make, mp_start_method=mp_start_method, num_sub_threads=1,
                             num_threads=torch.get_num_threads())
     reshape = BatchSizeTransform(reshape_fn=partial(_reshape, shape=(tasks, episodes)))
     reshape.enable_inv_on_reset = True  # reset TensorDicts ("params", "_reset") go to the workers

@@ -1,6 +1,8 @@
 """Batched TorchRL environments (batch size ``[tasks, episodes]``) whose task identifiers are
 set under ``"params"`` (:data:`armeta_rl.tasks.TASK_KEY`) in the reset TensorDict and kept across
-automatic resets.
+automatic resets; every env tells its box (``env.task_space``) and p0 (``env.p0``), and so do
+the drop-ins for TorchRL's wrappers (:class:`TaskTransformedEnv`, :class:`TaskSerialEnv`,
+:class:`TaskParallelEnv`; :func:`task_space` reads it through any layout).
 
 All are imported eagerly: ``torchrl.envs`` already imports MuJoCo, so the MuJoCo envs add no
 measurable start-up time.
@@ -17,6 +19,13 @@ from armeta_rl.envs.locomotion import (
 )
 from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.envs.point_navigation import PointNavigationEnv
+from armeta_rl.envs.task_env import (
+    TaskParallelEnv,
+    TaskSerialEnv,
+    TaskTransformedEnv,
+    identifier_check,
+    task_space,
+)
 
 __all__ = [
     "AcrobotEnv",
@@ -27,5 +36,10 @@ __all__ = [
     "IdentifiedSystemEnv",
     "PendulumEnv",
     "PointNavigationEnv",
+    "TaskParallelEnv",
+    "TaskSerialEnv",
+    "TaskTransformedEnv",
     "Walker2dVelEnv",
+    "identifier_check",
+    "task_space",
 ]

@@ -46,7 +46,7 @@ from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.distributions import TaskEnvMixin
-from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY, read_identifiers
+from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY
 
 KEY = "benchmark.collector"
 GYM_ASSETS = os.path.join(os.path.dirname(gymnasium.__file__), "envs", "mujoco", "assets")
@@ -113,11 +113,10 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         seed: seed of the generator for reset noise and default identifiers.
         device: torch device of the outputs (the physics runs on the CPU).
         require_identifiers: refuse a full reset without identifiers under ``"params"`` (by
-            default it keeps the stored ones; :func:`~armeta_rl.tasks.protocol.read_identifiers`).
+            default it keeps the stored ones;
+            :class:`~armeta_rl.tasks.protocol.IdentifierCheck`).
     """
 
-    identifier_low: float = -math.inf
-    identifier_high: float = math.inf
     stage: int = STAGE_ACC
     _has_frame_skip = True  # physics substeps run in ``_step``; no FrameSkipTransform wrapper
 
@@ -300,8 +299,7 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
             if reset is None
             else reset.reshape(*shape, 1).cpu()
         )
-        task = read_identifiers(tensordict, self.identifier_names, self.identifier_low,
-                                self.identifier_high, shape, required=self.require_identifiers)
+        task = self.identifier_check.read(tensordict, shape)
         if task is not None:
             task = task.to("cpu", torch.float64)
             self._task = torch.where(mask, task, self._task)

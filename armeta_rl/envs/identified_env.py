@@ -16,7 +16,7 @@ of the simulator. Subclasses write the batched physics; this base class owns wha
   ``require_identifiers=True`` a full reset without them is refused); identifiers under another
   key, an empty reset TensorDict, identifiers of another width, or not positive and finite raise
   :class:`~armeta_rl.errors.IdentifierError` (the reset contract of
-  :func:`armeta_rl.tasks.protocol.read_identifiers`), bare, behind transforms and in batched envs;
+  :class:`armeta_rl.tasks.protocol.IdentifierCheck`), bare, behind transforms and in batched envs;
 * the exact simulator state is kept by the env (the observation is a function of it) and reported
   as the observation ``"state"`` ``[*batch, state_dim]``; a step reads only ``"action"``, so
   transforms may drop or cast ``"state"``. ``env.reset(td, from_state=True)`` starts from
@@ -55,7 +55,7 @@ from torchrl.envs import EnvBase
 from armeta_rl.compiling import compile_backend, maybe_compile
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.distributions import TaskEnvMixin
-from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.protocol import TASK_KEY
 
 
 class UniformBounded(Bounded):
@@ -99,6 +99,8 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
 
     param_names: tuple[str, ...] = ()
     identifier_defaults: dict[str, float] = {}
+    identifier_low, identifier_open_low = 0.0, True  # positive and finite
+    reset_reads = ("state",)  # a start state, with from_state=True
     state_dim: int = 0
     observation_dim: int = 0
     observation_high: tuple[float, ...] = ()
@@ -219,10 +221,9 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
                **kwargs) -> TensorDictBase:
         """New episodes where ``"_reset"`` is set (all if absent), with the stored identifiers
         updated from ``tensordict["params"]`` when given (checked by
-        :func:`~armeta_rl.tasks.protocol.read_identifiers`: positive and finite), from
+        :attr:`identifier_check`: positive and finite), from
         ``tensordict["state"]`` with ``from_state=True``, else from random states."""
-        params = read_identifiers(tensordict, self.param_names, 0.0, math.inf, self.batch_size,
-                                  open_low=True, required=self.require_identifiers)
+        params = self.identifier_check.read(tensordict, self.batch_size)
         tensordict = tensordict if tensordict is not None else TensorDict({}, self.batch_size)
         reset = tensordict.get("_reset", None)
         if params is not None:

@@ -72,8 +72,9 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Composite, TensorSpec, Unbounded
 from torchrl.envs import EnvBase, GymEnv, SerialEnv, StepCounter, Transform, TransformedEnv
 
+from armeta_rl.envs.task_env import TaskTransformedEnv, identifier_check
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.protocol import TASK_KEY, IdentifierCheck
 from armeta_rl.tasks.space import TaskSpace
 
 ALL = "all"
@@ -463,6 +464,20 @@ class PhysicsTaskTransform(Transform):
         self._params = nominal.expand(*parent.batch_size, self.space.dim).clone()
         self._sims = sims
 
+    def extend_task_space(self, base: TaskSpace | None) -> TaskSpace:
+        """The box of the env with this transform: the base env's own identifiers (if any), then
+        the physics (:func:`~armeta_rl.envs.task_env.task_space`)."""
+        if base is None:
+            return self.space
+        return TaskSpace(base.names + self.space.names, base.low + self.space.low,
+                         base.high + self.space.high)
+
+    def extend_identifier_check(self, base: IdentifierCheck | None) -> IdentifierCheck:
+        """The reset contract of the env with this transform: the base env's, then the physics
+        identifiers, each in its range of the box."""
+        base = base or IdentifierCheck((), (), (), ())
+        return base.then(self.space.names, self.space.low, self.space.high)
+
     def check_params(self, params: torch.Tensor) -> torch.Tensor:
         """The physics identifiers of ``params`` (its last ``d`` columns, after the base env's
         own) as float64 rows ``[n, d]``; an IdentifierError naming the value and what is
@@ -490,6 +505,8 @@ class PhysicsTaskTransform(Transform):
         params = None if tensordict is None else tensordict.get(self.key, None)
         if params is None:
             return tensordict
+        if isinstance(params, TensorDictBase):  # by name
+            params = self.extend_identifier_check(identifier_check(self.parent)).flat(params)
         shape = self._params.shape
         rows = self.check_params(params)
         if rows.shape[0] != math.prod(shape[:-1]):
@@ -608,7 +625,7 @@ def make_gym_task_env(
     num_tasks: int | None = None,
     max_steps: int | None = None,
     **gym_kwargs: Any,
-) -> TransformedEnv:
+) -> TaskTransformedEnv:
     """A TorchRL env of the family's gymnasium env whose physics follow ``"params"``: one
     ``GymEnv`` (batch ``[]``) if ``num_tasks`` is ``None``, else a ``SerialEnv`` of ``num_tasks``
     of them (batch ``[num_tasks]``, one task each). ``max_steps`` adds a ``StepCounter`` that
@@ -636,7 +653,7 @@ def make_gym_task_env(
         if num_tasks < 1:
             raise ConfigError("num_tasks", num_tasks, "must be >= 1")
         base = SerialEnv(num_tasks, partial(gym_env, family.env, **gym_kwargs))
-    env = TransformedEnv(base, PhysicsTaskTransform(family.parameters))
+    env = TaskTransformedEnv(base, PhysicsTaskTransform(family.parameters))
     if max_steps is not None:
         env.append_transform(StepCounter(max_steps))
     return env
@@ -648,7 +665,7 @@ def physics_task_env(
     space: Mapping[str, Any] | None = None,
     config_key: str = "benchmark.collector.make_env.parameters",
     **kwargs: Any,
-) -> TransformedEnv:
+) -> TaskTransformedEnv:
     """``make_env(**kwargs)`` with a :class:`PhysicsTaskTransform` over ``parameters``: the
     ``make_env`` a collector calls as ``make_env(batch_size=..., max_steps=..., seed=...)``, so a
     benchmark YAML turns an env into a physics family (``configs/benchmark/ant_goal_physics.yaml``).
@@ -676,7 +693,7 @@ def physics_task_env(
     if isinstance(parameters, (DictConfig, ListConfig)):
         parameters = OmegaConf.to_container(parameters, resolve=True)
     transform = PhysicsTaskTransform(parameters, config_key=config_key)
-    env = TransformedEnv(make_env(**kwargs), transform)
+    env = TaskTransformedEnv(make_env(**kwargs), transform)
     if space is not None:
         _check_box(space, transform, env.state_spec[transform.key].shape[-1])
     return env

@@ -44,7 +44,7 @@ from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.rl.policy import act as policy_act
 from armeta_rl.tasks.distributions import TaskEnvMixin
-from armeta_rl.tasks.protocol import TASK_KEY, read_identifiers
+from armeta_rl.tasks.protocol import TASK_KEY
 
 Region = tuple[tuple[float, float], tuple[float, float], float]
 """((x_low, x_high), (y_low, y_high), reward_scale)."""
@@ -316,6 +316,7 @@ class PointNavigationEnv(TaskEnvMixin, EnvBase):
 
     identifier_names = GOAL_NAMES
     task_boxes = {name: (GOAL_LOW, GOAL_HIGH) for name in GOAL_NAMES}
+    identifier_low, identifier_high = GOAL_LOW, GOAL_HIGH
 
     def __init__(
         self,
@@ -390,8 +391,7 @@ class PointNavigationEnv(TaskEnvMixin, EnvBase):
         if reset is None:
             reset = torch.ones(*shape, 1, dtype=torch.bool, device=self.device)
         mask = reset.reshape(*shape, 1)
-        goal = read_identifiers(tensordict, GOAL_NAMES, GOAL_LOW, GOAL_HIGH, shape,
-                                required=self.require_identifiers)
+        goal = self.identifier_check.read(tensordict, shape)
         if goal is not None:
             goal = goal.to(self._goal.dtype).expand_as(self._goal)
             self._goal = torch.where(mask, goal, self._goal)

@@ -48,7 +48,7 @@ from armeta_rl.rl.trpo import (
     trust_region_step,
     unflatten,
 )
-from armeta_rl.tasks.protocol import FORWARD_REWARD
+from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY
 
 Params = dict[str, Tensor]
 
@@ -156,6 +156,8 @@ class MAMLTRPOLeader:
 
     metric = "return"
     on_policy = True
+    inner_steps = 1
+    """The inner steps it adapts with in training (MAML-TRPO's one)."""
 
     def __init__(
         self,
@@ -432,6 +434,37 @@ class MAMLTRPOLeader:
         """The adapted policies' episodes of ``batch`` ``[K, E, T]``, those :meth:`evaluate`
         scores."""
         return batch.valid
+
+    def further_step(self, params: Params, trajectories: TensorDictBase, advantages: Tensor
+                     ) -> Params:
+        """One more inner step from per-task parameters ``params`` ``[K, ...]`` on their own
+        episodes: θ'' = θ' − α ∇L^in(θ'), detached (an evaluation's, no meta-gradient)."""
+        leaves = {name: p.detach().requires_grad_(True) for name, p in params.items()}
+        with torch.enable_grad():
+            loss = self.inner_loss(leaves, trajectories, advantages).sum()
+            grads = torch.autograd.grad(loss, list(leaves.values()))
+        stepped = sgd_step(leaves, dict(zip(leaves, grads)), self.inner_lr)
+        return {name: p.detach() for name, p in stepped.items()}
+
+    def adaptation_curve(self, batch: MetaBatch, steps: int,
+                         collector: TaskCollector | None = None) -> Tensor:
+        """Per-task loss after 0, 1, ..., ``steps`` inner steps ``[steps + 1, K]``, the meta-test
+        curve of pytorch-maml-rl and garage: the first two are :meth:`evaluate_before` and
+        :meth:`evaluate` of ``batch``; each further one takes an inner step from the last
+        adapted policy on that policy's own episodes and rolls the new one out (with
+        ``collector`` or the leader's own)."""
+        collector = self.collector if collector is None else collector
+        n_tasks = batch.train.batch_size[0]
+        tasks = TensorDict({TASK_KEY: batch.train[TASK_KEY][:, 0, 0]}, [n_tasks])
+        losses = [self.evaluate_before(batch), self.evaluate(batch)]
+        params = {name: p.detach() for name, p in batch.adapted.items()}
+        episodes, advantages = batch.valid, batch.valid_advantages
+        for _ in range(steps - 1):
+            params = self.further_step(params, episodes, advantages)
+            episodes = collector.collect(tasks, as_task_params(params), policy=self.net)
+            advantages = self.advantages(episodes)
+            losses.append(-episode_returns(episodes).mean(-1))
+        return torch.stack(losses[: steps + 1])
 
     def state_dict(self) -> dict[str, Any]:
         return {"policy": self.net.state_dict()}

@@ -17,7 +17,7 @@ from tensordict import TensorDict
 from torch import Tensor, nn
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.protocol import TASK_KEY, IdentifierCheck
 from armeta_rl.tasks.space import TaskSpace
 
 
@@ -162,13 +162,22 @@ class BoxUniform(TaskDistribution):
 
 
 class TaskEnvMixin:
-    """What every task env of the package tells about its tasks, from two class attributes:
-    ``identifier_names`` (the order of ``"params"``) and ``task_boxes`` (``name: (low, high)``,
-    the references' task distribution's support), so that ``TaskSampler`` and ``TaskTransform``
-    are built from the env alone."""
+    """What every task env of the package tells about its tasks, from class attributes:
+    ``identifier_names`` (the order of ``"params"``), ``task_boxes`` (``name: (low, high)``, the
+    references' task distribution's support), so that ``TaskSampler`` and ``TaskTransform`` are
+    built from the env alone, and the reset contract its resets are checked with
+    (:attr:`identifier_check`): the interval every identifier must lie in
+    (``identifier_low``, ``identifier_high``, open at the low end with
+    ``identifier_open_low``), the other reset keys the env reads (``reset_reads``) and whether
+    every full reset must carry the identifiers (``require_identifiers``)."""
 
     identifier_names: tuple[str, ...] = ()
     task_boxes: dict[str, tuple[float, float]] = {}
+    identifier_low: float = -math.inf
+    identifier_high: float = math.inf
+    identifier_open_low: bool = False
+    reset_reads: tuple[str, ...] = ()
+    require_identifiers: bool = False
 
     @property
     def task_space(self) -> TaskSpace:
@@ -181,6 +190,14 @@ class TaskEnvMixin:
     def p0(self) -> BoxUniform:
         """The references' initial task distribution: uniform on :attr:`task_space`."""
         return BoxUniform(self.task_space)
+
+    @property
+    def identifier_check(self) -> IdentifierCheck:
+        """The reset contract this env checks its resets with."""
+        return IdentifierCheck.uniform(self.identifier_names, self.identifier_low,
+                                       self.identifier_high, self.identifier_open_low,
+                                       self.require_identifiers, self.reset_reads)
+
 
 MIN_BOX_MASS = 1e-6
 """The least mass a truncated normal p0 may have along each axis of the box: its inverse-CDF

@@ -5,20 +5,25 @@ every collector reads the identifiers of its tasks there, and every env takes th
 key in its reset TensorDict (declared in its state spec, so TorchRL transforms, batched envs and
 collectors forward it) and reports them there with every step.
 
-:func:`read_identifiers` is the one check every env applies to a reset TensorDict, its reset
-contract:
+:class:`IdentifierCheck` is the one check every env applies to a reset TensorDict, its reset
+contract (``env.identifier_check``), the same bare, behind transforms and in batched envs:
 
 * a key that looks like task identifiers but is not :data:`TASK_KEY` — one of
   :data:`MISPLACED_TASK_KEYS`, a near-spelling of :data:`TASK_KEY` (``"param"``) or one of the
   env's own identifier names (``"m"``, ``"goal_x"``) — is refused rather than ignored;
-* a full reset handed a TensorDict with no entry at all is refused: behind a ``TransformedEnv``,
+* a full reset (no ``"_reset"``) handed a TensorDict without identifiers is refused unless it
+  carries another key the env reads at reset (a start ``"state"``): behind a ``TransformedEnv``,
   which forwards only ``"_reset"`` and state-spec keys, that is what a reset carrying its
-  identifiers under another key leaves (``env.reset()`` without a TensorDict keeps the stored
-  identifiers);
+  identifiers under another key leaves, so an unrelated key is refused bare as it is there
+  (``env.reset()`` without a TensorDict keeps the stored identifiers; a partial reset keeps the
+  tasks of the entries it resets);
 * an env built with ``require_identifiers=True`` refuses every full reset without them;
+* identifiers nested by name (``TensorDict({"m": ..., "l": ...})``, as TorchRL's pendulum
+  tutorial nests its parameters) are taken in the env's order, and refused unless the names are
+  exactly the env's;
 * the identifiers must have the env's width ``d`` in their last dimension and broadcast to its
   batch size;
-* every value must be finite and inside the env's allowed interval.
+* every value must be finite and inside its allowed interval.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from __future__ import annotations
 import difflib
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import torch
 from tensordict import TensorDictBase
@@ -60,58 +66,147 @@ def misplaced(key: str, names: Sequence[str]) -> bool:
             or bool(difflib.get_close_matches(key.lower(), [TASK_KEY], cutoff=0.8)))
 
 
-def read_identifiers(
-    tensordict: TensorDictBase | None,
-    names: Sequence[str],
-    low: float,
-    high: float,
-    batch_size: torch.Size,
-    open_low: bool = False,
-    required: bool = False,
-) -> Tensor | None:
-    """The identifiers ``[*batch_size, d]`` under :data:`TASK_KEY` of a reset TensorDict (expanded
-    to the batch), or ``None`` when it has none; :class:`~armeta_rl.errors.IdentifierError` where
-    the reset breaks the env's reset contract (the module docstring): a misplaced key, a full
-    reset handed an empty TensorDict, a full reset without identifiers when ``required``, a wrong
-    width or batch shape, a value outside ``[low, high]`` (``(low, high]`` with ``open_low``) or
-    not finite. ``names`` are the env's identifier names in order."""
-    d, allowed_range = len(names), interval(low, high, open_low)
-    spelled = f"{d} value{'s' if d > 1 else ''} ({', '.join(names)})"
-    if tensordict is None:
-        if required:
-            raise IdentifierError(TASK_KEY, "missing", f"this env requires its identifiers at "
-                                  f"every full reset: {spelled} per batch entry")
-        return None
-    for key in tensordict.keys(include_nested=False):
-        if misplaced(key, names):
+@dataclass(frozen=True)
+class IdentifierCheck:
+    """An env's reset contract for its identifiers (the module docstring): their names in the
+    order of :data:`TASK_KEY`'s columns, each one's allowed interval, whether a full reset must
+    carry them, and the other reset keys the env reads (a start ``"state"``).
+
+    Every env of the package checks its resets with its own (``env.identifier_check``), and a
+    batched env of them (:class:`~armeta_rl.envs.TaskSerialEnv`,
+    :class:`~armeta_rl.envs.TaskParallelEnv`) checks a reset with its workers' in the calling
+    process, before any worker sees it.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.tasks.protocol import IdentifierCheck
+        >>> check = IdentifierCheck.uniform(("m", "l"), 0.0, float("inf"), open_low=True)
+        >>> nested = TensorDict({"params": TensorDict({"l": torch.ones(3), "m": torch.zeros(3) + 2},
+        ...                                           [3])}, [3])
+        >>> check.read(nested, torch.Size([3]))[0]  # by name, in the env's order (m, l)
+        tensor([2., 1.])
+    """
+
+    names: tuple[str, ...]
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    open_low: tuple[bool, ...]
+    required: bool = False
+    reads: tuple[str, ...] = ()
+
+    @classmethod
+    def uniform(cls, names: Sequence[str], low: float, high: float, open_low: bool = False,
+                required: bool = False, reads: Sequence[str] = ()) -> IdentifierCheck:
+        """One interval for every identifier."""
+        d = len(names)
+        return cls(tuple(names), (float(low),) * d, (float(high),) * d, (bool(open_low),) * d,
+                   bool(required), tuple(reads))
+
+    def then(self, names: Sequence[str], low: Sequence[float], high: Sequence[float]
+             ) -> IdentifierCheck:
+        """This check with identifiers ``names`` in ``[low, high]`` after its own (a
+        :class:`~armeta_rl.envs.mujoco_tasks.PhysicsTaskTransform`'s physics columns)."""
+        return IdentifierCheck(self.names + tuple(names), self.low + tuple(map(float, low)),
+                               self.high + tuple(map(float, high)),
+                               self.open_low + (False,) * len(names), self.required, self.reads)
+
+    def requiring(self, required: bool = True) -> IdentifierCheck:
+        """This check with every full reset required to carry the identifiers (or not)."""
+        return replace(self, required=bool(required))
+
+    def spelled(self) -> str:
+        """``2 values (m, l) per batch entry``."""
+        d = len(self.names)
+        return f"{d} value{'s' if d > 1 else ''} ({', '.join(self.names)}) per batch entry"
+
+    def refuse_misplaced(self, tensordict: TensorDictBase) -> None:
+        """An :class:`~armeta_rl.errors.IdentifierError` for the first key of ``tensordict``
+        that looks like identifiers under another key than :data:`TASK_KEY`
+        (:func:`misplaced`)."""
+        for key in tensordict.keys(include_nested=False):
+            if misplaced(key, self.names):
+                raise IdentifierError(key, _describe(tensordict.get(key)),
+                                      f"task identifiers go under '{TASK_KEY}': {self.spelled()}")
+
+    def flat(self, params: Tensor | TensorDictBase) -> Tensor:
+        """Identifiers ``[..., d]`` given as a tensor, or nested by name as TorchRL's pendulum
+        tutorial nests its parameters (``TensorDict({"m": [...], "l": [...]})``, one value per
+        batch entry each, ``[...]`` or ``[..., 1]``), stacked in this check's order."""
+        if not isinstance(params, TensorDictBase):
+            return params
+        given = sorted(map(str, params.keys(include_nested=True, leaves_only=True)))
+        if given != sorted(self.names):
             raise IdentifierError(
-                key, _describe(tensordict.get(key)),
-                f"task identifiers go under '{TASK_KEY}': {spelled} per batch entry",
-            )
-    params = tensordict.get(TASK_KEY, None)
-    if params is None:
-        if "_reset" not in tensordict and (required or tensordict.is_empty()):
-            reason = ("this env requires its identifiers at every full reset" if required else
-                      "the reset TensorDict reached the env empty (TransformedEnv forwards only "
-                      f"'{TASK_KEY}', '_reset' and state keys; env.reset() without a TensorDict "
-                      "keeps the stored identifiers)")
-            raise IdentifierError(TASK_KEY, "missing", f"{reason}: {spelled} per batch entry")
-        return None
-    if not torch.is_floating_point(params) or params.shape[-1:] != (d,):
-        raise IdentifierError(TASK_KEY, _describe(params),
-                              f"a float tensor [..., {d}]: {spelled} per batch entry")
-    try:
-        params = params.expand(*batch_size, d)
-    except RuntimeError:
-        raise IdentifierError(TASK_KEY, _describe(params),
-                              f"needs a shape that broadcasts to {[*batch_size, d]}") from None
-    above = params > low if open_low else params >= low
-    bad = ~(above & (params <= high) & params.isfinite()).all(-1)
-    if bad.any():
-        raise IdentifierError(TASK_KEY, params[bad][0].tolist(),
-                              f"every identifier ({', '.join(names)}) must be finite and in "
-                              f"{allowed_range}")
-    return params
+                TASK_KEY, f"nested keys {given}",
+                f"identifiers by name need exactly ({', '.join(self.names)}), or a float "
+                f"tensor [..., {len(self.names)}]")
+        columns = []
+        for name in self.names:
+            value = params.get(name)
+            if value.shape[params.batch_dims:] not in ((), (1,)):
+                raise IdentifierError(f"{TASK_KEY}.{name}", _describe(value),
+                                      "one value per batch entry: "
+                                      f"{list(params.batch_size)} or {[*params.batch_size, 1]}")
+            columns.append(value.reshape(params.batch_size))
+        return torch.stack(columns, -1)
+
+    def read(self, tensordict: TensorDictBase | None, batch_size: torch.Size) -> Tensor | None:
+        """The identifiers ``[*batch_size, d]`` of a reset TensorDict (expanded to the batch),
+        or ``None`` when it has none and the reset keeps the stored ones; an
+        :class:`~armeta_rl.errors.IdentifierError` where the reset breaks the contract: a
+        misplaced key; a full reset handed a TensorDict with nothing the env reads (what a
+        TransformedEnv or a batched env leaves of a misspelled key), or without identifiers when
+        ``required``; nested names that are not the env's; a wrong width or batch shape; a value
+        outside its interval or not finite."""
+        d = len(self.names)
+        if tensordict is None:
+            if self.required:
+                raise IdentifierError(TASK_KEY, "missing", "this env requires its identifiers "
+                                      f"at every full reset: {self.spelled()}")
+            return None
+        self.refuse_misplaced(tensordict)
+        params = tensordict.get(TASK_KEY, None)
+        if params is None:
+            if "_reset" in tensordict:
+                return None
+            if self.required:
+                raise IdentifierError(TASK_KEY, "missing", "this env requires its identifiers "
+                                      f"at every full reset: {self.spelled()}")
+            if not any(key in tensordict for key in self.reads):
+                others = sorted(map(str, tensordict.keys()))
+                raise IdentifierError(
+                    TASK_KEY, "missing",
+                    "a full reset's TensorDict must carry the identifiers (it has "
+                    f"{'only ' + ', '.join(others) if others else 'no entry'}; behind a "
+                    "transform only 'params', '_reset' and state keys arrive; env.reset() "
+                    f"without a TensorDict keeps the stored ones): {self.spelled()}")
+            return None
+        params = self.flat(params)
+        if not torch.is_floating_point(params) or params.shape[-1:] != (d,):
+            raise IdentifierError(TASK_KEY, _describe(params),
+                                  f"a float tensor [..., {d}]: {self.spelled()}")
+        try:
+            params = params.expand(*batch_size, d)
+        except RuntimeError:
+            raise IdentifierError(TASK_KEY, _describe(params),
+                                  f"needs a shape that broadcasts to {[*batch_size, d]}") from None
+        low = torch.tensor(self.low, dtype=params.dtype, device=params.device)
+        high = torch.tensor(self.high, dtype=params.dtype, device=params.device)
+        open_low = torch.tensor(self.open_low, device=params.device)
+        above = torch.where(open_low, params > low, params >= low)
+        bad = ~(above & (params <= high) & params.isfinite()).all(-1)
+        if bad.any():
+            raise IdentifierError(TASK_KEY, params[bad][0].tolist(), self._allowed())
+        return params
+
+    def _allowed(self) -> str:
+        ranges = list(zip(self.low, self.high, self.open_low))
+        if len(set(ranges)) == 1:
+            return (f"every identifier ({', '.join(self.names)}) must be finite and in "
+                    f"{interval(*ranges[0])}")
+        each = ", ".join(f"{name} in {interval(*r)}" for name, r in zip(self.names, ranges))
+        return f"every identifier must be finite and in its interval ({each})"
 
 
 def repeat_tasks(tasks: TensorDictBase, times: int) -> TensorDictBase:

@@ -31,7 +31,7 @@ from torchrl.data import Composite
 from torchrl.envs import EnvBase, Transform
 
 from armeta_rl.errors import ConfigError, IdentifierError
-from armeta_rl.tasks.protocol import TASK_KEY
+from armeta_rl.tasks.protocol import TASK_KEY, IdentifierCheck
 
 
 def draw_identifiers(source: Any, n: int) -> Tensor:
@@ -68,10 +68,10 @@ class TaskTransform(Transform):
         >>> import torch
         >>> from torchrl.envs import Compose, StepCounter, TransformedEnv
         >>> from armeta_rl.envs import PointNavigationEnv
-        >>> from armeta_rl.tasks import TASK_KEY, BoxUniform, TaskSpace, TaskTransform
-        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
-        >>> env = TransformedEnv(PointNavigationEnv(batch_size=(4,), seed=0),
-        ...                      Compose(TaskTransform(BoxUniform(space)), StepCounter(5)))
+        >>> from armeta_rl.tasks import TASK_KEY, TaskTransform
+        >>> _ = torch.manual_seed(0)  # the random actions: no goal reached by chance
+        >>> env = PointNavigationEnv(batch_size=(4,), seed=0)
+        >>> env = TransformedEnv(env, Compose(TaskTransform(env.p0), StepCounter(5)))
         >>> goals = env.rollout(5)[TASK_KEY]  # one goal per episode, kept over its steps
         >>> goals.shape, bool((goals == goals[:, :1]).all())
         (torch.Size([4, 5, 2]), True)
@@ -100,6 +100,13 @@ class TaskTransform(Transform):
                               f"takes no task identifiers [*batch, d] under '{self.key}' at reset "
                               "(its state spec has no such entry), so TaskTransform has nothing "
                               "to set")
+
+    def extend_identifier_check(self, base: IdentifierCheck | None) -> IdentifierCheck | None:
+        """The reset contract of the env with this transform: none with a source (it provides
+        the identifiers), else the base env's with every full reset required to carry them."""
+        if self.tasks is not None or base is None:
+            return None
+        return base.requiring()
 
     def _reset_env_preprocess(self, tensordict: TensorDictBase | None) -> TensorDictBase:
         parent = self.parent
@@ -193,10 +200,9 @@ def finished_episodes(
         >>> import torch
         >>> from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
         >>> from armeta_rl.envs import PointNavigationEnv
-        >>> from armeta_rl.tasks import BoxUniform, TaskSpace, TaskTransform, finished_episodes
-        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
-        >>> transforms = Compose(TaskTransform(BoxUniform(space)), StepCounter(5), RewardSum())
-        >>> env = TransformedEnv(PointNavigationEnv(batch_size=(4,), seed=0), transforms)
+        >>> from armeta_rl.tasks import TaskTransform, finished_episodes
+        >>> env = PointNavigationEnv(batch_size=(4,), seed=0)
+        >>> env = TransformedEnv(env, Compose(TaskTransform(env.p0), StepCounter(5), RewardSum()))
         >>> episodes = finished_episodes(env.rollout(5))
         >>> episodes["params"].shape, episodes["return"].shape
         (torch.Size([4, 2]), torch.Size([4]))

@@ -5,14 +5,15 @@ every iteration. Every ``every`` iterations it draws p_φ against p0
 (:func:`armeta_rl.plots.draw_density`: a curve, a heat map, or pairwise marginals for three or
 more identifiers) into ``<run>/density/iter_<iteration>.png``, on the frame's own colour scale,
 keeps the numbers drawn beside it (``iter_<iteration>.pt``, a
-:class:`~armeta_rl.plots.DensityPicture`) and, with a wandb logger, logs the image
-``adversary/density`` at that step. :meth:`DensityFrames.finish` draws the last iteration if it
-is not a multiple of ``every``, redraws every frame in the directory on one colour scale (per
-pair of identifiers) chosen from all of them, and writes ``<run>/density.gif`` (with wandb, also
-the video ``adversary/density_animation``): p0 keeps its colour from frame to frame (a resumed
-run's animation includes the frames written before the interruption). Frames, their numbers
-and the GIF are written atomically; a frame that cannot be read (a file damaged outside the
-run) is left out of the GIF with a warning.
+:class:`~armeta_rl.plots.DensityPicture`) and, with a logger that takes pictures (wandb,
+TensorBoard, MLflow), logs the image ``adversary/density`` at that step.
+:meth:`DensityFrames.finish` draws the last iteration if it is not a multiple of ``every``,
+redraws every frame in the directory on one colour scale (per pair of identifiers) chosen from all
+of them, and writes ``<run>/density.gif`` (logged as ``adversary/density_animation``: a wandb
+video, an MLflow artifact): p0 keeps its colour from frame to frame (a resumed run's animation
+includes the frames written before the interruption). Frames, their numbers and the GIF are
+written atomically; a frame that cannot be read (a file damaged outside the run) is left out of
+the GIF with a warning.
 
 Drawing evaluates the exact density on a grid: it draws no random numbers, so a run with frames
 is bit-identical to one without.
@@ -25,7 +26,7 @@ import logging
 from pathlib import Path
 
 import torch
-from torchrl.record.loggers import Logger, WandbLogger
+from torchrl.record.loggers import Logger
 
 from armeta_rl.plots import (
     DensityPicture,
@@ -37,14 +38,17 @@ from armeta_rl.plots import (
 )
 from armeta_rl.tasks.distributions import TaskDistribution
 from armeta_rl.trainers.checkpoint import load_tensors, write_file
+from armeta_rl.trainers.loggers import log_animation, log_picture
 from armeta_rl.trainers.run_dir import write_atomically
 
 log = logging.getLogger(__name__)
 
 FRAMES_DIR = "density"
 ANIMATION_FILE = "density.gif"
+PICTURE_KEY = "adversary/density"
+"""The logger key of every frame (and of the final ``density.png``)."""
 ANIMATION_KEY = "adversary/density_animation"
-"""The wandb key of the animation: a video of every frame, logged when the run finishes."""
+"""The logger key of the animation of every frame, logged when the run finishes."""
 
 
 class DensityFrames:
@@ -55,8 +59,8 @@ class DensityFrames:
         initial: p0, drawn beside it.
         run_dir: the run directory.
         every: iterations between frames (``trainer.density_every``, >= 1).
-        logger: the run's logger; a :class:`~torchrl.record.loggers.WandbLogger` also gets each
-            frame as an image.
+        logger: the run's logger; one that takes pictures gets each frame
+            (:func:`~armeta_rl.trainers.loggers.log_picture`) and the animation.
         points_per_axis: grid resolution of each frame.
     """
 
@@ -86,10 +90,7 @@ class DensityFrames:
         write_atomically(path.with_suffix(".pt"),
                          lambda staged: write_file(staged, numbers.getvalue()))
         self._draw(picture, iteration)
-        if isinstance(self.logger, WandbLogger):
-            import wandb
-
-            self.logger.log_metrics({"adversary/density": wandb.Image(str(path))}, iteration)
+        log_picture(self.logger, PICTURE_KEY, path, iteration)
         return path
 
     def _draw(self, picture: DensityPicture, iteration: int, norms=None) -> Path:
@@ -119,11 +120,7 @@ class DensityFrames:
                 log.warning("density frame %s cannot be read: left out of %s", frame,
                             self.animation.name)
         write_atomically(self.animation, lambda staged: write_animation(kept, staged))
-        if isinstance(self.logger, WandbLogger):
-            import wandb
-
-            self.logger.log_metrics({ANIMATION_KEY: wandb.Video(str(self.animation),
-                                                                format="gif")}, iteration)
+        log_animation(self.logger, ANIMATION_KEY, self.animation, iteration)
         return self.animation
 
     @staticmethod

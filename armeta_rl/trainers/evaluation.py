@@ -16,6 +16,7 @@ from torch import Tensor
 
 from armeta_rl.collectors.base import TaskCollector
 from armeta_rl.devices import CPU, forked_rng
+from armeta_rl.errors import ConfigError
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.tail import tail_size
 from armeta_rl.run_files import FileRefused, read_text
@@ -239,6 +240,37 @@ def paired_difference(first: Sequence[float], second: Sequence[float], metric: s
     }
 
 
+CURVE_BEYOND = 2
+"""How many inner steps past the trained number an adaptation curve goes by default."""
+
+
+def curve_steps(leader: Leader, adaptation_steps: int | None) -> int | None:
+    """The k of ``leader``'s adaptation curve (``eval.adaptation_steps``; ``None``: the inner
+    steps it trains with and :data:`CURVE_BEYOND` more), or ``None`` for a leader without one
+    (regression, system identification). A k set for such a leader is refused."""
+    if not callable(getattr(leader, "adaptation_curve", None)):
+        if adaptation_steps is not None:
+            raise ConfigError("eval.adaptation_steps", adaptation_steps,
+                              "only a meta-RL learner (MAML-TRPO, MAML-PPO) reports an "
+                              "adaptation curve: leave it null")
+        return None
+    return adaptation_steps if adaptation_steps is not None else (
+        leader.inner_steps + CURVE_BEYOND)
+
+
+def curve_summary(losses: Tensor, rollouts: int, metric: str) -> dict[str, Any]:
+    """``{"inner_steps", "mean", "sem"}`` of per-task losses after 0..k inner steps
+    ``[k + 1, R·n]`` (rollout-major, :func:`~armeta_rl.tasks.protocol.repeat_tasks`): at each
+    step the mean over tasks of their scores (a task's: the mean of its R rollouts) and its
+    standard error, in the units of ``metric``."""
+    sign = -1.0 if higher_is_better(metric) else 1.0
+    scores = [sign * per_rollout(step.detach().to(torch.float64), rollouts).mean(0)
+              for step in losses]
+    return {"inner_steps": list(range(len(scores))),
+            "mean": [float(values.mean()) for values in scores],
+            "sem": [standard_error(values) for values in scores]}
+
+
 def evaluate_on(
     leader: Leader,
     distribution: TaskDistribution,
@@ -248,6 +280,7 @@ def evaluate_on(
     seed: int,
     device: torch.device = CPU,
     rollouts: int = 1,
+    adaptation_steps: int | None = None,
 ) -> dict[str, Any]:
     """Score ``leader`` after adaptation on ``n_tasks`` tasks drawn from ``distribution``, each
     task on ``rollouts`` independent rollouts (R: adaptation from fresh data, then the adapted
@@ -258,7 +291,9 @@ def evaluate_on(
     goal-blind and the oracle references of its tasks (``goal_references``), ``"goal"`` holds
     the share of the goal-blind gap the adapted policy closes (:func:`goal_section`).
     ``"quarter_scores"`` is the mean score of the tasks in each quarter of the box
-    (:func:`quarter_scores`).
+    (:func:`quarter_scores`). Where the leader takes inner steps on episodes (meta-RL),
+    ``"adaptation_curve"`` holds its score after 0, 1, ..., k inner steps (:func:`curve_steps`,
+    :func:`curve_summary`), the first two from the same data.
 
     The R copies of every task are collected and adapted in one batch (rollout-major,
     :func:`~armeta_rl.tasks.protocol.repeat_tasks`). Runs under its own seed inside a forked RNG
@@ -278,6 +313,7 @@ def evaluate_on(
         >>> report["n_tasks"], list(report["cvar"])
         (50, ['0.9'])
     """
+    steps = curve_steps(leader, adaptation_steps)
     with forked_rng(device):
         torch.manual_seed(seed)
         tasks = distribution.sample(n_tasks)
@@ -287,6 +323,7 @@ def evaluate_on(
             losses, before = leader.evaluate(data), leader.evaluate_before(data)
             references = goal_references(collector, repeated[TASK_KEY],
                                          leader.adapted_episodes(data))
+        curve = None if steps is None else leader.adaptation_curve(data, steps, collector)
     report = summarize(per_rollout(losses, rollouts), leader.metric, alphas)
     if before is not None:
         report["adaptation"] = adaptation_gain(per_rollout(before, rollouts),
@@ -298,6 +335,8 @@ def evaluate_on(
     scores = sign * per_rollout(losses, rollouts).to(torch.float64).mean(0)
     report["quarter_scores"] = quarter_scores(
         scores, distribution.space.quarter(tasks[TASK_KEY]).to(scores.device))
+    if curve is not None:
+        report["adaptation_curve"] = curve_summary(curve, rollouts, leader.metric)
     return report
 
 
@@ -332,7 +371,26 @@ def format_table(report: dict[str, Any]) -> str:
     header += f"{'tasks':>7}{'R':>4}"
     if any(isinstance(v, dict) and "adaptation" in v for v in report.values()):
         header += f"{'gain ± sem':>20}"
-    return "\n".join([f"metric: {report.get('metric')}", header, *lines])
+    return "\n".join([f"metric: {report.get('metric')}", header, *lines,
+                      *format_curves(report)])
+
+
+def format_curves(report: dict[str, Any]) -> list[str]:
+    """The lines of the report's adaptation curves: each distribution's score (mean ± sem over
+    tasks) after 0, 1, ..., k inner steps; none where it has none."""
+    curves = {name: section["adaptation_curve"] for name, section in report.items()
+              if isinstance(section, dict) and "adaptation_curve" in section}
+    if not curves:
+        return []
+    steps = max(len(curve["mean"]) for curve in curves.values())
+    lines = [f"{report.get('metric')} after 0..{steps - 1} inner steps (mean ± sem; the table "
+             f"is after the trained number):",
+             f"{'distribution':<32}" + "".join(f"{f'{j} step' + ('' if j == 1 else 's'):>20}"
+                                               for j in range(steps))]
+    for name, curve in curves.items():
+        lines.append(f"{name:<32}" + "".join(f"{_with_sem(m, e):>20}"
+                                             for m, e in zip(curve["mean"], curve["sem"])))
+    return lines
 
 
 def _gain_cell(adaptation: dict[str, Any] | None) -> str:
@@ -403,6 +461,8 @@ def _check_section(name: str, section: dict[str, Any], higher: bool) -> None:
     if "goal" in section:
         _check_goal(name, section["goal"])
     _check_quarters(name, section)
+    if "adaptation_curve" in section:
+        _check_curve(name, section["adaptation_curve"], n)
     per_task = section.get("per_task")
     if per_task is not None and not (isinstance(per_task, list) and len(per_task) == n
                                      and all(_number(v) for v in per_task)):
@@ -483,6 +543,23 @@ def _check_quarters(name: str, section: dict[str, Any]) -> None:
             isinstance(scores, list) and len(scores) == 4
             and all(v is None or _number(v) for v in scores)):
         raise ReportInvalid(f"'{name}.quarter_scores' = {scores!r} is not 4 quarters' scores")
+
+
+def _check_curve(name: str, curve: Any, n: int) -> None:
+    """The ``adaptation_curve`` of a section must be what :func:`curve_summary` makes of ``n``
+    tasks: a finite mean and a standard error at each of 0, 1, ..., k inner steps."""
+    where = f"'{name}.adaptation_curve'"
+    if not isinstance(curve, dict):
+        raise ReportInvalid(f"{where} is not an object")
+    steps, means, sems = (curve.get(key) for key in ("inner_steps", "mean", "sem"))
+    if not (isinstance(steps, list) and len(steps) >= 2 and steps == list(range(len(steps)))):
+        raise ReportInvalid(f"{where}.inner_steps = {steps!r} is not 0, 1, ..., k")
+    if not (isinstance(means, list) and len(means) == len(steps) and all(map(_number, means))):
+        raise ReportInvalid(f"{where}.mean is not {len(steps)} finite numbers")
+    if not (isinstance(sems, list) and len(sems) == len(steps) and all(
+            (sem is None) == (n == 1) and (sem is None or _number(sem) and sem >= 0)
+            for sem in sems)):
+        raise ReportInvalid(f"{where}.sem is not {len(steps)} standard errors of {n} tasks")
 
 
 def _slack(a: float, b: float) -> float:

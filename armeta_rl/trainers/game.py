@@ -34,6 +34,10 @@ from armeta_rl.trainers.checkpoint import RunCheckpoint
 LogFn = Callable[[dict[str, float], int], None]
 
 
+BAR_SCALARS = {"train/leader_loss": "leader loss", "adversary/objective": "adversary objective"}
+"""The scalars the progress bar shows, by the names it shows them under."""
+
+
 class GameTrainer:
     """Alternating Stackelberg updates of leader θ and follower φ.
 
@@ -58,6 +62,8 @@ class GameTrainer:
         checkpoint: where to save every ``checkpoint_every`` iterations (``None``: never).
         after_iteration: called with the iteration number after every iteration (after its
             logging and checkpoint), e.g. to draw the adversary's density.
+        label: the progress bar's name (a run's: its directory's, which tells the jobs of a
+            ``-m`` sweep apart).
 
     Examples:
         >>> from armeta_rl.collectors import SinusoidCollector
@@ -87,10 +93,12 @@ class GameTrainer:
         log: LogFn | None = None,
         checkpoint: RunCheckpoint | None = None,
         after_iteration: Callable[[int], None] | None = None,
+        label: str = "meta-iterations",
     ) -> None:
         self.leader, self.principle, self.options = leader, principle, options
         self.log, self.checkpoint = log, checkpoint
         self.after_iteration = after_iteration
+        self.label = label
         self.train_leader = options.frozen_leader is None
         self.iteration = 0
 
@@ -183,7 +191,7 @@ class GameTrainer:
             total=end,
             initial=self.iteration,
             disable=not options.progress,
-            desc="meta-iterations",
+            desc=self.label,
             dynamic_ncols=True,
         )
         with bar:
@@ -191,13 +199,8 @@ class GameTrainer:
                 logs = self.train_iteration()
                 bar.update(1)
                 if self.iteration % options.log_every == 0 or self.iteration == end:
-                    bar.set_postfix(
-                        {
-                            k.split("/")[-1]: f"{v:.3g}"
-                            for k, v in logs.items()
-                            if k in ("train/leader_loss", "adversary/objective")
-                        }
-                    )
+                    bar.set_postfix({name: f"{logs[key]:.3g}"
+                                     for key, name in BAR_SCALARS.items() if key in logs})
                     if self.log is not None:
                         self.log(logs, self.iteration)
                 if self.iteration % options.checkpoint_every == 0 or self.iteration == end:

@@ -60,7 +60,7 @@ def evaluate_players(
     for name, (distribution, seed) in distributions.items():
         report[name] = evaluate_on(
             players.leader, distribution, players.eval_collector, ev.n_tasks, list(ev.alphas),
-            seed, players.device, ev.rollouts,
+            seed, players.device, ev.rollouts, ev.adaptation_steps,
         )
         report[name]["seed"] = seed
         report[name].update(distribution_stats(distribution, players.initial, seed,
@@ -97,9 +97,9 @@ def distribution_stats(distribution: TaskDistribution, initial: TaskDistribution
 
 def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
     """Dashboard names ``eval/<distribution>/mean``, ``…/sem`` and ``…/cvar_<α>``; in meta-RL
-    also ``…/before`` (the score before adaptation), ``…/gain`` (the adaptation gain) and, where
-    the benchmark knows its goal references, ``…/gap_closed`` (the share of the goal-blind gap
-    closed)."""
+    also ``…/before`` (the score before adaptation), ``…/gain`` (the adaptation gain),
+    ``…/after_<j>_steps`` (the adaptation curve) and, where the benchmark knows its goal
+    references, ``…/gap_closed`` (the share of the goal-blind gap closed)."""
     scalars = {}
     for name, section in report.items():
         if isinstance(section, dict) and "mean" in section:
@@ -112,6 +112,10 @@ def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
                 scalars[f"eval/{name}/gain"] = section["adaptation"]["gain"]
             if (section.get("goal") or {}).get("gap_closed") is not None:
                 scalars[f"eval/{name}/gap_closed"] = section["goal"]["gap_closed"]
+            curve = section.get("adaptation_curve", {})
+            scalars.update({f"eval/{name}/after_{step}_steps": value
+                            for step, value in zip(curve.get("inner_steps", []),
+                                                   curve.get("mean", []))})
     return scalars
 
 

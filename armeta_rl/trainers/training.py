@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import textwrap
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import torch
-from torchrl.record.loggers import Logger, WandbLogger
+from torchrl.record.loggers import Logger
 
 from armeta_rl.compiling import COMPILE_KEYS
 from armeta_rl.config import CONFIG_FILE, TrainConfig, run_values
@@ -23,10 +24,10 @@ from armeta_rl.errors import (
 )
 from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, run_identity
-from armeta_rl.trainers.density import FRAMES_DIR, DensityFrames, readable
-from armeta_rl.trainers.evaluation import ReportInvalid, format_table, read_report
+from armeta_rl.trainers.density import FRAMES_DIR, PICTURE_KEY, DensityFrames, readable
+from armeta_rl.trainers.evaluation import ReportInvalid, curve_steps, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
-from armeta_rl.trainers.loggers import run_logger
+from armeta_rl.trainers.loggers import log_picture, run_logger
 from armeta_rl.trainers.players import Players, build_players, load_frozen_leader
 from armeta_rl.trainers.report import EVAL_FILE, eval_scalars, evaluate_players
 from armeta_rl.trainers.run_dir import (
@@ -152,6 +153,7 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
         raise ConfigError(section, "last_step", f"needs an env that reports its forward reward "
                           f"after every step (the locomotion families), not "
                           f"{config.benchmark.name}'s")
+    curve_steps(players.leader, config.eval.adaptation_steps)  # refused before training
     if config.trainer.follower_rollouts > 1 and config.trainer.follower_at == "step":
         raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
                           "must be 1 with trainer.follower_at=step: the follower reads the "
@@ -184,7 +186,8 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
         options = trainer_options if progress else replace(trainer_options, progress=False)
         trainer = GameTrainer(players.leader, players.principle, options,
                               log=lambda scalars, step: _log_scalars(logger, scalars, step),
-                              checkpoint=checkpoint, after_iteration=frames)
+                              checkpoint=checkpoint, after_iteration=frames,
+                              label=run_dir.name)
         trainer.iteration = start
         reached = trainer.run(stop=stop)
         planned = min(trainer_options.iterations,
@@ -268,8 +271,26 @@ def _finish(config: TrainConfig, run_dir: Path, players: Players, logger: Logger
     if frames is not None:
         frames.finish(iteration)
     write_text_atomically(run_dir / EVAL_FILE, json.dumps(report, indent=2) + "\n")
-    say(format_table(report))
+    say(end_of_run(config, run_dir, report, players.adversary is not None))
     return report
+
+
+TABLE_LEGEND = ("R: rollouts per task, a task's score their mean; ± one standard error over "
+                "tasks; cvar_α: the mean over the worst 1 − α of tasks; gain: after adaptation − "
+                "before ('not adapting': within two standard errors of 0)")
+"""What the end-of-run table's columns are, said once under it."""
+
+
+def end_of_run(config: TrainConfig, run_dir: Path, report: dict, drew: bool) -> str:
+    """What a finished run prints: its name, the table (with its adaptation curve), what the
+    columns are, and where the run directory, the report and the density picture (``drew``) are;
+    a ``-m`` sweep's jobs each print theirs under their own run's name."""
+    pictures = (f"; the adversary's density (p_φ against p0): {run_dir / DENSITY_FILE}, "
+                "density.gif" if drew else "")
+    return "\n".join([
+        f"{run_dir.name}: {config.method.name} on {config.benchmark.name}, seed {config.seed}",
+        format_table(report), textwrap.fill(TABLE_LEGEND, 100),
+        f"run directory: {run_dir} (report: {EVAL_FILE}{pictures})"])
 
 
 def _save_density(players: Players, path: Path, logger: Logger | None, iteration: int) -> None:
@@ -278,7 +299,4 @@ def _save_density(players: Players, path: Path, logger: Logger | None, iteration
     title = f"p_φ after {iteration} meta-iterations"
     write_atomically(path, lambda staged: plot_density(players.adversary, players.initial,
                                                        staged, title=title))
-    if isinstance(logger, WandbLogger):
-        import wandb
-
-        logger.experiment.log({"adversary/density": wandb.Image(str(path))})
+    log_picture(logger, PICTURE_KEY, path)
