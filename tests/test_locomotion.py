@@ -185,8 +185,8 @@ def gaussian_rollouts(make_env, per_task: bool, fast: bool, steps: int = 12) -> 
                env.rollout(steps, GaussianActor(net, params), tensordict=start, auto_reset=False,
                            break_when_any_done=False))
     base = getattr(env, "base_env", env)
-    return [rollout, torch.from_numpy(base._qpos.copy()), torch.from_numpy(base._qvel.copy()),
-            base._steps.clone(), torch.rand(2)]
+    return [rollout, torch.as_tensor(base._snapshot(base._qpos)),
+            torch.as_tensor(base._snapshot(base._qvel)), base._steps.clone(), torch.rand(2)]
 
 
 @pytest.mark.parametrize("per_task", [False, True])
@@ -212,6 +212,25 @@ def test_gaussian_transitions_equal_env_rollout_bit_for_bit(make_env, per_task):
     fast = gaussian_rollouts(make_env, per_task, fast=True)
     ended = fast[0]["next", "done"][..., :-1, :]
     assert ended.any() and not ended.all()
+    for key in fast[0].keys(True, True):
+        assert torch.equal(fast[0][key], slow[0][key]), key
+    for a, b in zip(fast[1:], slow[1:]):
+        assert torch.equal(a, b)
+
+
+def test_gaussian_transitions_equal_env_rollout_on_mujoco_warp():
+    """The same on MuJoCo Warp (warp's CPU device), whose bound arrays are torch tensors."""
+    warp = pytest.importorskip("warp", reason="MuJoCo Warp is not installed")
+    pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed")
+    if "cpu" not in [str(device) for device in warp.get_devices()]:
+        pytest.skip("warp has no CPU device here (its LLVM backend, warp-clang, is missing)")
+    from armeta_rl.envs.locomotion_warp import HalfCheetahVelWarpEnv
+
+    def make_env():
+        return HalfCheetahVelWarpEnv((3, 2), max_steps=5, seed=0, warp_device="cpu")
+
+    slow = gaussian_rollouts(make_env, per_task=True, fast=False)
+    fast = gaussian_rollouts(make_env, per_task=True, fast=True)
     for key in fast[0].keys(True, True):
         assert torch.equal(fast[0][key], slow[0][key]), key
     for a, b in zip(fast[1:], slow[1:]):

@@ -287,8 +287,8 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
     def _observation(self) -> torch.Tensor:
         """The observation buffer as the env emits it, ``[*batch_size, size]`` in torch's default
         dtype (a copy: the buffer is refilled by the next step)."""
-        dtype = torch.get_default_dtype()
-        return self._as_torch(self._obs).to(dtype, copy=True).reshape(*self.batch_size, -1)
+        observation = self._as_torch(self._obs).to(torch.get_default_dtype(), copy=True)
+        return observation.reshape(*self.batch_size, -1).to(self.device)
 
     def _output(self, extra: dict[str, torch.Tensor]) -> TensorDict:
         return TensorDict(
@@ -397,7 +397,7 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
             done = outputs["done"]
             if t < n_steps - 1 and done.any():
                 reset = self._reset(TensorDict({"_reset": done}, batch))["observation"]
-                observation = torch.where(done, reset, observation)
+                observation = torch.where(done.to(self.device), reset, observation)
         dim = len(batch)
         task = self._task.to(torch.get_default_dtype()).unsqueeze(dim)
         task = task.expand(*batch, n_steps, task.shape[-1])
