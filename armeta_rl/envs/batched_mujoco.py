@@ -352,7 +352,7 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         reward = self._as_torch(self._reward(action, qpos_before, task))
         forward = self._forward_reward(qpos_before, task)
         terminated = self._as_torch(~self._healthy()).reshape(*shape, 1)
-        self._steps = self._steps + 1
+        self._steps.add_(1)  # in place: the env is an nn.Module, whose attribute writes cost more
         truncated = self._steps >= self.max_steps
         dtype = torch.get_default_dtype()
         return {
