@@ -20,14 +20,18 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs, step_mdp
 
 from armeta_rl.config import validate
+from armeta_rl.envs.ant_goal import AntGoalEnv
 from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
 from armeta_rl.envs.locomotion import (
+    AntDirEnv,
     HalfCheetahDirEnv,
     HalfCheetahVelEnv,
     Walker2dVelEnv,
     constant_speed_goal_term,
 )
+from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianActor, GaussianMLP
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
 
@@ -155,6 +159,83 @@ def test_seeded_resets_and_native_threads_change_nothing():
     assert torch.equal(run(5), run(5))
     assert not torch.allclose(run(5), run(6))
     assert torch.equal(run(5, threads=2), run(5))
+
+
+MASS_SCALE = {"name": "mass_scale", "kind": "body_mass_only_scale", "target": "all",
+              "low": 0.75, "high": 1.25}
+
+
+def gaussian_rollouts(make_env, per_task: bool, fast: bool, steps: int = 12) -> list:
+    """A seeded env of 3 tasks × 2 episodes reset on its tasks and rolled out ``steps`` steps by a
+    Gaussian policy (shared or per-task parameters), by ``env.rollout`` or by the env's
+    ``gaussian_transitions``; with the simulations' state, step counts and torch's RNG stream
+    after it."""
+    torch.manual_seed(0)
+    env = make_env()
+    width = env.observation_spec["params"].shape[-1]
+    tasks = (0.75 + 0.25 * torch.rand(3, 1, width)).expand(3, 2, width)  # in every family's box
+    net = GaussianMLP(env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1],
+                      (16,))
+    params = None
+    if per_task:
+        params = TensorDict.from_module(net).detach().expand(3).clone()
+        params.apply_(lambda p: p + 0.1 * torch.randn_like(p))
+    env.set_seed(1)
+    start = env.reset(TensorDict({"params": tasks}, [3, 2]))
+    rollout = (env.gaussian_transitions(steps, net, params) if fast else
+               env.rollout(steps, GaussianActor(net, params), tensordict=start, auto_reset=False,
+                           break_when_any_done=False))
+    base = getattr(env, "base_env", env)
+    return [rollout, torch.as_tensor(base._snapshot(base._qpos)),
+            torch.as_tensor(base._snapshot(base._qvel)), base._steps.clone(), torch.rand(2)]
+
+
+@pytest.mark.parametrize("per_task", [False, True])
+@pytest.mark.parametrize("make_env", [
+    lambda: HalfCheetahVelEnv((3, 2), max_steps=5, seed=0),
+    lambda: HalfCheetahDirEnv((3, 2), max_steps=5, seed=0),
+    lambda: Walker2dVelEnv((3, 2), max_steps=5, seed=0),
+    # torsos leave a narrow healthy range at different steps: partial resets mid-rollout
+    lambda: AntDirEnv((3, 2), max_steps=20, seed=0, healthy_z_range=(0.5, 0.8)),
+    lambda: AntGoalEnv((3, 2), max_steps=20, seed=0, healthy_z_range=(0.5, 0.8)),
+    lambda: physics_task_env(Walker2dVelEnv, [MASS_SCALE], batch_size=(3, 2), max_steps=5,
+                             seed=0),
+], ids=["half_cheetah_vel", "half_cheetah_dir", "walker2d_vel", "ant_dir", "ant_goal",
+        "walker2d_mass_vel"])
+def test_gaussian_transitions_equal_env_rollout_bit_for_bit(make_env, per_task):
+    """The collectors' rollout of a batched MuJoCo env (alone, or with a mass scale as a
+    ``PhysicsTaskEnv``) is ``env.rollout`` with the same stochastic actor (shared or per-task
+    parameters): every key it writes at every step, through the automatic resets of truncated
+    (5-step limit in 12 steps) and terminated episodes, the simulations' state, step counts and
+    the RNG stream left behind."""
+    assert callable(getattr(type(make_env()), "gaussian_transitions", None))
+    slow = gaussian_rollouts(make_env, per_task, fast=False)
+    fast = gaussian_rollouts(make_env, per_task, fast=True)
+    ended = fast[0]["next", "done"][..., :-1, :]
+    assert ended.any() and not ended.all()
+    for key in fast[0].keys(True, True):
+        assert torch.equal(fast[0][key], slow[0][key]), key
+    for a, b in zip(fast[1:], slow[1:]):
+        assert torch.equal(a, b)
+
+
+def test_gaussian_transitions_equal_env_rollout_on_mujoco_warp():
+    """The same on MuJoCo Warp (warp's CPU device), whose bound arrays are torch tensors."""
+    warp = pytest.importorskip("warp", reason="MuJoCo Warp is not installed")
+    pytest.importorskip("mujoco_warp", reason="MuJoCo Warp is not installed")
+    if "cpu" not in [str(device) for device in warp.get_devices()]:
+        pytest.skip("warp has no CPU device here (its LLVM backend, warp-clang, is missing)")
+    from armeta_rl.envs.locomotion_warp import HalfCheetahVelWarpEnv
+
+    def make_env():
+        return HalfCheetahVelWarpEnv((3, 2), max_steps=5, seed=0, warp_device="cpu")
+
+    slow = gaussian_rollouts(make_env, per_task=True, fast=False)
+    fast = gaussian_rollouts(make_env, per_task=True, fast=True)
+    for key in fast[0].keys(True, True):
+        assert torch.equal(fast[0][key], slow[0][key]), key
+    for a, b in zip(fast[1:], slow[1:]):
+        assert torch.equal(a, b)
 
 
 @pytest.mark.parametrize("kwargs", [{"max_steps": 0}, {"frame_skip": 0},

@@ -8,10 +8,11 @@ env (point navigation, Ant goal, any env taking its identifiers under
 task ``k``'s parameters on row ``k``. Each batch entry runs exactly one episode: the rollout lasts
 ``max_steps`` steps, and the steps after an entry's first ``done`` (where TorchRL has
 automatically reset it) are masked out.
-An env whose class offers ``gaussian_transitions(steps, net, params)`` (point navigation) is
-stepped with it instead: ``env.rollout``'s rollout bit for bit, without TorchRL's per-step env
-machinery (and on CUDA replayed as one CUDA graph). The same env behind transforms or in a
-batched env is stepped by ``env.rollout``, transforms and all.
+An env whose class offers ``gaussian_transitions(steps, net, params)`` (point navigation, the
+batched MuJoCo envs and their physics families) is stepped with it instead: ``env.rollout``'s
+rollout bit for bit, without TorchRL's per-step env machinery (the point robot's on CUDA replayed
+as one CUDA graph). The same env behind other transforms or in a batched env is stepped by
+``env.rollout``, transforms and all.
 
 Devices: the policy acts on the env's device (a torch-native env runs wherever it was built; a
 MuJoCo env on the CPU), and the trajectories are returned on the collector's ``device``, where the

@@ -45,6 +45,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.rl.policy import GaussianMLP
+from armeta_rl.rl.policy import act as policy_act
 from armeta_rl.tasks.distributions import TaskEnvMixin
 from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY
 
@@ -281,13 +283,17 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
         self._generator.manual_seed(int(seed))
 
+    def _observation(self) -> torch.Tensor:
+        """The observation buffer as the env emits it, ``[*batch_size, size]`` in torch's default
+        dtype (a copy: the buffer is refilled by the next step)."""
+        observation = self._as_torch(self._obs).to(torch.get_default_dtype(), copy=True)
+        return observation.reshape(*self.batch_size, -1).to(self.device)
+
     def _output(self, extra: dict[str, torch.Tensor]) -> TensorDict:
-        shape, dtype = self.batch_size, torch.get_default_dtype()
-        # a copy: the buffer is refilled by the next step
-        observation = self._as_torch(self._obs).to(dtype, copy=True).reshape(*shape, -1)
         return TensorDict(
-            {"observation": observation, TASK_KEY: self._task.to(dtype), **extra},
-            batch_size=shape,
+            {"observation": self._observation(),
+             TASK_KEY: self._task.to(torch.get_default_dtype()), **extra},
+            batch_size=self.batch_size,
             device=self.device,
         )
 
@@ -328,8 +334,14 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         self.sim.forward(ids, stage=self.stage)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self._output(self._advance(tensordict.get("action")))
+
+    def _advance(self, action: torch.Tensor) -> dict[str, torch.Tensor]:
+        """One env step under ``action`` ``[*batch_size, nu]``: the simulations stepped, and the
+        step's reward, done flags and (where the env reports it) forward reward, each
+        ``[*batch_size, 1]``; the observation is left in its buffer."""
         shape = self.batch_size
-        action = self._as_sim(tensordict.get("action").reshape(self.n_sims, self.model.nu))
+        action = self._as_sim(action.reshape(self.n_sims, self.model.nu))
         qpos_before = self._snapshot(self._qpos)
         self._ctrl[:] = action
         self.sim.step(nstep=self.frame_skip, stage=self.stage)
@@ -338,16 +350,59 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         reward = self._as_torch(self._reward(action, qpos_before, task))
         forward = self._forward_reward(qpos_before, task)
         terminated = self._as_torch(~self._healthy()).reshape(*shape, 1)
-        self._steps = self._steps + 1
+        self._steps.add_(1)  # in place: the env is an nn.Module, whose attribute writes cost more
         truncated = self._steps >= self.max_steps
         dtype = torch.get_default_dtype()
-        return self._output(
-            {
-                "reward": reward.to(dtype).reshape(*shape, 1),
-                "done": terminated | truncated,
-                "terminated": terminated,
-                "truncated": truncated,
-                **({} if forward is None else
-                   {FORWARD_REWARD: self._as_torch(forward).to(dtype).reshape(*shape, 1)}),
-            }
-        )
+        return {
+            "reward": reward.to(dtype).reshape(*shape, 1),
+            "done": terminated | truncated,
+            "terminated": terminated,
+            "truncated": truncated,
+            **({} if forward is None else
+               {FORWARD_REWARD: self._as_torch(forward).to(dtype).reshape(*shape, 1)}),
+        }
+
+    def gaussian_transitions(self, steps: int, net: GaussianMLP,
+                             params: TensorDictBase | None = None) -> TensorDict:
+        """``env.rollout(steps, GaussianActor(net, params), auto_reset=False,
+        break_when_any_done=False)`` from the env's current state (after a reset): the same
+        rollout bit for bit (``tests/test_locomotion.py``), without TorchRL's per-step env
+        machinery (a TensorDict built, checked and stepped through per step), which costs a
+        large share of a small batch's physics.
+
+        Each step the policy acts (:func:`~armeta_rl.rl.policy.act`: the actor's draws from
+        torch's RNG) on the observation, :meth:`_advance` steps the simulations, and the
+        episodes that ended are reset between steps as TorchRL's automatic partial reset resets
+        them (:meth:`_reset` of the done entries, never after the last step).
+
+        Returns a TensorDict ``[*batch_size, steps]`` with ``"observation"``, ``"params"``,
+        ``"loc"``, ``"scale"``, ``"action"``, ``"action_log_prob"`` and ``"next"``:
+        ``"observation"``, ``"params"``, ``"reward"``, ``"done"``, ``"terminated"``,
+        ``"truncated"`` and, where the env reports it, ``"reward_forward"``.
+        """
+        per_task = params is not None
+        named = params.flatten_keys(".").to_dict() if per_task else {
+            name: value.detach() for name, value in net.named_parameters()}
+        batch, n_steps = self.batch_size, int(steps)
+        observation = self._observation()
+        acted, moved = [], []
+        for t in range(n_steps):
+            acted.append({"observation": observation,
+                          **policy_act(net, named, observation, per_task)})
+            outputs = self._advance(acted[-1]["action"])
+            observation = outputs["observation"] = self._observation()
+            moved.append(outputs)
+            done = outputs["done"]
+            if t < n_steps - 1 and done.any():
+                reset = self._reset(TensorDict({"_reset": done}, batch))["observation"]
+                observation = torch.where(done.to(self.device), reset, observation)
+        dim = len(batch)
+        task = self._task.to(torch.get_default_dtype()).unsqueeze(dim)
+        task = task.expand(*batch, n_steps, task.shape[-1])
+        rollout = TensorDict({key: torch.stack([step[key] for step in acted], dim)
+                              for key in acted[0]}, [*batch, n_steps], device=self.device)
+        rollout["next"] = TensorDict({key: torch.stack([step[key] for step in moved], dim)
+                                      for key in moved[0]}, [*batch, n_steps],
+                                     device=self.device)
+        rollout.update({TASK_KEY: task.clone(), ("next", TASK_KEY): task.clone()})
+        return rollout

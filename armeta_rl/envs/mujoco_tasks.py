@@ -74,6 +74,7 @@ from torchrl.envs import EnvBase, GymEnv, SerialEnv, StepCounter, Transform, Tra
 
 from armeta_rl.envs.task_env import TaskTransformedEnv, identifier_check
 from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks.protocol import TASK_KEY, IdentifierCheck
 from armeta_rl.tasks.space import TaskSpace
 
@@ -529,14 +530,19 @@ class PhysicsTaskTransform(Transform):
         # identifiers, as on a reset that names none (an empty TensorDict it would refuse)
         return None if tensordict.is_empty() else tensordict
 
+    def identifiers(self, base: torch.Tensor | None, device: torch.device | None
+                    ) -> torch.Tensor:
+        """The key's value ``[*batch, w + d]``: the base env's identifiers ``base`` (if any)
+        followed by the physics ones (a new tensor)."""
+        physics = self._params.to(device)
+        if self._base_width:
+            physics = torch.cat([base, physics.to(base)], -1)
+        return physics.clone()
+
     def _with_physics(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Set the key to the base env's identifiers (if any) followed by the physics ones."""
-        physics = self._params.to(tensordict.device)
-        if self._base_width:
-            physics = torch.cat([tensordict.get(self.key), physics.to(tensordict.get(self.key))],
-                                -1)
-        tensordict.set(self.key, physics.clone())
-        return tensordict
+        return tensordict.set(self.key, self.identifiers(tensordict.get(self.key, None),
+                                                         tensordict.device))
 
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
@@ -659,6 +665,28 @@ def make_gym_task_env(
     return env
 
 
+class PhysicsTaskEnv(TaskTransformedEnv):
+    """A :class:`~armeta_rl.envs.task_env.TaskTransformedEnv` of an env with
+    ``gaussian_transitions`` (a batched MuJoCo env) and its :class:`PhysicsTaskTransform`, which
+    rolls out with the base env's own
+    ``gaussian_transitions``: the transform changes nothing within a rollout but the identifiers
+    it emits (the physics are written at the full reset before, and the automatic resets
+    between steps carry no identifiers), so the rollout is ``env.rollout``'s bit for bit
+    (``tests/test_locomotion.py``) without TorchRL's per-step machinery."""
+
+    def gaussian_transitions(self, steps: int, net: GaussianMLP,
+                             params: TensorDictBase | None = None) -> TensorDictBase:
+        """The base env's ``gaussian_transitions`` with the key's identifiers of every step
+        followed by the physics ones, as the transform emits them."""
+        rollout = self.base_env.gaussian_transitions(steps, net, params)
+        transform, time = self.transform, len(self.batch_size)
+        for key in (transform.key, ("next", transform.key)):
+            rollout.set(key, torch.stack([
+                transform.identifiers(base, rollout.device)
+                for base in rollout.get(key).unbind(time)], time))
+        return rollout
+
+
 def physics_task_env(
     make_env: Callable[..., EnvBase],
     parameters: Sequence[Mapping[str, Any]],
@@ -669,6 +697,8 @@ def physics_task_env(
     """``make_env(**kwargs)`` with a :class:`PhysicsTaskTransform` over ``parameters``: the
     ``make_env`` a collector calls as ``make_env(batch_size=..., max_steps=..., seed=...)``, so a
     benchmark YAML turns an env into a physics family (``configs/benchmark/ant_goal_physics.yaml``).
+    An env whose class rolls out a Gaussian policy itself (``gaussian_transitions``: the batched
+    MuJoCo envs) comes as a :class:`PhysicsTaskEnv`, which keeps that rollout.
 
     Args:
         make_env: builds the base env from ``kwargs``.
@@ -693,7 +723,9 @@ def physics_task_env(
     if isinstance(parameters, (DictConfig, ListConfig)):
         parameters = OmegaConf.to_container(parameters, resolve=True)
     transform = PhysicsTaskTransform(parameters, config_key=config_key)
-    env = TaskTransformedEnv(make_env(**kwargs), transform)
+    base = make_env(**kwargs)
+    fast = callable(getattr(type(base), "gaussian_transitions", None))
+    env = (PhysicsTaskEnv if fast else TaskTransformedEnv)(base, transform)
     if space is not None:
         _check_box(space, transform, env.state_spec[transform.key].shape[-1])
     return env
