@@ -307,6 +307,7 @@ def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, lis
     and ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given; and ``key=value`` of
     each key of :data:`NO_RESULT_KEYS` it changes. Any other override, or fewer iterations, is
     refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
+    import armeta_rl.factory  # noqa: F401 (the sections a saved config is read against)
     from armeta_rl.config import load_run_config, validate
 
     saved = load_run_config(run_dir, "resume")

@@ -109,3 +109,16 @@ def players_of(cfg: DictConfig):
 @pytest.fixture
 def sinusoid_cfg() -> DictConfig:
     return compose_train(*SMALL_RUN)
+
+
+def cross_evaluate(learner_dir, adversary_dir, eval_overrides=None, device="cpu", shifts=None,
+                   initial=True) -> dict:
+    """What ``armeta-eval learner=… adversary=…`` scores, from Python: the saved runs' configs
+    (``eval_overrides`` replacing the learner's ``eval.*``) loaded onto ``device``, then
+    :func:`~armeta_rl.trainers.report.evaluate_runs`."""
+    from armeta_rl.trainers.players import saved_run
+    from armeta_rl.trainers.report import evaluate_runs
+
+    learner = saved_run(learner_dir, "learner", device, {"eval": eval_overrides or {}})
+    adversary = None if adversary_dir is None else saved_run(adversary_dir, "adversary", device)
+    return evaluate_runs(learner_dir, learner, adversary_dir, adversary, shifts, initial)

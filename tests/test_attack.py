@@ -11,9 +11,8 @@ import torch
 
 from armeta_rl.errors import ConfigError
 from armeta_rl.trainers.players import build_players, load_players
-from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, train_config
+from conftest import SMALL_RUN, cross_evaluate, train_config
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 RUN = (*SMALL_RUN, "trainer.meta_batch=5", "trainer.checkpoint_every=2", "logger=csv",

@@ -20,9 +20,8 @@ from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import TASK_KEY
 from armeta_rl.trainers.checkpoint import PortableRNGState
 from armeta_rl.trainers.players import Players, load_players
-from armeta_rl.trainers.report import cross_evaluate
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, refusal, train_config
+from conftest import SMALL_RUN, compose_train, cross_evaluate, refusal, train_config
 
 TRAIN = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
 CUDA = torch.cuda.is_available()

@@ -33,10 +33,10 @@ from armeta_rl.run_files import FileRefused
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
 from armeta_rl.trainers.players import load_players
-from armeta_rl.trainers.report import EVAL_FILE, cross_evaluate
+from armeta_rl.trainers.report import EVAL_FILE
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOCK_FILE
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, train_config
+from conftest import SMALL_RUN, compose_train, cross_evaluate, train_config
 
 RUN = (*SMALL_RUN, "method=ar_maml", "trainer.meta_batch=5", "logger=csv",
        "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.density_every=0")

@@ -30,7 +30,6 @@ from armeta_rl.risk.pdts import (
     greedy_diverse_subset,
     mean_pairwise_distance,
     posterior_sample_risks,
-    subset_objective,
 )
 from armeta_rl.risk.predictive import (
     RiskPredictiveModel,
@@ -45,6 +44,12 @@ from conftest import compose_train, players_of
 SPACE = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
 HARDEST = torch.tensor([0.85, 0.15])  # the peak of the landscape, in unit-box coordinates
 FAST = {"lr": 5e-3, "steps": 5, "standardize": True}  # a quick-learning model for the tests
+
+
+def subset_objective(risks: torch.Tensor, points: torch.Tensor, diversity: float) -> torch.Tensor:
+    """The objective of Eq. (12c) for one subset, Σ_i ℓ̂_i + γ·S(T^B), from the subset's risks
+    ``[B]`` and points ``[B, d]``: the reference the greedy subset is scored against."""
+    return risks.sum() + diversity * mean_pairwise_distance(points)
 
 
 def landscape(params: torch.Tensor) -> torch.Tensor:

@@ -78,12 +78,6 @@ def mean_pairwise_distance(points: Tensor) -> Tensor:
     return torch.pdist(points).sum() * 2 / (b * (b - 1))
 
 
-def subset_objective(risks: Tensor, points: Tensor, diversity: float) -> Tensor:
-    """The objective of Eq. (12c) for one subset: Σ_i ℓ̂_i + γ·S(T^B), from the subset's risks
-    ``[B]`` and points ``[B, d]``."""
-    return risks.sum() + diversity * mean_pairwise_distance(points)
-
-
 def greedy_diverse_subset(risks: Tensor, points: Tensor, b: int, diversity: float) -> Tensor:
     """Indices ``[b]`` of an approximate maximizer of Eq. (12c) over the candidates (risks
     ``[N]``, points ``[N, d]``), in the order picked: Borodin et al.'s greedy, which adds the

@@ -19,7 +19,7 @@ from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.shifts import shift_seed, suite_shifts
 from armeta_rl.trainers.checkpoint import run_identity
 from armeta_rl.trainers.evaluation import evaluate_on
-from armeta_rl.trainers.players import Players, restore_players, saved_run
+from armeta_rl.trainers.players import Players, restore_players
 
 EVAL_FILE = "eval.json"
 
@@ -119,24 +119,6 @@ def eval_scalars(report: dict[str, Any]) -> dict[str, float]:
     return scalars
 
 
-def cross_evaluate(
-    learner_dir: str | Path,
-    adversary_dir: str | Path | None,
-    eval_overrides: dict[str, Any] | None = None,
-    device: str = "cpu",
-    shifts: str | Sequence[str] | None = None,
-    initial: bool = True,
-) -> dict[str, Any]:
-    """Score the learner saved in ``learner_dir`` on p0, on the adversary saved in
-    ``adversary_dir`` (same benchmark) and on ``shifts`` of its benchmark's shift suite
-    (``"all"`` or names; :mod:`armeta_rl.tasks.shifts`), all loaded onto ``device`` wherever they
-    were trained; ``eval_overrides`` replace the learner run's ``eval.*``; ``initial=False``
-    leaves p0 out (:func:`evaluate_runs` on the runs' configs, :func:`saved_run`)."""
-    learner = saved_run(learner_dir, "learner", device, {"eval": eval_overrides or {}})
-    adversary = None if adversary_dir is None else saved_run(adversary_dir, "adversary", device)
-    return evaluate_runs(learner_dir, learner, adversary_dir, adversary, shifts, initial)
-
-
 def evaluate_runs(
     learner_dir: str | Path,
     learner: TrainConfig,
@@ -145,9 +127,12 @@ def evaluate_runs(
     shifts: str | Sequence[str] | None = None,
     initial: bool = True,
 ) -> dict[str, Any]:
-    """:func:`cross_evaluate` of runs whose configs are loaded (``learner``, ``adversary``: the
-    configs of ``learner_dir`` and ``adversary_dir`` as :func:`saved_run` gives them, on the
-    device to evaluate on)."""
+    """Score the learner saved in ``learner_dir`` on p0, on the adversary saved in
+    ``adversary_dir`` (same benchmark) and on ``shifts`` of its benchmark's shift suite
+    (``"all"`` or names; :mod:`armeta_rl.tasks.shifts`); ``initial=False`` leaves p0 out.
+    ``learner`` and ``adversary`` are the runs' configs as
+    :func:`~armeta_rl.trainers.players.saved_run` gives them, on the
+    device to evaluate on (with the ``eval.*`` to score by)."""
     players = restore_players(learner_dir, "learner", learner)
     distribution = None
     if adversary_dir is not None and adversary is not None:
