@@ -122,3 +122,31 @@ def cross_evaluate(learner_dir, adversary_dir, eval_overrides=None, device="cpu"
     learner = saved_run(learner_dir, "learner", device, {"eval": eval_overrides or {}})
     adversary = None if adversary_dir is None else saved_run(adversary_dir, "adversary", device)
     return evaluate_runs(learner_dir, learner, adversary_dir, adversary, shifts, initial)
+
+
+def _tensors(state, path: tuple = ()) -> dict[tuple, torch.Tensor]:
+    """Every tensor of a (nested) state dict, by its path."""
+    if isinstance(state, torch.Tensor):
+        return {path: state}
+    items = (state.items() if isinstance(state, dict)
+             else enumerate(state) if isinstance(state, (list, tuple)) else ())
+    return {found: tensor for key, value in items
+            for found, tensor in _tensors(value, (*path, key)).items()}
+
+
+def moved_players(config: TrainConfig, run_dir) -> dict[str, bool]:
+    """Which players of the finished run in ``run_dir`` differ from those its seed builds (the
+    run's starting point): per ``leader`` and ``principle`` (the adversary, the risk model),
+    whether any tensor of its initial state dict changed (an optimizer's state, which training
+    adds, is not compared). Training that updates nothing leaves both ``False``; a principle
+    without parameters (MAML's p0) stays ``False``."""
+    from armeta_rl.trainers.players import build_players, restore_players
+
+    start, end = build_players(config), restore_players(run_dir, "run", config)
+    moved = {}
+    for name in ("leader", "principle"):
+        before = _tensors(getattr(start, name).state_dict())
+        after = _tensors(getattr(end, name).state_dict())
+        moved[name] = any(not torch.equal(tensor, after[path])
+                          for path, tensor in before.items() if path in after)
+    return moved

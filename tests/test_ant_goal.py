@@ -22,7 +22,7 @@ from armeta_rl.envs.locomotion import AntDirEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, raw_mjdata
+from conftest import SMALL_RUN, compose_train, moved_players, raw_mjdata
 
 CTRL, CONTACT, SURVIVE = 5e-3, 5e-4, 0.05
 
@@ -306,8 +306,10 @@ def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):
         "logger=csv",
     )
     assert cfg.benchmark.collector.workers == 2
-    report = run_training(validate(cfg), tmp_path)
+    config = validate(cfg)
+    report = run_training(config, tmp_path)
     assert report["metric"] == "return" and "adversarial" in report
+    assert moved_players(config, tmp_path) == {"leader": True, "principle": True}
     for curve in ("return_pre", "return_post"):
         assert (tmp_path / "logs" / "scalars" / "train" / f"{curve}.csv").is_file()
 

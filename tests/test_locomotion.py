@@ -33,7 +33,7 @@ from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError
 from armeta_rl.rl.policy import GaussianActor, GaussianMLP
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, collector_of, compose_train, raw_mjdata
+from conftest import SMALL_RUN, collector_of, compose_train, moved_players, raw_mjdata
 
 ENVS = {"half_cheetah_vel": HalfCheetahVelEnv, "half_cheetah_dir": HalfCheetahDirEnv,
         "walker2d_vel": Walker2dVelEnv}
@@ -257,8 +257,10 @@ def test_half_cheetah_vel_benchmark_trains(tmp_path):
     env = collector_of(cfg).env(2)
     assert isinstance(env, HalfCheetahVelEnv) and env.batch_size == (2, 2)
     assert (env.ctrl_cost_weight, env.frame_skip, env.max_steps) == (0.05, 5, 10)
-    report = run_training(validate(cfg), tmp_path)
+    config = validate(cfg)
+    report = run_training(config, tmp_path)
     assert report["metric"] == "return" and "adversarial" in report
+    assert moved_players(config, tmp_path) == {"leader": True, "principle": True}
 
 
 def test_the_docs_example_runs():

@@ -39,7 +39,7 @@ from armeta_rl.risk.predictive import (
 )
 from armeta_rl.risk.sampling import PrincipleSampler
 from armeta_rl.tasks import BoxUniform, TaskSpace
-from conftest import compose_train, players_of
+from conftest import compose_train, moved_players, players_of
 
 SPACE = TaskSpace(("amplitude", "phase"), (0.1, 0.0), (5.0, math.pi))
 HARDEST = torch.tensor([0.85, 0.15])  # the peak of the landscape, in unit-box coordinates
@@ -500,9 +500,11 @@ def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
                         "trainer.iterations=2", "trainer.meta_batch=3", "eval.n_tasks=3",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "logger=csv")
-    report = run_training(validate(cfg), tmp_path)
+    config = validate(cfg)
+    report = run_training(config, tmp_path)
     assert report["metric"] == "return" and report["method"] == f"{kind}_maml"
     assert (tmp_path / "logs" / "scalars" / "risk" / "pcc.csv").is_file()
+    assert moved_players(config, tmp_path) == {"leader": True, "principle": True}
 
 
 def test_the_two_reconstruction_terms_differ_by_the_variance_over_z():
