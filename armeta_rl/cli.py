@@ -285,8 +285,9 @@ RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
 """The keys a resumed run may change that change what it computes: train longer, stop earlier,
 continue on another device (its checkpoint loads there)."""
 NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "logger.tracking_uri",
-                  "trainer.progress", "trainer.log_every", "trainer.density_every",
-                  "trainer.keep_freed_memory", "trainer.stop_signals", "threads", "adopt")
+                  "trainer.progress", "trainer.log_every", "trainer.checkpoint_every",
+                  "trainer.density_every", "trainer.keep_freed_memory", "trainer.stop_signals",
+                  "threads", "adopt")
 """The keys a resumed run may change that change no result (``eval.json`` and every logged
 value stay those of the uninterrupted run): where and how often it logs and draws, the progress
 bar, the allocator, the stop signals, torch's thread count (which the seeded benchmark

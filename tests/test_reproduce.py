@@ -885,6 +885,22 @@ def test_a_run_saved_before_a_key_existed_keeps_its_report(tmp_path, table1_dir)
     assert report_problem(results, maml) is None
 
 
+def test_a_run_checkpointed_otherwise_than_its_plan_says_keeps_its_report(tmp_path, table1_dir):
+    """The plan's keys that change no result (``NO_RESULT_KEYS``: how often a run checkpoints
+    or logs) do not decide whether a report is the run's: an experiment that checkpoints its
+    runs more often keeps the runs it finished before; a key that changes results does."""
+    from armeta_rl.reproduce.plan import report_problem
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    for extra, problem in ((("trainer.checkpoint_every=7",), None),
+                           (("trainer.meta_batch=7",), "trainer.meta_batch = ")):
+        plan = make_plan("table1", "tiny", extra, benchmarks=("sinusoid_uniform",))
+        maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
+        found = report_problem(results, maml)
+        assert found is None if problem is None else problem in found
+
+
 def test_pack_packs_only_the_reports_the_plan_accepts(tmp_path, table1_dir):
     """A report refused (another method's, its identity removed) is not packed, and the packed
     files then hold every other report: pack=true never turns a refused report into a packed

@@ -427,7 +427,8 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
     method or seed differ from the run's (an evaluation job's learner's); the digest of the
     result-changing keys it records differs from the run's ``config.yaml``'s (its packed config
     where its directory has none), as a variant's does; that config does not hold what the plan
-    gives the run (:func:`planned_values`: another experiment's or profile's run copied in); or
+    gives the run (:func:`planned_values`, but the keys that change no result,
+    :data:`~armeta_rl.cli.NO_RESULT_KEYS`: another experiment's or profile's run copied in); or
     the report was scored with other evaluation settings than the plan's (another experiment's
     report, :func:`scored_problem`)."""
     from armeta_rl.trainers.evaluation import ReportInvalid
@@ -450,9 +451,12 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
     if report["config_sha256"] != digest:
         return (f"it is the report of another config (config_sha256 "
                 f"{str(report['config_sha256'])[:12]}…, not this run's {digest[:12]}…)")
+    from armeta_rl.cli import NO_RESULT_KEYS
+
     planned = planned_values(learner)
     differ = next((key for key, value in planned.items()
-                   if key != "eval" and _select(saved, key) != value), None)
+                   if key != "eval" and key not in NO_RESULT_KEYS
+                   and _select(saved, key) != value), None)
     if differ is not None:
         return (f"its run's config has {differ} = {_short(_select(saved, differ))}, not the "
                 f"{_short(planned[differ])} this experiment's plan gives it")
