@@ -3,6 +3,7 @@ docs/api/*.md) has an ``Examples:`` block of ``>>>`` lines in its docstring; pyt
 (``--doctest-modules`` over ``armeta_rl``, pyproject.toml)."""
 
 import importlib
+import importlib.util
 import inspect
 import re
 from pathlib import Path
@@ -12,10 +13,15 @@ API_PAGES = Path(__file__).resolve().parents[1] / "docs" / "api"
 
 def rendered_objects() -> dict[str, object]:
     """Dotted name → every class and function the API pages render: a package entry renders the
-    names of its ``__all__``, a module entry the public ones it defines."""
+    names of its ``__all__``, a module entry the public ones it defines, an object entry itself."""
     objects = {}
     for page in sorted(API_PAGES.glob("*.md")):
         for entry in re.findall(r"^::: (\S+)", page.read_text(), re.M):
+            parent, _, leaf = entry.rpartition(".")
+            if not importlib.util.find_spec(parent).submodule_search_locations and leaf in vars(
+                    importlib.import_module(parent)):
+                objects[entry] = getattr(importlib.import_module(parent), leaf)
+                continue
             module = importlib.import_module(entry)
             names = getattr(module, "__all__", None) or [
                 name for name, value in vars(module).items()
