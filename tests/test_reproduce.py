@@ -1036,7 +1036,7 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     off) and level on the rim, does not help, worse at every seed on p0."""
     from armeta_rl.reproduce.reports import verdicts_path
 
-    plan = make_plan("meta_rl_point", "paper")
+    plan = make_plan("meta_rl_point", "paper", ("eval.n_tasks=2", "eval.alphas=[0.5]"))
     for seed in range(5):
         gain = 1.0 + 0.1 * seed
         rim = -0.5 - 0.1 * seed if seed else 0.1

@@ -7,6 +7,7 @@ and the reports plot it."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import pytest
 import torch
@@ -64,6 +65,11 @@ def test_load_run_refuses_in_one_line(tmp_path, finished):
     for file in ("config.yaml",):
         (broken / file).write_text((run_dir / file).read_text())
     (broken / "checkpoints").symlink_to(run_dir / "checkpoints")
+    with pytest.raises(ConfigError, match="its checkpoints is a link") as error:
+        armeta_rl.load_run(broken)  # a run directory is data: no link is followed
+    assert "\n" not in str(error.value)
+    (broken / "checkpoints").unlink()
+    shutil.copytree(run_dir / "checkpoints", broken / "checkpoints")
     (broken / "eval.json").write_text(json.dumps({**report, "initial": {
         **report["initial"], "mean": 12345.0}}))
     with pytest.raises(ConfigError, match="its report eval.json is invalid") as error:
