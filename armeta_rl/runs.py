@@ -21,7 +21,31 @@ class Run:
     """A run directory, loaded: where it is, its config, its players (the leader θ, the
     principle with its adversary p_φ where it has one, p0, the task box, the evaluation
     collector) with its latest checkpoint, and its reports by file stem (``"eval"``: the run's
-    own ``eval.json``; ``"eval_vs_<run>"``, ``"eval_shifts"``: ``armeta-eval``'s)."""
+    own ``eval.json``; ``"eval_vs_<run>"``, ``"eval_shifts"``: ``armeta-eval``'s).
+
+    :func:`load_run` gives one from a run directory; the example builds one from a config
+    instead, its players untrained, to show what it holds.
+
+    Examples:
+        >>> from pathlib import Path
+        >>> from hydra import compose, initialize_config_dir
+        >>> from armeta_rl.config import validate
+        >>> from armeta_rl.config_files import config_files
+        >>> from armeta_rl.runs import Run
+        >>> from armeta_rl.trainers.players import build_players
+        >>> def untrained(method):
+        ...     with initialize_config_dir(config_dir=str(config_files()), version_base=None):
+        ...         config = validate(compose("train", overrides=[f"method={method}"]))
+        ...     return Run(Path("runs", method), config, build_players(config), reports={})
+        >>> run = untrained("ar_maml")
+        >>> run.config.benchmark.name, type(run.leader).__name__, type(run.adversary).__name__
+        ('sinusoid_uniform', 'MAMLLeader', 'FlowAdversary')
+        >>> tasks = run.adversary.sample(1000)["params"]  # tasks from p_φ, in the task box
+        >>> run.players.space.names, bool(run.players.space.contains(tasks).all())
+        (('amplitude', 'phase'), True)
+        >>> untrained("maml").adversary is None  # a method without p_φ
+        True
+    """
 
     path: Path
     config: TrainConfig

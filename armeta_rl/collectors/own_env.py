@@ -39,9 +39,29 @@ EPISODES_KEY = "benchmark.collector.episodes"
 
 class TaskBox(Transform):
     """Declares the task box of an env that takes identifiers under ``"params"`` but tells none
-    (a user's env): the env then tells ``space`` (:func:`~armeta_rl.envs.task_space`) and its
-    resets are checked against it (every identifier finite and in the box). It changes no
-    data."""
+    (a user's env): the env then tells ``space`` (:func:`~armeta_rl.envs.task_space`), and a
+    batched env of it (:class:`~armeta_rl.envs.TaskSerialEnv`,
+    :class:`~armeta_rl.envs.TaskParallelEnv`) checks every reset against it in the calling
+    process (every identifier finite and in the box). It changes no data.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors.own_env import TaskBox
+        >>> from armeta_rl.envs import TaskSerialEnv, TaskTransformedEnv, identifier_check
+        >>> from armeta_rl.envs.tutorial_pendulum import TutorialPendulumEnv
+        >>> from armeta_rl.tasks import TaskSpace
+        >>> identifier_check(TutorialPendulumEnv()) is None  # a user's env tells no box
+        True
+        >>> box = TaskSpace(["m", "l"], low=[0.5, 0.5], high=[1.5, 1.5])
+        >>> env = TaskSerialEnv(2, lambda: TaskTransformedEnv(TutorialPendulumEnv(), TaskBox(box)))
+        >>> env.task_space
+        TaskSpace(names=('m', 'l'), low=(0.5, 0.5), high=(1.5, 1.5))
+        >>> env.reset(TensorDict({"params": torch.tensor([[1.0, 1.0], [3.0, 1.0]])}, [2]))
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.IdentifierError: tensordict key 'params' = [3.0, 1.0]: every ... [0.5, 1.5]
+    """
 
     def __init__(self, space: TaskSpace) -> None:
         super().__init__(in_keys=[], out_keys=[])
@@ -55,7 +75,7 @@ class TaskBox(Transform):
         return IdentifierCheck(space.names, space.low, space.high, (False,) * space.dim)
 
 
-def boxed(make_env: Callable[[], EnvBase], space: TaskSpace, max_steps: int
+def _boxed(make_env: Callable[[], EnvBase], space: TaskSpace, max_steps: int
           ) -> TaskTransformedEnv:
     """One instance of the user's env under its :class:`TaskBox`, its episodes cut to
     ``max_steps`` steps."""
@@ -66,7 +86,7 @@ def _reshape(tensordict: Any, shape: tuple[int, ...]) -> Any:
     return tensordict.reshape(*shape)
 
 
-def instance_size(make_env: Callable[[], EnvBase]) -> int:
+def _instance_size(make_env: Callable[[], EnvBase]) -> int:
     """How many batch entries one instance of the user's env has (built once, under a forked
     RNG: building it draws nothing from the run's stream)."""
     with torch.random.fork_rng(devices=[]):
@@ -118,12 +138,12 @@ def one_task_envs(
     if isinstance(space, Mapping):
         space = TaskSpace(list(space["names"]), list(space["low"]), list(space["high"]))
     tasks, episodes = (int(n) for n in batch_size)
-    per_instance = instance_size(make_env)
+    per_instance = _instance_size(make_env)
     if episodes % per_instance:
         raise ConfigError(EPISODES_KEY, episodes,
                           f"must be a multiple of {per_instance}, the batch size of one instance "
                           "of the env (its entries are episodes of its one task)")
-    worker = partial(boxed, make_env, space, int(max_steps))
+    worker = partial(_boxed, make_env, space, int(max_steps))
     count = tasks * episodes // per_instance
     batched = (TaskParallelEnv(count, worker, mp_start_method=mp_start_method) if parallel
                else TaskSerialEnv(count, worker))
@@ -143,16 +163,42 @@ class OneTaskEnvCollector(EpisodeCollector):
         max_steps: the episode length limit.
         parallel: one process per instance.
         device: where the trajectories are returned.
+
+    Raises:
+        ConfigError: ``episodes`` is not a multiple of an instance's batch size.
+
+    Examples:
+        >>> import torch
+        >>> from functools import partial
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors.own_env import OneTaskEnvCollector
+        >>> from armeta_rl.envs.tutorial_pendulum import TutorialPendulumEnv
+        >>> from armeta_rl.rl import GaussianMLP
+        >>> box = {"names": ["m", "l"], "low": [0.5, 0.5], "high": [1.5, 1.5]}
+        >>> make_env = partial(TutorialPendulumEnv, batch_size=(2,))  # 2 episodes an instance
+        >>> collector = OneTaskEnvCollector(make_env, box, episodes=4, max_steps=5)
+        >>> tasks = TensorDict({"params": torch.tensor([[0.5, 0.5], [1.5, 1.5]])}, [2])
+        >>> _ = torch.manual_seed(0)
+        >>> trajectories = collector.collect(tasks, policy=GaussianMLP(obs_dim=3, action_dim=1))
+        >>> trajectories.batch_size  # [tasks, episodes, max_steps]: 2 instances per task
+        torch.Size([2, 4, 5])
+        >>> trajectories["params"][:, -1, -1]  # every episode of a task runs that task
+        tensor([[0.5000, 0.5000],
+                [1.5000, 1.5000]])
+        >>> OneTaskEnvCollector(make_env, box, episodes=3)
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.ConfigError: config key 'benchmark.collector.episodes' = 3: must be ...
     """
 
     def __init__(self, make_env: Callable[[], EnvBase], space: Mapping[str, Any],
                  episodes: int = 20, max_steps: int = 100, parallel: bool = False,
                  device: torch.device = CPU) -> None:
-        self.per_instance = instance_size(make_env)
+        self.per_instance = _instance_size(make_env)
         if int(episodes) % self.per_instance:
             raise ConfigError(EPISODES_KEY, episodes, f"must be a multiple of "
                               f"{self.per_instance}, the batch size of one instance of the env")
-        self.instance = partial(boxed, make_env, TaskSpace(list(space["names"]),
+        self.instance = partial(_boxed, make_env, TaskSpace(list(space["names"]),
                                                           list(space["low"]),
                                                           list(space["high"])), 1)
         build = partial(one_task_envs, make_env, dict(space), parallel=bool(parallel))

@@ -672,7 +672,34 @@ class PhysicsTaskEnv(TaskTransformedEnv):
     ``gaussian_transitions``: the transform changes nothing within a rollout but the identifiers
     it emits (the physics are written at the full reset before, and the automatic resets
     between steps carry no identifiers), so the rollout is ``env.rollout``'s bit for bit
-    (``tests/test_locomotion.py``) without TorchRL's per-step machinery."""
+    (``tests/test_locomotion.py``) without TorchRL's per-step machinery.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import HalfCheetahVelEnv
+        >>> from armeta_rl.envs.mujoco_tasks import physics_task_env
+        >>> from armeta_rl.rl import GaussianMLP
+        >>> from armeta_rl.rl.policy import GaussianActor
+        >>> mass = {"name": "mass_scale", "kind": "body_mass_only_scale", "target": "all",
+        ...         "low": 0.75, "high": 1.25}
+        >>> tasks = torch.tensor([[1.5, 0.8], [0.5, 1.2]])[:, None]  # (velocity, mass) x 2 tasks
+        >>> net = GaussianMLP(obs_dim=20, action_dim=6, hidden=(16,))
+        >>> def rollout(fast):
+        ...     env = physics_task_env(HalfCheetahVelEnv, [mass], batch_size=(2, 1), seed=0)
+        ...     torch.manual_seed(0)
+        ...     start = env.reset(TensorDict({"params": tasks}, [2, 1]))
+        ...     if fast:
+        ...         return env.gaussian_transitions(5, net)
+        ...     return env.rollout(5, GaussianActor(net), tensordict=start, auto_reset=False,
+        ...                        break_when_any_done=False)
+        >>> fast, slow = rollout(True), rollout(False)
+        >>> fast["next", "params"][:, 0, -1]  # the goal velocity, then the physics
+        tensor([[1.5000, 0.8000],
+                [0.5000, 1.2000]])
+        >>> all(torch.equal(fast[key], slow[key]) for key in fast.keys(True, True))
+        True
+    """
 
     def gaussian_transitions(self, steps: int, net: GaussianMLP,
                              params: TensorDictBase | None = None) -> TensorDictBase:

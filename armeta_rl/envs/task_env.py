@@ -100,7 +100,25 @@ def task_space(env: EnvBase) -> TaskSpace:
 
 def identifier_check(env: EnvBase) -> IdentifierCheck | None:
     """The reset contract of ``env`` through any transforms and batched envs (``None``: its
-    resets take no identifiers, e.g. a ``TaskTransform`` with a source provides them)."""
+    resets take no identifiers, e.g. a ``TaskTransform`` with a source provides them).
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.envs import StepCounter, TransformedEnv
+        >>> from armeta_rl.envs import PendulumEnv, identifier_check
+        >>> check = identifier_check(TransformedEnv(PendulumEnv(batch_size=(3,)), StepCounter(9)))
+        >>> check.names, check.low, check.high, check.open_low  # m and l in (0, inf)
+        (('m', 'l'), (0.0, 0.0), (inf, inf), (True, True))
+        >>> check.read(TensorDict({"params": torch.tensor([2.0, 0.5])}, []), torch.Size([3]))
+        tensor([[2.0000, 0.5000],
+                [2.0000, 0.5000],
+                [2.0000, 0.5000]])
+        >>> check.read(TensorDict({"params": torch.tensor([0.0, 0.5])}, []), torch.Size([3]))
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.IdentifierError: tensordict key 'params' = [0.0, 0.5]: every ... (0, inf)
+    """
     return _describe(env, "identifier_check")
 
 
@@ -152,7 +170,25 @@ class TaskTransformedEnv(TransformedEnv):
 class TaskBatchedEnv:
     """What :class:`TaskSerialEnv` and :class:`TaskParallelEnv` add to TorchRL's batched envs
     (module docstring): the workers' box and contract, read from the env TorchRL builds of each
-    to read its specs, and every reset checked in the calling process."""
+    to read its specs, and every reset checked in the calling process.
+
+    Examples:
+        >>> from armeta_rl.collectors.own_env import TaskBox
+        >>> from armeta_rl.envs import TaskSerialEnv, TaskTransformedEnv
+        >>> from armeta_rl.envs.task_env import TaskBatchedEnv
+        >>> from armeta_rl.envs.tutorial_pendulum import TutorialPendulumEnv
+        >>> from armeta_rl.tasks import TaskSpace
+        >>> def pendulum(high):  # a user's env, its box declared by a TaskBox
+        ...     box = TaskSpace(["m", "l"], low=[0.5, 0.5], high=[high, high])
+        ...     return TaskTransformedEnv(TutorialPendulumEnv(), TaskBox(box))
+        >>> env = TaskSerialEnv(2, lambda: pendulum(1.5))
+        >>> isinstance(env, TaskBatchedEnv), env.task_space.high, env.identifier_check.low
+        (True, (1.5, 1.5), (0.5, 0.5))
+        >>> TaskSerialEnv(2, [lambda: pendulum(1.5), lambda: pendulum(2.0)]).task_space
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.ConfigError: config key 'env' = 'TaskSerialEnv': its workers differ ...
+    """
 
     def _get_metadata(self, create_env_fn: list, create_env_kwargs: list) -> None:
         self.__dict__["_task_workers"] = []
@@ -236,4 +272,21 @@ class TaskSerialEnv(TaskBatchedEnv, SerialEnv):
 class TaskParallelEnv(TaskBatchedEnv, ParallelEnv):
     """TorchRL's ``ParallelEnv`` with one task box and every reset checked in the calling process
     before a worker sees it, so a refused reset leaves the workers alive (module docstring); the
-    same env otherwise."""
+    same env otherwise.
+
+    Examples:
+        >>> import torch
+        >>> from functools import partial
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.envs import PendulumEnv, TaskParallelEnv
+        >>> env = TaskParallelEnv(2, partial(PendulumEnv, batch_size=(3,)))  # 2 processes
+        >>> env.task_space.names, type(env.p0).__name__  # read without starting a process
+        (('m', 'l'), 'BoxUniform')
+        >>> tasks = torch.tensor([[1.0, 1.0], [-1.0, 1.0]])[:, None].expand(2, 3, 2)
+        >>> env.reset(TensorDict({"params": tasks}, [2, 3]))
+        Traceback (most recent call last):
+        ...
+        armeta_rl.errors.IdentifierError: tensordict key 'params' = [-1.0, 1.0]: every ... (0, inf)
+        >>> env.is_closed  # refused in this process, before any worker started
+        True
+    """

@@ -51,12 +51,12 @@ MISPLACED_TASK_KEYS = ("goal", "goals", "task", "tasks", "task_params", "identif
 """Keys under which identifiers are commonly (and here wrongly) passed; an env refuses them."""
 
 
-def interval(low: float, high: float, open_low: bool = False) -> str:
+def _interval(low: float, high: float, open_low: bool = False) -> str:
     """``[low, high]`` (or ``(low, high]``) as text; infinite ends print as ``inf``."""
     return f"{'(' if open_low else '['}{low:g}, {high:g}{')' if math.isinf(high) else ']'}"
 
 
-def misplaced(key: str, names: Sequence[str]) -> bool:
+def _misplaced(key: str, names: Sequence[str]) -> bool:
     """Whether reset key ``key`` looks like task identifiers under another key than
     :data:`TASK_KEY`: one of :data:`MISPLACED_TASK_KEYS`, an identifier name of the env, or a
     near-spelling of :data:`TASK_KEY` (``"param"``, ``"Params"``)."""
@@ -122,10 +122,11 @@ class IdentifierCheck:
 
     def refuse_misplaced(self, tensordict: TensorDictBase) -> None:
         """An :class:`~armeta_rl.errors.IdentifierError` for the first key of ``tensordict``
-        that looks like identifiers under another key than :data:`TASK_KEY`
-        (:func:`misplaced`)."""
+        that looks like identifiers under another key than :data:`TASK_KEY`: one of
+        :data:`MISPLACED_TASK_KEYS`, one of this check's names, or a near-spelling of
+        :data:`TASK_KEY` (``"param"``, ``"Params"``)."""
         for key in tensordict.keys(include_nested=False):
-            if misplaced(key, self.names):
+            if _misplaced(key, self.names):
                 raise IdentifierError(key, _describe(tensordict.get(key)),
                                       f"task identifiers go under '{TASK_KEY}': {self.spelled()}")
 
@@ -204,15 +205,25 @@ class IdentifierCheck:
         ranges = list(zip(self.low, self.high, self.open_low))
         if len(set(ranges)) == 1:
             return (f"every identifier ({', '.join(self.names)}) must be finite and in "
-                    f"{interval(*ranges[0])}")
-        each = ", ".join(f"{name} in {interval(*r)}" for name, r in zip(self.names, ranges))
+                    f"{_interval(*ranges[0])}")
+        each = ", ".join(f"{name} in {_interval(*r)}" for name, r in zip(self.names, ranges))
         return f"every identifier must be finite and in its interval ({each})"
 
 
 def repeat_tasks(tasks: TensorDictBase, times: int) -> TensorDictBase:
     """``tasks`` ``[K]`` repeated ``times`` times, rollout-major ``[times·K]`` (entry ``r·K + k``
     is task ``k``'s ``r``-th copy), so one batched collection gives every task ``times``
-    independent rollouts; ``times = 1`` returns ``tasks`` itself."""
+    independent rollouts; ``times = 1`` returns ``tasks`` itself. :func:`per_rollout` groups
+    the per-entry values of the collection back by task.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.tasks.protocol import repeat_tasks
+        >>> tasks = TensorDict({"params": torch.tensor([[0.5], [2.0]])}, [2])  # K = 2 tasks
+        >>> repeat_tasks(tasks, 3)["params"].squeeze(-1)  # 3 rollouts each, one batch of 6
+        tensor([0.5000, 2.0000, 0.5000, 2.0000, 0.5000, 2.0000])
+    """
     if times == 1:
         return tasks
     n_tasks = tasks.batch_size[0]
@@ -221,7 +232,20 @@ def repeat_tasks(tasks: TensorDictBase, times: int) -> TensorDictBase:
 
 def per_rollout(values: Tensor, times: int) -> Tensor:
     """Per-task values ``[times·K]`` of tasks repeated by :func:`repeat_tasks` as
-    ``[times, K]``."""
+    ``[times, K]``: row ``r`` holds every task's ``r``-th rollout, so ``.mean(0)`` is each task's
+    score over its rollouts.
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.tasks.protocol import per_rollout
+        >>> losses = torch.tensor([1.0, 10.0, 3.0, 30.0, 2.0, 20.0])  # tasks 0, 1, 0, 1, 0, 1
+        >>> per_rollout(losses, 3)
+        tensor([[ 1., 10.],
+                [ 3., 30.],
+                [ 2., 20.]])
+        >>> per_rollout(losses, 3).mean(0)  # each task's mean over its 3 rollouts
+        tensor([ 2., 20.])
+    """
     return values.reshape(times, -1)
 
 
