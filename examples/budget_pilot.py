@@ -20,7 +20,6 @@ Run (the HalfCheetah-Vel pilot of docs/meta-rl.md, about 15 minutes on one core)
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -28,7 +27,7 @@ from matplotlib.figure import Figure
 
 from armeta_rl.cli import evaluate, train
 from armeta_rl.reproduce.curves import run_curve, write_curves
-from armeta_rl.trainers.evaluation import adapts
+from armeta_rl.trainers.evaluation import adapts, read_report
 
 
 def train_in_stages(run: Path, stages: list[int], overrides: list[str]) -> int:
@@ -52,7 +51,7 @@ def stage_rows(run: Path) -> list[dict]:
     """Per scored stage: iteration, adapted return and its s.e., gain and its s.e."""
     rows = []
     for path in run.glob("eval_at_*.json"):
-        section = json.loads(path.read_text())["initial"]
+        section = read_report(path, below=run)["initial"]
         adaptation = section["adaptation"]
         rows.append({"iteration": int(path.stem.rsplit("_", 1)[1]), "adapted": section["mean"],
                      "adapted_sem": section["sem"], "gain": adaptation["gain"],
