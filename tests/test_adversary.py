@@ -7,6 +7,7 @@ import copy
 import io
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -475,13 +476,23 @@ def test_plot_density_draws_both_densities(tmp_path) -> None:
 
 
 def test_plot_density_one_and_three_identifiers(tmp_path) -> None:
+    """One identifier: p_φ and p0 drawn as their densities on the plotted points. Three: each
+    pair below the diagonal drawn as its marginal density, the third identifier integrated out
+    (uniform on [0, 1] × [0, 2] × [0, 4]: 1/2, 1/4 and 1/8 for the pairs ab, ac and bc)."""
     line = TaskSpace(["mass"], [0.5], [2.0])
     adversary = make_adversary("planar", perturb=0.3, space=line)
     figure = plot_density(adversary, adversary.base, tmp_path / "a.png")
-    assert len(figure.axes[0].lines) == 2
-    cube = TaskSpace(["a", "b", "c"], [0, 0, 0], [1, 1, 1])
+    for drawn, distribution in zip(figure.axes[0].lines, (adversary, adversary.base), strict=True):
+        points = torch.as_tensor(np.asarray(drawn.get_xdata()), dtype=torch.float64)[:, None]
+        with torch.no_grad():
+            expected = distribution.log_prob(points).exp().numpy()
+        assert np.abs(np.asarray(drawn.get_ydata()) - expected).max() < 1e-12
+    cube = TaskSpace(["a", "b", "c"], [0, 0, 0], [1, 2, 4])
     figure = plot_density(BoxUniform(cube), BoxUniform(cube), tmp_path / "b.png")
-    assert len([axis for axis in figure.axes if axis.images]) == 3  # the pairs below the diagonal
+    marginals = [np.asarray(axis.images[0].get_array()) for axis in figure.axes if axis.images]
+    assert len(marginals) == 3  # the pairs below the diagonal
+    for marginal, density in zip(marginals, (1 / 2, 1 / 4, 1 / 8), strict=True):
+        assert np.allclose(marginal, density, rtol=1e-6)
 
 
 # --- the adversary's signal options (docs/meta-rl.md) ---------------------------------------------

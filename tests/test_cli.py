@@ -1,5 +1,6 @@
 """The command line: bad input gets one clear line and exit code 2; wandb runs offline."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -8,7 +9,7 @@ import pytest
 
 from armeta_rl.cli import evaluate, train
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, in_process, refusal, train_config
+from conftest import SMALL_RUN, cross_evaluate, in_process, refusal, train_config
 
 TRAIN = [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())"]
 EVAL = [sys.executable, "-c",
@@ -126,8 +127,14 @@ def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):
     )
     assert result.returncode == 0, result.stderr
     assert "adversarial" in result.stdout
-    report = (tmp_path / "maml" / "eval_vs_ar.json").read_text()
-    assert '"n_tasks": 30' in report and '"adversarial"' in report
+    report = json.loads((tmp_path / "maml" / "eval_vs_ar.json").read_text())
+    # the CLI scores what the runs' own players score, in process, on the same seeded tasks
+    reference = cross_evaluate(tmp_path / "maml", tmp_path / "ar", {"n_tasks": 30})
+    for section in ("initial", "adversarial"):
+        assert report[section]["n_tasks"] == 30
+        assert report[section]["mean"] == reference[section]["mean"]
+        assert report[section]["cvar"] == reference[section]["cvar"]
+    assert report["adversarial"]["mean"] != report["initial"]["mean"]
 
 
 def test_a_checkpoint_of_another_config_gets_one_line(tmp_path):

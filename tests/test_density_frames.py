@@ -183,5 +183,8 @@ def test_the_readme_figure_is_redrawn_from_its_committed_numbers(tmp_path):
     with Image.open(script.FIGURE) as committed, Image.open(redrawn) as again:
         committed, again = np.asarray(committed, float), np.asarray(again, float)
     assert committed.shape == again.shape
-    # fonts may rasterize a little differently on another machine; the heat maps may not
-    assert np.abs(committed - again).mean() < 1.0
+    # matplotlib's wheels bring their own FreeType, so a redraw is the committed figure; a few
+    # anti-aliased glyph pixels may differ on another machine, not a patch of a heat map (a
+    # 0.4 % patch changed is 4 times this bound)
+    differing = np.any(committed != again, axis=-1)
+    assert differing.mean() < 1e-3
