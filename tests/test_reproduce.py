@@ -494,18 +494,23 @@ def test_a_killed_sweep_keeps_its_wall_time_up_to_the_clocks_last_write(tmp_path
     from before plus the time so far; the caller's manifest is not touched."""
     manifest = {"experiment": "table1", "profile": "tiny", "train": [],
                 "wall_seconds": {"table1": 5.0}}
+    def written() -> float:
+        """The wall time the manifest on disk holds (0 before the clock's first write)."""
+        if not (tmp_path / MANIFEST).is_file():
+            return 0.0
+        return OmegaConf.load(tmp_path / MANIFEST).wall_seconds.table1
+
     with SweepClock(tmp_path, manifest, "table1", every=0.05) as clock:
-        deadline = time.time() + 30
-        while not (tmp_path / MANIFEST).is_file() and time.time() < deadline:
+        deadline = time.monotonic() + 60  # however slow the machine, the clock writes on
+        while written() < 5.0 + 0.05 and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.2)
         left = OmegaConf.load(tmp_path / MANIFEST)
         assert 5.0 + 0.05 <= left.wall_seconds.table1 <= 5.0 + clock.seconds
         assert left.experiment == "table1" and left.profile == "tiny"
     assert manifest["wall_seconds"] == {"table1": 5.0}
     seconds = clock.seconds
     time.sleep(0.02)
-    assert clock.seconds == seconds >= 0.25  # frozen at the block's end
+    assert clock.seconds == seconds >= 0.05  # frozen at the block's end
 
 
 def test_a_profile_entry_may_train_another_config_for_a_row(tmp_path):
