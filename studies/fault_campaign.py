@@ -1182,7 +1182,8 @@ TRUST_CASES = {
 damaged."""
 CODE_RAN = re.compile(r"CODE RAN")
 HARMFUL = re.compile(r"HARMFUL")
-HUNG = re.compile(r"timed out after")
+HUNG = re.compile(r"timed out after|killed by SIGKILL")
+"""A hang: cut by the campaign's time limit, or killed as it grew past its memory limit."""
 
 
 class Pickled:
