@@ -287,12 +287,12 @@ continue on another device (its checkpoint loads there)."""
 NO_RESULT_KEYS = ("logger", "logger.kind", "logger.project", "logger.tracking_uri",
                   "trainer.progress", "trainer.log_every", "trainer.checkpoint_every",
                   "trainer.density_every", "trainer.keep_freed_memory", "trainer.stop_signals",
-                  "threads", "adopt")
+                  "adopt")
 """The keys a resumed run may change that change no result (``eval.json`` and every logged
-value stay those of the uninterrupted run): where and how often it logs and draws, the progress
-bar, the allocator, the stop signals, torch's thread count (which the seeded benchmark
-families were measured not to change: tests/test_faults.py) and ``adopt`` (taking checkpoints
-that record no run as the run's own)."""
+value stay those of the uninterrupted run): where and how often it logs, checkpoints and draws,
+the progress bar, the allocator, the stop signals and ``adopt`` (taking checkpoints that record
+no run as the run's own). Not ``threads``: torch's reductions split by thread count, so on some
+CPUs two threads change a sinusoid AR-MAML run's losses in their eighth digit."""
 
 
 def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:

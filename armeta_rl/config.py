@@ -251,8 +251,7 @@ class TrainConfig(Section):
         :mod:`armeta_rl.resources`' lower bound of what each needs, before any allocation."""
         cpus = usable_cpus()
         if self.threads > cpus:
-            self.refuse("threads", f"must be <= {cpus}, the CPUs this process may run on (a "
-                                   "resumed run may set threads= too)")
+            self.refuse("threads", f"must be <= {cpus}, the CPUs this process may run on")
         memory = machine_memory(self.device)
         sections = {f"learner.{name}": options for name, options in self.learner.items()
                     if name == self.method.learner or name.startswith(f"{self.method.learner}_")}

@@ -735,7 +735,7 @@ def test_a_lock_taken_again_chains_no_blocking_io_error(tmp_path):
 # Resume keys that change no result --------------------------------------------------------------
 
 @pytest.mark.parametrize("override", [
-    "logger=wandb", "logger=none", "trainer.progress=true", "threads=2",
+    "logger=wandb", "logger=none", "trainer.progress=true", "trainer.checkpoint_every=3",
     "trainer.log_every=3", "trainer.density_every=3", "trainer.stop_signals=[SIGUSR2]",
 ])
 def test_resume_takes_the_keys_that_change_no_result(tmp_path, whole, stopped, override):
@@ -750,10 +750,11 @@ def test_a_resumed_run_says_which_keys_it_took(tmp_path, stopped):
     run_dir = tmp_path / "run"
     shutil.copytree(stopped, run_dir)
     result = subprocess.run([sys.executable, "-c", "from armeta_rl.cli import train; train()",
-                             f"resume={run_dir}", "logger=wandb", "threads=2"],
+                             f"resume={run_dir}", "logger=wandb", "trainer.log_every=3"],
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
-    assert (f"resuming {run_dir} with logger.kind=wandb, logger.project=armeta_rl, threads=2 "
+    assert (f"resuming {run_dir} with logger.kind=wandb, logger.project=armeta_rl, "
+            "trainer.log_every=3 "
             "(they change no result)") in result.stdout
 
 
