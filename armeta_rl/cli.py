@@ -1,14 +1,16 @@
 """Console entry points ``armeta-train`` and ``armeta-eval`` (Hydra).
 
 Bad input ends with one line naming the config key, the value and what is allowed (and the
-likely key, for a misspelt one), and exit code 2. The config of every job on the command line is
-composed (Hydra checks the types and refuses unknown keys) and validated
-(:func:`armeta_rl.config.validate`: the ranges, the rules between keys, the device resolved)
-before Hydra starts; a resumed run's saved config is merged with the command line's changes and
-validated then (:func:`resume_config`). A single run's directory is checked and locked then too,
-so a refused command writes nothing. What runs below the CLI takes the validated
-:class:`~armeta_rl.config.TrainConfig`, never a composed config. A run stopped by a diverged loss
-or a failed write ends with one line and exit code 1. See docs/configuration.md.
+likely key, for a misspelt one), and exit code 2. Every run enters through one door,
+:func:`make_job`, which turns a command line, a ``-m`` sweep job's composed config or a resume
+directory into a :class:`~armeta_rl.job.Job`: its config composed (Hydra checks the types and
+refuses unknown keys) and validated once (:func:`armeta_rl.config.validate`: the ranges, the
+rules between keys, the device resolved), or a resumed run's saved config read once and merged
+with the command line's changes. The config of every job on the command line is checked before
+Hydra starts, and a single run's directory is checked and locked then too, so a refused command
+writes nothing. What runs below the CLI takes the job, never a composed config. A run stopped by
+a diverged loss or a failed write ends with one line and exit code 1 (:func:`failure`: the one
+table of exit codes). See docs/configuration.md.
 """
 
 from __future__ import annotations
@@ -25,9 +27,19 @@ from typing import TYPE_CHECKING, Any
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from armeta_rl.config_files import config_files, group_choices
+from armeta_rl.errors import (
+    CollectionFailed,
+    ConfigError,
+    JobFailed,
+    RunDirectoryError,
+    RunStopped,
+    TrainingDiverged,
+)
+from armeta_rl.preemption import EXIT_INTERRUPTED
 
 if TYPE_CHECKING:
     from armeta_rl.config import TrainConfig
+    from armeta_rl.job import Job
 
 GROUPS = ("benchmark", "method", "logger")
 """The config groups a command line chooses from (``benchmark=point_nav``)."""
@@ -156,22 +168,50 @@ def compose_job(job: list[str], config_name: str = "train") -> DictConfig:
     from hydra import compose
     from hydra.errors import ConfigCompositionException, HydraException
 
-    from armeta_rl.errors import ConfigError
-    from armeta_rl.fields import reads_as_boolean, type_words
-
     try:
         cfg = compose(config_name, overrides=job)
     except ConfigCompositionException as error:
         raise Refused(_composition_message(job, config_name, error)) from None
     except HydraException as error:
         raise Refused(" ".join(str(error).split())) from None
+    _check_booleans(cfg, job)
+    return cfg
+
+
+def _check_booleans(cfg: DictConfig, job: list[str]) -> None:
+    """Refuse an override of ``job`` that ``cfg`` took for a boolean only by reading it as one
+    (:func:`armeta_rl.fields.reads_as_boolean`)."""
+    from armeta_rl.fields import reads_as_boolean, type_words
+
     for arg in job:
         override = _parse(arg)
         key, value = override.key_or_group, override.value()
         node = _node(cfg, key)
         if reads_as_boolean(node, value):
             raise Refused(str(ConfigError(key, value, f"must be {type_words(node)}")))
-    return cfg
+
+
+def compose_run(job: list[str], hydra_words: list[str]) -> tuple[DictConfig, Path]:
+    """A single run's config composed once, with its Hydra config (inside Hydra's initialized
+    config dir): the job's config, and the directory Hydra will run it in (``hydra.run.dir``
+    resolved now, its ``${now:...}`` included, so the CLI can check and lock it before Hydra
+    writes there). A bad word is refused as :func:`compose_job` refuses the job's overrides
+    ``job`` and :func:`check_hydra` the ``hydra.*`` words ``hydra_words``."""
+    from hydra import compose
+    from hydra.errors import HydraException
+    from omegaconf import open_dict, read_write
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        cfg = compose("train", overrides=[*job, *hydra_words], return_hydra_config=True)
+    except (HydraException, OmegaConfBaseException) as error:
+        compose_job(job)  # the job's own words refused first, as they are alone
+        raise Refused(_hydra_message(hydra_words, _causes(error))) from None
+    _check_booleans(cfg, job)
+    run_dir = Path(OmegaConf.select(cfg, "hydra.run.dir"))
+    with read_write(cfg), open_dict(cfg):
+        del cfg["hydra"]
+    return cfg, run_dir
 
 
 def _composition_message(job: list[str], config_name: str, error: Exception) -> str:
@@ -207,19 +247,30 @@ def check_hydra(args: Sequence[str], config_name: str) -> None:
     from hydra.errors import HydraException
     from omegaconf.errors import OmegaConfBaseException
 
-    words = [a for a in args if "=" in a and not a.startswith("-")
-             and _is_hydra_key(a.split("=", 1)[0].lstrip("+~"))]
+    words = hydra_words(args)
     if not words:
         return
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         try:
             compose(config_name, overrides=words, return_hydra_config=True)
         except (HydraException, OmegaConfBaseException) as error:
-            texts, cause = [], error  # Hydra prints the chain of causes: the reason is in it
-            while cause is not None:
-                texts.append(str(cause))
-                cause = cause.__cause__
-            raise Refused(_hydra_message(words, "\n".join(texts))) from None
+            raise Refused(_hydra_message(words, _causes(error))) from None
+
+
+def hydra_words(args: Sequence[str]) -> list[str]:
+    """The ``hydra.*`` and ``hydra/<group>=`` overrides of the command line ``args``."""
+    return [a for a in args if "=" in a and not a.startswith("-")
+            and _is_hydra_key(a.split("=", 1)[0].lstrip("+~"))]
+
+
+def _causes(error: BaseException) -> str:
+    """``error`` and the chain of its causes, a line each: Hydra prints the chain, and the
+    reason is in it."""
+    texts, cause = [], error
+    while cause is not None:
+        texts.append(str(cause))
+        cause = cause.__cause__
+    return "\n".join(texts)
 
 
 def _hydra_message(words: Sequence[str], text: str) -> str:
@@ -257,17 +308,17 @@ def checked(cfg: DictConfig) -> TrainConfig:
     return config
 
 
-def check_jobs(args: Sequence[str]) -> list[TrainConfig]:
+def check_jobs(args: Sequence[str]) -> dict[tuple[tuple[str, str], ...], TrainConfig]:
     """Compose and validate the ``armeta-train`` config of every job on the command line (each
     combination of a ``-m`` sweep), so that no job trains before every job's values are known to
-    be good; returns their :class:`~armeta_rl.config.TrainConfig`. :class:`Refused` for the
-    first bad one."""
+    be good; returns their :class:`~armeta_rl.config.TrainConfig` by the job's overrides
+    (:func:`job_key`).
+    :class:`Refused` for the first bad one."""
     from hydra import initialize_config_dir
 
-    from armeta_rl.errors import ConfigError
 
     jobs = job_overrides(args)
-    configs = []
+    configs = {}
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         for job in jobs:
             where = f" (job {' '.join(job)})" if len(jobs) > 1 else ""
@@ -277,8 +328,17 @@ def check_jobs(args: Sequence[str]) -> list[TrainConfig]:
                 raise Refused(f"{refused}{where}") from None
             except ConfigError as error:
                 raise Refused(f"{error}{where}") from None
-            configs.append(config)
+            configs[job_key(job)] = config
     return configs
+
+
+def job_key(overrides: Sequence[str]) -> tuple[tuple[str, str], ...]:
+    """The overrides of a job as the values they set, by key: the same for the words a command
+    line gave and the words Hydra hands the job (which writes ``false`` as ``False``)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    return tuple((o.get_key_element(), str(o.value()))
+                 for o in OverridesParser.create().parse_overrides(list(overrides)))
 
 
 RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
@@ -294,21 +354,49 @@ families were measured not to change: tests/test_faults.py) and ``adopt`` (takin
 that record no run as the run's own)."""
 
 
-def resume_config(run_dir: str, overrides: list[str]) -> TrainConfig:
-    """The config a run resumed from ``run_dir`` with ``overrides`` continues under
-    (:func:`resume_changes`)."""
-    return resume_changes(run_dir, overrides)[0]
+def make_job(overrides: Sequence[str], composed: DictConfig | None = None,
+             run_dir: Path | None = None) -> Job:
+    """The one door into a run: the :class:`~armeta_rl.job.Job` of a command line's, a sweep
+    job's or a Python caller's ``overrides``.
+
+    With ``resume=<dir>`` among them (or in ``composed``), the run saved there continues: its
+    saved config, read once, with the changes a resume may make (:func:`resumed`), in that
+    directory. Otherwise ``composed`` (the config composed for ``overrides``; composed here when
+    not given) is validated and its method's names checked (:func:`checked`), for a run in
+    ``run_dir``.
+
+    Raises:
+        Refused: an override that does not compose or that a resume cannot take.
+        ConfigError: a bad value.
+    """
+    from armeta_rl.job import Job
+
+    resume = (composed.resume if composed is not None
+              else next((a.split("=", 1)[1] for a in reversed(overrides)
+                         if a.startswith("resume=")), None))
+    if resume:
+        return resumed(resume, overrides)
+    if composed is None:
+        from hydra import initialize_config_dir
+
+        with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+            composed = compose_job(list(overrides))
+    if run_dir is None:
+        raise TypeError("a new run's job needs its run_dir")
+    return Job(checked(composed), run_dir)
 
 
-def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, list[str]]:
-    """The config a run resumed from ``run_dir`` with ``overrides`` continues under, validated:
-    its saved config, ``trainer.stop_at`` and ``adopt`` as given (default none, false: a
-    resume's own), ``trainer.iterations`` raised
-    and ``device`` and the keys of :data:`NO_RESULT_KEYS` changed if given; and ``key=value`` of
-    each key of :data:`NO_RESULT_KEYS` it changes. Any other override, or fewer iterations, is
-    refused (:class:`Refused`; a bad value: :class:`ConfigError`)."""
+def resumed(run_dir: str, overrides: Sequence[str]) -> Job:
+    """The job of the run resumed from ``run_dir`` with ``overrides``, its config validated: its
+    saved config (read once), ``trainer.stop_at`` and ``adopt`` as given (default none, false: a
+    resume's own), ``trainer.iterations`` raised and ``device`` and the keys of
+    :data:`NO_RESULT_KEYS` changed if given; the job names each key of :data:`NO_RESULT_KEYS` it
+    changes. Any other override, or fewer iterations, is refused (:class:`Refused`; a bad
+    value: :class:`ConfigError`)."""
     from armeta_rl.config import load_run_config, validate
+    from armeta_rl.job import Job
 
+    config_dir()  # the learners' and risk principles' sections, which the saved config fills
     saved = load_run_config(run_dir, "resume")
     changes: dict[str, Any] = {"resume": run_dir, "adopt": False, "trainer": {"stop_at": None}}
     for arg in overrides:
@@ -337,7 +425,8 @@ def resume_changes(run_dir: str, overrides: list[str]) -> tuple[TrainConfig, lis
                        f"{saved.trainer.iterations} on resume (a run can train longer, not "
                        "shorter)")
     cfg = _merged(saved, changes)
-    return validate(cfg), changed_on_resume(saved, cfg)
+    return Job(validate(cfg), Path(run_dir), OmegaConf.to_container(saved, resolve=True),
+               tuple(changed_on_resume(saved, cfg)))
 
 
 def changed_on_resume(saved: DictConfig, cfg: DictConfig) -> list[str]:
@@ -363,55 +452,48 @@ def _merged(saved: DictConfig, changes: dict[str, Any]) -> DictConfig:
 
 
 def _report_errors(prog: str, task: Callable[[DictConfig], None]) -> Callable[[DictConfig], None]:
-    """Run ``task`` turning the package's user errors into one line and an exit code: 2 for a
-    bad value, 1 for a run that diverged or a disk that failed it. A job of a ``run_list`` sweep
-    (``armeta-reproduce``) raises :class:`~armeta_rl.errors.JobFailed` with that code instead of
-    exiting, so that the jobs beside it run on; the sweeper exits with the code once all ran."""
+    """Run ``task`` turning the package's user errors into one line and their exit code
+    (:func:`failure`). A job of a ``run_list`` sweep (``armeta-reproduce``) raises
+    :class:`~armeta_rl.errors.JobFailed` with that code instead of exiting, so that the jobs
+    beside it run on; the sweeper exits with the code once all ran."""
 
     def wrapped(cfg: DictConfig) -> None:
-        from armeta_rl.errors import JobFailed
-
-        code, message = _run_task(task, cfg)
-        if code == 0:
-            return
-        print(f"{prog}: {message}", file=sys.stderr)
-        if _in_run_list_sweep():
-            raise JobFailed(code)
-        sys.exit(code)
+        try:
+            task(cfg)
+        except Exception as error:
+            status = failure(error)
+            if status is None:
+                raise
+            code, line = status
+            print(f"{prog}: {line}", file=sys.stderr)
+            if _in_run_list_sweep():
+                raise JobFailed(code) from None
+            sys.exit(code)
 
     return wrapped
 
 
-def _run_task(task: Callable[[DictConfig], None], cfg: DictConfig) -> tuple[int, str]:
-    """``task(cfg)``; the exit code and line of a user error or a stopped run (0 and ``""`` if
-    none)."""
-    from armeta_rl.errors import (
-        CollectionFailed,
-        ConfigError,
-        RunDirectoryError,
-        RunStopped,
-        TrainingDiverged,
-    )
-
-    try:
-        task(cfg)
-    except (ConfigError, Refused) as error:
+def failure(error: BaseException) -> tuple[int, str] | None:
+    """The exit code of ``error`` and the line that says it: the one table of the codes of
+    ``armeta-train`` and ``armeta-eval``. 2: a refused value or command, or an allocation that
+    failed; 1: a run that diverged, lost a collection worker or could not write; a stopped run's
+    own code (:mod:`armeta_rl.preemption`). ``None`` for any other error: a bug, whose traceback
+    is the report."""
+    if isinstance(error, (ConfigError, Refused)):
         return getattr(error, "code", 2), f"error: {error}"
-    except RunStopped as error:  # not an error: a code a requeue acts on
+    if isinstance(error, RunStopped):  # not an error: a code a requeue acts on
         return error.code, str(error)
-    except (TrainingDiverged, CollectionFailed) as error:
+    if isinstance(error, (TrainingDiverged, CollectionFailed)):
         return 1, f"error: training stopped: {error}"
-    except RunDirectoryError as error:
+    if isinstance(error, RunDirectoryError):
         return 1, f"error: {error}"
-    except OSError as error:
+    if isinstance(error, KeyboardInterrupt):  # Ctrl-C where no run stops cleanly
+        return EXIT_INTERRUPTED, "interrupted (SIGINT)"
+    if isinstance(error, (MemoryError, RuntimeError, OSError)) and out_of_memory(error):
+        return 2, f"error: {OUT_OF_MEMORY}"
+    if isinstance(error, OSError):
         return 1, "error: " + f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
-    except MemoryError:
-        return 2, f"error: {OUT_OF_MEMORY}"
-    except RuntimeError as error:  # torch's allocators
-        if not out_of_memory(error):
-            raise
-        return 2, f"error: {OUT_OF_MEMORY}"
-    return 0, ""
+    return None
 
 
 OUT_OF_MEMORY = ("out of memory: this process may not allocate what the run needs (a memory "
@@ -442,39 +524,54 @@ def _in_run_list_sweep() -> bool:
             and hydra_cfg.sweeper.get("_target_") == RunListSweeperConf._target_)
 
 
-def _train_task(config: TrainConfig, run_dir: Path, taken: Sequence[str] = ()) -> None:
-    """Train (or resume) the run of the validated ``config`` in ``run_dir``, stopping cleanly on
-    ``trainer.stop_signals`` and SIGINT (:mod:`armeta_rl.preemption`): the signal becomes the
-    process's stop request, which the game loop reads. ``taken``: the keys a resume changed
-    (:func:`resume_changes`), said first."""
+def _train_task(job: Job) -> None:
+    """Train (or resume) ``job``, stopping cleanly on ``trainer.stop_signals`` and SIGINT
+    (:mod:`armeta_rl.preemption`): the signal becomes the process's stop request, which the game
+    loop reads. The keys a resume changed (:attr:`Job.taken`) are said first."""
     from armeta_rl.allocator import keep_freed_memory
     from armeta_rl.errors import RunStopped
     from armeta_rl.preemption import PROCESS, listening
     from armeta_rl.trainers.training import run_training
 
-    if taken:
-        print(f"resuming {run_dir} with {', '.join(taken)} (they change no result)")
+    if job.taken:
+        print(f"resuming {job.run_dir} with {', '.join(job.taken)} (they change no result)")
     if PROCESS.requested:  # a later job of a sweep worker that was asked to stop
         raise RunStopped(f"not started: this process received {PROCESS.name}; the same command "
                          "starts it", PROCESS.exit_code)
-    if config.trainer.keep_freed_memory:
+    trainer = job.config.trainer
+    if trainer.keep_freed_memory:
         keep_freed_memory()
-    with listening(config.trainer.stop_signals) as stop:
-        run_training(config, run_dir, stop=stop)
+    with listening(trainer.stop_signals) as stop:
+        run_training(job, stop=stop)
 
 
-def _sweep_job(cfg: DictConfig) -> None:
-    """One job of a ``-m`` sweep, trained (:func:`_train_task`) with its composed ``cfg``
-    validated (:func:`checked`; a basic sweep's jobs were all checked before the first started,
-    a ``run_list`` sweep's by ``armeta-reproduce``) in the directory Hydra gave it, or, for a job
-    that resumes a run, with that run's config and the job's changes (:func:`resume_changes`)."""
-    from hydra.core.hydra_config import HydraConfig
+def _sweep_task(checked_here: dict[tuple[tuple[str, str], ...], TrainConfig]
+                ) -> Callable[[DictConfig], None]:
+    """The task of every job of a ``-m`` sweep: the job (:func:`make_job`) of the config Hydra
+    composed for it, in the directory Hydra gave it, trained (:func:`_train_task`). A job whose
+    config this process validated before Hydra started (``checked_here``, by its overrides,
+    :func:`job_key`: a basic sweep's) and that runs in this process takes that config; a job a
+    launcher runs in another process (joblib, Ray, Slurm) validates its own, on its machine, as
+    does a ``run_list`` sweep's (``armeta-reproduce`` checked its runs before launching)."""
+    import os
 
-    if cfg.resume:
-        config, taken = resume_changes(cfg.resume, list(HydraConfig.get().overrides.task))
-        _train_task(config, Path(cfg.resume), taken)
-    else:
-        _train_task(checked(cfg), Path(HydraConfig.get().runtime.output_dir))
+    host = os.getpid()
+
+    def task(cfg: DictConfig) -> None:
+        from hydra.core.hydra_config import HydraConfig
+
+        from armeta_rl.job import Job
+
+        hydra_cfg = HydraConfig.get()
+        overrides = list(hydra_cfg.overrides.task)
+        run_dir = Path(hydra_cfg.runtime.output_dir)
+        config = checked_here.get(job_key(overrides)) if os.getpid() == host else None
+        if config is not None and not cfg.resume:
+            _train_task(Job(config, run_dir))
+        else:
+            _train_task(make_job(overrides, cfg, run_dir))
+
+    return task
 
 
 def _run_hydra(argv: list[str], config_name: str, task: Callable[[DictConfig], None]) -> None:
@@ -492,38 +589,20 @@ def _run_hydra(argv: list[str], config_name: str, task: Callable[[DictConfig], N
         sys.argv = saved
 
 
-def planned_run_dir(args: list[str]) -> Path:
-    """The directory Hydra will run a single job in: ``hydra.run.dir`` resolved now (its
-    ``${now:...}`` included), so the CLI can check and lock it before Hydra writes there."""
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
-        overrides = [a for a in args if not a.startswith("-") and "=" in a]
-        cfg = compose("train", overrides=overrides, return_hydra_config=True)
-        return Path(OmegaConf.select(cfg, "hydra.run.dir"))
-
-
 def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str]) -> int:
     """``main(argv)``'s exit code: 0, the code of its ``SystemExit``, or 2 (1) with one line
     for a refused command (a failed run)."""
-    from armeta_rl.errors import ConfigError
-    from armeta_rl.preemption import EXIT_INTERRUPTED
-
     try:
         main(argv)
-    except (Refused, ConfigError) as error:
-        print(f"{prog}: error: {error}", file=sys.stderr)
-        return getattr(error, "code", 2)
-    except KeyboardInterrupt:  # Ctrl-C where no run stops cleanly (armeta_rl.preemption)
-        print(f"{prog}: interrupted (SIGINT)", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except (MemoryError, RuntimeError, OSError) as error:  # e.g. importing under a memory limit
-        if not out_of_memory(error):
-            raise
-        print(f"{prog}: error: {OUT_OF_MEMORY}", file=sys.stderr)
-        return 2
     except SystemExit as stop:
         return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
+    except (Exception, KeyboardInterrupt) as error:  # e.g. importing under a memory limit
+        status = failure(error)
+        if status is None:
+            raise
+        code, line = status
+        print(f"{prog}: {line}", file=sys.stderr)
+        return code
     return 0
 
 
@@ -577,7 +656,7 @@ def train(argv: list[str] | None = None) -> int:
 
 def _train(args: list[str]) -> None:
     prog = "armeta-train"
-    if _without_checks(args, prog, "train", _report_errors(prog, _sweep_job), GROUPS,
+    if _without_checks(args, prog, "train", _report_errors(prog, _sweep_task({})), GROUPS,
                        "train a method on a benchmark (armeta-train [group=option ...] "
                        "[key=value ...] [-m])"):
         return
@@ -587,33 +666,35 @@ def _train(args: list[str]) -> None:
             raise Refused(f"config key '{name}' = '': must name a directory")
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     multirun = any(a in ("-m", "--multirun") for a in args)
+    no_run = multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args)
     if resume:
         if multirun:
             raise Refused(f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
-        config, taken = resume_changes(resume, [a for a in args if not a.startswith("-")])
+        job = make_job([a for a in args if not a.startswith("-")])
         # the run's job log stays in its own directory, whatever hydra.run.dir says
         args = [a for a in args if not a.startswith(("hydra.run.dir=", "hydra.output_subdir="))]
+        check_hydra(args, "train")
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
+    elif no_run:
+        # a run_list sweep's jobs are in its jobs file, checked by armeta-reproduce
+        listed = "hydra/sweeper=run_list" in args and job_overrides(args) == [[]]
+        checked_here = {} if listed else check_jobs(args)
+        check_hydra(args, "train")
     else:
-        configs, taken = check_jobs(args), []
-    check_hydra(args, "train")
+        job = _new_job(args)
+    if no_run:
+        _run_hydra(args, "train", _report_errors(prog, _sweep_task(
+            {} if resume else checked_here)))
+        return
     from armeta_rl.trainers.run_dir import (  # torch: after the checks
         check_contents,
         check_run_dir,
         run_lock,
     )
 
-    if multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args):
-        _run_hydra(args, "train", _report_errors(prog, _sweep_job))
-        return
-    if not resume:
-        if len(configs) > 1:
-            raise Refused(f"a command line of {len(configs)} jobs (a value with commas): add -m "
-                          "to run them all; a list value is written key=[a,b]")
-        (config,) = configs
-    run_dir = Path(resume) if resume else planned_run_dir(args)
-    # Hydra composes the same config again for its job; the run takes the one checked here
-    task = _report_errors(prog, lambda _composed: _train_task(config, run_dir, taken))
+    run_dir = job.run_dir
+    # Hydra composes the config again for its job; the run takes the one checked here
+    task = _report_errors(prog, lambda _composed: _train_task(job))
     key = "resume" if resume else "hydra.run.dir"
     check_run_dir(run_dir, key)
     if resume:  # before Hydra appends to its job log there
@@ -630,6 +711,25 @@ def _train(args: list[str]) -> None:
             if exit_.code == 2 and created and not (run_dir / "checkpoints").exists():
                 _remove_run_dir(created)
             raise
+
+
+def _new_job(args: list[str]) -> Job:
+    """The job of a new single run's command line ``args``: its config composed once with its
+    Hydra config (:func:`compose_run`) and validated (:func:`make_job`), in the directory Hydra
+    will run it in. A command line of several jobs (a value with commas) is refused, after each
+    job's config is checked."""
+    from hydra import initialize_config_dir
+
+    jobs = job_overrides(args)
+    if len(jobs) > 1:
+        check_jobs(args)
+        check_hydra(args, "train")
+        raise Refused(f"a command line of {len(jobs)} jobs (a value with commas): add -m "
+                      "to run them all; a list value is written key=[a,b]")
+    (job,) = jobs
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg, run_dir = compose_run(job, hydra_words(args))
+        return make_job(job, cfg, run_dir)
 
 
 def _first_missing(path: Path) -> Path | None:
@@ -654,7 +754,6 @@ def _eval_task(cfg: DictConfig) -> None:
     """Score the runs ``cfg`` names: each run's saved config, with the command line's ``device``
     and ``eval.*``, validated once (:func:`armeta_rl.trainers.players.saved_run`), the run
     directories first, each named as itself, then the report's path derived from them."""
-    from armeta_rl.errors import ConfigError
     from armeta_rl.trainers.evaluation import format_table
     from armeta_rl.trainers.players import saved_run
     from armeta_rl.trainers.report import evaluate_runs
@@ -684,7 +783,6 @@ def check_writable(path: Path, key: str) -> None:
     """Refuse an output file that cannot be written, before the work that fills it: its folder
     is tried by creating and removing a hidden file there (the report is written atomically,
     through such a sibling)."""
-    from armeta_rl.errors import ConfigError
     from armeta_rl.trainers.run_dir import unwritable
 
     if path.is_dir():

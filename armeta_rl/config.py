@@ -109,6 +109,12 @@ class TrainerConfig(Section):
                                   lambda v: all(name in STOP_SIGNALS for name in v),
                                   ["SIGTERM", "SIGUSR1"])
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.follower_rollouts > 1 and self.follower_at == "step":
+            self.refuse("follower_rollouts", "must be 1 with trainer.follower_at=step: the "
+                        "follower reads the step's own losses, not fresh rollouts")
+
 
 @dataclass
 class EvalConfig(Section):

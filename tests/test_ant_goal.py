@@ -20,6 +20,7 @@ from armeta_rl.config import validate
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, standing_goal_term
 from armeta_rl.envs.locomotion import AntDirEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, compose_train, raw_mjdata
@@ -306,7 +307,7 @@ def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):
         "logger=csv",
     )
     assert cfg.benchmark.collector.workers == 2
-    report = run_training(validate(cfg), tmp_path)
+    report = run_training(Job(validate(cfg), tmp_path))
     assert report["metric"] == "return" and "adversarial" in report
     for curve in ("return_pre", "return_post"):
         assert (tmp_path / "logs" / "scalars" / "train" / f"{curve}.csv").is_file()

@@ -4,6 +4,7 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
@@ -18,6 +19,7 @@ from armeta_rl.factory import (
     build_principle,
     build_space,
 )
+from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, compose_train
 
@@ -80,7 +82,7 @@ def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
         "benchmark.collector.max_steps=10",
         "logger=csv",
     )
-    report = run_training(validate(cfg), tmp_path)
+    report = run_training(Job(validate(cfg), tmp_path))
     assert report["metric"] == "return"
     assert report["initial"]["cvar"]["0.5"] <= report["initial"]["mean"]
     assert ("adversarial" in report) == (method == "ar_maml")
@@ -91,7 +93,7 @@ def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
 def test_cnp_has_no_rl_form():
     cfg = compose_train(*SMALL_RUN, "benchmark=point_nav", "method=cnp")
     with pytest.raises(ConfigError, match="supports methods whose learner is one of: maml"):
-        run_training(validate(cfg), "/nonexistent")
+        run_training(Job(validate(cfg), Path("/nonexistent")))
 
 
 @pytest.mark.parametrize(

@@ -488,6 +488,7 @@ def test_principle_sampler_updates_every_update_every_calls():
 def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
     """On a meta-RL benchmark the learner is MAML-TRPO; the risk model learns from the
     returns-based losses of each step's tasks."""
+    from armeta_rl.job import Job
     from armeta_rl.trainers.training import run_training
     from conftest import SMALL_RUN
 
@@ -495,7 +496,7 @@ def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
                         "trainer.iterations=2", "trainer.meta_batch=3", "eval.n_tasks=3",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "logger=csv")
-    report = run_training(validate(cfg), tmp_path)
+    report = run_training(Job(validate(cfg), tmp_path))
     assert report["metric"] == "return" and report["method"] == f"{kind}_maml"
     assert (tmp_path / "logs" / "scalars" / "risk" / "pcc.csv").is_file()
 

@@ -12,6 +12,7 @@ import torch
 
 from armeta_rl.cli import evaluate
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.tasks import TaskSpace
 from armeta_rl.tasks.shifts import (
     BetaOnBox,
@@ -119,7 +120,7 @@ def test_a_shifts_tasks_depend_on_its_name_only():
 @pytest.fixture(scope="module")
 def sinusoid_run(tmp_path_factory):
     run = tmp_path_factory.mktemp("shifts") / "maml"
-    run_training(train_config(*SMALL_RUN, "method=maml"), run)
+    run_training(Job(train_config(*SMALL_RUN, "method=maml"), run))
     return run
 
 
