@@ -1,7 +1,8 @@
 """A training run as its entry resolves it: the checked config, the run directory and, for a
-resumed run, the config the run saved. The CLI makes one per run (:func:`armeta_rl.cli.make_job`:
-from a command line, a sweep job's composed config or a resume directory), and
-:func:`armeta_rl.trainers.training.run_training` trains it without reading a config from disk."""
+resumed run, the config the run saved. The CLI makes one per run
+(:func:`armeta_rl.cli.jobs.make_job`: from a command line, a sweep job's composed config or a
+resume directory), and :func:`armeta_rl.trainers.training.run_training` trains it without
+reading a config from disk."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ class Job:
     ``config.yaml`` holds, rewritten with the new ``trainer.iterations`` when it trains longer);
     ``None`` for a new run. ``taken``: ``key=value`` of each key a resume changed that changes no
     result, said as it starts. A new run from Python is ``Job(config, run_dir)``; a resumed one
-    comes from :func:`armeta_rl.cli.make_job`, which reads its saved config.
+    comes from :func:`armeta_rl.cli.jobs.make_job`, which reads its saved config.
     """
 
     config: TrainConfig
@@ -32,7 +33,7 @@ class Job:
     def __post_init__(self) -> None:
         if (self.config.resume is None) != (self.saved is None):
             raise ValueError("a resumed run's Job holds the config it saved, a new run's none: "
-                             "make a resumed one with armeta_rl.cli.make_job")
+                             "make a resumed one with armeta_rl.cli.jobs.make_job")
 
     @property
     def saved_iterations(self) -> int | None:

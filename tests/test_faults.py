@@ -26,7 +26,10 @@ from hydra import compose, initialize_config_dir
 from PIL import Image
 
 import armeta_rl.trainers.checkpoint as checkpoint_module
-from armeta_rl.cli import Refused, _eval_task, _report_errors, config_dir, make_job, train
+from armeta_rl.cli import _eval_task, train
+from armeta_rl.cli.compose import config_dir
+from armeta_rl.cli.failures import Refused, report_errors
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.config import validate
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.job import Job
@@ -215,7 +218,7 @@ def test_a_full_disk_keeps_the_last_intact_checkpoint_and_resumes_exactly(
     run_dir = tmp_path / "run"
     with monkeypatch.context() as patch:
         enospc_from(patch, 5)  # the second checkpoint (iteration 4): 4 files per checkpoint
-        task = _report_errors("armeta-train",
+        task = report_errors("armeta-train",
                               lambda cfg: run_training(Job(validate(cfg), run_dir), progress=False))
         with pytest.raises(SystemExit) as exit_:
             task(compose_train(*RUN))
@@ -376,7 +379,7 @@ def evaluate_in_process(capsys, *overrides):
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = compose("eval", overrides=list(overrides))
     try:
-        _report_errors("armeta-eval", _eval_task)(cfg)
+        report_errors("armeta-eval", _eval_task)(cfg)
     except SystemExit as exit_:
         return exit_.code, capsys.readouterr().err.strip().splitlines()
     return 0, capsys.readouterr().err.strip().splitlines()

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from armeta_rl.cli import group_choices
 from armeta_rl.config import schema, validate
+from armeta_rl.config_files import group_choices
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
     build_collector,

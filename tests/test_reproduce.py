@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import armeta_rl.reproduce.plan as plan_module
-from armeta_rl.cli import config_dir
+from armeta_rl.cli.compose import config_dir
 from armeta_rl.config import validate
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.aggregate import (

@@ -13,7 +13,7 @@ from tensordict import TensorDict
 from torch.func import functional_call
 from torchrl.objectives import A2CLoss, ClipPPOLoss
 
-from armeta_rl.cli import make_job
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
 from armeta_rl.job import Job

@@ -7,7 +7,7 @@ import shutil
 
 import pytest
 
-from armeta_rl.cli import make_job
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.errors import ConfigError
 from armeta_rl.job import Job
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR

@@ -43,8 +43,8 @@ def test_every_suite_has_its_box_here():
 
 
 def test_every_benchmark_with_a_suite_takes_all_of_it():
-    from armeta_rl.cli import group_choices
     from armeta_rl.config import validate
+    from armeta_rl.config_files import group_choices
     from armeta_rl.factory import build_space
 
     with_suite = 0

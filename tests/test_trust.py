@@ -15,7 +15,10 @@ import zlib
 import pytest
 import torch
 
-from armeta_rl.cli import Refused, check_jobs, evaluate, make_job, train
+from armeta_rl.cli import evaluate, train
+from armeta_rl.cli.compose import check_jobs
+from armeta_rl.cli.failures import Refused
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.config import read_run_config
 from armeta_rl.errors import ConfigError
 from armeta_rl.job import Job

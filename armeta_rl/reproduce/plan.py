@@ -340,15 +340,16 @@ def _select(values: dict[str, Any], dotted: str) -> Any:
 @functools.lru_cache(maxsize=256)
 def composed(command: tuple[str, ...]) -> DictConfig:
     """The ``armeta-train`` config of a run's ``command`` (its overrides but the seed), composed
-    as the CLI composes it (:func:`armeta_rl.cli.compose_job`), once per command: composing is
-    most of an aggregation's time (the config returned is shared: not to be changed).
+    as the CLI composes it (:func:`armeta_rl.cli.compose.compose_job`), once per command:
+    composing is most of an aggregation's time (the config returned is shared: not to be
+    changed).
 
     Raises:
         Refused: an override that does not compose, as one line.
     """
     from hydra import initialize_config_dir
 
-    from armeta_rl.cli import compose_job, config_dir, job_overrides
+    from armeta_rl.cli.compose import compose_job, config_dir, job_overrides
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         job_overrides(list(command))
@@ -371,7 +372,7 @@ def planned_values(run: TrainRun) -> dict[str, Any]:
     returned are shared: not to be changed)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from armeta_rl.cli import GROUPS
+    from armeta_rl.cli.compose import GROUPS
 
     command = run_command(run)
     values = OmegaConf.to_container(composed(command), resolve=True)
