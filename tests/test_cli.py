@@ -200,6 +200,32 @@ def test_help_lists_the_groups_a_command_line_chooses_from_and_exits_0(capsys):
     assert "armeta-eval learner=<run dir>" in capsys.readouterr().out
 
 
+def test_help_lists_every_key_with_its_type_default_range_and_doc_from_its_dataclass(capsys):
+    """The keys of ``armeta-train --help`` are the dataclasses' fields: every field of
+    ``TrainerConfig`` has its line, with its default, its range and the comment written with
+    it; a learner's section is listed when a word names it, and then only what is under it."""
+    import dataclasses
+
+    from armeta_rl.cli import train
+    from armeta_rl.config import TrainerConfig
+
+    assert train(["--help"]) == 0
+    keys = capsys.readouterr().out.split("Keys (")[1].split("\n\n")[0].splitlines()[1:]
+    names = [line.split(" = ")[0].strip() for line in keys if " = " in line]
+    assert [n for n in names if n.startswith("trainer.")] == [
+        f"trainer.{spec.name}" for spec in dataclasses.fields(TrainerConfig)]
+    assert "  trainer.meta_batch = 25: an integer, must be >= 1" in keys
+    assert ("  trainer.stop_at = null: an integer, must be >= 1. stop (with a checkpoint) after "
+            "this iteration; resume later") in keys
+    assert "  logger.kind = csv: a string, allowed: csv, wandb, tensorboard, mlflow, none" in keys
+    assert not any(n.startswith("learner.maml") for n in names)
+    assert train(["--help", "learner.maml"]) == 0
+    keys = capsys.readouterr().out.split("Keys (")[1].split("\n\n")[0].splitlines()[1:]
+    assert keys and all(line.startswith("  learner.maml.") for line in keys)
+    assert any(line.startswith("  learner.maml.inner_lr = 0.01: a number, must be > 0.")
+               for line in keys)
+
+
 @pytest.mark.parametrize("script", ["armeta-train", "armeta-eval", "armeta-reproduce"])
 def test_help_imports_neither_torch_nor_mujoco_nor_ray(script):
     """--help of each console script (its entry point, as installed) answers from the config

@@ -94,10 +94,12 @@ def _program(code: int, argv: list[str] | None) -> int:
 def _without_checks(args: list[str], prog: str, config_name: str,
                     task: Callable[[DictConfig], None], groups: tuple[str, ...], usage: str
                     ) -> bool:
-    """Answer ``--help`` (:func:`~armeta_rl.cli.help.print_help`) or hand Hydra a flag whose
-    words are no overrides (``-sc install=bash``, ``--hydra-help``); whether it did."""
+    """Answer ``--help`` (:func:`~armeta_rl.cli.help.print_help`; its other words without ``=``
+    name the sections whose keys to list, ``--help trainer learner.maml``) or hand Hydra a flag
+    whose words are no overrides (``-sc install=bash``, ``--hydra-help``); whether it did."""
     if any(a in ("--help", "-h") for a in args):
-        print_help(prog, config_name, groups, usage)
+        sections = [a for a in args if not a.startswith("-") and "=" not in a]
+        print_help(prog, config_name, groups, usage, sections)
         return True
     if any(a in _UNCHECKED_FLAGS for a in args):
         _run_hydra(args, config_name, task)
