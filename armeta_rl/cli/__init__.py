@@ -133,6 +133,7 @@ def _train(args: list[str]) -> None:
     resume = next((a.split("=", 1)[1] for a in args if a.startswith("resume=")), None)
     multirun = any(a in ("-m", "--multirun") for a in args)
     no_run = multirun or any(a.split("=")[0] in _NO_RUN_FLAGS for a in args)
+    checked_here = {}  # a sweep's configs checked before Hydra starts, by the job's overrides
     if resume:
         if multirun:
             raise Refused(f"config key 'resume' = {resume}: resumes one run, not a -m sweep")
@@ -143,14 +144,13 @@ def _train(args: list[str]) -> None:
         args += [f"hydra.run.dir={resume}", "hydra.output_subdir=null"]
     elif no_run:
         # a run_list sweep's jobs are in its jobs file, checked by armeta-reproduce
-        listed = "hydra/sweeper=run_list" in args and job_overrides(args) == [[]]
-        checked_here = {} if listed else check_jobs(args)
+        if not ("hydra/sweeper=run_list" in args and job_overrides(args) == [[]]):
+            checked_here = check_jobs(args)
         check_hydra(args, "train")
     else:
         job = _new_job(args)
     if no_run:
-        _run_hydra(args, "train", report_errors(prog, sweep_task(
-            {} if resume else checked_here)))
+        _run_hydra(args, "train", report_errors(prog, sweep_task(checked_here)))
         return
     from armeta_rl.trainers.run_dir import (  # torch: after the checks
         check_contents,

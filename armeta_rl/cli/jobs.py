@@ -63,13 +63,13 @@ def make_job(overrides: Sequence[str], composed: DictConfig | None = None,
                          if a.startswith("resume=")), None))
     if resume:
         return resumed(resume, overrides)
+    if run_dir is None:
+        raise TypeError("a new run's job needs its run_dir")
     if composed is None:
         from hydra import initialize_config_dir
 
         with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
             composed = compose_job(list(overrides))
-    if run_dir is None:
-        raise TypeError("a new run's job needs its run_dir")
     return Job(checked(composed), run_dir)
 
 
