@@ -18,15 +18,13 @@ import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import torch
 import yaml
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from armeta_rl.devices import resolve_device
 from armeta_rl.errors import ConfigError
 from armeta_rl.fields import Section, above, at_least, config_error, each, inside, key, one_of
 from armeta_rl.preemption import STOP_SIGNALS
@@ -44,6 +42,9 @@ from armeta_rl.resources import (
     usable_cpus,
 )
 from armeta_rl.run_files import FileRefused, plain_yaml, read_text
+
+if TYPE_CHECKING:
+    import torch
 
 CONFIG_FILE = "config.yaml"
 CONFIG_BYTES = 2**20
@@ -108,6 +109,12 @@ class TrainerConfig(Section):
     stop_signals: list[str] = key(f"every element must be one of {', '.join(STOP_SIGNALS)}",
                                   lambda v: all(name in STOP_SIGNALS for name in v),
                                   ["SIGTERM", "SIGUSR1"])
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.follower_rollouts > 1 and self.follower_at == "step":
+            self.refuse("follower_rollouts", "must be 1 with trainer.follower_at=step: the "
+                        "follower reads the step's own losses, not fresh rollouts")
 
 
 @dataclass
@@ -230,6 +237,8 @@ class TrainConfig(Section):
     risk: dict[str, Any] = key(default={})
 
     def __post_init__(self) -> None:
+        from armeta_rl.devices import resolve_device  # torch: not for reading the keys (--help)
+
         super().__post_init__()
         self._device = resolve_device(self.device)
         self.check_task_split()

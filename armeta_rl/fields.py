@@ -18,8 +18,11 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import math
 import re
+import types
+import typing
 from collections.abc import Callable
 from dataclasses import field
 from typing import Any, ClassVar, NoReturn
@@ -27,13 +30,8 @@ from typing import Any, ClassVar, NoReturn
 from hydra.core.config_store import ConfigStore
 from omegaconf import (
     MISSING,
-    BooleanNode,
     DictConfig,
-    FloatNode,
-    IntegerNode,
-    ListConfig,
     OmegaConf,
-    StringNode,
 )
 from omegaconf.errors import ConfigKeyError, MissingMandatoryValue, OmegaConfBaseException
 
@@ -99,9 +97,10 @@ class Section:
                 continue  # checked when made; a default to be filled or resolved when composed
             if isinstance(value, float) and not math.isfinite(value):
                 self.refuse(spec.name, "must be a finite number")
-            node = typed._get_node(spec.name)  # converted ('0.5' to 0.5): the dataclass kept '0.5'
-            if reads_as_boolean(node, value) or typed[spec.name] != value:
-                self.refuse(spec.name, f"must be {type_words(node)}")
+            declared = field_type(type(self), spec.name)
+            # typed holds it converted ('0.5' to 0.5): the dataclass kept '0.5'
+            if reads_as_boolean(declared, value) or typed[spec.name] != value:
+                self.refuse(spec.name, f"must be {type_words(declared)}")
             test = spec.metadata.get("test")
             if value is not None and test is not None and not test(value):
                 self.refuse(spec.name, spec.metadata["allowed"])
@@ -119,8 +118,7 @@ class Section:
             name = re.match(r"\w*", str(error.full_key)).group()  # hidden[0]: the field hidden
             if not hasattr(self, name):
                 raise config_error(error) from None
-            node = OmegaConf.structured(type(self))._get_node(name)
-            self.refuse(name, f"must be {type_words(node)}")
+            self.refuse(name, f"must be {type_words(field_type(type(self), name))}")
 
     def refuse(self, name: str, allowed: str) -> NoReturn:
         """Raise the :class:`ConfigError` of this section's key ``name``."""
@@ -154,36 +152,68 @@ def register(section: str) -> Callable[[type], type]:
     return store
 
 
-def reads_as_boolean(node: Any, value: Any) -> bool:
-    """Whether the config node ``node`` is a boolean that OmegaConf would take ``value`` for
+def field_type(section: Any, name: str) -> Any:
+    """The type the field ``name`` of the dataclass ``section`` is declared with (``Any``:
+    ``section`` is no dataclass, a free mapping such as ``benchmark.collector``, or has no such
+    field)."""
+    if not (isinstance(section, type) and dataclasses.is_dataclass(section)):
+        return Any
+    return _type_hints(section).get(name, Any)
+
+
+@functools.cache
+def _type_hints(section: type) -> dict[str, Any]:
+    return typing.get_type_hints(section)
+
+
+def declared_type(cfg: DictConfig, key: str) -> Any:
+    """The type dotted ``key`` is declared with in the composed ``cfg``: its field's in the
+    section that holds it (:func:`field_type`)."""
+    parent, _, leaf = key.rpartition(".")
+    container = OmegaConf.select(cfg, parent) if parent else cfg
+    if not isinstance(container, DictConfig):
+        return Any
+    return field_type(OmegaConf.get_type(container), leaf)
+
+
+def _given(declared: Any) -> Any:
+    """``declared`` without its ``None`` (``int | None``: ``int``)."""
+    if typing.get_origin(declared) in (typing.Union, types.UnionType):
+        kinds = [kind for kind in typing.get_args(declared) if kind is not type(None)]
+        return kinds[0] if len(kinds) == 1 else declared
+    return declared
+
+
+def reads_as_boolean(declared: Any, value: Any) -> bool:
+    """Whether a key declared ``declared`` is a boolean that OmegaConf would take ``value`` for
     only by reading it as one: it reads ``'off'``, ``'yes'``, ``1`` or ``0`` as a boolean
     without a word, so ``learner.maml.first_order=off`` would silently train first-order. The
-    one rule for a boolean key, from the command line (:func:`armeta_rl.cli.compose_job`, which
-    sees the value before composing converts it) and from Python (:class:`Section`): true or
-    false, or null where the key allows it."""
-    return isinstance(node, BooleanNode) and value is not None and not isinstance(value, bool)
+    one rule for a boolean key, from the command line
+    (:func:`armeta_rl.cli.compose.compose_job`, which sees the value before composing converts
+    it) and from Python (:class:`Section`): true or false, or null where the key allows it."""
+    return _given(declared) is bool and value is not None and not isinstance(value, bool)
 
 
-def type_words(node: Any) -> str:
-    """What a value of the config node ``node`` must be, in words (``an integer``, ``a list of
-    numbers``, ...)."""
-    if isinstance(node, ListConfig):
+def type_words(declared: Any) -> str:
+    """What a value of a key declared ``declared`` must be, in words (``an integer``, ``a list
+    of numbers``, ...)."""
+    kind = _given(declared)
+    if kind is list or typing.get_origin(kind) is list:
         element = {int: "integers", float: "numbers", str: "strings", bool: "booleans"}.get(
-            node._metadata.element_type)
+            next(iter(typing.get_args(kind)), None))
         return f"a list of {element}" if element else "a list"
-    return {BooleanNode: "a boolean (true or false)", IntegerNode: "an integer",
-            FloatNode: "a number", StringNode: "a string"}.get(type(node), "a group of keys")
+    return {bool: "a boolean (true or false)", int: "an integer", float: "a number",
+            str: "a string"}.get(kind, "a group of keys")
 
 
 def config_error(error: OmegaConfBaseException) -> ConfigError:
     """OmegaConf's error (a value of the wrong type, a key the schema lacks) as one
     :class:`ConfigError` line naming the key."""
-    node = getattr(error, "child_node", None)
     if isinstance(error, MissingMandatoryValue):
         allowed = "must be set"
-    elif node is None:
+    elif getattr(error, "child_node", None) is None:
         allowed = "no such key" if isinstance(error, ConfigKeyError) else (
             str(error).splitlines()[0])
     else:
-        allowed = f"must be {type_words(node)}"
+        allowed = f"must be {type_words(field_type(error.object_type, str(error.key)))}"
     return ConfigError(str(error.full_key), getattr(error, "value", None), allowed)

@@ -56,7 +56,7 @@ def trainer_for(*overrides: str) -> tuple[GameTrainer, Players]:
     built as the CLI builds them (no logger, no progress bar), and the players."""
     from hydra import compose, initialize_config_dir
 
-    from armeta_rl.cli import config_dir
+    from armeta_rl.cli.compose import config_dir
     from armeta_rl.config import validate
     from armeta_rl.trainers.game import GameTrainer
     from armeta_rl.trainers.players import build_players

@@ -12,7 +12,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from omegaconf import DictConfig
 
-from armeta_rl.cli import config_dir
+from armeta_rl.cli.compose import config_dir
 from armeta_rl.config import TrainConfig, validate
 
 torch.set_num_threads(1)

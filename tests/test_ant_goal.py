@@ -20,6 +20,7 @@ from armeta_rl.config import validate
 from armeta_rl.envs.ant_goal import AntGoalEnv, load_ant_model, standing_goal_term
 from armeta_rl.envs.locomotion import AntDirEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, compose_train, moved_players, raw_mjdata
@@ -307,7 +308,7 @@ def test_ant_goal_trains_with_tasks_split_over_two_processes(tmp_path):
     )
     assert cfg.benchmark.collector.workers == 2
     config = validate(cfg)
-    report = run_training(config, tmp_path)
+    report = run_training(Job(config, tmp_path))
     assert report["metric"] == "return" and "adversarial" in report
     assert moved_players(config, tmp_path) == {"leader": True, "principle": True}
     for curve in ("return_pre", "return_post"):

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.trainers.players import build_players, load_players
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, cross_evaluate, train_config
@@ -23,7 +24,7 @@ RUN = (*SMALL_RUN, "trainer.meta_batch=5", "trainer.checkpoint_every=2", "logger
 def target(tmp_path_factory):
     """A finished MAML run: the learner attacked."""
     run_dir = tmp_path_factory.mktemp("maml")
-    run_training(train_config(*RUN, "method=maml"), run_dir, progress=False)
+    run_training(Job(train_config(*RUN, "method=maml"), run_dir), progress=False)
     return run_dir
 
 
@@ -35,7 +36,7 @@ def attack(target, *overrides):
 def attacked(tmp_path_factory, target):
     """The attack on ``target``, uninterrupted."""
     run_dir = tmp_path_factory.mktemp("attack")
-    run_training(attack(target), run_dir, progress=False)
+    run_training(Job(attack(target), run_dir), progress=False)
     return run_dir
 
 
@@ -71,7 +72,7 @@ def test_an_attack_resumes_exactly_without_its_target(tmp_path, target, attacked
     source = tmp_path / "maml"
     shutil.copytree(target, source)
     run_dir = tmp_path / "attack"
-    assert run_training(attack(source, "trainer.stop_at=4"), run_dir, progress=False) is None
+    assert run_training(Job(attack(source, "trainer.stop_at=4"), run_dir), progress=False) is None
     shutil.rmtree(source)  # the checkpoint holds the learner: the target is not needed again
     resumed = subprocess.run([*TRAIN, f"resume={run_dir}"], capture_output=True, text=True,
                              timeout=120)
@@ -90,14 +91,14 @@ def test_an_attack_resumes_exactly_without_its_target(tmp_path, target, attacked
 )
 def test_a_learner_that_does_not_fit_is_refused(tmp_path, target, overrides, words):
     with pytest.raises(ConfigError, match="trainer.frozen_leader") as error:
-        run_training(attack(target, *overrides), tmp_path / "run", progress=False)
+        run_training(Job(attack(target, *overrides), tmp_path / "run"), progress=False)
     assert words in str(error.value)
     assert not (tmp_path / "run" / "config.yaml").exists()
 
 
 def test_an_unfinished_or_missing_target_gets_one_line_and_exit_code_2(tmp_path, target):
     unfinished = tmp_path / "unfinished"
-    run_training(train_config(*RUN, "method=maml", "trainer.stop_at=2"), unfinished,
+    run_training(Job(train_config(*RUN, "method=maml", "trainer.stop_at=2"), unfinished),
                  progress=False)
     for source, words in ((unfinished, "has not finished (no eval.json)"),
                           (tmp_path / "nothing", "is not a run directory")):

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from armeta_rl.cli import evaluate, train
+from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, cross_evaluate, in_process, refusal, train_config
 
@@ -117,8 +118,8 @@ def test_resume_and_eval_of_a_non_run_directory_are_rejected(tmp_path, capsys):
 
 
 def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):
-    run_training(train_config(*SMALL_RUN, "method=maml"), tmp_path / "maml")
-    run_training(train_config(*SMALL_RUN, "method=ar_maml"), tmp_path / "ar")
+    run_training(Job(train_config(*SMALL_RUN, "method=maml"), tmp_path / "maml"))
+    run_training(Job(train_config(*SMALL_RUN, "method=ar_maml"), tmp_path / "ar"))
     result = subprocess.run(
         [*EVAL, f"learner={tmp_path / 'maml'}", f"adversary={tmp_path / 'ar'}", "eval.n_tasks=30"],
         capture_output=True,
@@ -140,7 +141,7 @@ def test_eval_scores_a_saved_learner_on_another_runs_adversary(tmp_path):
 def test_a_checkpoint_of_another_config_gets_one_line(tmp_path):
     """A config.yaml edited after the run (another flow) no longer describes the run its
     checkpoint records: one line naming the learner's directory."""
-    run_training(train_config(*SMALL_RUN, "+risk.ar.flow_kwargs.layers=2"), tmp_path / "ar")
+    run_training(Job(train_config(*SMALL_RUN, "+risk.ar.flow_kwargs.layers=2"), tmp_path / "ar"))
     config = tmp_path / "ar" / "config.yaml"
     text = config.read_text()
     config.write_text(text.replace("flow_kwargs:\n      layers: 2", "flow_kwargs: {}"))
@@ -158,8 +159,8 @@ def test_wandb_offline_runs_in_one_process_each_write_their_own_files(tmp_path, 
     # (a run left open would be handed back to the second job, which would log into it)
     monkeypatch.setenv("WANDB_MODE", "offline")
     for run_dir in (tmp_path / "first", tmp_path / "second"):
-        run_training(train_config(*SMALL_RUN, "logger=wandb", "trainer.density_every=3"),
-                     run_dir)
+        run_training(Job(train_config(*SMALL_RUN, "logger=wandb", "trainer.density_every=3"),
+                         run_dir))
         runs = list((run_dir / "wandb").glob("offline-run-*"))
         assert len(runs) == 1
         assert list(runs[0].glob("run-*.wandb"))
@@ -204,6 +205,32 @@ def test_help_lists_the_groups_a_command_line_chooses_from_and_exits_0(capsys):
     assert "sinusoid_uniform" in groups and "armeta-train [overrides] --cfg job" in text
     assert evaluate(["--help"]) == 0
     assert "armeta-eval learner=<run dir>" in capsys.readouterr().out
+
+
+def test_help_lists_every_key_with_its_type_default_range_and_doc_from_its_dataclass(capsys):
+    """The keys of ``armeta-train --help`` are the dataclasses' fields: every field of
+    ``TrainerConfig`` has its line, with its default, its range and the comment written with
+    it; a learner's section is listed when a word names it, and then only what is under it."""
+    import dataclasses
+
+    from armeta_rl.cli import train
+    from armeta_rl.config import TrainerConfig
+
+    assert train(["--help"]) == 0
+    keys = capsys.readouterr().out.split("Keys (")[1].split("\n\n")[0].splitlines()[1:]
+    names = [line.split(" = ")[0].strip() for line in keys if " = " in line]
+    assert [n for n in names if n.startswith("trainer.")] == [
+        f"trainer.{spec.name}" for spec in dataclasses.fields(TrainerConfig)]
+    assert "  trainer.meta_batch = 25: an integer, must be >= 1" in keys
+    assert ("  trainer.stop_at = null: an integer, must be >= 1. stop (with a checkpoint) after "
+            "this iteration; resume later") in keys
+    assert "  logger.kind = csv: a string, allowed: csv, wandb, tensorboard, mlflow, none" in keys
+    assert not any(n.startswith("learner.maml") for n in names)
+    assert train(["--help", "learner.maml"]) == 0
+    keys = capsys.readouterr().out.split("Keys (")[1].split("\n\n")[0].splitlines()[1:]
+    assert keys and all(line.startswith("  learner.maml.") for line in keys)
+    assert any(line.startswith("  learner.maml.inner_lr = 0.01: a number, must be > 0.")
+               for line in keys)
 
 
 @pytest.mark.parametrize("script", ["armeta-train", "armeta-eval", "armeta-reproduce"])
@@ -277,12 +304,12 @@ def test_an_offline_rl_run_logs_the_density_animation_and_the_adaptation(tmp_pat
     the final density.png (titled) as images."""
     monkeypatch.setenv("WANDB_MODE", "offline")
     run_dir = tmp_path / "run"
-    run_training(train_config("benchmark=point_nav", "method=ar_maml", "trainer.iterations=4",
+    run_training(Job(train_config("benchmark=point_nav", "method=ar_maml", "trainer.iterations=4",
                                "trainer.log_every=1", "trainer.meta_batch=2",
                                "trainer.checkpoint_every=2", "trainer.density_every=2",
                                "benchmark.collector.episodes=2",
                                "benchmark.collector.max_steps=8", "eval.n_tasks=2",
-                               "trainer.progress=false", "logger=wandb"), run_dir)
+                               "trainer.progress=false", "logger=wandb"), run_dir))
     (run,) = (run_dir / "wandb").glob("offline-run-*")
     rows = wandb_history(run)
     gains = [r["train/gain"] for r in rows if "train/gain" in r]

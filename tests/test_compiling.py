@@ -15,6 +15,8 @@ from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.collectors.regression import SinusoidCollector
 from armeta_rl.collectors.sysid import SysIdCollector
 from armeta_rl.compiling import compile_backend
+from armeta_rl.envs.acrobot import AcrobotEnv
+from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.learners.maml import ADAPTATIONS, MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import make_mlp, relu
@@ -106,12 +108,12 @@ def test_compiled_adversary_updates_equal_eager_updates():
     assert moved.abs().max() > 1e-3
 
 
-@pytest.mark.parametrize("env", ["pendulum", "acrobot"])
+@pytest.mark.parametrize("env", [PendulumEnv, AcrobotEnv])
 def test_compiled_physics_collects_what_the_eager_physics_collects(env):
     """``benchmark.collector.compile``: the compiled equations of motion give the eager
     transitions, and follow each collection's new identifiers (none is baked into the graph);
     the acrobot's 200-step episodes go through its partial resets."""
-    box = TaskSpace(["m1", "m2"] if env == "acrobot" else ["m", "l"], [0.4, 0.4], [1.6, 1.6])
+    box = TaskSpace(["m1", "m2"] if env is AcrobotEnv else ["m", "l"], [0.4, 0.4], [1.6, 1.6])
     collected = {}
     for backend in (False, "aot_eager"):
         torch.manual_seed(0)

@@ -12,8 +12,10 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from armeta_rl.cli import Refused, compose_job, config_dir, group_choices
+from armeta_rl.cli.compose import compose_job, config_dir
+from armeta_rl.cli.failures import Refused
 from armeta_rl.config import TrainConfig, TrainerConfig, load_run_config, schema, validate
+from armeta_rl.config_files import group_choices
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import check_method
 from armeta_rl.learners.maml import MamlOptions

@@ -14,6 +14,7 @@ from PIL import Image
 
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.config import validate
+from armeta_rl.job import Job
 from armeta_rl.plots import density_norm, pairwise_marginals, plot_density
 from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
 from armeta_rl.trainers.density import DensityFrames
@@ -72,7 +73,7 @@ def test_a_short_run_writes_frames_and_an_animation(tmp_path, benchmark, iterati
     cfg = compose_train(*SMALL_RUN, f"benchmark={benchmark}", "trainer.meta_batch=4",
                         "trainer.density_every=2", f"trainer.iterations={iterations}",
                         "eval.n_tasks=4")
-    run_training(validate(cfg), tmp_path)
+    run_training(Job(validate(cfg), tmp_path))
     frames = sorted(path.name for path in (tmp_path / "density").glob("*.png"))
     assert frames == [f"iter_{i:06d}.png" for i in drawn]
     assert all((tmp_path / "density" / f"iter_{i:06d}.pt").is_file() for i in drawn)
@@ -83,15 +84,15 @@ def test_a_short_run_writes_frames_and_an_animation(tmp_path, benchmark, iterati
 
 
 def test_density_every_zero_draws_no_frames(tmp_path):
-    run_training(train_config(*SMALL_RUN, "trainer.density_every=0"), tmp_path)
+    run_training(Job(train_config(*SMALL_RUN, "trainer.density_every=0"), tmp_path))
     assert not (tmp_path / "density").exists() and not (tmp_path / "density.gif").exists()
     assert (tmp_path / "density.png").is_file()
 
 
 def test_drawing_frames_leaves_the_seeded_run_unchanged(tmp_path):
     """Frames evaluate the exact density on a grid and draw no random numbers."""
-    reports = [run_training(train_config(*SMALL_RUN, f"trainer.density_every={every}"),
-                            tmp_path / str(every)) for every in (0, 3)]
+    reports = [run_training(Job(train_config(*SMALL_RUN, f"trainer.density_every={every}"),
+                                tmp_path / str(every))) for every in (0, 3)]
     assert (tmp_path / "3" / "density" / "iter_000006.png").is_file()
     assert reports[0] == reports[1]
 
@@ -160,7 +161,7 @@ def test_the_readme_figure_script_draws_a_finished_run_and_refuses_another(tmp_p
 
     script = figure_script()
     run = tmp_path / "run"
-    run_training(train_config(*SMALL_RUN, "trainer.meta_batch=4", "eval.n_tasks=4"), run)
+    run_training(Job(train_config(*SMALL_RUN, "trainer.meta_batch=4", "eval.n_tasks=4"), run))
     assert script.main(["--run", str(run), "--out", str(tmp_path / "refused.png")]) == 2
     assert not (tmp_path / "refused.png").exists()
     numbers, provenance = tmp_path / "numbers.pt", tmp_path / "provenance.json"

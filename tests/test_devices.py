@@ -16,6 +16,7 @@ from armeta_rl.config import validate
 from armeta_rl.devices import resolve_device
 from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import TASK_KEY
 from armeta_rl.trainers.checkpoint import PortableRNGState
@@ -89,9 +90,9 @@ def test_explicit_cpu_equals_the_default_bit_for_bit(tmp_path, benchmark, method
              "trainer.meta_batch=2", "eval.n_tasks=4")
     if benchmark == "point_nav_plain":
         small += ("benchmark.collector.episodes=2", "benchmark.collector.max_steps=5")
-    default = run_training(train_config(*small), tmp_path / "default")
+    default = run_training(Job(train_config(*small), tmp_path / "default"))
     explicit_cfg = compose_train(*small, "device=cpu")
-    explicit = run_training(validate(explicit_cfg), tmp_path / "explicit")
+    explicit = run_training(Job(validate(explicit_cfg), tmp_path / "explicit"))
     assert explicit == default
     _, players = load_players(tmp_path / "explicit", "learner")
     assert _devices(players) == {torch.device("cpu")}
@@ -101,7 +102,7 @@ def test_a_checkpoint_loads_onto_the_device_asked_for_and_scores_as_the_run_repo
     """A saved run loads on the CPU, its checkpoint's tensors there, and scores exactly as the
     run reported at its end."""
     run = tmp_path / "run"
-    report = run_training(train_config(*SMALL_RUN, "method=ar_maml"), run)
+    report = run_training(Job(train_config(*SMALL_RUN, "method=ar_maml"), run))
     config, players = load_players(run, "learner", "cpu")
     assert config.device == "cpu" and players.device == torch.device("cpu")
     assert _devices(players) == {torch.device("cpu")}
@@ -125,7 +126,7 @@ def test_cuda_random_state_in_a_checkpoint_does_not_block_a_cpu_resume():
 
 def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path, capsys):
     run = tmp_path / "run"
-    run_training(train_config(*SMALL_RUN, "method=maml", "trainer.stop_at=3"), run)
+    run_training(Job(train_config(*SMALL_RUN, "method=maml", "trainer.stop_at=3"), run))
     assert "config key 'device' = 'tpu'" in refusal(train, [f"resume={run}", "device=tpu"],
                                                     capsys)
     assert "config key 'device' = 'tpu'" in refusal(evaluate, [f"learner={run}", "device=tpu"],
@@ -133,7 +134,7 @@ def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path, capsys):
     resumed = subprocess.run([*TRAIN, f"resume={run}", "device=cpu"], capture_output=True,
                              text=True, timeout=300)
     assert resumed.returncode == 0, resumed.stderr
-    whole = run_training(train_config(*SMALL_RUN, "method=maml"), tmp_path / "whole")
+    whole = run_training(Job(train_config(*SMALL_RUN, "method=maml"), tmp_path / "whole"))
     assert json.loads((run / "eval.json").read_text()) == whole
 
 
@@ -153,7 +154,7 @@ def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, metho
     if benchmark in ("point_nav_plain", "ant_goal_smoke", "ant_goal_warp"):
         small += ("benchmark.collector.episodes=2", "benchmark.collector.max_steps=5")
     run = tmp_path / "run"
-    assert run_training(train_config(*small, "device=cuda", "trainer.stop_at=2"), run) is None
+    assert run_training(Job(train_config(*small, "device=cuda", "trainer.stop_at=2"), run)) is None
     cfg, players = load_players(run, "learner")
     assert cfg.device == "cuda" and {d.type for d in _devices(players)} == {"cuda"}
     on_cpu = cross_evaluate(run, None, device="cpu")
@@ -161,7 +162,7 @@ def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, metho
     resumed = subprocess.run([*TRAIN, f"resume={run}"], capture_output=True, text=True,
                              timeout=600)
     assert resumed.returncode == 0, resumed.stderr
-    again = run_training(train_config(*small, "device=cuda"), tmp_path / "again")
+    again = run_training(Job(train_config(*small, "device=cuda"), tmp_path / "again"))
     assert json.loads((run / "eval.json").read_text()) == again
 
 

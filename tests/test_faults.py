@@ -26,9 +26,13 @@ from hydra import compose, initialize_config_dir
 from PIL import Image
 
 import armeta_rl.trainers.checkpoint as checkpoint_module
-from armeta_rl.cli import Refused, _eval_task, _report_errors, config_dir, resume_config, train
+from armeta_rl.cli import _eval_task, train
+from armeta_rl.cli.compose import config_dir
+from armeta_rl.cli.failures import Refused, report_errors
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.config import validate
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
+from armeta_rl.job import Job
 from armeta_rl.run_files import FileRefused
 from armeta_rl.trainers import game
 from armeta_rl.trainers.checkpoint import MANIFEST, verify
@@ -64,7 +68,7 @@ def outcome(run_dir):
 def whole(tmp_path_factory):
     """The uninterrupted run."""
     run_dir = tmp_path_factory.mktemp("whole")
-    run_training(train_config(*RUN), run_dir, progress=False)
+    run_training(Job(train_config(*RUN), run_dir), progress=False)
     return run_dir
 
 
@@ -72,9 +76,9 @@ def finish(run_dir):
     """Continue ``run_dir`` after a fault: resume it, or start it afresh when the fault came
     before its config was saved (then nothing of it was kept)."""
     if (run_dir / "config.yaml").exists():
-        run_training(train_config(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+        run_training(make_job([f"resume={run_dir}"]), progress=False)
     else:
-        run_training(train_config(*RUN), run_dir, progress=False)
+        run_training(Job(train_config(*RUN), run_dir), progress=False)
 
 
 class FaultPoints:
@@ -100,7 +104,7 @@ class FaultPoints:
 def test_a_run_killed_at_random_points_resumes_exactly(tmp_path, whole, monkeypatch):
     with monkeypatch.context() as patch:
         counter = FaultPoints(patch, None)
-        run_training(train_config(*RUN), tmp_path / "counted", progress=False)
+        run_training(Job(train_config(*RUN), tmp_path / "counted"), progress=False)
     points = counter.calls
     rng = random.Random(29)
     kill_points = rng.sample(range(1, points + 1), KILLS)
@@ -110,7 +114,7 @@ def test_a_run_killed_at_random_points_resumes_exactly(tmp_path, whole, monkeypa
         with monkeypatch.context() as patch:
             FaultPoints(patch, kill_at)
             with pytest.raises(Killed):
-                run_training(train_config(*RUN), run_dir, progress=False)
+                run_training(Job(train_config(*RUN), run_dir), progress=False)
         if n % 4 == 0:  # every fourth run is killed again while it resumes
             with monkeypatch.context() as patch:
                 again = FaultPoints(patch, rng.randint(1, points // 2))
@@ -163,7 +167,7 @@ FILES = {
 def stopped(tmp_path_factory):
     """A run stopped at iteration 4 (checkpoints 2 and 4)."""
     run_dir = tmp_path_factory.mktemp("stopped")
-    run_training(train_config(*RUN, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(Job(train_config(*RUN, "trainer.stop_at=4"), run_dir), progress=False)
     return run_dir
 
 
@@ -214,8 +218,8 @@ def test_a_full_disk_keeps_the_last_intact_checkpoint_and_resumes_exactly(
     run_dir = tmp_path / "run"
     with monkeypatch.context() as patch:
         enospc_from(patch, 5)  # the second checkpoint (iteration 4): 4 files per checkpoint
-        task = _report_errors("armeta-train",
-                              lambda cfg: run_training(validate(cfg), run_dir, progress=False))
+        task = report_errors("armeta-train",
+                              lambda cfg: run_training(Job(validate(cfg), run_dir), progress=False))
         with pytest.raises(SystemExit) as exit_:
             task(compose_train(*RUN))
     assert exit_.value.code == 1
@@ -230,7 +234,7 @@ def test_a_full_disk_keeps_the_last_intact_checkpoint_and_resumes_exactly(
 def test_a_full_disk_error_is_a_run_directory_error(tmp_path, monkeypatch):
     enospc_from(monkeypatch, 1)
     with pytest.raises(RunDirectoryError, match="checkpoint-000000000002: No space left"):
-        run_training(train_config(*RUN), tmp_path, progress=False)
+        run_training(Job(train_config(*RUN), tmp_path), progress=False)
 
 
 def test_interrupted_staging_is_cleaned(tmp_path, whole, stopped):
@@ -254,11 +258,11 @@ def test_a_locked_run_directory_is_refused_until_its_holder_dies(tmp_path):
                               stdout=subprocess.PIPE, text=True)
     assert holder.stdout.readline().strip() == "held"
     with pytest.raises(ConfigError, match=rf"in use by another run \(pid {holder.pid}\)"):
-        run_training(train_config(*RUN), tmp_path, progress=False)
+        run_training(Job(train_config(*RUN), tmp_path), progress=False)
     assert not (tmp_path / "config.yaml").exists()
     holder.kill()
     holder.wait()
-    run_training(train_config(*RUN), tmp_path, progress=False)  # the dead holder's lock
+    run_training(Job(train_config(*RUN), tmp_path), progress=False)  # the dead holder's lock
     assert (tmp_path / EVAL_FILE).is_file() and not (tmp_path / LOCK_FILE).exists()
 
 
@@ -278,7 +282,7 @@ def test_two_runs_started_together_into_one_directory(tmp_path, whole):
 
 def test_the_divergence_bound_stops_the_run_and_names_the_checkpoint(tmp_path, monkeypatch):
     with pytest.raises(TrainingDiverged, match="beyond trainer.max_loss = 0.001.*no checkpoint"):
-        run_training(train_config(*RUN, "trainer.max_loss=1e-3"), tmp_path, progress=False)
+        run_training(Job(train_config(*RUN, "trainer.max_loss=1e-3"), tmp_path), progress=False)
     run_dir = tmp_path / "later"
     step = game.GameTrainer.train_iteration
 
@@ -290,7 +294,7 @@ def test_the_divergence_bound_stops_the_run_and_names_the_checkpoint(tmp_path, m
 
     monkeypatch.setattr(game.GameTrainer, "train_iteration", blows_up_at_3)
     with pytest.raises(TrainingDiverged, match="iteration 3.*checkpoint-000000000002 is kept"):
-        run_training(train_config(*RUN), run_dir, progress=False)
+        run_training(Job(train_config(*RUN), run_dir), progress=False)
 
 
 def test_a_diverged_adversary_step_stops_the_run_at_its_last_good_checkpoint(
@@ -312,10 +316,10 @@ def test_a_diverged_adversary_step_stops_the_run_at_its_last_good_checkpoint(
         patch.setattr(adversarial, "follower_step", explodes_at_3)
         with pytest.raises(TrainingDiverged, match="non-finite parameters.*"
                                                    "checkpoint-000000000002 is kept"):
-            run_training(train_config(*RUN), run_dir, progress=False)
+            run_training(Job(train_config(*RUN), run_dir), progress=False)
     _, players = load_players(run_dir, "resume")
     assert all(torch.isfinite(p).all() for p in players.principle.parameters())
-    run_training(train_config(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+    run_training(make_job([f"resume={run_dir}"]), progress=False)
     assert (run_dir / EVAL_FILE).is_file()
 
 
@@ -375,7 +379,7 @@ def evaluate_in_process(capsys, *overrides):
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = compose("eval", overrides=list(overrides))
     try:
-        _report_errors("armeta-eval", _eval_task)(cfg)
+        report_errors("armeta-eval", _eval_task)(cfg)
     except SystemExit as exit_:
         return exit_.code, capsys.readouterr().err.strip().splitlines()
     return 0, capsys.readouterr().err.strip().splitlines()
@@ -419,13 +423,13 @@ def test_a_log_row_that_does_not_parse_is_a_clear_refusal(tmp_path, stopped):
 ])
 def test_resume_refuses_every_override_but_more_iterations(stopped, override, refusal):
     with pytest.raises((Refused, ConfigError)) as error:
-        resume_config(str(stopped), [f"resume={stopped}", override])
+        make_job([f"resume={stopped}", override])
     assert refusal in str(error.value) and "\n" not in str(error.value)
 
 
 def test_resume_may_switch_keeping_freed_memory(stopped):
-    cfg = resume_config(str(stopped), [f"resume={stopped}", "trainer.keep_freed_memory=false"])
-    assert cfg.trainer.keep_freed_memory is False
+    job = make_job([f"resume={stopped}", "trainer.keep_freed_memory=false"])
+    assert job.config.trainer.keep_freed_memory is False
 
 
 def test_resume_with_more_iterations_follows_the_longer_cosine_schedule(tmp_path):
@@ -433,11 +437,10 @@ def test_resume_with_more_iterations_follows_the_longer_cosine_schedule(tmp_path
     iteration 7 on, exactly the adversary learning rates of a run planned for 10 from the start
     (η_t = η·(1 + cos(π t / 10)) / 2 at update t + 1); its config.yaml then says 10."""
     longer = tmp_path / "longer"
-    run_training(train_config(*RUN, "trainer.iterations=10"), longer, progress=False)
+    run_training(Job(train_config(*RUN, "trainer.iterations=10"), longer), progress=False)
     extended = tmp_path / "extended"
-    run_training(train_config(*RUN), extended, progress=False)
-    cfg = resume_config(str(extended), [f"resume={extended}", "trainer.iterations=10"])
-    run_training(cfg, extended, progress=False)
+    run_training(Job(train_config(*RUN), extended), progress=False)
+    run_training(make_job([f"resume={extended}", "trainer.iterations=10"]), progress=False)
     rates = {run: (run / CSV_LOG_DIR / "scalars" / "adversary" / "lr.csv").read_text()
              .splitlines() for run in (longer, extended)}
     assert [int(row.split(",")[0]) for row in rates[extended]] == list(range(1, 11))
@@ -456,7 +459,7 @@ def test_a_read_only_run_directory_is_refused_before_anything_is_written(tmp_pat
     parent.chmod(0o555)
     try:
         with pytest.raises(ConfigError, match=r"cannot be written in .* \(read-only\)"):
-            run_training(train_config(*RUN), parent / "run", progress=False)
+            run_training(Job(train_config(*RUN), parent / "run"), progress=False)
         assert not (parent / "run").exists()
     finally:
         parent.chmod(0o755)
@@ -465,11 +468,10 @@ def test_a_read_only_run_directory_is_refused_before_anything_is_written(tmp_pat
 def test_an_rl_run_resumes_exactly(tmp_path):
     overrides = (*SMALL_RUN, "benchmark=point_nav_plain", "method=maml", "trainer.iterations=4",
                  "trainer.checkpoint_every=2", "trainer.meta_batch=4", "eval.n_tasks=4")
-    run_training(train_config(*overrides), tmp_path / "whole", progress=False)
-    run_training(train_config(*overrides, "trainer.stop_at=2"), tmp_path / "split",
+    run_training(Job(train_config(*overrides), tmp_path / "whole"), progress=False)
+    run_training(Job(train_config(*overrides, "trainer.stop_at=2"), tmp_path / "split"),
                  progress=False)
-    run_training(train_config(*overrides, f"resume={tmp_path / 'split'}"), tmp_path / "split",
-                 progress=False)
+    run_training(make_job([f"resume={tmp_path / 'split'}"]), progress=False)
     assert (tmp_path / "split" / EVAL_FILE).read_text() == (tmp_path / "whole" / EVAL_FILE
                                                              ).read_text()
 
@@ -562,14 +564,14 @@ def test_a_stop_request_is_read_by_the_game_loop(tmp_path, whole, monkeypatch):
     monkeypatch.setattr(game.GameTrainer, "train_iteration", requested_during_5)
     run_dir = tmp_path / "run"
     with pytest.raises(RunStopped, match="stopped by SIGUSR1 after iteration 5") as stopped:
-        run_training(train_config(*RUN), run_dir, progress=False, stop=stop)
+        run_training(Job(train_config(*RUN), run_dir), progress=False, stop=stop)
     assert stopped.value.code == EXIT_PREEMPTED
     monkeypatch.undo()
     finish(run_dir)
     assert outcome(run_dir) == outcome(whole)
     before = tmp_path / "before"
     with pytest.raises(RunStopped, match="after iteration 0: no checkpoint yet"):
-        run_training(train_config(*RUN), before, progress=False, stop=stop)
+        run_training(Job(train_config(*RUN), before), progress=False, stop=stop)
     assert (before / "config.yaml").exists() and not (before / "checkpoints").exists()
     finish(before)
     assert outcome(before) == outcome(whole)
@@ -642,7 +644,7 @@ def test_resuming_a_finished_run_changes_nothing(tmp_path, whole, capsys):
     run_dir = tmp_path / "run"
     shutil.copytree(whole, run_dir)
     files = {p: p.read_bytes() for p in run_dir.rglob("*") if p.is_file() and p.name != LOCK_FILE}
-    report = run_training(train_config(*RUN, f"resume={run_dir}"), run_dir, progress=False)
+    report = run_training(make_job([f"resume={run_dir}"]), progress=False)
     assert report == json.loads((whole / EVAL_FILE).read_text())
     assert "has finished: nothing to do" in capsys.readouterr().out
     assert {p: p.read_bytes() for p in files} == files
@@ -658,7 +660,7 @@ def test_an_evaluation_cut_short_is_logged_once_on_resume(tmp_path, whole, monke
         patch.setattr("armeta_rl.trainers.training.write_text_atomically",
                       lambda path, text: (_ for _ in ()).throw(Killed()))
         with pytest.raises(Killed):
-            run_training(train_config(*RUN), run_dir, progress=False)
+            run_training(Job(train_config(*RUN), run_dir), progress=False)
     assert not (run_dir / EVAL_FILE).exists()
     finish(run_dir)
     assert outcome(run_dir) == outcome(whole)
@@ -668,18 +670,18 @@ def test_an_evaluation_cut_short_is_logged_once_on_resume(tmp_path, whole, monke
 def framed(tmp_path_factory):
     """The uninterrupted run with density frames at 0, 2, 4 and 6."""
     run_dir = tmp_path_factory.mktemp("framed")
-    run_training(train_config(*FRAMES), run_dir, progress=False)
+    run_training(Job(train_config(*FRAMES), run_dir), progress=False)
     return run_dir
 
 
 def test_a_damaged_density_frame_is_left_out_of_the_animation_with_a_warning(
         tmp_path, framed, caplog):
     run_dir = tmp_path / "run"
-    run_training(train_config(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(Job(train_config(*FRAMES, "trainer.stop_at=4"), run_dir), progress=False)
     for damaged in ("iter_000002.png", "iter_000002.pt"):  # a frame with its numbers is redrawn
         (run_dir / "density" / damaged).write_bytes(b"")
     with caplog.at_level(logging.WARNING):
-        run_training(train_config(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
+        run_training(make_job([f"resume={run_dir}"]), progress=False)
     assert "iter_000002.png cannot be read: left out of density.gif" in caplog.text
     assert outcome(run_dir) == outcome(framed)
     frames = Image.open(run_dir / "density.gif")
@@ -704,7 +706,7 @@ def test_every_file_of_a_run_is_written_through_a_staged_sibling(tmp_path, monke
 
     monkeypatch.setattr(builtins, "open", spy(real_open))
     monkeypatch.setattr(io, "open", spy(real_io_open))
-    run_training(train_config(*FRAMES), tmp_path / "run", progress=False)
+    run_training(Job(train_config(*FRAMES), tmp_path / "run"), progress=False)
     monkeypatch.undo()
     staged = [p for p in written if any(part.startswith(".") for part in p.parts)]
     direct = sorted({p.relative_to(tmp_path) for p in written
@@ -741,8 +743,7 @@ def test_a_lock_taken_again_chains_no_blocking_io_error(tmp_path):
 def test_resume_takes_the_keys_that_change_no_result(tmp_path, whole, stopped, override):
     run_dir = tmp_path / "run"
     shutil.copytree(stopped, run_dir)
-    cfg = resume_config(str(run_dir), [f"resume={run_dir}", override])
-    run_training(cfg, run_dir, progress=False)
+    run_training(make_job([f"resume={run_dir}", override]), progress=False)
     assert json.loads((run_dir / EVAL_FILE).read_text()) == outcome(whole)[0]
 
 
@@ -767,7 +768,7 @@ def test_a_damaged_run_config_is_one_line_for_resume_and_eval(tmp_path, stopped,
     config = run_dir / "config.yaml"
     config.write_text("" if how == "empty" else config.read_text()[:200])
     with pytest.raises(ConfigError, match=f"'resume' = '{run_dir}': its config.yaml"):
-        resume_config(str(run_dir), [f"resume={run_dir}"])
+        make_job([f"resume={run_dir}"])
     code, err = evaluate_in_process(capsys, f"learner={run_dir}")
     assert code == 2 and len(err) == 1 and f"'learner' = '{run_dir}'" in err[0], err
 
@@ -1015,7 +1016,7 @@ def test_a_checkpoint_of_another_run_is_refused_on_resume_and_eval(tmp_path, sto
     it, or loading it as a frozen leader refuses them as another run's (its seed differs), and
     nothing is trained or written."""
     other = tmp_path / "other"
-    run_training(train_config(*RUN, "seed=4", "trainer.stop_at=2"), other, progress=False)
+    run_training(Job(train_config(*RUN, "seed=4", "trainer.stop_at=2"), other), progress=False)
     run_dir = tmp_path / "run"
     shutil.copytree(stopped, run_dir)
     shutil.rmtree(run_dir / "checkpoints")
@@ -1083,10 +1084,10 @@ def test_a_frame_a_kill_cut_off_after_its_checkpoint_is_drawn_on_resume(tmp_path
     its numbers saved): the resumed run draws it from the checkpoint's p_φ, so its animation
     equals the uninterrupted run's frame for frame."""
     run_dir = tmp_path / "run"
-    run_training(train_config(*FRAMES, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(Job(train_config(*FRAMES, "trainer.stop_at=4"), run_dir), progress=False)
     for name in lost:
         (run_dir / "density" / name).unlink()
-    run_training(train_config(*FRAMES, f"resume={run_dir}"), run_dir, progress=False)
+    run_training(make_job([f"resume={run_dir}"]), progress=False)
     ours, theirs = Image.open(run_dir / "density.gif"), Image.open(framed / "density.gif")
     assert ours.n_frames == theirs.n_frames
     for index in range(ours.n_frames):

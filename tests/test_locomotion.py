@@ -31,6 +31,7 @@ from armeta_rl.envs.locomotion import (
 )
 from armeta_rl.envs.mujoco_tasks import physics_task_env
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.rl.policy import GaussianActor, GaussianMLP
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, collector_of, compose_train, moved_players, raw_mjdata
@@ -258,7 +259,7 @@ def test_half_cheetah_vel_benchmark_trains(tmp_path):
     assert isinstance(env, HalfCheetahVelEnv) and env.batch_size == (2, 2)
     assert (env.ctrl_cost_weight, env.frame_skip, env.max_steps) == (0.05, 5, 10)
     config = validate(cfg)
-    report = run_training(config, tmp_path)
+    report = run_training(Job(config, tmp_path))
     assert report["metric"] == "return" and "adversarial" in report
     assert moved_players(config, tmp_path) == {"leader": True, "principle": True}
 

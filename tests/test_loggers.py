@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import refusal, train_config
 
@@ -23,7 +24,7 @@ def runs(tmp_path_factory) -> dict[str, Path]:
     made = {}
     for kind in ("csv", "tensorboard", "mlflow"):
         made[kind] = tmp_path_factory.mktemp(kind) / "run"
-        run_training(train_config(*RUN, f"logger={kind}"), made[kind])
+        run_training(Job(train_config(*RUN, f"logger={kind}"), made[kind]))
     return made
 
 

@@ -4,12 +4,13 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from omegaconf import OmegaConf
 
-from armeta_rl.cli import group_choices
 from armeta_rl.config import schema, validate
+from armeta_rl.config_files import group_choices
 from armeta_rl.errors import ConfigError
 from armeta_rl.factory import (
     build_collector,
@@ -19,6 +20,7 @@ from armeta_rl.factory import (
     build_space,
 )
 from armeta_rl.trainers.players import saved_run
+from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, compose_train, moved_players
 
@@ -92,7 +94,7 @@ def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
         "logger=csv",
     )
     config = validate(cfg)
-    report = run_training(config, tmp_path)
+    report = run_training(Job(config, tmp_path))
     assert report["metric"] == "return"
     assert ("adversarial" in report) == (method == "ar_maml")
     assert moved_players(config, tmp_path) == {"leader": True, "principle": method == "ar_maml"}
@@ -103,7 +105,7 @@ def test_rl_benchmarks_train_end_to_end(tmp_path, benchmark, method):
 def test_cnp_has_no_rl_form():
     cfg = compose_train(*SMALL_RUN, "benchmark=point_nav", "method=cnp")
     with pytest.raises(ConfigError, match="supports methods whose learner is one of: maml"):
-        run_training(validate(cfg), "/nonexistent")
+        run_training(Job(validate(cfg), Path("/nonexistent")))
 
 
 @pytest.mark.parametrize(

@@ -23,6 +23,7 @@ from armeta_rl.envs.mujoco_tasks import (
     make_gym_task_env,
 )
 from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, collector_of, compose_train
 
@@ -289,7 +290,7 @@ def test_ant_goal_physics_benchmark_builds_its_env_and_trains(tmp_path):
     torso = load_ant_model().body("torso")
     masses = env.base_env.sim.expanded("body_mass")[:, torso.id]
     np.testing.assert_array_equal(masses, torso.mass[0] * np.repeat([1.75, 0.5], 2))
-    report = run_training(validate(cfg), tmp_path)
+    report = run_training(Job(validate(cfg), tmp_path))
     assert report["metric"] == "return" and "adversarial" in report
 
 
@@ -354,5 +355,5 @@ def test_half_cheetah_mass_vel_benchmark_trains(tmp_path):
                         "trainer.iterations=2", "trainer.meta_batch=2", "eval.n_tasks=2",
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "benchmark.collector.make_env.threads=1")
-    report = run_training(validate(cfg), tmp_path)
+    report = run_training(Job(validate(cfg), tmp_path))
     assert report["metric"] == "return" and "adversarial" in report

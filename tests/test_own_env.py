@@ -18,6 +18,7 @@ from armeta_rl.collectors.own_env import one_task_envs
 from armeta_rl.envs import tutorial_pendulum
 from armeta_rl.envs.tutorial_pendulum import TutorialPendulumEnv
 from armeta_rl.errors import ConfigError, IdentifierError
+from armeta_rl.job import Job
 from armeta_rl.tasks import TASK_KEY
 from armeta_rl.trainers.training import run_training
 from conftest import train_config
@@ -90,7 +91,7 @@ def test_the_tutorial_benchmark_trains_every_method_kind_and_reports_its_curve(t
                           "trainer.iterations=2", "trainer.meta_batch=2",
                           "benchmark.collector.max_steps=10", "eval.n_tasks=3",
                           "trainer.progress=false", "logger=none", "trainer.density_every=0")
-    report = run_training(config, tmp_path / "run")
+    report = run_training(Job(config, tmp_path / "run"))
     assert report["adversarial"]["adaptation_curve"]["inner_steps"] == [0, 1, 2, 3]
     assert json.loads((tmp_path / "run" / "eval.json").read_text()) == report
 

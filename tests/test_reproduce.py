@@ -20,7 +20,7 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
 import armeta_rl.reproduce.plan as plan_module
-from armeta_rl.cli import config_dir
+from armeta_rl.cli.compose import config_dir
 from armeta_rl.config import validate
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.aggregate import (
@@ -94,12 +94,13 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
 
 
 def test_a_sweep_run_equals_the_same_armeta_train_run(table1_dir, tmp_path):
+    from armeta_rl.job import Job
     from armeta_rl.trainers.training import run_training
     from conftest import train_config
 
     plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
     run = next(r for r in plan.runs if r.method == "ar_maml" and r.seed == 1)
-    report = run_training(train_config(*run.command()), tmp_path / "by_hand", progress=False)
+    report = run_training(Job(train_config(*run.command()), tmp_path / "by_hand"), progress=False)
     swept = json.loads((table1_dir / run.subdir / "eval.json").read_text())
     assert json.loads(json.dumps(report)) == swept
 

@@ -493,6 +493,7 @@ def test_principle_sampler_updates_every_update_every_calls():
 def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
     """On a meta-RL benchmark the learner is MAML-TRPO; the risk model learns from the
     returns-based losses of each step's tasks."""
+    from armeta_rl.job import Job
     from armeta_rl.trainers.training import run_training
     from conftest import SMALL_RUN
 
@@ -501,7 +502,7 @@ def test_maml_trpo_trains_with_a_risk_predictive_principle(tmp_path, kind):
                         "benchmark.collector.episodes=2", "benchmark.collector.max_steps=10",
                         "logger=csv")
     config = validate(cfg)
-    report = run_training(config, tmp_path)
+    report = run_training(Job(config, tmp_path))
     assert report["metric"] == "return" and report["method"] == f"{kind}_maml"
     assert (tmp_path / "logs" / "scalars" / "risk" / "pcc.csv").is_file()
     assert moved_players(config, tmp_path) == {"leader": True, "principle": True}

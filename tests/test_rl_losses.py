@@ -13,8 +13,10 @@ from tensordict import TensorDict
 from torch.func import functional_call
 from torchrl.objectives import A2CLoss, ClipPPOLoss
 
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.collectors.episodes import PointNavigationCollector, valid_mask
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.learners.maml_ppo import MAMLPPOLeader, MamlPpoOptions
 from armeta_rl.learners.maml_trpo import MAMLTRPOLeader, MamlTrpoOptions, MetaBatch
 from armeta_rl.rl.baseline import episode_mean
@@ -182,11 +184,10 @@ PPO_RUN = (*SMALL_RUN, "benchmark=point_nav_plain", "method=ar_maml", "method.le
 def test_a_resumed_maml_ppo_run_ends_exactly_like_an_uninterrupted_one(tmp_path):
     """The outer optimizer's state travels in the checkpoint: AR-MAML-PPO stopped after
     iteration 2 and resumed writes the uninterrupted run's eval.json, byte for byte."""
-    run_training(train_config(*PPO_RUN), tmp_path / "whole", progress=False)
-    run_training(train_config(*PPO_RUN, "trainer.stop_at=2"), tmp_path / "split",
+    run_training(Job(train_config(*PPO_RUN), tmp_path / "whole"), progress=False)
+    run_training(Job(train_config(*PPO_RUN, "trainer.stop_at=2"), tmp_path / "split"),
                  progress=False)
-    run_training(train_config(*PPO_RUN, f"resume={tmp_path / 'split'}"), tmp_path / "split",
-                 progress=False)
+    run_training(make_job([f"resume={tmp_path / 'split'}"]), progress=False)
     whole, split = ((tmp_path / d / "eval.json").read_text() for d in ("whole", "split"))
     assert whole == split
     assert json.loads(whole)["method"] == "ar_maml_ppo"

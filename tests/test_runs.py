@@ -16,6 +16,7 @@ import armeta_rl
 from armeta_rl.cli import evaluate
 from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.learners.maml_trpo import as_task_params
 from armeta_rl.plots import plot_adaptation_curves
 from armeta_rl.trainers.evaluation import (
@@ -38,7 +39,7 @@ RUN = ("benchmark=point_nav_plain", "method=ar_maml", "seed=3", "trainer.iterati
 def finished(tmp_path_factory):
     """A small MAML-TRPO run with an adversary, trained and evaluated."""
     run_dir = tmp_path_factory.mktemp("run") / "run"
-    report = run_training(train_config(*RUN), run_dir)
+    report = run_training(Job(train_config(*RUN), run_dir))
     return run_dir, report
 
 
@@ -113,7 +114,7 @@ def test_the_curve_s_length_is_configurable_and_refused_without_inner_steps(fini
     assert report["adaptation_curve"]["inner_steps"] == list(range(6))
     regression = train_config("trainer.meta_batch=2", "eval.adaptation_steps=3")
     with pytest.raises(ConfigError, match="eval.adaptation_steps"):
-        run_training(regression, finished[0].parent / "regression")
+        run_training(Job(regression, finished[0].parent / "regression"))
     assert curve_steps(players.leader, None) == 3
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import pytest
 
 from armeta_rl.config import validate
+from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import compose_train
 
@@ -49,7 +50,7 @@ def flatten(report: dict, prefix: str = "") -> dict[str, float]:
 
 def _train(benchmark: str, run_dir: Path) -> dict:
     cfg = compose_train(*COMMON, f"benchmark={benchmark}", *RUNS[benchmark])
-    return run_training(validate(cfg), run_dir, progress=False)
+    return run_training(Job(validate(cfg), run_dir), progress=False)
 
 
 @pytest.mark.parametrize("benchmark", list(RUNS))

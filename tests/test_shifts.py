@@ -12,6 +12,7 @@ import torch
 
 from armeta_rl.cli import evaluate
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.tasks import TaskSpace
 from armeta_rl.tasks.shifts import (
     BetaOnBox,
@@ -42,8 +43,8 @@ def test_every_suite_has_its_box_here():
 
 
 def test_every_benchmark_with_a_suite_takes_all_of_it():
-    from armeta_rl.cli import group_choices
     from armeta_rl.config import validate
+    from armeta_rl.config_files import group_choices
     from armeta_rl.factory import build_space
 
     with_suite = 0
@@ -119,7 +120,7 @@ def test_a_shifts_tasks_depend_on_its_name_only():
 @pytest.fixture(scope="module")
 def sinusoid_run(tmp_path_factory):
     run = tmp_path_factory.mktemp("shifts") / "maml"
-    run_training(train_config(*SMALL_RUN, "method=maml"), run)
+    run_training(Job(train_config(*SMALL_RUN, "method=maml"), run))
     return run
 
 

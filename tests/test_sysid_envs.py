@@ -13,6 +13,7 @@ import torch
 from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
+from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from armeta_rl.collectors.base import TaskCollector
@@ -248,9 +249,9 @@ def _sort_rows(rows: torch.Tensor) -> torch.Tensor:
     return rows
 
 
-@pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
-def test_collector_shapes_and_split(env_name):
-    collector = SysIdCollector(env_name, n_transitions=200, n_support=10)
+@pytest.mark.parametrize("make_env", [PendulumEnv, AcrobotEnv])
+def test_collector_shapes_and_split(make_env):
+    collector = SysIdCollector(make_env, n_transitions=200, n_support=10)
     assert isinstance(collector, TaskCollector)
     torch.manual_seed(0)
     tasks = _tasks(5)
@@ -276,7 +277,7 @@ def test_collector_pairs_pendulum_inputs_with_their_physics():
     """Each target is the next state of its own input under the task's (m, l)."""
     torch.manual_seed(1)
     tasks = _tasks(4)
-    data = SysIdCollector("pendulum", target="delta", normalize="none").collect(tasks)
+    data = SysIdCollector(PendulumEnv, target="delta", normalize="none").collect(tasks)
     x, y = data["query", "x"].double(), data["query", "y"].double()
     mass, length = tasks["params"].double().unbind(-1)
     cos, sin, speed, torque = x.unbind(-1)
@@ -287,16 +288,16 @@ def test_collector_pairs_pendulum_inputs_with_their_physics():
     torch.testing.assert_close(y[..., 0], angle.cos() - cos, atol=1e-4, rtol=0)
 
 
-@pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
-def test_collector_targets_and_scaling(env_name):
+@pytest.mark.parametrize("make_env", [PendulumEnv, AcrobotEnv])
+def test_collector_targets_and_scaling(make_env):
     kwargs = {"episodes": 4, "n_transitions": 40, "n_support": 5}
     torch.manual_seed(2)
     tasks = _tasks(3)
-    delta = SysIdCollector(env_name, target="delta", **kwargs).collect(tasks)
+    delta = SysIdCollector(make_env, target="delta", **kwargs).collect(tasks)
     torch.manual_seed(2)
     _tasks(3)
-    absolute = SysIdCollector(env_name, target="next", normalize="scale", **kwargs).collect(tasks)
-    collector = SysIdCollector(env_name, target="next", normalize="scale", **kwargs)
+    absolute = SysIdCollector(make_env, target="next", normalize="scale", **kwargs).collect(tasks)
+    collector = SysIdCollector(make_env, target="next", normalize="scale", **kwargs)
     observation = delta["query", "x"][..., : collector.out_features]
     torch.testing.assert_close(absolute["query", "x"] * collector.x_scale, delta["query", "x"])
     torch.testing.assert_close(absolute["query", "y"] * collector.y_scale,
@@ -304,13 +305,13 @@ def test_collector_targets_and_scaling(env_name):
     assert absolute["query", "x"].abs().max() <= 1.0
 
 
-@pytest.mark.parametrize("env_name", ["pendulum", "acrobot"])
-def test_seeded_collection_is_reproducible(env_name):
-    collector = SysIdCollector(env_name)
+@pytest.mark.parametrize("make_env", [PendulumEnv, AcrobotEnv])
+def test_seeded_collection_is_reproducible(make_env):
+    collector = SysIdCollector(make_env)
     torch.manual_seed(3)
     first = collector.collect(_tasks(4))
     torch.manual_seed(3)
-    second = SysIdCollector(env_name).collect(_tasks(4))
+    second = SysIdCollector(make_env).collect(_tasks(4))
     third = collector.collect(_tasks(4))
     assert (first == second).all()
     assert not torch.equal(first["query", "y"], third["query", "y"])
@@ -321,7 +322,7 @@ def test_seeded_collection_is_reproducible(env_name):
 def test_collected_data_can_be_differentiated_through(target, normalize):
     """The rollout runs in inference mode, but the data ``collect`` returns are ordinary tensors:
     a network's backward pass saves them (inference tensors would raise there)."""
-    collector = SysIdCollector("acrobot", episodes=1, target=target, normalize=normalize)
+    collector = SysIdCollector(AcrobotEnv, episodes=1, target=target, normalize=normalize)
     torch.manual_seed(0)
     data = collector.collect(_tasks(3))
     assert collector.rollout(_tasks(3)["params"])["observation"].is_inference()
@@ -337,7 +338,7 @@ def test_collected_data_can_be_differentiated_through(target, normalize):
 @pytest.mark.parametrize(
     ("key", "kwargs"),
     [
-        ("env", {"env": "cartpole"}),
+        ("make_env", {"make_env": lambda **kwargs: TransformedEnv(PendulumEnv(**kwargs))}),
         ("n_support", {"n_support": 200}),
         ("episodes", {"episodes": 7}),
         ("target", {"target": "state"}),
@@ -349,3 +350,25 @@ def test_collector_rejects_bad_options(key, kwargs):
     with pytest.raises(ConfigError) as error:
         SysIdCollector(**kwargs)
     assert error.value.key == f"benchmark.collector.{key}"
+
+
+class LongPendulumEnv(PendulumEnv):
+    """A family of its own, in this module alone: the pendulum, its default length doubled."""
+
+    identifier_defaults = {**PendulumEnv.identifier_defaults, "l": 2.0}
+
+
+def test_a_new_family_is_its_env_alone():
+    """The collector takes any factory of an identified env: a family needs no registry entry,
+    and the transitions are its env's (seeded alike, the doubled default length moves the
+    pendulum otherwise)."""
+    tasks = TensorDict({"params": torch.tensor([[1.0, 9.8]])}, [1])
+    collected = {}
+    for family in (PendulumEnv, LongPendulumEnv):
+        torch.manual_seed(0)
+        collector = SysIdCollector(family, n_transitions=20, n_support=5, episodes=2,
+                                   identifiers=["m", "g"])
+        collected[family] = collector.collect(tasks)
+    assert collected[LongPendulumEnv]["support", "x"].shape == (1, 5, collector.in_features)
+    assert not torch.equal(collected[PendulumEnv]["query", "y"],
+                           collected[LongPendulumEnv]["query", "y"])

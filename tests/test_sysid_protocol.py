@@ -12,6 +12,7 @@ from tensordict import TensorDict
 
 from armeta_rl.config import validate
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.learners.maml import MAMLLeader, MamlOptions
 from armeta_rl.learners.mlp import TiedAngleHead, make_mlp
 from armeta_rl.trainers.evaluation import evaluate_on
@@ -111,5 +112,5 @@ def test_a_short_maml_run_on_the_paper_protocol_lowers_the_query_mse(tmp_path):
     assert isinstance(untrained.leader.model, TiedAngleHead)
     before = evaluate_on(untrained.leader, untrained.initial, untrained.eval_collector,
                          cfg.eval.n_tasks, [0.5], cfg.eval.seed)["mean"]
-    run_training(validate(cfg), tmp_path)
+    run_training(Job(validate(cfg), tmp_path))
     assert json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"] < 0.7 * before

@@ -6,6 +6,7 @@ import json
 import pytest
 
 from armeta_rl.config import validate
+from armeta_rl.job import Job
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, compose_train, players_of
@@ -32,7 +33,7 @@ def test_short_ar_maml_run_lowers_query_mse(tmp_path, benchmark):
         [0.5],
         cfg.eval.seed,
     )["mean"]
-    run_training(validate(cfg), tmp_path)
+    run_training(Job(validate(cfg), tmp_path))
     after = json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"]
     assert after < 0.7 * before
 

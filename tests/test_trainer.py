@@ -9,6 +9,7 @@ import torch
 
 from armeta_rl.config import TrainerConfig, validate
 from armeta_rl.errors import TrainingDiverged
+from armeta_rl.job import Job
 from armeta_rl.trainers.checkpoint import RunCheckpoint
 from armeta_rl.trainers.game import GameTrainer
 from armeta_rl.trainers.training import run_training
@@ -17,7 +18,7 @@ from conftest import SMALL_RUN, compose_train, players_of, train_config
 
 @pytest.mark.parametrize("method", ["maml", "ar_maml"])
 def test_training_writes_a_complete_run_directory(tmp_path, method):
-    report = run_training(train_config(*SMALL_RUN, f"method={method}", "logger=csv"), tmp_path)
+    report = run_training(Job(train_config(*SMALL_RUN, f"method={method}", "logger=csv"), tmp_path))
     saved = json.loads((tmp_path / "eval.json").read_text())
     assert saved == report
     assert saved["metric"] == "mse" and saved["initial"]["n_tasks"] == 20
@@ -39,7 +40,7 @@ def test_training_lowers_the_query_loss(tmp_path):
     )
     players = players_of(cfg)
     before = run_training_eval(players, cfg)
-    run_training(validate(cfg), tmp_path)
+    run_training(Job(validate(cfg), tmp_path))
     after = json.loads((tmp_path / "eval.json").read_text())["initial"]["mean"]
     assert after < 0.8 * before
 
@@ -60,7 +61,7 @@ def run_training_eval(players, cfg):
 
 def test_resume_through_the_cli_ends_exactly_like_an_uninterrupted_run(tmp_path):
     overrides = [*SMALL_RUN, "method=ar_maml"]
-    run_training(train_config(*overrides), tmp_path / "whole")
+    run_training(Job(train_config(*overrides), tmp_path / "whole"))
     cli = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
     stopped = subprocess.run(
         [*cli, *overrides, "trainer.stop_at=3", f"hydra.run.dir={tmp_path / 'split'}"],

@@ -15,9 +15,13 @@ import zlib
 import pytest
 import torch
 
-from armeta_rl.cli import Refused, check_jobs, evaluate, resume_config, train
+from armeta_rl.cli import evaluate, train
+from armeta_rl.cli.compose import check_jobs
+from armeta_rl.cli.failures import Refused
+from armeta_rl.cli.jobs import make_job
 from armeta_rl.config import read_run_config
 from armeta_rl.errors import ConfigError
+from armeta_rl.job import Job
 from armeta_rl.trainers import training
 from armeta_rl.trainers.checkpoint import MANIFEST, seal
 from armeta_rl.trainers.players import load_players
@@ -35,7 +39,7 @@ LEADER = "checkpoints/checkpoint-000000000004/components/0000-leader"
 def stopped(tmp_path_factory):
     """The run stopped after iteration 4 (checkpoints at 2 and 4)."""
     run_dir = tmp_path_factory.mktemp("stopped") / "run"
-    run_training(train_config(*RUN, "trainer.stop_at=4"), run_dir, progress=False)
+    run_training(Job(train_config(*RUN, "trainer.stop_at=4"), run_dir), progress=False)
     return run_dir
 
 
@@ -47,7 +51,7 @@ def run_dir(tmp_path, stopped):
 
 
 def resume(run_dir, *overrides):
-    run_training(resume_config(str(run_dir), list(overrides)), run_dir, progress=False)
+    run_training(make_job([f"resume={run_dir}", *overrides]), progress=False)
 
 
 class Pickled:
@@ -137,7 +141,7 @@ def test_a_checkpoint_that_records_no_run_is_refused_unless_adopted(run_dir):
         resume(run_dir)
     resume(run_dir, "adopt=true")
     assert (run_dir / "eval.json").is_file()
-    assert resume_config(str(run_dir), []).adopt is False  # a resume's own, not kept
+    assert make_job([f"resume={run_dir}"]).config.adopt is False  # a resume's own, not kept
 
 
 def test_a_lock_file_with_a_second_link_is_refused_and_that_file_untouched(run_dir, tmp_path):
@@ -312,7 +316,7 @@ def test_a_stop_request_during_the_final_evaluation_is_acknowledged(tmp_path, ca
         return evaluate_players(*args, **kwargs)
 
     monkeypatch.setattr(training, "evaluate_players", interrupted)
-    run_training(train_config(*RUN), tmp_path / "run", progress=False, stop=stop)
+    run_training(Job(train_config(*RUN), tmp_path / "run"), progress=False, stop=stop)
     assert (tmp_path / "run" / "eval.json").is_file()
     assert ("SIGTERM arrived during the final evaluation: the run finished first (eval.json "
             "written)") in capsys.readouterr().out

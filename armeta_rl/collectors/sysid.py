@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import torch
 from tensordict import TensorDict
@@ -11,17 +11,12 @@ from torch import Tensor
 
 from armeta_rl.compiling import compile_backend
 from armeta_rl.devices import CPU
-from armeta_rl.envs.acrobot import AcrobotEnv
 from armeta_rl.envs.identified_env import IdentifiedSystemEnv
 from armeta_rl.envs.pendulum import PendulumEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks.protocol import TASK_KEY
 from armeta_rl.tasks.space import TaskSpace
 
-ENVIRONMENTS: dict[str, type[IdentifiedSystemEnv]] = {
-    "pendulum": PendulumEnv,
-    "acrobot": AcrobotEnv,
-}
 TARGETS = ("delta", "next")
 NORMALIZATIONS = ("none", "scale")
 
@@ -31,7 +26,8 @@ class SysIdCollector:
 
     For tasks ``[K]`` with identifiers ``"params"`` (``TASK_KEY``) ``[K, d]`` ((m, l) for the
     pendulum by default, any of (m, l, g) with ``identifiers``; (m1, m2) for the acrobot), one
-    batched env ``[K, episodes]`` is reset with those identifiers
+    batched env ``[K, episodes]`` (made by ``make_env``, as the episode collectors make theirs)
+    is reset with those identifiers
     and a uniformly random policy acts for ``n_transitions / episodes`` steps (finished acrobot
     episodes are reset and collection goes on). The steps are
     :meth:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv.transitions`: ``env.rollout``'s
@@ -60,7 +56,11 @@ class SysIdCollector:
     ``torch.manual_seed`` fixes the whole collection.
 
     Args:
-        env: ``"pendulum"`` or ``"acrobot"``.
+        make_env: makes the system's env, an
+            :class:`~armeta_rl.envs.identified_env.IdentifiedSystemEnv` (``PendulumEnv``,
+            ``AcrobotEnv``, or a class or ``functools.partial`` of a new family), called with
+            ``batch_size``, ``seed``, ``device``, ``identifiers`` and ``compile_dynamics``; a
+            benchmark gives it as a Hydra node with ``_partial_: true``.
         n_transitions: transitions per task (paper: 200).
         n_support: support transitions per task (paper: 10).
         episodes: episodes per task sharing the ``n_transitions`` (must divide it).
@@ -81,19 +81,19 @@ class SysIdCollector:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SysIdCollector
-        >>> collector = SysIdCollector("pendulum", n_transitions=40, n_support=10, episodes=4)
+        >>> from armeta_rl.envs import PendulumEnv
+        >>> collector = SysIdCollector(PendulumEnv, n_transitions=40, n_support=10, episodes=4)
         >>> tasks = TensorDict({"params": torch.tensor([[1.0, 1.0], [0.5, 1.5]])}, [2])
         >>> data = collector.collect(tasks)  # x = (cos θ, sin θ, θ̇, torque), y = Δ observation
         >>> data["support", "x"].shape, data["query", "y"].shape
         (torch.Size([2, 10, 4]), torch.Size([2, 30, 3]))
     """
 
-    def __init__(self, env: str = "pendulum", n_transitions: int = 200, n_support: int = 10,
-                 episodes: int = 20, target: str = "delta", normalize: str = "none",
-                 device: torch.device = CPU, identifiers: Sequence[str] | None = None,
+    def __init__(self, make_env: Callable[..., IdentifiedSystemEnv] = PendulumEnv,
+                 n_transitions: int = 200, n_support: int = 10, episodes: int = 20,
+                 target: str = "delta", normalize: str = "none", device: torch.device = CPU,
+                 identifiers: Sequence[str] | None = None,
                  compile: bool | str | None = False) -> None:
-        if env not in ENVIRONMENTS:
-            raise ConfigError("benchmark.collector.env", env, f"allowed: {', '.join(ENVIRONMENTS)}")
         if not isinstance(n_transitions, int) or n_transitions < 2:
             raise ConfigError("benchmark.collector.n_transitions", n_transitions,
                               "an integer >= 2")
@@ -109,13 +109,18 @@ class SysIdCollector:
         if normalize not in NORMALIZATIONS:
             raise ConfigError("benchmark.collector.normalize", normalize,
                               f"allowed: {', '.join(NORMALIZATIONS)}")
-        self.env_name, self.env_cls = env, ENVIRONMENTS[env]
+        probe = make_env(batch_size=(1, 1), seed=0, device=CPU)  # the system's constants
+        if not isinstance(probe, IdentifiedSystemEnv):
+            raise ConfigError("benchmark.collector.make_env", type(probe).__name__,
+                              "must make an IdentifiedSystemEnv (armeta_rl.envs.identified_env)")
+        self.make_env, self.env_cls = make_env, type(probe)
         known = tuple(self.env_cls.identifier_defaults)
         if identifiers is not None and (
                 not identifiers or len(set(identifiers)) < len(identifiers)
                 or not set(identifiers) <= set(known)):
             raise ConfigError("benchmark.collector.identifiers", list(identifiers),
-                              f"distinct names among {', '.join(known)} ({env})")
+                              f"distinct names among {', '.join(known)} "
+                              f"({self.env_cls.__name__})")
         self.identifiers = tuple(self.env_cls.param_names if identifiers is None else identifiers)
         self.n_transitions, self.n_support, self.episodes = n_transitions, n_support, episodes
         self.target, self.normalize, self.device = target, normalize, device
@@ -143,9 +148,10 @@ class SysIdCollector:
 
     def _env(self, n_tasks: int) -> IdentifiedSystemEnv:
         if n_tasks not in self._envs:
-            self._envs[n_tasks] = self.env_cls(batch_size=(n_tasks, self.episodes), seed=0,
-                                               device=self.device, identifiers=self.identifiers,
-                                               compile_dynamics=self.backend)
+            self._envs[n_tasks] = self.make_env(batch_size=(n_tasks, self.episodes), seed=0,
+                                                device=self.device,
+                                                identifiers=self.identifiers,
+                                                compile_dynamics=self.backend)
         return self._envs[n_tasks]
 
     def check_space(self, space: TaskSpace) -> None:
@@ -153,11 +159,11 @@ class SysIdCollector:
         corner that is not positive (masses, lengths and gravity are > 0)."""
         if space.names != self.identifiers:
             raise ConfigError("benchmark.space.names", list(space.names),
-                              f"the {self.env_name} collector takes the identifiers "
+                              f"{self.env_cls.__name__} takes the identifiers "
                               f"{list(self.identifiers)} (benchmark.collector.identifiers)")
         if not all(low > 0 for low in space.low):
             raise ConfigError("benchmark.space.low", list(space.low),
-                              f"{self.env_name} identifiers must be > 0")
+                              f"{self.env_cls.__name__}'s identifiers must be > 0")
 
     @torch.inference_mode()
     def rollout(self, params: Tensor) -> TensorDict:

@@ -206,7 +206,7 @@ def check_runs(plan: Plan) -> None:
     """Compose and check the config of every distinct run (seeds aside) before launching, so a
     bad override in an experiment's YAML fails with one line instead of in every job; with
     ``shifts:`` in the YAML, each run's benchmark must have those shifts in its suite."""
-    from armeta_rl.cli import checked
+    from armeta_rl.cli.compose import checked
     from armeta_rl.factory import build_space
     from armeta_rl.tasks.shifts import suite_shifts
 
@@ -313,7 +313,8 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
         ConfigError: an unknown experiment, profile or launcher, a results directory that is not
             this experiment's or cannot be read, or a run config that does not compose.
     """
-    from armeta_rl.cli import check_hydra, evaluate, train
+    from armeta_rl.cli import evaluate, train
+    from armeta_rl.cli.compose import check_hydra
 
     plan = make_plan(experiment, profile, extra, benchmarks, seeds)
     if adopt and not pack:
@@ -499,7 +500,7 @@ def parse(args: list[str]) -> dict:
 def main() -> None:
     """``armeta-reproduce``: exit code 0 when the experiment is complete, 1 when runs failed or
     are missing or a file could not be written, 2 for bad input (one line)."""
-    from armeta_rl.cli import OUT_OF_MEMORY, Refused, out_of_memory
+    from armeta_rl.cli.failures import OUT_OF_MEMORY, Refused, out_of_memory
 
     if any(arg in ("--help", "-h") for arg in sys.argv[1:]):
         print(help_text())

@@ -340,15 +340,16 @@ def _select(values: dict[str, Any], dotted: str) -> Any:
 @functools.lru_cache(maxsize=256)
 def composed(command: tuple[str, ...]) -> DictConfig:
     """The ``armeta-train`` config of a run's ``command`` (its overrides but the seed), composed
-    as the CLI composes it (:func:`armeta_rl.cli.compose_job`), once per command: composing is
-    most of an aggregation's time (the config returned is shared: not to be changed).
+    as the CLI composes it (:func:`armeta_rl.cli.compose.compose_job`), once per command:
+    composing is most of an aggregation's time (the config returned is shared: not to be
+    changed).
 
     Raises:
         Refused: an override that does not compose, as one line.
     """
     from hydra import initialize_config_dir
 
-    from armeta_rl.cli import compose_job, config_dir, job_overrides
+    from armeta_rl.cli.compose import compose_job, config_dir, job_overrides
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         job_overrides(list(command))
@@ -371,7 +372,7 @@ def planned_values(run: TrainRun) -> dict[str, Any]:
     returned are shared: not to be changed)."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    from armeta_rl.cli import GROUPS
+    from armeta_rl.cli.compose import GROUPS
 
     command = run_command(run)
     values = OmegaConf.to_container(composed(command), resolve=True)
@@ -428,7 +429,7 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
     result-changing keys it records differs from the run's ``config.yaml``'s (its packed config
     where its directory has none), as a variant's does; that config does not hold what the plan
     gives the run (:func:`planned_values`, but the keys that change no result,
-    :data:`~armeta_rl.cli.NO_RESULT_KEYS`: another experiment's or profile's run copied in); or
+    :data:`~armeta_rl.cli.jobs.NO_RESULT_KEYS`: another experiment's or profile's run copied in); or
     the report was scored with other evaluation settings than the plan's (another experiment's
     report, :func:`scored_problem`)."""
     from armeta_rl.trainers.evaluation import ReportInvalid
@@ -451,7 +452,7 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
     if report["config_sha256"] != digest:
         return (f"it is the report of another config (config_sha256 "
                 f"{str(report['config_sha256'])[:12]}…, not this run's {digest[:12]}…)")
-    from armeta_rl.cli import NO_RESULT_KEYS
+    from armeta_rl.cli.jobs import NO_RESULT_KEYS
 
     planned = planned_values(learner)
     differ = next((key for key, value in planned.items()

@@ -14,7 +14,7 @@ import torch
 from torchrl.record.loggers import Logger
 
 from armeta_rl.compiling import COMPILE_KEYS
-from armeta_rl.config import CONFIG_FILE, TrainConfig, run_values
+from armeta_rl.config import CONFIG_FILE, TrainConfig
 from armeta_rl.errors import (
     CollectionFailed,
     ConfigError,
@@ -22,6 +22,7 @@ from armeta_rl.errors import (
     RunStopped,
     TrainingDiverged,
 )
+from armeta_rl.job import Job
 from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
 from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, run_identity
 from armeta_rl.trainers.density import FRAMES_DIR, PICTURE_KEY, DensityFrames, readable
@@ -54,13 +55,12 @@ def say(message: str) -> None:
     log.info(message)
 
 
-def run_training(config: TrainConfig, run_dir: str | Path, progress: bool = True,
+def run_training(job: Job, progress: bool = True,
                  stop: StopRequest | None = None) -> dict | None:
-    """Train ``config`` (checked: :func:`armeta_rl.config.validate`; on resume the saved config
-    with the command line's changes, :func:`armeta_rl.cli.resume_config`) in ``run_dir``
-    (resuming from its checkpoint if ``config.resume`` is set), holding the run directory's lock
-    throughout; a resumed run that has finished (its ``eval.json`` passes its schema) is left as
-    it is.
+    """Train ``job``'s config in its run directory (resuming from its checkpoint if
+    ``config.resume`` is set: the job holds the config the run saved, so nothing is read back
+    here), holding the run directory's lock throughout; a resumed run that has finished (its
+    ``eval.json`` passes its schema) is left as it is.
 
     ``stop`` is checked after every iteration (the CLI sets it on a preemption signal,
     :mod:`armeta_rl.preemption`): once it is requested, the run checkpoints the iteration it
@@ -78,14 +78,14 @@ def run_training(config: TrainConfig, run_dir: str | Path, progress: bool = True
         RunStopped: ``stop`` was requested before the run finished; names the checkpoint kept
             and the resume command.
     """
-    run_dir = Path(run_dir)
-    key = "resume" if config.resume else "hydra.run.dir"
+    run_dir = job.run_dir
+    key = "resume" if job.config.resume else "hydra.run.dir"
     stop = stop if stop is not None else StopRequest()
     say(f"run directory: {run_dir}")
     check_run_dir(run_dir, key)
     with run_lock(run_dir, key):
         try:
-            return _train_locked(config, run_dir, progress, stop)
+            return _train_locked(job, progress, stop)
         except KeyboardInterrupt:
             if stop.signal != signal.SIGINT:  # not the second Ctrl-C of preemption.listening
                 raise
@@ -125,19 +125,11 @@ def finished_report(run_dir: Path) -> dict | None:
         return None
 
 
-def _saved_iterations(run_dir: Path) -> int | None:
-    """``trainer.iterations`` of the config ``run_dir`` saved (``None``: none saved yet)."""
-    if not (run_dir / CONFIG_FILE).is_file():
-        return None
-    return run_values(run_dir, "resume")["trainer"]["iterations"]
-
-
-def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
-                  stop: StopRequest) -> dict | None:
+def _train_locked(job: Job, progress: bool, stop: StopRequest) -> dict | None:
     """:func:`run_training` inside the run directory's lock."""
-    saved_iterations = _saved_iterations(run_dir) if config.resume else None
+    config, run_dir = job.config, job.run_dir
     report = finished_report(run_dir) if config.resume else None
-    if report is not None and saved_iterations == config.trainer.iterations:
+    if report is not None and job.saved_iterations == config.trainer.iterations:
         say(f"{run_dir} has finished: nothing to do ({EVAL_FILE} holds its evaluation; "
             "resume with a larger trainer.iterations to train longer)")
         return report
@@ -154,10 +146,6 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
                           f"after every step (the locomotion families), not "
                           f"{config.benchmark.name}'s")
     curve_steps(players.leader, config.eval.adaptation_steps)  # refused before training
-    if config.trainer.follower_rollouts > 1 and config.trainer.follower_at == "step":
-        raise ConfigError("trainer.follower_rollouts", config.trainer.follower_rollouts,
-                          "must be 1 with trainer.follower_at=step: the follower reads the "
-                          "step's own losses, not fresh rollouts")
     values = config.values()
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
                                device=players.device, identity=run_identity(values),
@@ -167,7 +155,7 @@ def _train_locked(config: TrainConfig, run_dir: Path, progress: bool,
         config.resume and checkpoint.checkpoints()
     ):
         load_frozen_leader(config, players)
-    start = _open_run(config, values, run_dir, checkpoint, saved_iterations,
+    start = _open_run(config, values, run_dir, checkpoint, job.saved,
                       evaluated=report is not None)
     with run_logger(config.logger, run_dir, values) as logger:
         compiled = [key for key in COMPILE_KEYS if _selected(values, key)]
@@ -222,13 +210,14 @@ def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> N
 
 
 def _open_run(config: TrainConfig, values: dict[str, Any], run_dir: Path,
-              checkpoint: RunCheckpoint, saved_iterations: int | None,
+              checkpoint: RunCheckpoint, saved: dict[str, Any] | None,
               evaluated: bool = False) -> int:
     """Clear what a crash left half-written in ``run_dir``, then restore its checkpoint (resume)
     or save the config of a fresh run (``values``: :meth:`TrainConfig.values`); returns the
-    iteration training starts from. ``saved_iterations``: the resumed run's saved
-    ``trainer.iterations``. ``evaluated``: the run's ``eval.json`` holds the evaluation at the
-    iteration it resumes from (a finished run resumed to train longer)."""
+    iteration training starts from. ``saved``: the resumed run's saved config (:class:`Job`),
+    written back with the new ``trainer.iterations`` when it trains longer. ``evaluated``: the
+    run's ``eval.json`` holds the evaluation at the iteration it resumes from (a finished run
+    resumed to train longer)."""
     if checkpoint.directory.exists() and not checkpoint.directory.is_dir():
         raise ConfigError("resume" if config.resume else "hydra.run.dir", str(run_dir),
                           f"its {checkpoint.directory.name} is not a directory: move it away")
@@ -242,10 +231,10 @@ def _open_run(config: TrainConfig, values: dict[str, Any], run_dir: Path,
         if checkpoint.checkpoints() or checkpoint.set_aside():
             start = checkpoint.restore("resume")
         drop_csv_rows_after(run_dir, start, evaluated)
-        if saved_iterations != config.trainer.iterations:  # resumed to train longer
-            saved = run_values(run_dir, "resume")
-            saved["trainer"]["iterations"] = config.trainer.iterations
-            write_config(saved, run_dir / CONFIG_FILE)
+        if saved["trainer"]["iterations"] != config.trainer.iterations:  # to train longer
+            longer = {**saved, "trainer": {**saved["trainer"],
+                                           "iterations": config.trainer.iterations}}
+            write_config(longer, run_dir / CONFIG_FILE)
             (run_dir / EVAL_FILE).unlink(missing_ok=True)  # the run is no longer finished
     else:
         if checkpoint.checkpoints() or (run_dir / CONFIG_FILE).exists():

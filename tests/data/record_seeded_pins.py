@@ -47,6 +47,7 @@ def seeded_values() -> dict[str, dict[str, float]]:
     from test_seeded_pins import COMMON, RUNS, flatten
 
     from armeta_rl.config import validate
+    from armeta_rl.job import Job
     from armeta_rl.trainers.training import run_training
     from conftest import compose_train
 
@@ -55,7 +56,7 @@ def seeded_values() -> dict[str, dict[str, float]]:
     for benchmark, overrides in RUNS.items():
         with tempfile.TemporaryDirectory() as run_dir:
             cfg = compose_train(*COMMON, f"benchmark={benchmark}", *overrides)
-            flat = flatten(run_training(validate(cfg), run_dir, progress=False))
+            flat = flatten(run_training(Job(validate(cfg), run_dir), progress=False))
         values[benchmark] = {key: flat[key] for key in KEPT}
     return values
 
