@@ -19,8 +19,8 @@ from armeta_rl.factory import (
     build_principle,
     build_space,
 )
-from armeta_rl.trainers.players import saved_run
 from armeta_rl.job import Job
+from armeta_rl.trainers.players import saved_run
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, compose_train, moved_players
 
