@@ -23,6 +23,7 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 from PIL import Image
 
 import armeta_rl.trainers.checkpoint as checkpoint_module
@@ -30,7 +31,7 @@ from armeta_rl.cli import _eval_task, train
 from armeta_rl.cli.compose import config_dir
 from armeta_rl.cli.failures import Refused, report_errors
 from armeta_rl.cli.jobs import make_job
-from armeta_rl.config import validate
+from armeta_rl.config import load_run_config, validate
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
 from armeta_rl.job import Job
 from armeta_rl.run_files import FileRefused
@@ -732,6 +733,41 @@ def test_a_lock_taken_again_chains_no_blocking_io_error(tmp_path):
     with pytest.raises(ValueError) as raised, run_lock(tmp_path, "k"), run_lock(tmp_path, "k"):
         raise ValueError("inside")
     assert raised.value.__context__ is None
+
+
+def test_a_run_saved_before_a_key_was_added_resumes_as_itself(tmp_path, whole, stopped):
+    """A run saved by a version without ``risk.ar.step`` and ``risk.ar.max_kl``: its config.yaml
+    lacks them and its checkpoints recorded its identity from that config as saved. A resume
+    reads them at their defaults (which keep its behaviour), takes its checkpoints as its own
+    and ends as the uninterrupted run, its report recording the identity it was saved with."""
+    from armeta_rl.trainers.checkpoint import MANIFEST, identity_as_saved, run_identity, seal
+
+    run_dir = tmp_path / "run"
+    shutil.copytree(stopped, run_dir)
+    config = run_dir / "config.yaml"
+    lines = config.read_text().splitlines(keepends=True)
+    ar = lines.index("  ar:\n")
+    end = next(i for i in range(ar + 1, len(lines)) if not lines[i].startswith("    "))
+    older = "".join(line for i, line in enumerate(lines) if not (
+        ar < i < end and line.lstrip().startswith(("step:", "max_kl:"))))
+    assert len(older) < len(config.read_text())
+    config.write_text(older)
+    as_saved = identity_as_saved(older, config)
+    merged = run_identity(OmegaConf.to_container(load_run_config(run_dir, "resume"), resolve=True))
+    assert as_saved["config_sha256"] != merged["config_sha256"]
+    for checkpoint in (run_dir / "checkpoints").glob("checkpoint-*"):
+        manifest = json.loads((checkpoint / MANIFEST).read_text())
+        manifest["metadata"]["identity"] = as_saved
+        (checkpoint / MANIFEST).write_text(json.dumps(manifest))
+        seal(checkpoint, as_saved)
+    run_training(make_job([f"resume={run_dir}"]), progress=False)
+    report = json.loads((run_dir / EVAL_FILE).read_text())
+    assert report["config_sha256"] == as_saved["config_sha256"]
+    expected = {**outcome(whole)[0], "config_sha256": as_saved["config_sha256"]}
+    assert report == expected
+    rescored = cross_evaluate(run_dir, None)  # armeta-eval takes its checkpoints too
+    assert rescored["config_sha256"] == as_saved["config_sha256"]
+    assert rescored["initial"]["mean"] == report["initial"]["mean"]
 
 
 # Resume keys that change no result --------------------------------------------------------------

@@ -891,6 +891,30 @@ def test_a_run_saved_before_a_key_existed_keeps_its_report(tmp_path, table1_dir)
     assert report_problem(results, maml) is None
 
 
+def test_a_report_written_before_a_key_existed_keeps_its_run(tmp_path, table1_dir):
+    """A run whose config.yaml lacks a key added since (``risk.ar.max_kl``) and whose report
+    recorded the identity of that config as saved (the run's own, written before the key
+    existed) is finished; a report recording neither that identity nor today's reading of the
+    config is another config's."""
+    from armeta_rl.reproduce.plan import report_problem
+    from armeta_rl.trainers.checkpoint import identity_as_saved
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    maml = next(r for r in plan.runs if (r.method, r.seed) == ("maml", 0))
+    config, report_file = (results / maml.subdir / name for name in ("config.yaml", "eval.json"))
+    older = config.read_text().replace("    max_kl: 0.005\n", "", 1)
+    assert older != config.read_text()
+    config.write_text(older)
+    report = json.loads(report_file.read_text())
+    for digest, problem in ((identity_as_saved(older, config)["config_sha256"], None),
+                            ("0" * 64, "it is the report of another config")):
+        report_file.write_text(json.dumps({**report, "config_sha256": digest}))
+        found = report_problem(results, maml)
+        assert found is None if problem is None else found.startswith(problem)
+
+
 def test_a_run_checkpointed_otherwise_than_its_plan_says_keeps_its_report(tmp_path, table1_dir):
     """The plan's keys that change no result (``NO_RESULT_KEYS``: how often a run checkpoints
     or logs) do not decide whether a report is the run's: an experiment that checkpoints its

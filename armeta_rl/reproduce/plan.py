@@ -426,12 +426,14 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
     """Why ``report``, found where ``run`` keeps its report, is not this run's result in this
     experiment, or ``None``: it records no identity (:data:`REPORT_IDENTITY`); its benchmark,
     method or seed differ from the run's (an evaluation job's learner's); the digest of the
-    result-changing keys it records differs from the run's ``config.yaml``'s (its packed config
-    where its directory has none), as a variant's does; that config does not hold what the plan
-    gives the run (:func:`planned_values`, but the keys that change no result,
-    :data:`~armeta_rl.cli.jobs.NO_RESULT_KEYS`: another experiment's or profile's run copied in); or
-    the report was scored with other evaluation settings than the plan's (another experiment's
-    report, :func:`scored_problem`)."""
+    result-changing keys it records is neither that of the run's ``config.yaml`` (its packed
+    config where its directory has none) as this version reads it nor as it was saved
+    (:func:`~armeta_rl.trainers.checkpoint.identity_as_saved`), as a variant's is; that config
+    does not hold what the plan gives the run (:func:`planned_values`, but the keys that change
+    no result, :data:`~armeta_rl.cli.jobs.NO_RESULT_KEYS`: another experiment's or profile's run
+    copied in); or the report was scored with other evaluation settings than the plan's
+    (another experiment's report, :func:`scored_problem`)."""
+    from armeta_rl.trainers.checkpoint import identity_as_saved
     from armeta_rl.trainers.evaluation import ReportInvalid
 
     learner = run.learner if isinstance(run, EvalJob) else run
@@ -444,12 +446,14 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
         if report[key] != value:
             return f"it is the report of {key} {report[key]!r}, not this run's {value!r}"
     try:
-        digest, saved = saved_config(_config_text(results, learner, packed))
+        text = _config_text(results, learner, packed)
+        digest, saved = saved_config(text)
     except ReportInvalid as error:
         return str(error)
     except (ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException) as error:
         return f"its run's {CONFIG_FILE} cannot be read ({' '.join(str(error).split())})"
-    if report["config_sha256"] != digest:
+    as_saved = identity_as_saved(text, CONFIG_FILE)
+    if report["config_sha256"] not in (digest, as_saved and as_saved["config_sha256"]):
         return (f"it is the report of another config (config_sha256 "
                 f"{str(report['config_sha256'])[:12]}…, not this run's {digest[:12]}…)")
     from armeta_rl.cli.jobs import NO_RESULT_KEYS

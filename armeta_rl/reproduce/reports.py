@@ -779,8 +779,11 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> s
             "seeds, standard error over seeds). "
             + ("It moved clearly further (beyond 1 by more than twice its error): the game, "
                "not the step rule, holds the co-trained adversary." if further else
-               "It did not move clearly further (not beyond 1 by twice its error): the step "
-               "rule, not the game, may be what holds the co-trained adversary."))
+               "It did not move clearly further (not beyond 1 by twice its error): training "
+               "against the learner held the co-trained adversary back no more than a frozen "
+               "learner held the attack. Where both sit where the step rule stops against any "
+               "loss (Adam at 0.5 / iterations: near KL 0.3; [the adversary free to "
+               "move](../../adversary.md)), the step rule, not the game, holds them."))
     return "\n\n".join(sentences)
 
 

@@ -192,6 +192,37 @@ def run_identity(values: Mapping[str, Any]) -> dict[str, Any]:
             "seed": int(resolved.seed), "config_sha256": _sha256(text.encode())}
 
 
+def identity_as_saved(text: str, where: str | Path) -> dict[str, Any] | None:
+    """The identity (:func:`run_identity`) of a run whose ``config.yaml`` holds ``text``, from
+    its values as written, not merged into this version's schema: what the run's own
+    checkpoints and reports recorded, which a key added since (at a default that keeps the
+    run's behaviour) leaves unchanged. ``None`` for a text that is not a run's config (its
+    readers refuse it, naming ``where``)."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    from armeta_rl.run_files import plain_yaml
+
+    try:
+        values = OmegaConf.to_container(OmegaConf.create(plain_yaml(text, where)), resolve=True)
+        return run_identity(values)
+    except (FileRefused, ValueError, TypeError, AttributeError, OmegaConfBaseException):
+        return None
+
+
+def saved_identity(run_dir: str | Path) -> dict[str, Any] | None:
+    """:func:`identity_as_saved` of the ``config.yaml`` in ``run_dir`` (read bounded, through no
+    link), or ``None`` where it cannot be read."""
+    from armeta_rl.config import CONFIG_BYTES, CONFIG_FILE
+    from armeta_rl.run_files import read_text
+
+    path = Path(run_dir) / CONFIG_FILE
+    try:
+        return identity_as_saved(read_text(path, CONFIG_BYTES, run_dir), path)
+    except (OSError, FileRefused, UnicodeDecodeError):
+        return None
+
+
 def seal(stage: Path, identity: Mapping[str, Any] | None = None) -> None:
     """Add the size and SHA-256 of every file below ``stage`` and the manifest's own SHA-256 to
     its manifest (and the run's ``identity``, :func:`run_identity`), then fsync every file and
@@ -323,8 +354,9 @@ class RunCheckpoint:
     completed iterations; they are loaded onto ``device``. Payloads are ``torch.save`` files
     loaded with ``weights_only=True`` (no arbitrary pickle); the ``keep_last`` newest checkpoints
     are kept. A restore takes only checkpoints that record ``identity`` (the run's,
-    :func:`run_identity`), or, with ``adopt``, none (checkpoints written before identities were
-    recorded).
+    :func:`run_identity`) or one of ``accepts`` (the same run's as its config was saved,
+    :func:`saved_identity`), or, with ``adopt``, none (checkpoints written before identities
+    were recorded).
 
     Examples:
         >>> import tempfile
@@ -347,11 +379,12 @@ class RunCheckpoint:
     def __init__(
         self, directory: str | Path, leader: Leader, principle: RiskPrinciple, keep_last: int = 2,
         device: torch.device = CPU, identity: Mapping[str, Any] | None = None,
-        adopt: bool = False,
+        adopt: bool = False, accepts: Collection[Mapping[str, Any] | None] = (),
     ) -> None:
         self.directory = Path(directory)
         self.device = device
         self.identity = None if identity is None else dict(identity)
+        self.accepts = [dict(other) for other in accepts if other is not None]
         self.adopt = adopt
         self.progress = {"iteration": 0}
         payload = TorchPayload()
@@ -491,7 +524,7 @@ class RunCheckpoint:
         run's directory), or that records none unless ``adopt`` says it is this run's."""
         metadata = Checkpoint.manifest(path).get("metadata")
         saved = metadata.get("identity") if isinstance(metadata, dict) else None
-        if self.identity is None or saved == self.identity:
+        if self.identity is None or saved == self.identity or saved in self.accepts:
             return
         run = (f"benchmark {self.identity['benchmark']}, method {self.identity['method']}, "
                f"seed {self.identity['seed']}")

@@ -26,7 +26,7 @@ from armeta_rl.factory import (
 from armeta_rl.learners.base import Leader
 from armeta_rl.risk.base import RiskPrinciple
 from armeta_rl.tasks import TaskDistribution, TaskSpace
-from armeta_rl.trainers.checkpoint import RunCheckpoint, run_identity
+from armeta_rl.trainers.checkpoint import RunCheckpoint, run_identity, saved_identity
 from armeta_rl.trainers.run_dir import check_contents
 
 
@@ -139,7 +139,7 @@ def load_frozen_leader(config: TrainConfig, players: Players) -> None:
     check_contents(Path(source), FROZEN_KEY)
     checkpoint = RunCheckpoint(Path(source) / "checkpoints", players.leader, players.principle,
                                device=players.device, identity=run_identity(saved),
-                               adopt=config.adopt)
+                               adopt=config.adopt, accepts=[saved_identity(source)])
     checkpoint.restore(FROZEN_KEY, ("leader",), fallback=False)
 
 
@@ -160,7 +160,7 @@ def restore_players(run_dir: str | Path, key: str, config: TrainConfig) -> Playe
     players = build_players(config)
     checkpoint = RunCheckpoint(Path(run_dir) / "checkpoints", players.leader, players.principle,
                                device=players.device, identity=run_identity(config.values()),
-                               adopt=config.adopt)
+                               adopt=config.adopt, accepts=[saved_identity(run_dir)])
     if not checkpoint.checkpoints():
         raise ConfigError(key, str(run_dir), "has no checkpoint")
     checkpoint.restore(key, ("leader", "principle"), fallback=False)

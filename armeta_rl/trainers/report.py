@@ -17,7 +17,7 @@ from armeta_rl.devices import CPU, forked_rng
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.shifts import shift_seed, suite_shifts
-from armeta_rl.trainers.checkpoint import run_identity
+from armeta_rl.trainers.checkpoint import run_identity, saved_identity
 from armeta_rl.trainers.evaluation import evaluate_on
 from armeta_rl.trainers.players import Players, restore_players
 
@@ -154,7 +154,8 @@ def evaluate_runs(
     chosen = None if shifts is None else suite_shifts(
         players.space, learner.benchmark.shift_suite, learner.benchmark.name, shifts)
     report = evaluate_players(learner, players, distribution, chosen, initial)
-    report["config_sha256"] = run_identity(learner.values())["config_sha256"]
+    identity = saved_identity(learner_dir) or run_identity(learner.values())
+    report["config_sha256"] = identity["config_sha256"]
     report["learner"] = str(learner_dir)
     report["adversary"] = None if adversary_dir is None else str(adversary_dir)
     return report

@@ -24,7 +24,12 @@ from armeta_rl.errors import (
 )
 from armeta_rl.job import Job
 from armeta_rl.preemption import EXIT_INTERRUPTED, StopRequest
-from armeta_rl.trainers.checkpoint import RunCheckpoint, newest_intact, run_identity
+from armeta_rl.trainers.checkpoint import (
+    RunCheckpoint,
+    newest_intact,
+    run_identity,
+    saved_identity,
+)
 from armeta_rl.trainers.density import FRAMES_DIR, PICTURE_KEY, DensityFrames, readable
 from armeta_rl.trainers.evaluation import ReportInvalid, curve_steps, format_table, read_report
 from armeta_rl.trainers.game import GameTrainer
@@ -147,9 +152,12 @@ def _train_locked(job: Job, progress: bool, stop: StopRequest) -> dict | None:
                           f"{config.benchmark.name}'s")
     curve_steps(players.leader, config.eval.adaptation_steps)  # refused before training
     values = config.values()
+    # a resumed run keeps the identity its config was saved with (keys added since at defaults)
+    identity = run_identity(values)
+    as_saved = saved_identity(run_dir) if config.resume else None
     checkpoint = RunCheckpoint(run_dir / "checkpoints", players.leader, players.principle,
-                               device=players.device, identity=run_identity(values),
-                               adopt=config.adopt)
+                               device=players.device, identity=as_saved or identity,
+                               adopt=config.adopt, accepts=[identity])
     trainer_options = config.trainer
     if trainer_options.frozen_leader is not None and not (
         config.resume and checkpoint.checkpoints()
