@@ -79,6 +79,20 @@ class ANILLeader(MAMLLeader):
         model: the network; its parameters are θ.
         collector: produces support/query data for a batch of tasks.
         options: the keys of ``learner.anil`` (:class:`AnilOptions`).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors import SinusoidCollector
+        >>> from armeta_rl.learners import ANILLeader
+        >>> from armeta_rl.learners.anil import AnilOptions, BodyHead
+        >>> _ = torch.manual_seed(0)
+        >>> leader = ANILLeader(BodyHead(1, 1, [16, 16]), SinusoidCollector(),
+        ...                     AnilOptions(inner_lr=0.1))
+        >>> theta = dict(leader.model.named_parameters())
+        >>> x = torch.linspace(-5.0, 5.0, 10)[:, None]
+        >>> adapted = leader.adapt(theta, x, 2.0 * torch.sin(x))  # one task's support set
+        >>> sorted(name for name in theta if not torch.equal(adapted[name], theta[name]))
+        ['head.bias', 'head.weight']
     """
 
     def __init__(

@@ -86,6 +86,21 @@ class MAMLPPOLeader(MAMLTRPOLeader):
             (:func:`~armeta_rl.rl.losses.reinforce_loss` by default).
         outer_loss: builds the outer objective from the policy's actor
             (:func:`~armeta_rl.rl.losses.clip_ppo_loss` with the options' ε by default).
+
+    Examples:
+        >>> import torch
+        >>> from armeta_rl.collectors.episodes import PointNavigationCollector
+        >>> from armeta_rl.learners import MAMLPPOLeader
+        >>> from armeta_rl.learners.maml_ppo import MamlPpoOptions
+        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
+        >>> collector = PointNavigationCollector(episodes=2, max_steps=5)
+        >>> leader = MAMLPPOLeader(collector, MamlPpoOptions(hidden_sizes=[8], epochs=3))
+        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
+        >>> data = leader.collect(BoxUniform(space).sample(3), create_graph=True)
+        >>> _, stats = leader.step(data, weights=lambda losses: torch.full((3,), 1 / 3))
+        >>> stats["ppo_objective_last"] < stats["ppo_objective_first"]  # 3 PPO epochs lower it
+        True
     """
 
     def __init__(
