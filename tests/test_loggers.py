@@ -1,4 +1,4 @@
-"""Every logger of ``logger=`` gets the same keys, offline (issue 62, item 3): CSV, TensorBoard
+"""Every logger of ``logger=`` gets the same keys, offline: CSV, TensorBoard
 and MLflow (a SQLite store in the run directory) through TorchRL's loggers, with the adversary's
 density pictures where the backend takes media (TensorBoard's images, MLflow's artifacts)."""
 

@@ -1,4 +1,4 @@
-"""Output a person reads (issue 62, item 4): every job of a ``-m`` sweep labels its progress bar
+"""Output a person reads: every job of a ``-m`` sweep labels its progress bar
 and its end-of-run table with its run's name; the end of a run says what the columns are once
 and repeats the run directory with the report and the density picture; an unknown group value
 is refused before torch is imported."""

@@ -1,4 +1,4 @@
-"""Bring your own env (issue 62, item 5): a TorchRL env that runs one task per instance, taken
+"""Bring your own env: a TorchRL env that runs one task per instance, taken
 under "params", is meta-trained through one adapter (``one_task_envs``, ``OneTaskEnvCollector``)
 and one YAML; shown on TorchRL's pendulum tutorial env, which docs/own-env.md writes out."""
 

@@ -1,5 +1,5 @@
-"""A misplaced identifier key is refused where TorchRL users put their transforms (issue 62, item
-2): bare, behind a TransformedEnv, and in front of and inside the package's batched envs
+"""A misplaced identifier key is refused where TorchRL users put their transforms: bare, behind
+a TransformedEnv, and in front of and inside the package's batched envs
 (``TransformedEnv(TaskSerialEnv(...))``, ``TransformedEnv(TaskParallelEnv(...))``); a refused
 reset of a ``TaskParallelEnv`` reaches the caller as the one-line IdentifierError with its
 workers alive; identifiers nested by name (TorchRL's pendulum tutorial) are taken; and a reset

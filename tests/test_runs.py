@@ -1,4 +1,4 @@
-"""A finished run in one call, and the curve users plot (issue 62, item 3): ``load_run`` gives
+"""A finished run in one call, and the curve users plot: ``load_run`` gives
 the config, the players with the last checkpoint and the checked reports of a run directory;
 a meta-RL evaluation reports the return after 0, 1, ..., k inner steps, the first two those of
 the same episodes as the report's score before and after adaptation; ``armeta-eval`` prints it

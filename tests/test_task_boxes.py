@@ -1,4 +1,4 @@
-"""Every env the package builds tells its whole task box and p0 (issue 62, item 1): the base envs,
+"""Every env the package builds tells its whole task box and p0: the base envs,
 the physics families (MassVel on CPU MuJoCo and on MuJoCo Warp), a gymnasium env's family, the
 wrappers a user puts around them and the batched envs; ``TaskTransform(env.p0)`` then draws
 tasks the env takes. Every benchmark's env tells the box its YAML trains on."""

@@ -317,9 +317,9 @@ def test_a_float64_env_works_under_double_to_float():
     assert env.rollout(5).batch_size == (2, 3, 5)
 
 
-def test_random_actions_are_the_seeded_draws_of_before():
-    """rand_action draws what the envs' own override drew (torch's global RNG, uniform_ over the
-    torque range; the acrobot's randint), so seeded system-identification data are unchanged."""
+def test_random_actions_are_torchs_seeded_draws():
+    """rand_action draws from torch's global RNG, uniform_ over the torque range (the acrobot:
+    randint over its three actions), so seeded system-identification data follow the seed."""
     for env, expected in [
         (PendulumEnv(batch_size=(2, 3)), lambda: torch.empty(2, 3, 1).uniform_(-2.0, 2.0)),
         (AcrobotEnv(batch_size=(2, 3)), lambda: torch.randint(0, 3, (2, 3))),
@@ -331,10 +331,9 @@ def test_random_actions_are_the_seeded_draws_of_before():
 
 
 def test_mujoco_compiler_warnings_are_python_warnings_shown_once():
-    """gymnasium's HalfCheetah model uses the compiler's deprecated settotalmass: MuJoCo printed
-    it to stdout at every compilation, one line per env (24 in the PPO example). It arrives as a
-    MujocoWarning now, shown once per process: once for two families of three envs and a single
-    env."""
+    """gymnasium's HalfCheetah model uses the compiler's deprecated settotalmass, which MuJoCo
+    prints to stdout at every compilation (one line per env): it arrives as a MujocoWarning,
+    shown once per process: once for two families of three envs and a single env."""
     code = (
         "from armeta_rl.envs.mujoco_tasks import load_task_family, make_gym_task_env\n"
         "family = load_task_family('configs/task_family/half_cheetah.yaml')\n"
