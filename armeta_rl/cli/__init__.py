@@ -35,7 +35,7 @@ from armeta_rl.cli.compose import (
     hydra_words,
     job_overrides,
 )
-from armeta_rl.cli.failures import Refused, failure, report_errors
+from armeta_rl.cli.failures import OUT_OF_MEMORY, Refused, failure, report_errors
 from armeta_rl.cli.help import print_help
 from armeta_rl.cli.jobs import make_job, sweep_task, train_task
 from armeta_rl.errors import ConfigError
@@ -73,7 +73,10 @@ def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str] | N
         main(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as stop:
         return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
-    except (Exception, KeyboardInterrupt) as error:  # e.g. importing under a memory limit
+    except MemoryError:  # e.g. importing torch under a memory limit: said with what is left
+        sys.stderr.write(f"{prog}: error: {OUT_OF_MEMORY}\n")
+        return 2
+    except (Exception, KeyboardInterrupt) as error:
         status = failure(error)
         if status is None:
             raise
