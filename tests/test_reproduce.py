@@ -971,22 +971,31 @@ def test_another_experiments_packed_files_are_refused(tmp_path, table1_dir):
     assert len(read_packed(results).reports) == 16 + 56
 
 
+@pytest.fixture(scope="module")
+def table1_packed(table1_dir, tmp_path_factory):
+    """table1's tiny results packed, its run directories gone: the compact files alone."""
+    results = tmp_path_factory.mktemp("packed") / "results"
+    shutil.copytree(table1_dir, results)
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",), pack=True) == 0
+    shutil.rmtree(results / "runs")
+    return results
+
+
 @pytest.mark.parametrize(("damage", "words"), [
     ("truncated", "its reports.jsonl.gz is cut short (its gzip stream does not end)"),
     ("bit flipped", "its reports.jsonl.gz is damaged"),
     ("a line too long", "its reports.jsonl.gz has a line (1) longer than the 64 bytes"),
     ("not JSON", "its reports.jsonl.gz has a line (1) that is not JSON"),
 ])
-def test_a_damaged_packed_file_is_one_line_naming_it(tmp_path, table1_dir, monkeypatch, damage,
+def test_a_damaged_packed_file_is_one_line_naming_it(tmp_path, table1_packed, monkeypatch, damage,
                                                      words):
     import gzip
 
     import armeta_rl.reproduce.packed as packed_module
 
     results = tmp_path / "results"
-    shutil.copytree(table1_dir, results)
-    assert reproduce("table1", "tiny", results, launcher="none",
-                     benchmarks=("sinusoid_uniform",), pack=True) == 0
+    shutil.copytree(table1_packed, results)
     path = results / "reports.jsonl.gz"
     data = bytearray(path.read_bytes())
     if damage == "truncated":
