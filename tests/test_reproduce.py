@@ -951,26 +951,6 @@ def test_pack_packs_only_the_reports_the_plan_accepts(tmp_path, table1_dir):
     assert len(packed.reports) == 16 + 56 - 1
 
 
-def test_another_experiments_packed_files_are_refused(tmp_path, table1_dir):
-    """Packed files whose reports were scored otherwise than this experiment's plan scores them
-    (the noise experiment trains the same runs and scores them with noisy labels too): none of
-    their runs is finished here, and the report aggregates none."""
-    from armeta_rl.reproduce.packed import Packed, pack, read_packed
-    from armeta_rl.reproduce.plan import packable
-
-    results = tmp_path / "results"
-    shutil.copytree(table1_dir, results)
-    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
-    packed = packable(results, plan)
-    pack(results, Packed({place: {**report, "support_noise": 0.1}
-                          for place, report in packed.reports.items()}, packed.configs))
-    shutil.rmtree(results / "runs")
-    assert reproduce("table1", "tiny", results, launcher="none",
-                     benchmarks=("sinusoid_uniform",)) == 1
-    assert "No run finished." in (results / "table1.md").read_text()
-    assert len(read_packed(results).reports) == 16 + 56
-
-
 @pytest.fixture(scope="module")
 def table1_packed(table1_dir, tmp_path_factory):
     """table1's tiny results packed, its run directories gone: the compact files alone."""
@@ -980,6 +960,23 @@ def table1_packed(table1_dir, tmp_path_factory):
                      benchmarks=("sinusoid_uniform",), pack=True) == 0
     shutil.rmtree(results / "runs")
     return results
+
+
+def test_another_experiments_packed_files_are_refused(tmp_path, table1_packed):
+    """Packed files whose reports were scored otherwise than this experiment's plan scores them
+    (the noise experiment trains the same runs and scores them with noisy labels too): none of
+    their runs is finished here, and the report aggregates none."""
+    from armeta_rl.reproduce.packed import Packed, pack, read_packed
+
+    results = tmp_path / "results"
+    shutil.copytree(table1_packed, results)
+    packed = read_packed(results)
+    pack(results, Packed({place: {**report, "support_noise": 0.1}
+                          for place, report in packed.reports.items()}, packed.configs))
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1
+    assert "No run finished." in (results / "table1.md").read_text()
+    assert len(read_packed(results).reports) == 16 + 56
 
 
 @pytest.mark.parametrize(("damage", "words"), [

@@ -122,7 +122,22 @@ def identifier_check(env: EnvBase) -> IdentifierCheck | None:
     return _describe(env, "identifier_check")
 
 
-class TaskTransformedEnv(TransformedEnv):
+class _TellsItsBox:
+    """An env that tells the box of all its identifiers (:func:`task_space`: through its
+    transforms, one for all the workers of a batched env) and p0, uniform on it."""
+
+    @property
+    def task_space(self) -> TaskSpace:
+        """The box of the env's identifiers (:func:`task_space`)."""
+        return task_space(self)
+
+    @property
+    def p0(self) -> BoxUniform:
+        """Uniform on :attr:`task_space`."""
+        return BoxUniform(self.task_space)
+
+
+class TaskTransformedEnv(_TellsItsBox, TransformedEnv):
     """TorchRL's ``TransformedEnv`` that tells the task box of the whole env and refuses a
     misplaced identifier key before TorchRL's selection of reset keys drops it (module
     docstring); otherwise the same env, step for step.
@@ -143,16 +158,6 @@ class TaskTransformedEnv(TransformedEnv):
     """
 
     @property
-    def task_space(self) -> TaskSpace:
-        """The box of the whole env's identifiers (:func:`task_space`)."""
-        return task_space(self)
-
-    @property
-    def p0(self) -> BoxUniform:
-        """Uniform on :attr:`task_space`."""
-        return BoxUniform(self.task_space)
-
-    @property
     def identifier_check(self) -> IdentifierCheck | None:
         """The whole env's reset contract (:func:`identifier_check`)."""
         return identifier_check(self)
@@ -167,7 +172,7 @@ class TaskTransformedEnv(TransformedEnv):
         return super()._reset(tensordict, **kwargs)
 
 
-class TaskBatchedEnv:
+class TaskBatchedEnv(_TellsItsBox):
     """What :class:`TaskSerialEnv` and :class:`TaskParallelEnv` add to TorchRL's batched envs
     (module docstring): the workers' box and contract, read from the env TorchRL builds of each
     to read its specs, and every reset checked in the calling process.
@@ -209,16 +214,6 @@ class TaskBatchedEnv:
                               f"({', '.join(dict.fromkeys(map(str, values)))}): one "
                               "batched env holds tasks of one box")
         return values[0]
-
-    @property
-    def task_space(self) -> TaskSpace:
-        """The box of the workers' identifiers (one for all of them)."""
-        return task_space(self)
-
-    @property
-    def p0(self) -> BoxUniform:
-        """Uniform on :attr:`task_space`."""
-        return BoxUniform(self.task_space)
 
     @property
     def identifier_check(self) -> IdentifierCheck | None:
