@@ -67,7 +67,8 @@ def failure(error: BaseException) -> tuple[int, str] | None:
         return 1, f"error: {error}"
     if isinstance(error, KeyboardInterrupt):  # Ctrl-C where no run stops cleanly
         return EXIT_INTERRUPTED, "interrupted (SIGINT)"
-    if isinstance(error, (MemoryError, RuntimeError, OSError)) and out_of_memory(error):
+    if isinstance(error, (MemoryError, RuntimeError, OSError, SystemError)) and out_of_memory(
+            error):
         return 2, f"error: {OUT_OF_MEMORY}"
     if isinstance(error, OSError):
         return 1, "error: " + f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
@@ -80,9 +81,14 @@ OUT_OF_MEMORY = ("out of memory: this process may not allocate what the run need
 
 def out_of_memory(error: BaseException) -> bool:
     """Whether ``error`` is an allocation that failed (Python's ``MemoryError``, torch's CPU or
-    CUDA allocator)."""
+    CUDA allocator, or the ``SystemError`` CPython raises when an import runs out of memory
+    under this process's address-space limit)."""
     if isinstance(error, OSError):
         return error.errno == errno.ENOMEM
+    if isinstance(error, SystemError):
+        import resource
+
+        return resource.getrlimit(resource.RLIMIT_AS)[0] != resource.RLIM_INFINITY
     text = str(error)
     return isinstance(error, MemoryError) or "can't allocate memory" in text or (
         "out of memory" in text.lower())
