@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from armeta_rl.cli import evaluate, train
+from armeta_rl.errors import ConfigError
 from armeta_rl.job import Job
 from armeta_rl.trainers.training import run_training
 from conftest import SMALL_RUN, cross_evaluate, in_process, refusal, train_config
@@ -183,14 +184,20 @@ def test_a_run_prints_its_directory_writes_a_job_log_and_releases_its_lock(tmp_p
     assert not (run_dir / "run.lock").exists()
 
 
-def test_the_lock_file_is_removed_when_the_lock_is_released(tmp_path):
+def test_the_lock_file_names_its_holder_and_is_removed_when_the_lock_is_released(tmp_path):
+    """The lock file holds this process's pid while the lock is held; a second lock of the same
+    directory is refused naming that pid, even from this process (a run locks its directory
+    once), and leaves the lock held; releasing removes the file."""
+    import os
+
     from armeta_rl.trainers.run_dir import LOCK_FILE, run_lock
 
     with run_lock(tmp_path, "hydra.run.dir"):
-        assert (tmp_path / LOCK_FILE).read_text().strip().isdigit()
-        with run_lock(tmp_path, "hydra.run.dir"):  # this process holds it: a no-op
+        assert (tmp_path / LOCK_FILE).read_text().strip() == str(os.getpid())
+        with pytest.raises(ConfigError, match=f"in use by another run \\(pid {os.getpid()}\\)"), \
+                run_lock(tmp_path, "hydra.run.dir"):
             pass
-        assert (tmp_path / LOCK_FILE).exists()
+        assert (tmp_path / LOCK_FILE).read_text().strip() == str(os.getpid())
     assert not (tmp_path / LOCK_FILE).exists()
 
 

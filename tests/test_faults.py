@@ -727,12 +727,14 @@ def test_a_run_whose_checkpoints_were_all_refused_is_refused_again(tmp_path, sto
     assert not (run_dir / EVAL_FILE).exists()
 
 
-def test_a_lock_taken_again_chains_no_blocking_io_error(tmp_path):
+def test_a_lock_refused_chains_no_blocking_io_error(tmp_path):
+    """The refusal of a held lock is one ConfigError line, not chained to flock's
+    BlockingIOError (whose traceback would follow it)."""
     from armeta_rl.trainers.run_dir import run_lock
 
-    with pytest.raises(ValueError) as raised, run_lock(tmp_path, "k"), run_lock(tmp_path, "k"):
-        raise ValueError("inside")
-    assert raised.value.__context__ is None
+    with pytest.raises(ConfigError) as raised, run_lock(tmp_path, "k"), run_lock(tmp_path, "k"):
+        pass
+    assert raised.value.__cause__ is None and raised.value.__suppress_context__
 
 
 def test_a_run_saved_before_a_key_was_added_resumes_as_itself(tmp_path, whole, stopped):

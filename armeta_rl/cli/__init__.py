@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import sys
 from collections.abc import Callable
-from contextlib import ExitStack
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -155,30 +154,21 @@ def _train(args: list[str]) -> None:
     if no_run:
         _run_hydra(args, "train", report_errors(prog, sweep_task(checked_here)))
         return
-    from armeta_rl.trainers.run_dir import (  # torch: after the checks
-        check_contents,
-        check_run_dir,
-        run_lock,
-    )
+    from armeta_rl.trainers.run_dir import hold_run_dir  # torch: after the checks
 
     run_dir = job.run_dir
-    # Hydra composes the config again for its job; the run takes the one checked here
-    task = report_errors(prog, lambda _composed: train_task(job))
-    key = "resume" if resume else "hydra.run.dir"
-    check_run_dir(run_dir, key)
-    if resume:  # before Hydra appends to its job log there
-        check_contents(run_dir, key)
     given = [a for a in args if a.startswith("hydra.run.dir=")]
     if not given or "${" in given[-1]:  # pin what Hydra would resolve again (its ${now:...})
         args = [a for a in args if a not in given] + [f"hydra.run.dir={run_dir}"]
-    created = _first_missing(run_dir)
-    with ExitStack() as stack:
-        stack.enter_context(run_lock(run_dir, key))
+    # held before Hydra writes there (a resume's contents checked before it appends to its log)
+    with hold_run_dir(run_dir, "resume" if resume else "hydra.run.dir", bool(resume)) as held:
+        # Hydra composes the config again for its job; the run takes the one checked here
+        task = report_errors(prog, lambda _composed: train_task(job, held))
         try:
             _run_hydra(args, "train", task)
         except SystemExit as exit_:
-            if exit_.code == 2 and created and not (run_dir / "checkpoints").exists():
-                _remove_run_dir(created)
+            if exit_.code == 2 and held.created and not (run_dir / "checkpoints").exists():
+                _remove_run_dir(held.created)
             raise
 
 
@@ -199,17 +189,6 @@ def _new_job(args: list[str]) -> Job:
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg, run_dir = compose_run(job, hydra_words(args))
         return make_job(job, cfg, run_dir)
-
-
-def _first_missing(path: Path) -> Path | None:
-    """The outermost of ``path`` and its parents that does not exist yet (``None``: it exists),
-    so a refused run removes every directory its command created, not only the run's own."""
-    missing = None
-    for candidate in (path, *path.parents):
-        if candidate.exists():
-            break
-        missing = candidate
-    return missing
 
 
 def _remove_run_dir(run_dir: Path) -> None:

@@ -24,6 +24,7 @@ from armeta_rl.config_files import config_files
 if TYPE_CHECKING:
     from armeta_rl.config import TrainConfig
     from armeta_rl.job import Job
+    from armeta_rl.trainers.run_dir import HeldRunDir
 
 
 RESUMABLE = ("trainer.iterations", "trainer.stop_at", "device")
@@ -139,10 +140,11 @@ def _merged(saved: DictConfig, changes: dict[str, Any]) -> DictConfig:
         raise config_error(error) from None
 
 
-def train_task(job: Job) -> None:
+def train_task(job: Job, held: HeldRunDir | None = None) -> None:
     """Train (or resume) ``job``, stopping cleanly on ``trainer.stop_signals`` and SIGINT
     (:mod:`armeta_rl.preemption`): the signal becomes the process's stop request, which the game
-    loop reads. The keys a resume changed (:attr:`Job.taken`) are said first."""
+    loop reads. The keys a resume changed (:attr:`Job.taken`) are said first. ``held``: its run
+    directory as the CLI checked and locked it (a ``-m`` job's run checks and locks its own)."""
     from armeta_rl.allocator import keep_freed_memory
     from armeta_rl.errors import RunStopped
     from armeta_rl.preemption import PROCESS, listening
@@ -157,7 +159,7 @@ def train_task(job: Job) -> None:
     if trainer.keep_freed_memory:
         keep_freed_memory()
     with listening(trainer.stop_signals) as stop:
-        run_training(job, stop=stop)
+        run_training(job, stop=stop, held=held)
 
 
 def sweep_task(checked_here: dict[tuple[tuple[str, str], ...], TrainConfig]

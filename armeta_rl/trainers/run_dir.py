@@ -13,6 +13,7 @@ import stat
 import tempfile
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -109,16 +110,15 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
     holder's pid) for the ``with`` block, creating the directory.
 
     The lock file is removed when the block ends; the kernel releases the lock when its holder
-    exits, however it exits, so a lock file left by a dead process is taken over. Taking a lock
-    this process already holds is a no-op (the CLI locks the run directory before Hydra writes
-    to it, and the run locks it again).
+    exits, however it exits, so a lock file left by a dead process is taken over. A lock is
+    taken once per run: a second ``run_lock`` on a directory this process holds is refused like
+    another run's (:func:`hold_run_dir` hands the held directory on instead).
 
     Raises:
-        ConfigError: naming ``key``, if another live process holds the lock.
+        ConfigError: naming ``key``, if another run (in any process) holds the lock.
     """
     run_dir.mkdir(parents=True, exist_ok=True)
     path = run_dir / LOCK_FILE
-    held_here = False
     while True:
         try:  # never through a link: the lock file is the run's own
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_NONBLOCK
@@ -142,20 +142,14 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
             os.close(fd)
             if error.errno not in (errno.EWOULDBLOCK, errno.EACCES):
                 raise
-            if holder != str(os.getpid()):
-                raise ConfigError(
-                    key, str(run_dir),
-                    f"is in use by another run (pid {holder or '?'}): wait for it to end or "
-                    "choose another directory",
-                ) from None
-            held_here = True
-            break
+            raise ConfigError(
+                key, str(run_dir),
+                f"is in use by another run (pid {holder or '?'}): wait for it to end or "
+                "choose another directory",
+            ) from None
         if _same_file(fd, path):
             break
         os.close(fd)  # locked a file its holder removed on release: lock the one there now
-    if held_here:  # yielded outside the except clause: an error in the block is not chained to
-        yield path  # the BlockingIOError
-        return
     try:
         os.ftruncate(fd, 0)
         os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
@@ -163,6 +157,34 @@ def run_lock(run_dir: Path, key: str) -> Iterator[Path]:
     finally:
         path.unlink(missing_ok=True)
         os.close(fd)
+
+
+@dataclass(frozen=True)
+class HeldRunDir:
+    """A run directory this process has checked and locked (:func:`hold_run_dir`), for as long as
+    that block runs: what a caller that took it hands on, so that nothing checks or locks it
+    again. ``key``: the config key its errors name (``hydra.run.dir`` or ``resume``).
+    ``created``: the outermost of ``path`` and its parents that taking it created (``None``: the
+    directory existed), so that a run refused before it wrote anything can remove every
+    directory its command made."""
+
+    path: Path
+    key: str
+    created: Path | None
+
+
+@contextmanager
+def hold_run_dir(run_dir: Path, key: str, resume: bool) -> Iterator[HeldRunDir]:
+    """Check ``run_dir`` (:func:`check_run_dir`), lock it (:func:`run_lock`) and, for a resumed
+    run, check what it holds under the lock (:func:`check_contents`), once per run: the CLI does
+    it before Hydra writes its job log there and hands the result to
+    :func:`~armeta_rl.trainers.training.run_training`, which otherwise does it itself."""
+    check_run_dir(run_dir, key)
+    created = next((p for p in (*reversed(run_dir.parents), run_dir) if not p.exists()), None)
+    with run_lock(run_dir, key):
+        if resume:
+            check_contents(run_dir, key)
+        yield HeldRunDir(run_dir, key, created)
 
 
 def _same_file(fd: int, path: Path) -> bool:

@@ -38,10 +38,9 @@ from armeta_rl.trainers.players import Players, build_players, load_frozen_leade
 from armeta_rl.trainers.report import EVAL_FILE, eval_scalars, evaluate_players
 from armeta_rl.trainers.run_dir import (
     CSV_LOG_DIR,
-    check_contents,
-    check_run_dir,
+    HeldRunDir,
     drop_csv_rows_after,
-    run_lock,
+    hold_run_dir,
     staged_leftovers,
     write_atomically,
     write_config,
@@ -60,12 +59,16 @@ def say(message: str) -> None:
     log.info(message)
 
 
-def run_training(job: Job, progress: bool = True,
-                 stop: StopRequest | None = None) -> dict | None:
+def run_training(job: Job, progress: bool = True, stop: StopRequest | None = None,
+                 held: HeldRunDir | None = None) -> dict | None:
     """Train ``job``'s config in its run directory (resuming from its checkpoint if
     ``config.resume`` is set: the job holds the config the run saved, so nothing is read back
     here), holding the run directory's lock throughout; a resumed run that has finished (its
     ``eval.json`` passes its schema) is left as it is.
+
+    ``held``: the run directory as the caller already checked and locked it
+    (:func:`~armeta_rl.trainers.run_dir.hold_run_dir`: the CLI does, before Hydra writes there);
+    without it, the run checks and locks its directory itself.
 
     ``stop`` is checked after every iteration (the CLI sets it on a preemption signal,
     :mod:`armeta_rl.preemption`): once it is requested, the run checkpoints the iteration it
@@ -84,30 +87,33 @@ def run_training(job: Job, progress: bool = True,
             and the resume command.
     """
     run_dir = job.run_dir
-    key = "resume" if job.config.resume else "hydra.run.dir"
+    if held is None:
+        key = "resume" if job.config.resume else "hydra.run.dir"
+        with hold_run_dir(run_dir, key, resume=job.config.resume is not None) as held:
+            return run_training(job, progress, stop, held)
+    if held.path != run_dir:
+        raise ValueError(f"the run directory held ({held.path}) is not the job's ({run_dir})")
     stop = stop if stop is not None else StopRequest()
     say(f"run directory: {run_dir}")
-    check_run_dir(run_dir, key)
-    with run_lock(run_dir, key):
-        try:
-            return _train_locked(job, progress, stop)
-        except KeyboardInterrupt:
-            if stop.signal != signal.SIGINT:  # not the second Ctrl-C of preemption.listening
-                raise
-            raise RunStopped(_stopped("stopped at once by a second SIGINT", run_dir),
-                             EXIT_INTERRUPTED) from None
-        except (TrainingDiverged, CollectionFailed, RunDirectoryError, OSError) as error:
-            stopped = isinstance(error, (TrainingDiverged, CollectionFailed))
-            kind = type(error) if stopped else RunDirectoryError
-            if isinstance(error, OSError):  # e.g. a log or eval.json on a full disk
-                error = f"cannot write {error.filename or run_dir}: {error.strerror or error}"
-            kept = newest_intact(run_dir / "checkpoints")
-            raise kind(
-                f"{error}; the last good checkpoint {kept.name} is kept: armeta-train "
-                f"resume={run_dir} continues from it"
-                if kept is not None
-                else f"{error}; no checkpoint had been written yet"
-            ) from None
+    try:
+        return _train_locked(job, progress, stop)
+    except KeyboardInterrupt:
+        if stop.signal != signal.SIGINT:  # not the second Ctrl-C of preemption.listening
+            raise
+        raise RunStopped(_stopped("stopped at once by a second SIGINT", run_dir),
+                         EXIT_INTERRUPTED) from None
+    except (TrainingDiverged, CollectionFailed, RunDirectoryError, OSError) as error:
+        stopped = isinstance(error, (TrainingDiverged, CollectionFailed))
+        kind = type(error) if stopped else RunDirectoryError
+        if isinstance(error, OSError):  # e.g. a log or eval.json on a full disk
+            error = f"cannot write {error.filename or run_dir}: {error.strerror or error}"
+        kept = newest_intact(run_dir / "checkpoints")
+        raise kind(
+            f"{error}; the last good checkpoint {kept.name} is kept: armeta-train "
+            f"resume={run_dir} continues from it"
+            if kept is not None
+            else f"{error}; no checkpoint had been written yet"
+        ) from None
 
 
 def _stopped(reason: str, run_dir: Path, written: Path | None = None) -> str:
@@ -229,8 +235,6 @@ def _open_run(config: TrainConfig, values: dict[str, Any], run_dir: Path,
     if checkpoint.directory.exists() and not checkpoint.directory.is_dir():
         raise ConfigError("resume" if config.resume else "hydra.run.dir", str(run_dir),
                           f"its {checkpoint.directory.name} is not a directory: move it away")
-    if config.resume:
-        check_contents(run_dir, "resume")
     checkpoint.clean_staging()
     for path in staged_leftovers(run_dir, (".", CSV_LOG_DIR, FRAMES_DIR)):
         path.unlink()  # what an atomic write left when a crash interrupted it
