@@ -31,7 +31,14 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
-from armeta_rl.reproduce.cli import MANIFEST, SweepClock, check_runs, main, reproduce
+from armeta_rl.reproduce.cli import (
+    MANIFEST,
+    SweepClock,
+    check_runs,
+    main,
+    reproduce,
+    save_manifest,
+)
 from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
 from armeta_rl.reproduce.reports import paired, table
 
@@ -174,8 +181,8 @@ def test_a_failing_job_does_not_stop_the_other_jobs_of_its_sweep(tmp_path, capsy
     blocked, other = make_plan("noise", "tiny", benchmarks=("sinusoid_uniform",)).runs[:2]
     (tmp_path / blocked.subdir).mkdir(parents=True)
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'w'); "
-         "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(300)",
+        [sys.executable, "-c", "import fcntl, signal, sys; f = open(sys.argv[1], 'w'); "
+         "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); signal.pause()",
          str(tmp_path / blocked.subdir / "run.lock")], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline() == "held\n"
@@ -492,18 +499,25 @@ def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
 
 def test_a_killed_sweep_keeps_its_wall_time_up_to_the_clocks_last_write(tmp_path):
     """While a sweep runs, the manifest on disk (what a kill would leave) holds the wall time
-    from before plus the time so far; the caller's manifest is not touched."""
+    from before plus the time so far; the caller's manifest is not touched. The wait for the
+    clock's first write is bounded by this machine's own pace: 100 of the clock's periods, each
+    with the time one manifest write and read takes here."""
     manifest = {"experiment": "table1", "profile": "tiny", "train": [],
                 "wall_seconds": {"table1": 5.0}}
-    def written() -> float:
+    def written(results: Path = tmp_path) -> float:
         """The wall time the manifest on disk holds (0 before the clock's first write)."""
-        if not (tmp_path / MANIFEST).is_file():
+        if not (results / MANIFEST).is_file():
             return 0.0
-        return OmegaConf.load(tmp_path / MANIFEST).wall_seconds.table1
+        return OmegaConf.load(results / MANIFEST).wall_seconds.table1
 
+    reference = tmp_path / "reference"
+    reference.mkdir()
+    start = time.monotonic()
+    save_manifest(reference, manifest)
+    assert written(reference) == 5.0
+    pace = time.monotonic() - start
     with SweepClock(tmp_path, manifest, "table1", every=0.05) as clock:
-        deadline = time.monotonic() + 60  # however slow the machine, the clock writes on
-        while written() < 5.0 + 0.05 and time.monotonic() < deadline:
+        while written() < 5.0 + 0.05 and clock.seconds < 100 * (clock.every + pace):
             time.sleep(0.01)
         left = OmegaConf.load(tmp_path / MANIFEST)
         assert 5.0 + 0.05 <= left.wall_seconds.table1 <= 5.0 + clock.seconds
