@@ -744,8 +744,10 @@ def physics_task_env(
         >>> friction = {"name": "friction", "kind": "geom_friction_scale", "target": "all",
         ...             "low": 0.5, "high": 1.5}
         >>> env = physics_task_env(AntGoalEnv, [friction], batch_size=(2, 3))
-        >>> env.state_spec["params"].shape  # [goal_x, goal_y, friction]
-        torch.Size([2, 3, 3])
+        >>> env.task_space.names  # the goal's identifiers, then the friction scale
+        ('goal_x', 'goal_y', 'friction')
+        >>> env.task_space.low, env.task_space.high  # the goal's ±3 box and the friction's
+        ((-3.0, -3.0, 0.5), (3.0, 3.0, 1.5))
     """
     if isinstance(parameters, (DictConfig, ListConfig)):
         parameters = OmegaConf.to_container(parameters, resolve=True)
