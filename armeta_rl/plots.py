@@ -223,7 +223,12 @@ def plot_adaptation_curves(reports: Mapping[str, Mapping[str, Any]], path: str |
         >>> report = {"metric": "return", "initial": {"adaptation_curve": {
         ...     "inner_steps": [0, 1, 2], "mean": [-30.0, -21.0, -19.5], "sem": [1.0, 0.9, 0.9]}}}
         >>> path = Path(tempfile.mkdtemp()) / "curve.png"
-        >>> figure = plot_adaptation_curves({"MAML": report}, path)
+        >>> axis = plot_adaptation_curves({"MAML": report}, path).axes[0]
+        >>> axis.get_ylabel(), axis.get_legend().get_texts()[0].get_text()
+        ('return on initial (mean ± sem over tasks)', 'MAML')
+        >>> band = axis.collections[0].get_paths()[0].get_extents()  # mean ± sem
+        >>> round(float(band.y0), 2), round(float(band.y1), 2)  # -30 - 1 and -19.5 + 0.9
+        (-31.0, -18.6)
     """
     figure = _new_figure((6, 4))
     axis = figure.add_subplot()

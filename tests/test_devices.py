@@ -1,6 +1,7 @@
 """The ``device`` key: bad values get one line and exit code 2 from the CLIs; every player is built
 on the configured device; checkpoints load onto the configured device wherever they were saved;
-GPU runs (train on CUDA, evaluate on the CPU, resume on CUDA) when CUDA is present."""
+GPU runs (train on CUDA, evaluate on the CPU with the CUDA scores, resume on CUDA) when CUDA
+is present."""
 
 import json
 import subprocess
@@ -138,6 +139,29 @@ def test_resume_and_eval_accept_a_device_and_refuse_a_bad_one(tmp_path, capsys):
     assert json.loads((run / "eval.json").read_text()) == whole
 
 
+def _scores_agree_across_devices(cpu: Players, cuda: Players) -> None:
+    """The players loaded on the CPU are the CUDA run's, tensor for tensor, and score as they do
+    on the same data: the same tasks' data collected on the CPU, scored (regression: the
+    adapted query losses) or adapted (meta-RL: the inner step's θ'_k, from which every return
+    of a scoring follows) on each device. A scoring's own draws differ by device (tasks and
+    episodes come from the CPU's or the GPU's generator), so the same data are what can agree.
+    Tolerance rtol 1e-4: float32 kernels differ across devices in their summation order (cuBLAS
+    against the CPU's BLAS, one ulp, 1.2e-7 relative, per reduction), and an inner step and a
+    loss chain a few hundred of them; 1e-4 is far under any difference between two learners."""
+    for on_cpu, on_cuda in zip(_tensors(cpu), _tensors(cuda), strict=True):
+        assert torch.equal(on_cpu, on_cuda.cpu())
+    torch.manual_seed(0)
+    data = cpu.leader.collect(cpu.initial.sample(4))
+    if isinstance(data, TensorDict):
+        torch.testing.assert_close(cuda.leader.evaluate(data.to("cuda")).cpu(),
+                                   cpu.leader.evaluate(data), rtol=1e-4, atol=0.0)
+        return
+    adapted = cuda.leader.adapt(cuda.leader.theta(), data.train.to("cuda"),
+                                data.train_advantages.to("cuda"), create_graph=False)
+    for name, value in data.adapted.items():
+        torch.testing.assert_close(adapted[name].cpu(), value.detach(), rtol=1e-4, atol=1e-6)
+
+
 @needs_cuda
 @pytest.mark.parametrize("benchmark,method", [("sinusoid_uniform", "ar_maml"),
                                               ("sinusoid_uniform", "ar_cnp"),
@@ -159,6 +183,8 @@ def test_train_on_cuda_evaluate_on_cpu_resume_on_cuda(tmp_path, benchmark, metho
     assert cfg.device == "cuda" and {d.type for d in _devices(players)} == {"cuda"}
     on_cpu = cross_evaluate(run, None, device="cpu")
     assert on_cpu["initial"]["n_tasks"] == 4
+    _, cpu_players = load_players(run, "learner", "cpu")
+    _scores_agree_across_devices(cpu_players, players)
     resumed = subprocess.run([*TRAIN, f"resume={run}"], capture_output=True, text=True,
                              timeout=600)
     assert resumed.returncode == 0, resumed.stderr

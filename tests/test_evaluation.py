@@ -10,6 +10,7 @@ import torch
 from armeta_rl.collectors import NoisySupport, SinusoidCollector
 from armeta_rl.collectors.episodes import episode_returns
 from armeta_rl.config import validate
+from armeta_rl.envs.locomotion import constant_speed_goal_term
 from armeta_rl.tasks import BoxUniform, TaskSpace
 from armeta_rl.tasks.protocol import repeat_tasks
 from armeta_rl.trainers.evaluation import (
@@ -222,6 +223,28 @@ def test_the_share_of_the_goal_blind_gap_closed_by_hand():
                             torch.zeros(2))
     assert share == pytest.approx(0.5) and sem == pytest.approx(0.25)
     assert gap_closed(torch.tensor([-1.0]), torch.zeros(1), torch.zeros(1)) == (None, None)
+
+
+def test_the_share_of_the_gap_closed_is_undefined_on_a_distribution_concentrated_on_one_goal():
+    """HalfCheetah-Vel's goal terms over T = 100 steps for one adapted policy that misses every
+    target by 0.3 to 0.4 m/s: on p0 (targets U(0, 2)) the goal is worth about 49 and the share
+    is 28 ± 6 %; on targets concentrated within 10⁻⁴ m/s of 1.9 (an adversary's p_φ) the best
+    constant speed is the oracle, the gap is 0.0025 and the share would be −14132 ± 1221 (its
+    error above 1): undefined. The gap's own standard error is a twelfth of it there (the
+    references are exact), so a rule on that error would keep it."""
+    generator = torch.Generator().manual_seed(0)
+    misses = 0.3 + 0.1 * torch.rand(50, generator=generator, dtype=torch.float64)
+    achieved, oracle = -100 * misses, torch.zeros(50, dtype=torch.float64)
+    p0 = 2 * torch.rand(50, generator=generator, dtype=torch.float64)
+    share, sem = gap_closed(achieved, constant_speed_goal_term(p0, 100), oracle)
+    assert 0.25 < share < 0.3 and 0.05 < sem < 0.07
+    concentrated = 1.9 + 1e-4 * torch.rand(50, generator=generator, dtype=torch.float64)
+    blind = constant_speed_goal_term(concentrated, 100)
+    gap = -blind
+    assert 0 < float(gap.mean()) < 0.005 and float(gap.mean()) > 5 * standard_error(gap)
+    assert gap_closed(achieved, blind, oracle) == (None, None)
+    assert gap_closed(achieved[:1], constant_speed_goal_term(p0[:1] + 1, 100) - 1,
+                      oracle[:1]) == (None, None)  # one task: no error to judge the gap by
 
 
 def test_quarter_scores_average_the_tasks_of_each_quarter_by_hand():

@@ -7,7 +7,6 @@ import os
 import socket
 import subprocess
 import sys
-import threading
 import time
 from functools import partial
 from pathlib import Path
@@ -37,21 +36,26 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-@pytest.mark.parametrize("address", ["127.0.0.1:{port}", "ray://127.0.0.1:{port}", "nowhere"])
-def test_an_address_without_a_cluster_is_a_config_error(address):
+NO_ANSWER = "no Ray cluster answers there within 2 s"
+
+
+@pytest.mark.parametrize("address,reason", [("127.0.0.1:{port}", NO_ANSWER),
+                                            ("ray://127.0.0.1:{port}", NO_ANSWER),
+                                            ("nowhere", "= 'nowhere': null (a Ray instance")])
+def test_an_address_without_a_cluster_is_a_config_error(address, reason):
+    """Refused by the port probe (or, unparsable, before it), never by Ray's own connection
+    attempts (about 40 s each): the error says which, and Ray was not started."""
     if ray.is_initialized():
         pytest.skip("this process has joined a Ray cluster already")
     address = address.format(port=_free_port())
-    start = time.monotonic()
-    with pytest.raises(ConfigError, match="benchmark.collector.address"):
+    with pytest.raises(ConfigError, match="benchmark.collector.address") as refused:
         connect_ray(address, connect_timeout_s=2)
-    assert time.monotonic() - start < 10
+    assert reason in str(refused.value)
     assert not ray.is_initialized()
 
 
 def test_cli_unreachable_ray_address_is_one_line_and_exit_2(tmp_path):
     address = f"127.0.0.1:{_free_port()}"
-    start = time.monotonic()
     result = subprocess.run(
         [sys.executable, "-c", "from armeta_rl.cli import train; train()",
          "benchmark=ant_goal_ray", f"benchmark.collector.address={address}",
@@ -62,7 +66,7 @@ def test_cli_unreachable_ray_address_is_one_line_and_exit_2(tmp_path):
     assert result.returncode == 2, result.stderr
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "benchmark.collector.address" in lines[0] and address in lines[0]
-    assert time.monotonic() - start < 60
+    assert NO_ANSWER in lines[0]  # the probe's refusal, not Ray's own attempts
 
 
 @pytest.fixture(scope="module")
@@ -116,17 +120,26 @@ def test_ray_workers_equal_the_single_process_collectors(local_cluster):
 
 
 def test_a_worker_killed_mid_collection_stops_it_with_a_clear_error(local_cluster):
-    """The worker is killed while a long collection runs: the collection ends with
-    CollectionFailed soon after, not at the end of the horizon nor at the timeout."""
+    """The worker is killed as the policy acts for the third step of a 100 000-step collection:
+    the collection ends with CollectionFailed within a few steps of the kill, not at the end of
+    the horizon, and says the worker died, not that it was waited on until the 120 s timeout."""
     collector = RayEpisodeCollector(partial(AntGoalEnv, healthy_z_range=(-1.0, 10.0)), EPISODES,
                                     100_000, workers=1, timeout_s=120)
-    env = collector.env(TASKS)  # starts the actor
-    killer = threading.Timer(1.0, ray.kill, [env.base_env.workers[0]])
-    start = time.monotonic()
-    killer.start()
+    worker = collector.env(TASKS).base_env.workers[0]  # starts the actor
+    net, params, goals = _policy_and_tasks()
+    steps = []
+
+    def kill_at_the_third_step(*_) -> None:  # the policy's activation runs once a step
+        steps.append(len(steps))
+        if len(steps) == 3:
+            ray.kill(worker)
+
+    activation = next(layer for layer in net.mean if not isinstance(layer, torch.nn.Linear))
+    activation.register_forward_hook(kill_at_the_third_step)
+    torch.manual_seed(0)
     with pytest.raises(CollectionFailed, match="Ray worker died during collection"):
-        _collect(collector, 0)
-    assert time.monotonic() - start < 30
+        collector.collect(goals, params, policy=net)
+    assert 3 <= len(steps) < 3 + 100  # the kill lands while a step or two are in flight
     collector.close()
 
 
@@ -187,7 +200,6 @@ def test_a_run_whose_workers_stop_answering_stops_with_one_line_keeping_its_chec
     assert first.returncode == 0, first.stderr
     config = (run / "config.yaml").read_text()
     (run / "config.yaml").write_text(config.replace("timeout_s: 300", "timeout_s: 0.001"))
-    start = time.monotonic()
     stopped = subprocess.run([*train, f"resume={run}"], cwd=ROOT, env=env, capture_output=True,
                              text=True, timeout=600)
     assert stopped.returncode == 1, stopped.stderr
@@ -195,5 +207,4 @@ def test_a_run_whose_workers_stop_answering_stops_with_one_line_keeping_its_chec
     assert len(lines) == 1, stopped.stderr
     assert "did not answer within 0.001 s" in lines[0]
     assert "checkpoint-000000000001 is kept" in lines[0]
-    assert time.monotonic() - start < 300
     assert (run / "checkpoints" / "checkpoint-000000000001").is_dir()

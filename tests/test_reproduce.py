@@ -31,7 +31,14 @@ from armeta_rl.reproduce.aggregate import (
     train_seconds,
     write_csv,
 )
-from armeta_rl.reproduce.cli import MANIFEST, SweepClock, check_runs, main, reproduce
+from armeta_rl.reproduce.cli import (
+    MANIFEST,
+    SweepClock,
+    check_runs,
+    main,
+    reproduce,
+    save_manifest,
+)
 from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
 from armeta_rl.reproduce.reports import paired, table
 
@@ -174,8 +181,8 @@ def test_a_failing_job_does_not_stop_the_other_jobs_of_its_sweep(tmp_path, capsy
     blocked, other = make_plan("noise", "tiny", benchmarks=("sinusoid_uniform",)).runs[:2]
     (tmp_path / blocked.subdir).mkdir(parents=True)
     holder = subprocess.Popen(
-        [sys.executable, "-c", "import fcntl, sys, time; f = open(sys.argv[1], 'w'); "
-         "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); time.sleep(300)",
+        [sys.executable, "-c", "import fcntl, signal, sys; f = open(sys.argv[1], 'w'); "
+         "fcntl.flock(f, fcntl.LOCK_EX); print('held', flush=True); signal.pause()",
          str(tmp_path / blocked.subdir / "run.lock")], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline() == "held\n"
@@ -492,18 +499,25 @@ def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
 
 def test_a_killed_sweep_keeps_its_wall_time_up_to_the_clocks_last_write(tmp_path):
     """While a sweep runs, the manifest on disk (what a kill would leave) holds the wall time
-    from before plus the time so far; the caller's manifest is not touched."""
+    from before plus the time so far; the caller's manifest is not touched. The wait for the
+    clock's first write is bounded by this machine's own pace: 100 of the clock's periods, each
+    with the time one manifest write and read takes here."""
     manifest = {"experiment": "table1", "profile": "tiny", "train": [],
                 "wall_seconds": {"table1": 5.0}}
-    def written() -> float:
+    def written(results: Path = tmp_path) -> float:
         """The wall time the manifest on disk holds (0 before the clock's first write)."""
-        if not (tmp_path / MANIFEST).is_file():
+        if not (results / MANIFEST).is_file():
             return 0.0
-        return OmegaConf.load(tmp_path / MANIFEST).wall_seconds.table1
+        return OmegaConf.load(results / MANIFEST).wall_seconds.table1
 
+    reference = tmp_path / "reference"
+    reference.mkdir()
+    start = time.monotonic()
+    save_manifest(reference, manifest)
+    assert written(reference) == 5.0
+    pace = time.monotonic() - start
     with SweepClock(tmp_path, manifest, "table1", every=0.05) as clock:
-        deadline = time.monotonic() + 60  # however slow the machine, the clock writes on
-        while written() < 5.0 + 0.05 and time.monotonic() < deadline:
+        while written() < 5.0 + 0.05 and clock.seconds < 100 * (clock.every + pace):
             time.sleep(0.01)
         left = OmegaConf.load(tmp_path / MANIFEST)
         assert 5.0 + 0.05 <= left.wall_seconds.table1 <= 5.0 + clock.seconds
@@ -1152,13 +1166,48 @@ def test_the_share_of_the_goal_blind_gap_is_a_column_only_where_recorded():
     from armeta_rl.reproduce.reports import gap_closed_section
 
     plan = make_plan("meta_rl_point", "paper")
-    base = {"benchmark": "point_nav", "noisy": False, "variant": "", "distribution": "initial"}
+    base = {"benchmark": "point_nav", "noisy": False, "variant": "", "distribution": "initial",
+            "goal_oracle": -1.0}
     records = [{**base, "method": "maml", "seed": s, "gap_closed": g, "gap_closed_sem": 0.02}
                for s, g in ((0, 0.64), (1, 0.68))]
-    assert gap_closed_section(plan, [{**r, "gap_closed": None} for r in records]) == ""
+    assert gap_closed_section(plan, [{k: v for k, v in r.items() if k != "goal_oracle"}
+                                     for r in records]) == ""
     row = next(line for line in gap_closed_section(plan, records).splitlines()
                if line.startswith("| point_nav | initial |"))
     assert row.split(" | ")[2:4] == ["66 ± 3 % [2]", "–"]  # MAML; DR-MAML has no record
+
+
+def test_a_share_of_the_gap_with_an_error_above_one_is_a_dash_in_a_rebuilt_report():
+    """The goal sections of HalfCheetah-Vel's validation seed as its reports carry them
+    (evaluated without the rule): MAML's share on the co-trained adversary's p_φ, −407973 %
+    with an error of 616 (61610 points; a gap of 0.03 against an achieved −133), reads
+    undefined, in the CSV's columns and as "–" in the table, and so does every cell where one
+    seed's share is undefined; on the slow shift (−71 %, error 0.12) the share stays."""
+    from armeta_rl.reproduce.aggregate import evidence_columns
+    from armeta_rl.reproduce.reports import gap_closed_section
+
+    plan = make_plan("meta_rl_cheetah", "paper")
+    goals = {"same_seed": {"achieved": -132.63, "blind": -0.0325, "oracle": 0.0,
+                           "gap_closed": -4079.73, "gap_closed_sem": 616.10},
+             "shift/slow": {"achieved": -23.06, "blind": -13.49, "oracle": 0.0,
+                            "gap_closed": -0.7092, "gap_closed_sem": 0.1197}}
+    base = {"benchmark": "half_cheetah_vel", "noisy": False, "variant": "", "method": "maml"}
+    records = [{**base, "seed": 100, "distribution": d, **evidence_columns({"goal": goal})}
+               for d, goal in goals.items()]
+    concentrated = next(r for r in records if r["distribution"] == "same_seed")
+    assert (concentrated["gap_closed"], concentrated["gap_closed_sem"]) == (None, None)
+    assert concentrated["goal_blind"] == -0.0325  # the references stay
+    records.append({**records[1], "seed": 101})
+    records.append({**base, "seed": 101, "distribution": "initial", "goal_oracle": 0.0,
+                    "gap_closed": None, "gap_closed_sem": None})
+    records.append({**base, "seed": 100, "distribution": "initial", "goal_oracle": 0.0,
+                    "gap_closed": 0.30, "gap_closed_sem": 0.05})
+    cells = {line.split(" | ")[1]: line.split(" | ")[2]
+             for line in gap_closed_section(plan, records).splitlines()
+             if line.startswith("| half_cheetah_vel |")}
+    assert cells["shift: slow"] == "-71 ± 0 % [12]"
+    assert cells["initial"] == "–"  # seed 101's share undefined: not seed 100's alone
+    assert cells["p_φ same seed"] == "–"
 
 
 def test_the_curve_file_holds_the_natural_steps_kl(tmp_path):

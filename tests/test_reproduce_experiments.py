@@ -35,10 +35,11 @@ def test_every_experiment_runs_at_tiny_size(tmp_path, experiment):
     assert list(tmp_path.glob("*.png"))
 
 
-SETTINGS_VARIANTS = {"meta_rl_cheetah_validation", "meta_rl_cheetah_fair"}
-"""Experiments that train meta_rl_cheetah's learners on its benchmark with other settings (its
-tiny run already runs their code paths): each of their runs at the paper profile composes and
-passes the config check."""
+SETTINGS_VARIANTS = {"meta_rl_cheetah_validation", "meta_rl_cheetah_fair",
+                     "meta_rl_cheetah_mass_fair"}
+"""Experiments that train meta_rl_cheetah's or meta_rl_cheetah_mass's learners on its benchmark
+with other settings (their tiny runs already run the code paths): each of their runs at the
+paper profile composes and passes the config check."""
 
 
 @pytest.mark.parametrize("experiment", sorted(SETTINGS_VARIANTS))

@@ -41,12 +41,11 @@ class FlowAdversary(TaskDistribution):
         >>> import torch
         >>> from armeta_rl.adversary import FlowAdversary
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
-        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
-        >>> p0 = BoxUniform(space)
-        >>> adversary = FlowAdversary(space, p0)  # p_φ = p0 at initialization
-        >>> params, log_prob = adversary.sample_with_log_prob(4)
-        >>> torch.allclose(log_prob, p0.log_prob(params)), bool(space.contains(params).all())
-        (True, True)
+        >>> space = TaskSpace(["goal_x", "goal_y"], low=[0.0, 0.0], high=[2.0, 1.0])
+        >>> adversary = FlowAdversary(space, BoxUniform(space))  # p_φ = p0 at initialization
+        >>> points = torch.tensor([[0.5, 0.5], [3.0, 0.5]], dtype=torch.float64)
+        >>> adversary.log_prob(points).exp().detach()  # 1 / area of the 2 x 1 box; 0 outside
+        tensor([0.5000, 0.0000], dtype=torch.float64)
     """
 
     def __init__(

@@ -128,17 +128,22 @@ def adversary_surrogate(
         samples of p_φ) and ``kl_p0`` mean[ln p0(τ^0) − ln p_φ(τ^0)].
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.adversary import FlowAdversary, adversary_surrogate
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
         >>> space = TaskSpace(["x"], low=[0.0], high=[1.0])
-        >>> adversary = FlowAdversary(space, BoxUniform(space))
-        >>> tasks = adversary.sample(8)
-        >>> losses = tasks["params"][:, 0] ** 2  # larger losses on the right
+        >>> adversary = FlowAdversary(space, BoxUniform(space))  # p_φ = p0 = U[0, 1] at first
+        >>> tasks = torch.tensor([[0.1], [0.5], [0.9]])
+        >>> losses = torch.tensor([0.0, 1.0, 2.0])  # L - V = -1, 0, 1 with the mean baseline
         >>> surrogate, stats = adversary_surrogate(adversary, tasks, losses, lam=0.0,
         ...                                        initial_params=adversary.base.sample_params(16))
-        >>> surrogate.backward()  # ascend it: p_φ moves towards the high losses
-        >>> sorted(stats)
-        ['entropy', 'kl_p0', 'loss_mean', 'objective']
+        >>> stats  # J = mean loss; ln p_φ = 0 on the unit box, so entropy and KL(p0 ‖ p_φ) are 0
+        {'objective': 1.0, 'loss_mean': 1.0, 'entropy': -0.0, 'kl_p0': 0.0}
+        >>> surrogate.backward()
+        >>> torch.optim.SGD(adversary.parameters(), lr=0.5, maximize=True).step()  # ascend it
+        >>> adversary.log_prob(tasks).exp().detach()  # density moved from x = 0.1 to x = 0.9
+        tensor([0.4179, 1.0000, 1.1199], dtype=torch.float64)
     """
     params = tasks[TASK_KEY] if isinstance(tasks, TensorDictBase) else tasks
     losses = losses.detach().to(torch.float64)

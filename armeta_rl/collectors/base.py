@@ -22,9 +22,20 @@ class TaskCollector(Protocol):
     :func:`armeta_rl.factory.build_collector`) and returns its data there.
 
     Examples:
-        >>> from armeta_rl.collectors import SinusoidCollector, TaskCollector
-        >>> isinstance(SinusoidCollector(), TaskCollector)  # anything with collect(tasks)
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.collectors import TaskCollector
+        >>> class LineCollector:  # lines y = a x: support at x = 0, 1, query at x = 2
+        ...     def collect(self, tasks, policy_params=None):
+        ...         x = torch.arange(3.0).expand(len(tasks), 3).unsqueeze(-1)
+        ...         y = tasks["params"][:, None, :1] * x
+        ...         return TensorDict({"support": {"x": x[:, :2], "y": y[:, :2]},
+        ...                            "query": {"x": x[:, 2:], "y": y[:, 2:]}}, [len(tasks)])
+        >>> isinstance(LineCollector(), TaskCollector)  # anything with collect(tasks)
         True
+        >>> tasks = TensorDict({"params": torch.tensor([[2.0], [-1.0]])}, [2])  # a = 2, a = -1
+        >>> LineCollector().collect(tasks)["query", "y"].flatten()  # a · 2
+        tensor([ 4., -2.])
     """
 
     def collect(self, tasks: TensorDict, policy_params: TensorDict | None = None) -> TensorDict:

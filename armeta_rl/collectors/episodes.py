@@ -86,11 +86,20 @@ class EpisodeCollector:
         >>> from armeta_rl.collectors.episodes import EpisodeCollector
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.rl import GaussianMLP
+        >>> _ = torch.manual_seed(0)
         >>> collector = EpisodeCollector(PointNavigationEnv, episodes=3, max_steps=5)
         >>> tasks = TensorDict({"params": torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
         >>> trajectories = collector.collect(tasks, policy=GaussianMLP(obs_dim=2, action_dim=2))
-        >>> trajectories.batch_size, trajectories["action"].shape
-        (torch.Size([2, 3, 5]), torch.Size([2, 3, 5, 2]))
+        >>> trajectories.batch_size  # [tasks, episodes, steps]
+        torch.Size([2, 3, 5])
+        >>> trajectories["observation"][0, 0]  # task 0's first episode: the point's positions
+        tensor([[ 0.0000,  0.0000],
+                [-0.1000,  0.1000],
+                [ 0.0000,  0.2000],
+                [-0.1000,  0.3000],
+                [ 0.0000,  0.4000]])
+        >>> trajectories["reward"][0, 0].flatten()  # -‖p' - g‖: (-0.1, 0.1) is 0.5 from the goal
+        tensor([-0.5000, -0.5000, -0.6403, -0.6708, -0.8062])
     """
 
     def __init__(self, make_env: Callable[..., EnvBase], episodes: int = 20,

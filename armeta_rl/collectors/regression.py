@@ -22,10 +22,13 @@ class SinusoidCollector:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SinusoidCollector
-        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0], [2.0, 1.5]])}, [2])
-        >>> data = SinusoidCollector(n_support=5, n_query=10).collect(tasks)
-        >>> data["support", "x"].shape, data["query", "y"].shape
-        (torch.Size([2, 5, 1]), torch.Size([2, 10, 1]))
+        >>> _ = torch.manual_seed(0)
+        >>> tasks = TensorDict({"params": torch.tensor([[2.0, 0.0]])}, [1])  # a = 2, b = 0
+        >>> data = SinusoidCollector(n_support=3, n_query=10).collect(tasks)
+        >>> data["support", "x"].flatten()  # x ~ U[-5, 5]
+        tensor([-0.0374,  2.6822, -4.1152])
+        >>> data["support", "y"].flatten()  # y = a sin(x + b): 2 sin(2.6822) = 0.8868
+        tensor([-0.0749,  0.8868,  1.6539])
     """
 
     def __init__(
@@ -75,11 +78,13 @@ class NoisySupport:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import NoisySupport, SinusoidCollector
-        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0]])}, [1])
-        >>> data = NoisySupport(SinusoidCollector(), sigma=0.1).collect(tasks)
-        >>> clean = torch.sin(data["query", "x"])  # a = 1, b = 0: the query labels stay clean
-        >>> bool(torch.allclose(data["query", "y"], clean))
-        True
+        >>> _ = torch.manual_seed(0)
+        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 0.0]])}, [1])  # y = sin x
+        >>> data = NoisySupport(SinusoidCollector(n_support=1000), sigma=0.1).collect(tasks)
+        >>> (data["support", "y"] - torch.sin(data["support", "x"])).std()  # ≈ sigma
+        tensor(0.0998)
+        >>> (data["query", "y"] - torch.sin(data["query", "x"])).abs().max()  # clean labels
+        tensor(0.)
     """
 
     def __init__(self, collector, sigma: float) -> None:

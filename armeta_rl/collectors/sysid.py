@@ -82,11 +82,16 @@ class SysIdCollector:
         >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SysIdCollector
         >>> from armeta_rl.envs import PendulumEnv
+        >>> _ = torch.manual_seed(0)
         >>> collector = SysIdCollector(PendulumEnv, n_transitions=40, n_support=10, episodes=4)
-        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 1.0], [0.5, 1.5]])}, [2])
+        >>> tasks = TensorDict({"params": torch.tensor([[1.0, 1.0], [0.5, 1.5]])}, [2])  # (m, l)
         >>> data = collector.collect(tasks)  # x = (cos θ, sin θ, θ̇, torque), y = Δ observation
-        >>> data["support", "x"].shape, data["query", "y"].shape
-        (torch.Size([2, 10, 4]), torch.Size([2, 30, 3]))
+        >>> x = torch.cat([data["support", "x"], data["query", "x"]], 1)  # 40 transitions a task
+        >>> y = torch.cat([data["support", "y"], data["query", "y"]], 1)
+        >>> # Δθ̇ = 3g/(2l)·dt·sin θ + 3/(m l²)·dt·torque (dt = 0.05, g = 10): the data tell (m, l)
+        >>> torch.linalg.lstsq(x[..., [1, 3]], y[..., 2:]).solution.squeeze(-1).round(decimals=4)
+        tensor([[0.7500, 0.1500],
+                [0.5000, 0.1333]])
     """
 
     def __init__(self, make_env: Callable[..., IdentifiedSystemEnv] = PendulumEnv,

@@ -35,12 +35,20 @@ class AcrobotEnv(IdentifiedSystemEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import AcrobotEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = AcrobotEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # masses (m1, m2)
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 6]), True)
+        >>> env = AcrobotEnv(batch_size=(2, 1), seed=0)  # 2 tasks x 1 episode
+        >>> task = torch.tensor([[1.0, 1.0], [1.0, 3.0]])[:, None]  # masses (m1, m2)
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 1]))
+        >>> push = lambda td: td.set("action", torch.full((2, 1), 2))  # torque +1
+        >>> steps = env.rollout(3, push, tensordict=start, auto_reset=False)
+        >>> cos1, sin1, cos2, sin2 = steps["next", "observation"][..., :4].unbind(-1)
+        >>> (-cos1 - (cos1 * cos2 - sin1 * sin2)).round(decimals=2)  # the tip, 1 is the bar
+        tensor([[[-2.0000, -2.0000, -1.9900]],
+        <BLANKLINE>
+                [[-2.0000, -2.0000, -1.9900]]])
+        >>> steps["next", "reward"].squeeze(-1)  # -1 a step until the tip is above the bar
+        tensor([[[-1., -1., -1.]],
+        <BLANKLINE>
+                [[-1., -1., -1.]]])
     """
 
     param_names = ("m1", "m2")

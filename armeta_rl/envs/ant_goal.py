@@ -220,12 +220,20 @@ class AntGoalEnv(AntTaskEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import AntGoalEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = AntGoalEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([1.0, -2.0]).expand(2, 3, -1)  # goal (x, y)
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 119]), True)
+        >>> env = AntGoalEnv(batch_size=(2, 1), seed=0)  # 2 tasks x 1 episode
+        >>> goal = torch.tensor([[1.0, -2.0], [0.0, 0.0]])[:, None]  # the ant starts near 0
+        >>> start = env.reset(TensorDict({TASK_KEY: goal}, [2, 1]))
+        >>> idle = lambda td: td.set("action", torch.zeros(2, 1, 8))
+        >>> steps = env.rollout(2, idle, tensordict=start, auto_reset=False)
+        >>> steps["next", "reward_forward"].squeeze(-1).round(decimals=2)  # the goal term
+        tensor([[[-3.0200, -3.0200]],
+        <BLANKLINE>
+                [[-0.1100, -0.1000]]])
+        >>> xy = steps["next", "observation"][..., :2]  # the torso's (x, y)
+        >>> (-(xy - goal[:, :, None]).abs().sum(-1)).round(decimals=2)  # -‖xy - g‖₁
+        tensor([[[-3.0200, -3.0200]],
+        <BLANKLINE>
+                [[-0.1100, -0.1000]]])
     """
 
     identifier_names = GOAL_NAMES

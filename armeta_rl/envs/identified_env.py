@@ -90,11 +90,19 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
             default it keeps the stored identifiers, at first :attr:`identifier_defaults`).
 
     Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import IdentifiedSystemEnv, PendulumEnv
-        >>> issubclass(PendulumEnv, IdentifiedSystemEnv)
-        True
-        >>> PendulumEnv(batch_size=(2, 3), identifiers=["m", "l", "g"]).param_names
-        ('m', 'l', 'g')
+        >>> from armeta_rl.tasks import TASK_KEY
+        >>> issubclass(PendulumEnv, IdentifiedSystemEnv), PendulumEnv.identifier_defaults
+        (True, {'m': 1.0, 'l': 1.0, 'g': 10.0})
+        >>> env = PendulumEnv(batch_size=(2, 1), seed=0, identifiers=["g"])  # m = l = 1 stay
+        >>> start = env.reset(TensorDict({TASK_KEY: torch.tensor([[[10.0]], [[5.0]]])}, [2, 1]))
+        >>> idle = lambda td: td.set("action", torch.zeros(2, 1, 1))  # no torque
+        >>> step = env.rollout(1, idle, tensordict=start, auto_reset=False)
+        >>> _, sin, speed = start["observation"].unbind(-1)  # (cos θ, sin θ, θ̇)
+        >>> ((step["next", "observation"][..., 0, 2] - speed) / sin).flatten()  # 3g/(2l)·dt
+        tensor([0.7500, 0.3750])
     """
 
     param_names: tuple[str, ...] = ()

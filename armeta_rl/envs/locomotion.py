@@ -238,12 +238,21 @@ class HalfCheetahVelEnv(TargetVelocity, HalfCheetahTaskEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import HalfCheetahVelEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = HalfCheetahVelEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([1.5]).expand(2, 3, -1)  # target velocity
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 20]), True)
+        >>> env = HalfCheetahVelEnv(batch_size=(2, 1), seed=0)  # 2 tasks x 1 episode
+        >>> goal = torch.tensor([[1.5], [0.0]])[:, None]  # run at 1.5 m/s; stand
+        >>> start = env.reset(TensorDict({TASK_KEY: goal}, [2, 1]))
+        >>> idle = lambda td: td.set("action", torch.zeros(2, 1, 6))  # no control cost
+        >>> steps = env.rollout(3, idle, tensordict=start, auto_reset=False)
+        >>> steps["next", "reward"].squeeze(-1).round(decimals=2)  # idle: -1.5 asked to run
+        tensor([[[-1.5700, -1.5500, -1.5100]],
+        <BLANKLINE>
+                [[-0.1500, -0.1500, -0.0800]]])
+        >>> x = torch.cat([start["observation"][..., None, 17],  # the torso's x
+        ...                steps["next", "observation"][..., 17]], -1)
+        >>> (-(x.diff() / 0.05 - goal).abs()).round(decimals=2)  # -|v - goal|, dt = 0.05 s
+        tensor([[[-1.5700, -1.5500, -1.5100]],
+        <BLANKLINE>
+                [[-0.1500, -0.1500, -0.0800]]])
     """
 
 
@@ -257,12 +266,14 @@ class HalfCheetahDirEnv(HalfCheetahTaskEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import HalfCheetahDirEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = HalfCheetahDirEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([-1.0]).expand(2, 3, -1)  # backward
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 20]), True)
+        >>> def rewards(direction):  # the same seed: the same start and the same motion
+        ...     env = HalfCheetahDirEnv(batch_size=(1, 1), seed=0)
+        ...     start = env.reset(TensorDict({TASK_KEY: torch.tensor([[[direction]]])}, [1, 1]))
+        ...     idle = lambda td: td.set("action", torch.zeros(1, 1, 6))  # no control cost
+        ...     steps = env.rollout(3, idle, tensordict=start, auto_reset=False)
+        ...     return steps["next", "reward"].flatten().round(decimals=2)
+        >>> rewards(1.0), rewards(-0.3)  # d·v: a backward drift, d = +1, then d = -1 (< 0)
+        (tensor([-0.0600, -0.0700, -0.2100]), tensor([0.0600, 0.0700, 0.2100]))
     """
 
     identifier_names = ("direction",)
@@ -300,12 +311,21 @@ class Walker2dVelEnv(TargetVelocity, PlanarRunnerEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import Walker2dVelEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = Walker2dVelEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([1.5]).expand(2, 3, -1)  # target velocity
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 20]), True)
+        >>> env = Walker2dVelEnv(batch_size=(2, 1), seed=0)  # 2 tasks x 1 episode
+        >>> goal = torch.tensor([[1.5], [0.0]])[:, None]  # walk at 1.5 m/s; stand
+        >>> start = env.reset(TensorDict({TASK_KEY: goal}, [2, 1]))
+        >>> idle = lambda td: td.set("action", torch.zeros(2, 1, 6))  # no control cost
+        >>> steps = env.rollout(3, idle, tensordict=start, auto_reset=False)
+        >>> steps["next", "reward"].squeeze(-1).round(decimals=2)  # standing earns the bonus 1
+        tensor([[[-0.5000, -0.5000, -0.5000]],
+        <BLANKLINE>
+                [[ 1.0000,  1.0000,  1.0000]]])
+        >>> x = torch.cat([start["observation"][..., None, 17],  # the torso's x
+        ...                steps["next", "observation"][..., 17]], -1)
+        >>> (1 - (x.diff() / 0.008 - goal).abs()).round(decimals=2)  # dt = 4 · 0.002 s
+        tensor([[[-0.5000, -0.5000, -0.5000]],
+        <BLANKLINE>
+                [[ 1.0000,  1.0000,  1.0000]]])
     """
 
     xml = "walker2d_v5.xml"
@@ -361,12 +381,19 @@ class AntDirEnv(AntTaskEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import AntDirEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = AntDirEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([1.57]).expand(2, 3, -1)  # direction (radians)
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 119]), True)
+        >>> def walk(angle):  # the same seed: the same start and the same motion
+        ...     env = AntDirEnv(batch_size=(1, 1), seed=0)
+        ...     start = env.reset(TensorDict({TASK_KEY: torch.tensor([[[angle]]])}, [1, 1]))
+        ...     idle = lambda td: td.set("action", torch.zeros(1, 1, 8))  # no control cost
+        ...     return start, env.rollout(2, idle, tensordict=start, auto_reset=False)
+        >>> start, east = walk(0.0)
+        >>> _, west = walk(torch.pi)
+        >>> ((east["next", "reward"] - west["next", "reward"]) / 2).flatten()  # u·v of u = ±x
+        tensor([-0.1513, -0.1305])
+        >>> x = torch.cat([start["observation"][..., None, 0], east["next", "observation"][..., 0]],
+        ...               -1)  # the torso's x
+        >>> (x.diff() / 0.05).flatten()  # its velocity over dt = 5 · 0.01 s
+        tensor([-0.1513, -0.1305])
     """
 
     identifier_names = ("direction_angle",)

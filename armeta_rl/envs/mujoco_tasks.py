@@ -106,9 +106,21 @@ class PhysicsParameter:
     ``[low, high]`` (see the module docstring for the kinds).
 
     Examples:
-        >>> from armeta_rl.envs.mujoco_tasks import PhysicsParameter
-        >>> PhysicsParameter("pole_mass", "body_mass_scale", target="pole", low=0.5, high=2.0).kind
-        'body_mass_scale'
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.envs import TransformedEnv
+        >>> from armeta_rl.envs.mujoco_tasks import PhysicsParameter, PhysicsTaskTransform, gym_env
+        >>> from armeta_rl.tasks import TASK_KEY
+        >>> g = PhysicsParameter("g", "gravity_z", target=None, low=-10.0, high=0.0)
+        >>> env = TransformedEnv(gym_env("InvertedPendulum-v5"), PhysicsTaskTransform([g]))
+        >>> def steps_up(gravity):  # the steps before the unpushed pole tilts past 0.2 rad
+        ...     _ = env.set_seed(0)  # the same start, tilted 0.008 rad
+        ...     start = env.reset(TensorDict({TASK_KEY: torch.tensor([gravity])}, []))
+        ...     still = lambda td: td.set("action", torch.zeros(1))
+        ...     return len(env.rollout(100, still, tensordict=start, auto_reset=False))
+        >>> # θ ≈ θ0 cosh(√(3|g|/2L) t), L = 0.6 m: 0.2 rad at t ≈ 0.8 s, the 20th step of 0.04 s
+        >>> steps_up(0.0), steps_up(-9.81)
+        (100, 20)
     """
 
     name: str
@@ -191,8 +203,10 @@ class TaskFamily:
         >>> from armeta_rl.config_files import config_files
         >>> from armeta_rl.envs.mujoco_tasks import load_task_family
         >>> family = load_task_family(config_files() / "task_family" / "hopper.yaml")
-        >>> family.env, family.space.dim == len(family.parameters)
-        ('Hopper-v5', True)
+        >>> [(p.name, p.kind, p.target) for p in family.parameters]
+        [('torso_mass', 'body_mass_scale', 'torso'), ('friction', 'geom_friction_scale', 'all')]
+        >>> family.env, family.space.low, family.space.high  # one box side per parameter
+        ('Hopper-v5', (0.5, 0.2), (2.0, 1.5))
     """
 
     env: str | None
@@ -582,12 +596,16 @@ class MujocoWarning(UserWarning):
     """A warning MuJoCo's C library raised (through ``mju_warning``), e.g. the compiler's
     deprecation of ``settotalmass`` in gymnasium's HalfCheetah model.
 
+    Silence it with ``warnings.simplefilter("ignore", MujocoWarning)``.
+
     Examples:
-        >>> import warnings
-        >>> from armeta_rl.envs.mujoco_tasks import MujocoWarning, gym_env
-        >>> with warnings.catch_warnings():
-        ...     warnings.simplefilter("ignore", MujocoWarning)  # MuJoCo's compiler warnings
-        ...     env = gym_env("InvertedPendulum-v5")
+        >>> import subprocess
+        >>> import sys
+        >>> code = "from armeta_rl.envs.mujoco_tasks import gym_env; gym_env('HalfCheetah-v5')"
+        >>> print(subprocess.run([sys.executable, "-c", code], capture_output=True,
+        ...                      text=True).stderr)  # what a new process shows on stderr
+        <string>:1: MujocoWarning: compiler attribute 'settotalmass' is deprecated ... model
+        <BLANKLINE>
     """
 
 
@@ -608,9 +626,11 @@ def gym_env(env_id: str, **gym_kwargs: Any) -> GymEnv:
     Examples:
         >>> import torch
         >>> from armeta_rl.envs.mujoco_tasks import gym_env
-        >>> env = gym_env("InvertedPendulum-v5")
-        >>> env.batch_size, env.action_spec.shape
-        (torch.Size([]), torch.Size([1]))
+        >>> env = gym_env("InvertedPendulum-v5")  # TorchRL's GymEnv of gymnasium's env
+        >>> _ = env.set_seed(0)
+        >>> still = lambda td: td.set("action", torch.zeros(1))
+        >>> env.rollout(3, still)["next", "reward"].flatten()  # 1 a step while the pole is up
+        tensor([1., 1., 1.])
     """
     messages: list[str] = []
     previous = mujoco.get_mju_user_warning()
@@ -642,14 +662,16 @@ def make_gym_task_env(
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs.mujoco_tasks import load_task_family, make_gym_task_env
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> pole = {"name": "pole_mass", "kind": "body_mass_scale", "target": "pole",
-        ...         "low": 0.5, "high": 2}
-        >>> family = load_task_family({"env": "InvertedPendulum-v5", "parameters": [pole]})
+        >>> gear = {"name": "gear", "kind": "actuator_gear_scale", "target": "all",
+        ...         "low": 0.5, "high": 2.0}  # the cart motor's force per unit of action
+        >>> family = load_task_family({"env": "InvertedPendulum-v5", "parameters": [gear]})
         >>> env = make_gym_task_env(family, num_tasks=2, max_steps=50)  # a SerialEnv, one task each
-        >>> tasks = TensorDict({TASK_KEY: torch.tensor([[0.5], [2.0]])}, [2])
-        >>> start = env.reset(tasks)
-        >>> env.rollout(3, tensordict=start, auto_reset=False).batch_size
-        torch.Size([2, 3])
+        >>> _ = env.set_seed(0)
+        >>> start = env.reset(TensorDict({TASK_KEY: torch.tensor([[1.0], [2.0]])}, [2]))
+        >>> push = lambda td: td.set("action", torch.ones(2, 1))
+        >>> after = env.rollout(1, push, tensordict=start, auto_reset=False)["next", "observation"]
+        >>> (after[:, 0, 2] - start["observation"][:, 2]).round(decimals=2)  # the cart's speed gain
+        tensor([0.3300, 0.6600], dtype=torch.float64)
     """
     if family.env is None:
         raise ConfigError("task_family.env", None, "a gymnasium MuJoCo env id, e.g. HalfCheetah-v5")
@@ -744,8 +766,10 @@ def physics_task_env(
         >>> friction = {"name": "friction", "kind": "geom_friction_scale", "target": "all",
         ...             "low": 0.5, "high": 1.5}
         >>> env = physics_task_env(AntGoalEnv, [friction], batch_size=(2, 3))
-        >>> env.state_spec["params"].shape  # [goal_x, goal_y, friction]
-        torch.Size([2, 3, 3])
+        >>> env.task_space.names  # the goal's identifiers, then the friction scale
+        ('goal_x', 'goal_y', 'friction')
+        >>> env.task_space.low, env.task_space.high  # the goal's ±3 box and the friction's
+        ((-3.0, -3.0, 0.5), (3.0, 3.0, 1.5))
     """
     if isinstance(parameters, (DictConfig, ListConfig)):
         parameters = OmegaConf.to_container(parameters, resolve=True)

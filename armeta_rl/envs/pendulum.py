@@ -33,12 +33,14 @@ class PendulumEnv(IdentifiedSystemEnv):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import PendulumEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = PendulumEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([0.5, 1.5]).expand(2, 3, -1)  # mass, length
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 3]), True)
+        >>> env = PendulumEnv(batch_size=(2, 1), seed=0)  # 2 tasks x 1 episode
+        >>> task = torch.tensor([[1.0, 0.5], [1.0, 1.5]])[:, None]  # (m, l): short, long
+        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 1]))
+        >>> idle = lambda td: td.set("action", torch.zeros(2, 1, 1))  # no torque
+        >>> step = env.rollout(1, idle, tensordict=start, auto_reset=False)
+        >>> _, sin, speed = start["observation"].unbind(-1)  # (cos θ, sin θ, θ̇)
+        >>> ((step["next", "observation"][..., 0, 2] - speed) / sin).flatten()  # 3g/(2l)·dt
+        tensor([1.5000, 0.5000])
     """
 
     param_names = ("m", "l")

@@ -306,12 +306,17 @@ class PointNavigationEnv(TaskEnvMixin, EnvBase):
         >>> from tensordict import TensorDict
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.tasks import TASK_KEY
-        >>> env = PointNavigationEnv(batch_size=(2, 3), seed=0)  # 2 tasks x 3 episodes
-        >>> task = torch.tensor([0.3, -0.2]).expand(2, 3, -1)  # goal (x, y)
-        >>> start = env.reset(TensorDict({TASK_KEY: task}, [2, 3]))
-        >>> steps = env.rollout(4, tensordict=start, auto_reset=False)
-        >>> steps["observation"].shape, bool((steps[TASK_KEY] == task[:, :, None]).all())
-        (torch.Size([2, 3, 4, 2]), True)
+        >>> env = PointNavigationEnv(batch_size=(1, 1), seed=0)  # starts at (0, 0)
+        >>> goal = torch.tensor([[[0.3, -0.2]]])
+        >>> start = env.reset(TensorDict({TASK_KEY: goal}, [1, 1]))
+        >>> diagonal = lambda td: td.set("action", torch.tensor([[[0.1, -0.1]]]))
+        >>> steps = env.rollout(3, diagonal, tensordict=start, auto_reset=False)
+        >>> steps["next", "observation"].squeeze()  # past the goal's y at the third step
+        tensor([[ 0.1000, -0.1000],
+                [ 0.2000, -0.2000],
+                [ 0.3000, -0.3000]])
+        >>> steps["next", "reward"].flatten()  # -‖p - g‖: -√0.05, -0.1, -0.1
+        tensor([-0.2236, -0.1000, -0.1000])
     """
 
     identifier_names = GOAL_NAMES

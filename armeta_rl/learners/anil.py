@@ -82,15 +82,22 @@ class ANILLeader(MAMLLeader):
 
     Examples:
         >>> import torch
+        >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SinusoidCollector
         >>> from armeta_rl.learners import ANILLeader
         >>> from armeta_rl.learners.anil import AnilOptions, BodyHead
         >>> _ = torch.manual_seed(0)
-        >>> leader = ANILLeader(BodyHead(1, 1, [16, 16]), SinusoidCollector(),
+        >>> leader = ANILLeader(BodyHead(1, 1, [16, 16]), SinusoidCollector(20, 50),
         ...                     AnilOptions(inner_lr=0.1))
+        >>> data = leader.collect(TensorDict({"params": torch.tensor([[2.0, 0.0]])}, [1]))
+        >>> with torch.no_grad():  # θ's query MSE on y = 2 sin x, without adapting
+        ...     error = leader.model(data["query", "x"]) - data["query", "y"]
+        >>> round(float(error.square().mean()), 2)
+        2.37
+        >>> round(float(leader.evaluate(data)), 2)  # after the head's step on the 20 support points
+        2.13
         >>> theta = dict(leader.model.named_parameters())
-        >>> x = torch.linspace(-5.0, 5.0, 10)[:, None]
-        >>> adapted = leader.adapt(theta, x, 2.0 * torch.sin(x))  # one task's support set
+        >>> adapted = leader.adapt(theta, data["support", "x"][0], data["support", "y"][0])
         >>> sorted(name for name in theta if not torch.equal(adapted[name], theta[name]))
         ['head.bias', 'head.weight']
     """

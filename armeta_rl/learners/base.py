@@ -50,15 +50,20 @@ class Leader(Protocol):
         >>> import torch
         >>> from armeta_rl.collectors import SinusoidCollector
         >>> from armeta_rl.learners import Leader, MAMLLeader, make_mlp
+        >>> from armeta_rl.learners.maml import MamlOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
-        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector())
+        >>> _ = torch.manual_seed(0)
+        >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector(20, 50),
+        ...                     MamlOptions(outer_lr=0.01))
         >>> isinstance(leader, Leader)
         True
         >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
         >>> data = leader.collect(BoxUniform(space).sample(4))  # the loop's three verbs
-        >>> per_task, stats = leader.step(data, weights=lambda losses: losses / losses.sum())
-        >>> leader.evaluate(data).shape  # per-task loss after adaptation at the new θ
-        torch.Size([4])
+        >>> per_task, _ = leader.step(data, weights=lambda losses: torch.full_like(losses, 0.25))
+        >>> per_task["loss"]  # each task's adapted loss at θ_t
+        tensor([ 9.6684,  4.6846, 12.3939,  5.7636])
+        >>> leader.evaluate(data)  # the same tasks' at θ_{t+1}: the step lowered every one
+        tensor([ 9.4611,  4.4347, 12.1239,  5.5539])
     """
 
     metric: str

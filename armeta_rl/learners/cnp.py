@@ -106,16 +106,25 @@ class CNPLeader(OneNetworkLeader):
 
     Examples:
         >>> import torch
+        >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors import SinusoidCollector
         >>> from armeta_rl.learners import CNPLeader
         >>> from armeta_rl.learners.cnp import CnpOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
-        >>> leader = CNPLeader(1, 1, SinusoidCollector(), CnpOptions(hidden=16))
+        >>> _ = torch.manual_seed(0)
+        >>> options = CnpOptions(hidden=32, lr=0.01, likelihood="mse")
+        >>> leader = CNPLeader(1, 1, SinusoidCollector(20, 50), options)
         >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
-        >>> data = leader.collect(BoxUniform(space).sample(4))
-        >>> per_task, _ = leader.step(data, weights=lambda losses: losses / losses.sum())
-        >>> per_task["loss"].shape
-        torch.Size([4])
+        >>> for _ in range(300):  # 300 steps of 8 sinusoids from p0
+        ...     data = leader.collect(BoxUniform(space).sample(8))
+        ...     _ = leader.step(data, weights=lambda losses: torch.full_like(losses, 1 / 8))
+        >>> tasks = torch.tensor([[4.0, 0.0], [4.0, 3.1416]])  # y = 4 sin x and y = -4 sin x
+        >>> data = leader.collect(TensorDict({"params": tasks}, [2]))
+        >>> leader.evaluate(data).round(decimals=1)  # each conditioned on its own support set
+        tensor([5.6000, 4.7000])
+        >>> data["support"] = data["support"].flip(0)  # on the other task's: the sign is wrong
+        >>> leader.evaluate(data).round(decimals=1)
+        tensor([16.5000, 15.0000])
     """
 
     metric = "mse"

@@ -91,13 +91,18 @@ class MAMLLeader(OneNetworkLeader):
         >>> from armeta_rl.learners import MAMLLeader, make_mlp
         >>> from armeta_rl.learners.maml import MamlOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
         >>> options = MamlOptions(inner_lr=0.01, inner_steps=1)
         >>> leader = MAMLLeader(make_mlp(1, 1, hidden=[16]), SinusoidCollector(), options)
         >>> space = TaskSpace(["amplitude", "phase"], low=[0.1, 0.0], high=[5.0, 3.1416])
         >>> data = leader.collect(BoxUniform(space).sample(4))
+        >>> with torch.no_grad():  # θ's query MSE, without adapting
+        ...     error = leader.model(data["query", "x"]) - data["query", "y"]
+        >>> round(float(error.square().mean()), 2), leader.metric
+        (8.56, 'mse')
+        >>> round(float(leader.evaluate(data).mean()), 2)  # after one step on the support
+        8.19
         >>> per_task, _ = leader.step(data, weights=lambda losses: torch.full_like(losses, 0.25))
-        >>> per_task["loss"].shape, leader.metric
-        (torch.Size([4]), 'mse')
     """
 
     metric = "mse"

@@ -141,17 +141,21 @@ class MAMLTRPOLeader:
 
     Examples:
         >>> import torch
+        >>> from tensordict import TensorDict
         >>> from armeta_rl.collectors.episodes import PointNavigationCollector
         >>> from armeta_rl.learners import MAMLTRPOLeader
         >>> from armeta_rl.learners.maml_trpo import MamlTrpoOptions
-        >>> from armeta_rl.tasks import BoxUniform, TaskSpace
-        >>> collector = PointNavigationCollector(episodes=2, max_steps=5)
-        >>> leader = MAMLTRPOLeader(collector, MamlTrpoOptions(hidden_sizes=[8]))
-        >>> space = TaskSpace(["goal_x", "goal_y"], low=[-0.5, -0.5], high=[0.5, 0.5])
-        >>> data = leader.collect(BoxUniform(space).sample(3), create_graph=True)
+        >>> _ = torch.manual_seed(0)
+        >>> collector = PointNavigationCollector(episodes=20, max_steps=10)
+        >>> options = MamlTrpoOptions(hidden_sizes=[8], inner_lr=0.5, max_kl=0.01)
+        >>> leader = MAMLTRPOLeader(collector, options)
+        >>> goals = torch.tensor([[0.5, 0.5], [-0.5, 0.5], [0.5, -0.5]])
+        >>> data = leader.collect(TensorDict({"params": goals}, [3]), create_graph=True)
         >>> per_task, stats = leader.step(data, weights=lambda losses: torch.full((3,), 1 / 3))
-        >>> per_task["loss"].shape, leader.metric  # the loss is minus the return after adaptation
-        (torch.Size([3]), 'return')
+        >>> per_task["return_pre"], per_task["return_post"]  # one inner step on 20 episodes
+        (tensor([-6.9240, -6.9703, -7.2893]), tensor([-5.8232, -6.0165, -6.5115]))
+        >>> leader.metric, round(stats["trpo_kl"], 4)  # the loss is -return_post; KL ≤ δ
+        ('return', 0.0063)
     """
 
     metric = "return"

@@ -104,9 +104,14 @@ def make_mlp(in_features: int, out_features: int, hidden: Sequence[int] = (128, 
     Examples:
         >>> import torch
         >>> from armeta_rl.learners import make_mlp
-        >>> net = make_mlp(1, 1, hidden=[32, 32])
-        >>> net(torch.zeros(5, 1)).shape
-        torch.Size([5, 1])
+        >>> net = make_mlp(2, 1, hidden=[3, 3])
+        >>> [tuple(weight.shape) for weight, _ in net.layers()]  # W stored [fan_in, fan_out]
+        [(2, 3), (3, 3), (3, 1)]
+        >>> for weight, bias in net.layers():  # every weight 1, every bias 0
+        ...     _ = weight.data.fill_(1.0), bias.data.zero_()
+        >>> net(torch.tensor([[1.0, 2.0], [-1.0, -2.0]]))  # 3 units of 3, then 3 of 9; ReLU cuts -3
+        tensor([[27.],
+                [ 0.]], grad_fn=<AddBackward0>)
     """
     if not hidden or any(int(h) < 1 for h in hidden):
         raise ConfigError("learner.maml.hidden", list(hidden), "needs one or more sizes >= 1")

@@ -26,7 +26,7 @@ from armeta_rl.reproduce.plan import (
     identity_problem,
     load_report,
 )
-from armeta_rl.trainers.evaluation import ReportInvalid
+from armeta_rl.trainers.evaluation import ReportInvalid, share_resolved
 from armeta_rl.trainers.run_dir import write_text_atomically
 
 INITIAL = "initial"
@@ -147,7 +147,10 @@ def evidence_columns(section: dict[str, Any]) -> dict[str, Any]:
     """The columns of the fields a section holds only where its evaluation recorded them: the
     KL's standard error (``kl_p0_sem``), the quarters (:data:`QUARTER_FIELDS`) and the goal
     references (:data:`GOAL_COLUMNS`); none for a section evaluated before them, so its CSV
-    row keeps its columns."""
+    row keeps its columns. A share of the goal-blind gap closed whose standard error is above
+    1 (:func:`~armeta_rl.trainers.evaluation.share_resolved`; a report evaluated without the
+    rule may carry one) is undefined, its error with it, as
+    :func:`~armeta_rl.trainers.evaluation.gap_closed` gives it."""
     columns: dict[str, Any] = {}
     if "kl_p0_sem" in section:
         columns["kl_p0_sem"] = section["kl_p0_sem"]
@@ -157,6 +160,8 @@ def evidence_columns(section: dict[str, Any]) -> dict[str, Any]:
     goal = section.get("goal")
     if goal is not None:
         columns.update({column: goal.get(key) for key, column in GOAL_COLUMNS.items()})
+        if not share_resolved(goal.get("gap_closed_sem")):
+            columns.update(gap_closed=None, gap_closed_sem=None)
     return columns
 
 

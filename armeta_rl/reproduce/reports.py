@@ -383,15 +383,16 @@ def adaptation_section(plan: Plan, records: list[dict[str, Any]]) -> str:
 
 def _share(records: list[dict[str, Any]], **where: Any) -> str:
     """The share of the goal-blind gap closed over seeds, in percent: ``mean ± std [RMS s.e.
-    over tasks]``; "–" where no seed's evaluation recorded it."""
-    chosen = [r for r in select(records, **where) if r.get("gap_closed") is not None]
-    if not chosen:
+    over tasks]``; "–" where no seed's evaluation recorded the references, or where a seed's
+    share is undefined (:func:`~armeta_rl.trainers.evaluation.share_resolved`: no gap to speak
+    of on these tasks; the other seeds' shares alone would be a selection)."""
+    chosen = [r for r in select(records, **where) if r.get("goal_oracle") is not None]
+    if not chosen or any(r.get("gap_closed") is None for r in chosen):
         return "–"
     spread = over_seeds([100 * r["gap_closed"] for r in chosen])
     text = f"{spread.mean:.0f} %" if spread.n < 2 else f"{spread.mean:.0f} ± {spread.std:.0f} %"
-    sems = [100 * r["gap_closed_sem"] for r in chosen if r.get("gap_closed_sem") is not None]
-    if sems:
-        text += f" [{(sum(e * e for e in sems) / len(sems)) ** 0.5:.0f}]"
+    sems = [100 * r["gap_closed_sem"] for r in chosen]
+    text += f" [{(sum(e * e for e in sems) / len(sems)) ** 0.5:.0f}]"
     return text
 
 
@@ -399,9 +400,11 @@ def gap_closed_section(plan: Plan, records: list[dict[str, Any]]) -> str:
     """Meta-RL: every learner's share of the goal-blind gap closed per distribution, (R_adapted
     − R_blind) / (R_oracle − R_blind) on the distribution's evaluation tasks
     (:func:`~armeta_rl.trainers.evaluation.gap_closed`; the references: docs/meta-rl.md), so
-    that a gain reads against what the goal is worth. Empty where no evaluation recorded it (a
-    benchmark without references, or evaluations made before they were recorded)."""
-    if not any(r.get("gap_closed") is not None for r in records):
+    that a gain reads against what the goal is worth; undefined where the gap is too small for
+    it to mean anything (:func:`~armeta_rl.trainers.evaluation.share_resolved`). Empty where no
+    evaluation recorded the references (a benchmark without them, or evaluations made before
+    they were recorded)."""
+    if not any(r.get("goal_oracle") is not None for r in records):
         return ""
     learners = _learners(plan)
     rows = [[display(benchmark), label, *(
@@ -415,7 +418,11 @@ def gap_closed_section(plan: Plan, records: list[dict[str, Any]]) -> str:
             "best goal-blind policy for those tasks and R_oracle the best with the goal known "
             "(0 %: no better than ignoring the goal; 100 %: as good as knowing it), mean ± std "
             "over seeds [root-mean-square over seeds of its standard error over tasks]; – "
-            "where the evaluation predates the references.\n\n"
+            "where the evaluation predates the references, and where a seed's share has a "
+            "standard error over tasks above 100 points: there the gap R_oracle − R_blind is "
+            "under one standard error of what it divides, too small for the share to mean "
+            "anything (a distribution concentrated on one goal, where the best goal-blind "
+            "policy is the oracle).\n\n"
             + markdown_table(header, rows))
 
 

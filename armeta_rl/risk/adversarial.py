@@ -45,16 +45,23 @@ class AdversarialPrinciple(nn.Module):
             needed by ``signal="regret"`` (the builder: the collector's ``reference_loss``).
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.adversary import FlowAdversary
         >>> from armeta_rl.risk import AdversarialPrinciple
         >>> from armeta_rl.risk.adversarial import ArOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
         >>> space = TaskSpace(["x"], low=[0.0], high=[1.0])
-        >>> adversary = FlowAdversary(space, BoxUniform(space))
-        >>> principle = AdversarialPrinciple(adversary, ArOptions(lam=0.0), total_updates=10)
-        >>> tasks = principle.propose(8)
-        >>> sorted(principle.update(tasks, losses=tasks["params"][:, 0]))  # one step of p_φ
-        ['adversary/entropy', 'adversary/grad_norm', 'adversary/kl_p0', 'adversary/lr', ...]
+        >>> adversary = FlowAdversary(space, BoxUniform(space))  # p_φ = p0 = U[0, 1] at first
+        >>> options = ArOptions(lam=0.0, step="natural", max_kl=0.01)
+        >>> principle = AdversarialPrinciple(adversary, options, total_updates=10)
+        >>> tasks = principle.propose(64)
+        >>> stats = principle.update(tasks, losses=tasks["params"][:, 0])  # the loss is x
+        >>> round(stats["adversary/objective"], 2)  # J = E_p0[x] ≈ 1/2, before the step
+        0.51
+        >>> probe = torch.tensor([[0.1], [0.5], [0.9]])
+        >>> adversary.log_prob(probe).exp().detach()  # p_φ after one step: mass moved to x = 1
+        tensor([0.8508, 0.9722, 1.0923], dtype=torch.float64)
     """
 
     needs_next_losses = True

@@ -28,8 +28,11 @@ class ERMPrinciple(nn.Module):
         >>> from armeta_rl.risk import ERMPrinciple
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
         >>> principle = ERMPrinciple(BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0])))
-        >>> principle.propose(3)["params"].shape, principle.update_every  # never updated
-        (torch.Size([3, 1]), 0)
+        >>> tasks = principle.propose(3)  # from p0
+        >>> principle.weights(torch.tensor([1.0, 5.0, 9.0]), tasks)  # the mean, whatever the loss
+        tensor([0.3333, 0.3333, 0.3333])
+        >>> principle.update_every  # p0 is never updated
+        0
     """
 
     update_every = 0

@@ -106,12 +106,17 @@ class MPTSPrinciple(PredictivePrinciple):
         >>> from armeta_rl.risk import MPTSPrinciple
         >>> from armeta_rl.risk.mpts import MptsOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
         >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
-        >>> principle = MPTSPrinciple(p0, MptsOptions(candidate_ratio=4.0))
-        >>> tasks = principle.propose(4)  # the 4 of 16 candidates the predictor scores highest
-        >>> stats = principle.update(tasks, losses=tasks["params"][:, 0])  # trains the predictor
-        >>> tasks.batch_size, sorted(stats)
-        (torch.Size([4]), ['risk/elbo', 'risk/kl', 'risk/pcc', 'risk/reconstruction', ...])
+        >>> principle = MPTSPrinciple(p0, MptsOptions(candidate_ratio=4.0, lr=0.01, steps=5))
+        >>> for _ in range(20):  # 8 tasks of 32 candidates, 20 times; the learner's loss is x
+        ...     tasks = principle.propose(8)
+        ...     stats = principle.update(tasks, losses=tasks["params"][:, 0])
+        >>> round(stats["risk/pcc"], 2)  # the risk model ranks the last batch's losses right
+        1.0
+        >>> grid = torch.linspace(0.0, 1.0, 11)[:, None]  # 0, 0.1, ..., 1
+        >>> grid[principle.select(grid, 3)].flatten()  # the 3 of largest a = m + 3σ, Eq. (7)
+        tensor([1.0000, 0.9000, 0.8000])
     """
 
     def __init__(self, initial: TaskDistribution, options: MptsOptions = MptsOptions()) -> None:

@@ -112,12 +112,17 @@ class PDTSPrinciple(PredictivePrinciple):
         >>> from armeta_rl.risk import PDTSPrinciple
         >>> from armeta_rl.risk.pdts import PdtsOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
         >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
-        >>> principle = PDTSPrinciple(p0, PdtsOptions(candidate_ratio=8.0))
-        >>> tasks = principle.propose(4)  # 4 diverse, high-risk tasks of 32 candidates
-        >>> stats = principle.update(tasks, losses=tasks["params"][:, 0])
-        >>> tasks.batch_size, "risk/elbo" in stats
-        (torch.Size([4]), True)
+        >>> principle = PDTSPrinciple(p0, PdtsOptions(candidate_ratio=4.0, lr=0.01, steps=5))
+        >>> for _ in range(20):  # 8 tasks of 32 candidates, 20 times; the learner's loss is x
+        ...     tasks = principle.propose(8)
+        ...     stats = principle.update(tasks, losses=tasks["params"][:, 0])
+        >>> round(stats["risk/pcc"], 2)  # the risk model ranks the last batch's losses right
+        1.0
+        >>> grid = torch.linspace(0.0, 1.0, 11)[:, None]  # 0, 0.1, ..., 1
+        >>> grid[principle.select(grid, 3)].flatten()  # the 2 hardest, then the farthest from them
+        tensor([1.0000, 0.9000, 0.0000])
     """
 
     def __init__(self, initial: TaskDistribution, options: PdtsOptions = PdtsOptions()) -> None:

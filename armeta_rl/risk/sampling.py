@@ -32,12 +32,19 @@ class PrincipleSampler:
     Examples:
         >>> import torch
         >>> from armeta_rl.risk import PrincipleSampler, TailRiskPrinciple
+        >>> from armeta_rl.risk.tail import DrOptions
         >>> from armeta_rl.tasks import BoxUniform, TaskSpace
+        >>> _ = torch.manual_seed(0)
         >>> p0 = BoxUniform(TaskSpace(["x"], low=[0.0], high=[1.0]))
-        >>> sampler = PrincipleSampler(TailRiskPrinciple(p0))
-        >>> tasks = sampler.sample(4)
-        >>> sorted(sampler.update(tasks, torch.tensor([1.0, 2.0, 3.0, 4.0])))
-        ['risk/cvar', 'risk/var']
+        >>> sampler = PrincipleSampler(TailRiskPrinciple(p0, DrOptions(alpha=0.5)))
+        >>> tasks = sampler.sample(4)  # from p0
+        >>> tasks["params"].flatten()
+        tensor([0.9701, 0.7078, 0.4594, 0.9207])
+        >>> losses = torch.tensor([3.0, 1.0, 4.0, 2.0])  # the outside loop's losses on them
+        >>> sampler.weights(losses, tasks)  # CVaR_0.5: the worst half, tasks 0 and 2
+        tensor([0.5000, 0.0000, 0.5000, 0.0000])
+        >>> sampler.update(tasks, losses)  # VaR_0.5 = 3, CVaR_0.5 = (3 + 4) / 2
+        {'risk/var': 3.0, 'risk/cvar': 3.5}
     """
 
     def __init__(self, principle: RiskPrinciple) -> None:

@@ -46,10 +46,12 @@ def baseline_features(trajectories: TensorDictBase) -> Tensor:
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.rl.baseline import baseline_features
-        >>> steps = TensorDict({"observation": torch.zeros(1, 1, 3, 2),
-        ...                     "mask": torch.ones(1, 1, 3).bool()}, [1, 1, 3])
-        >>> baseline_features(steps).shape  # 2 · obs_dim + 4
-        torch.Size([1, 1, 3, 8])
+        >>> observation = torch.tensor([0.5, -2.0]).expand(1, 1, 4, 2)  # s at t = 0, ..., 3
+        >>> steps = TensorDict({"observation": observation,
+        ...                     "mask": torch.ones(1, 1, 4).bool()}, [1, 1, 4])
+        >>> baseline_features(steps)[0, 0, 3]  # t = 3: s, s², 0.03, 0.03², 0.03³, 1
+        tensor([ 5.0000e-01, -2.0000e+00,  2.5000e-01,  4.0000e+00,  3.0000e-02,
+                 9.0000e-04,  2.7000e-05,  1.0000e+00])
     """
     observation = trajectories["observation"]
     mask = trajectories["mask"].unsqueeze(-1).to(observation.dtype)
@@ -93,12 +95,18 @@ def baseline_values(trajectories: TensorDictBase, gamma: float, reg: float = 1e-
         >>> import torch
         >>> from tensordict import TensorDict
         >>> from armeta_rl.rl.baseline import baseline_values
-        >>> steps = TensorDict({"observation": torch.randn(2, 4, 3, 2),
-        ...                     "reward": torch.randn(2, 4, 3, 1),
-        ...                     "done": torch.zeros(2, 4, 3, 1).bool(),
-        ...                     "mask": torch.ones(2, 4, 3).bool()}, [2, 4, 3])
-        >>> baseline_values(steps, gamma=0.99).shape
-        torch.Size([2, 4, 3, 1])
+        >>> reward = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]).reshape(1, 2, 3, 1)
+        >>> done = torch.tensor([False, False, True]).expand(1, 2, 3).unsqueeze(-1)
+        >>> def episodes(observation):  # one task, two 3-step episodes, returns 1 and 0
+        ...     return TensorDict({"observation": observation, "reward": reward, "done": done,
+        ...                        "mask": torch.ones(1, 2, 3).bool()}, [1, 2, 3])
+        >>> same = torch.zeros(1, 2, 3, 2)  # the states do not tell the episodes apart
+        >>> baseline_values(episodes(same), gamma=1.0).flatten()  # the mean return, 0.5
+        tensor([0.5000, 0.5000, 0.5000, 0.5000, 0.5000, 0.5000])
+        >>> apart = torch.tensor([[1.0, 0.0], [0.0, 0.0]]).reshape(1, 2, 1, 2).expand(1, 2, 3, 2)
+        >>> values = baseline_values(episodes(apart), gamma=1.0)  # each episode's own return
+        >>> values.flatten().round(decimals=3)  # up to the ridge's 1e-5
+        tensor([1., 1., 1., 0., 0., 0.])
     """
     features = baseline_features(trajectories)
     coefficients = fit_linear_baseline(features, discounted_returns(trajectories, gamma), reg)
@@ -160,14 +168,16 @@ def gae_advantages(trajectories: TensorDictBase, gamma: float = 0.99, lmbda: flo
     Examples:
         >>> import torch
         >>> from tensordict import TensorDict
-        >>> from armeta_rl.collectors.episodes import PointNavigationCollector
-        >>> from armeta_rl.rl import GaussianMLP
         >>> from armeta_rl.rl.baseline import gae_advantages
-        >>> tasks = TensorDict({"params": torch.tensor([[0.3, -0.2], [-0.4, 0.1]])}, [2])
-        >>> collector = PointNavigationCollector(episodes=4, max_steps=5)
-        >>> steps = collector.collect(tasks, policy=GaussianMLP())
-        >>> gae_advantages(steps, gamma=0.99, lmbda=1.0).shape  # [tasks, episodes, steps]
-        torch.Size([2, 4, 5])
+        >>> reward = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 0.0]]).reshape(1, 2, 3, 1)
+        >>> done = torch.tensor([False, False, True]).expand(1, 2, 3).unsqueeze(-1)
+        >>> steps = TensorDict({"observation": torch.zeros(1, 2, 3, 2), "reward": reward,
+        ...                     "done": done, "mask": torch.ones(1, 2, 3).bool()}, [1, 2, 3])
+        >>> # γ = 1: V = 0.5 everywhere (the mean return), so δ = (0, 0, ±0.5) and with λ = 0.5
+        >>> # Â = ±(0.125, 0.25, 0.5); normalized by their spread √((0.125² + 0.25² + 0.5²)/3)
+        >>> gae_advantages(steps, gamma=1.0, lmbda=0.5)
+        tensor([[[ 0.3780,  0.7559,  1.5119],
+                 [-0.3780, -0.7559, -1.5119]]])
     """
     mask = trajectories["mask"]
     values = baseline_values(trajectories, gamma, reg) * mask.unsqueeze(-1)

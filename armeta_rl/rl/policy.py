@@ -135,13 +135,22 @@ def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> Probab
     ``k``'s parameters on batch entries ``[k, ...]``.
 
     Examples:
+        >>> import math
         >>> import torch
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.rl import GaussianMLP, make_actor
+        >>> _ = torch.manual_seed(0)
         >>> actor = make_actor(GaussianMLP(obs_dim=2, action_dim=2))
-        >>> steps = PointNavigationEnv(batch_size=(4,), seed=0).rollout(3, policy=actor)
-        >>> steps["action"].shape, steps["action_log_prob"].shape
-        (torch.Size([4, 3, 2]), torch.Size([4, 3]))
+        >>> first = PointNavigationEnv(batch_size=(1,), seed=0).rollout(1, policy=actor)
+        >>> first = first[:, 0].detach()  # the first step
+        >>> first["observation"], first["loc"], first["scale"]  # at (0, 0): zero biases, σ = 1
+        (tensor([[0., 0.]]), tensor([[0., 0.]]), tensor([[1., 1.]]))
+        >>> first["action"]  # a draw of N(0, I)
+        tensor([[-0.7086, -0.3113]])
+        >>> first["action_log_prob"]  # ln N(a; 0, I) = -‖a‖²/2 - ln 2π
+        tensor([-2.1374])
+        >>> round(-first["action"].square().sum().item() / 2 - math.log(2 * math.pi), 4)
+        -2.1374
     """
     return ProbabilisticActor(
         PerTaskLocScale(net, params),

@@ -35,9 +35,12 @@ def unflatten(vector: Tensor, like: Sequence[Tensor]) -> list[Tensor]:
     Examples:
         >>> import torch
         >>> from armeta_rl.rl.trpo import flatten, unflatten
-        >>> like = [torch.ones(2, 2), torch.zeros(3)]
-        >>> [t.shape for t in unflatten(flatten(like), like)]
-        [torch.Size([2, 2]), torch.Size([3])]
+        >>> like = [torch.ones(2, 2), torch.zeros(3)]  # e.g. a weight and a bias
+        >>> unflatten(torch.arange(7.0), like)  # a step vector, back in the parameters' shapes
+        [tensor([[0., 1.],
+                [2., 3.]]), tensor([4., 5., 6.])]
+        >>> torch.equal(flatten(unflatten(torch.arange(7.0), like)), torch.arange(7.0))
+        True
     """
     out, start = [], 0
     for t in like:

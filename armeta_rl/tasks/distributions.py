@@ -271,12 +271,15 @@ def make_initial(
     """Build p0 from a config: ``kind`` is ``uniform`` or ``normal`` (truncated to the box).
 
     Examples:
+        >>> import torch
         >>> from armeta_rl.tasks import TaskSpace, make_initial
         >>> space = TaskSpace(["x"], low=[0.0], high=[1.0])
-        >>> type(make_initial(space, "uniform")).__name__
-        'BoxUniform'
-        >>> type(make_initial(space, "normal", loc=[0.5], scale=[0.2])).__name__
-        'TruncatedNormal'
+        >>> middle = torch.tensor([[0.5]], dtype=torch.float64)
+        >>> make_initial(space, "uniform").log_prob(middle).exp()  # 1 / the box's length
+        tensor([1.], dtype=torch.float64)
+        >>> normal = make_initial(space, "normal", loc=[0.5], scale=[0.2])
+        >>> normal.log_prob(middle).exp()  # 1 / (0.2 √(2π)), over the mass in the box, 0.9876
+        tensor([2.0198], dtype=torch.float64)
     """
     if kind == "uniform":
         return BoxUniform(space)

@@ -69,12 +69,18 @@ class TaskTransform(Transform):
         >>> from torchrl.envs import Compose, StepCounter, TransformedEnv
         >>> from armeta_rl.envs import PointNavigationEnv
         >>> from armeta_rl.tasks import TASK_KEY, TaskTransform
-        >>> _ = torch.manual_seed(0)  # the random actions: no goal reached by chance
-        >>> env = PointNavigationEnv(batch_size=(4,), seed=0)
-        >>> env = TransformedEnv(env, Compose(TaskTransform(env.p0), StepCounter(5)))
-        >>> goals = env.rollout(5)[TASK_KEY]  # one goal per episode, kept over its steps
-        >>> goals.shape, bool((goals == goals[:, :1]).all())
-        (torch.Size([4, 5, 2]), True)
+        >>> _ = torch.manual_seed(0)
+        >>> env = PointNavigationEnv(batch_size=(1,), seed=0)  # the point starts at (0, 0)
+        >>> env = TransformedEnv(env, Compose(TaskTransform(env.p0), StepCounter(2)))
+        >>> still = lambda td: td.set("action", torch.zeros(1, 2))
+        >>> steps = env.rollout(4, still, break_when_any_done=False)  # two 2-step episodes
+        >>> steps[TASK_KEY][0]  # a goal from p0 at each reset, kept over its episode
+        tensor([[ 0.4701,  0.2078],
+                [ 0.4701,  0.2078],
+                [-0.0406,  0.4207],
+                [-0.0406,  0.4207]])
+        >>> steps["next", "reward"].flatten()  # the env's reward for that goal: -‖g‖
+        tensor([-0.5139, -0.5139, -0.4227, -0.4227])
     """
 
     def __init__(self, tasks: Any = None, key: str = TASK_KEY) -> None:
@@ -198,14 +204,20 @@ def finished_episodes(
 
     Examples:
         >>> import torch
-        >>> from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
-        >>> from armeta_rl.envs import PointNavigationEnv
-        >>> from armeta_rl.tasks import TaskTransform, finished_episodes
-        >>> env = PointNavigationEnv(batch_size=(4,), seed=0)
-        >>> env = TransformedEnv(env, Compose(TaskTransform(env.p0), StepCounter(5), RewardSum()))
-        >>> episodes = finished_episodes(env.rollout(5))
-        >>> episodes["params"].shape, episodes["return"].shape
-        (torch.Size([4, 2]), torch.Size([4]))
+        >>> from tensordict import TensorDict
+        >>> from armeta_rl.tasks import finished_episodes
+        >>> # 2 envs × 3 steps: env 0's episode on task 1 ends at step 1 and one on task 3
+        >>> # starts; env 1's episode on task 2 ends at step 2
+        >>> batch = TensorDict({
+        ...     "params": torch.tensor([[[1.0], [1.0], [3.0]], [[2.0], [2.0], [2.0]]]),
+        ...     "next": {"done": torch.tensor([[False, True, False],
+        ...                                    [False, False, True]]).unsqueeze(-1),
+        ...              "episode_reward": torch.tensor([[-0.2, -0.5, -0.1],
+        ...                                              [-0.3, -0.6, -0.9]]).unsqueeze(-1)},
+        ... }, [2, 3])
+        >>> episodes = finished_episodes(batch)  # the running sums at the done steps
+        >>> episodes["params"].flatten(), episodes["return"]
+        (tensor([1., 2.]), tensor([-0.5000, -0.9000]))
     """
     done = batch.get(("next", "done")).squeeze(-1)
     returns = batch.get(return_key)[done].squeeze(-1)
