@@ -152,18 +152,28 @@ def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> Probab
     )
 
 
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+"""ln √(2π), the normal density's constant, computed as ``torch.distributions.Normal`` does."""
+
+
 def act(net: GaussianMLP, params: dict[str, Tensor], observation: Tensor, per_task: bool
         ) -> dict[str, Tensor]:
     """π's outputs at ``observation``, acting at random: ``"loc"``, ``"scale"``, ``"action"``
-    (drawn as ``loc + scale · ε``, ε from torch's RNG) and ``"action_log_prob"``, under per-task
+    (drawn as ``loc + ε · scale``, ε from torch's RNG) and ``"action_log_prob"``, under per-task
     ``params`` ``[K]`` (``per_task``, :func:`loc_scale`) or one set of parameters for all
-    (:meth:`GaussianMLP.forward_with`)."""
+    (:meth:`GaussianMLP.forward_with`).
+
+    The draw and the log-density are ``torch.distributions.Normal``'s ``rsample`` and
+    ``log_prob`` written out, the same operations in the same order (the same values bit for
+    bit, ``tests/test_maml_trpo.py``), without building a distribution object at every env step
+    of a rollout, which costs more than the arithmetic."""
     loc, scale = (loc_scale(net, params, observation) if per_task
                   else net.forward_with(params, observation))
-    normal = torch.distributions.Normal(loc, scale, validate_args=False)
-    action = normal.rsample()
+    noise = torch.empty(loc.shape, dtype=loc.dtype, device=loc.device).normal_()
+    action = loc + noise * scale
+    log_density = -((action - loc) ** 2) / (2 * scale**2) - scale.log() - LOG_SQRT_2PI
     return {"loc": loc, "scale": scale, "action": action,
-            "action_log_prob": normal.log_prob(action).sum(-1)}
+            "action_log_prob": log_density.sum(-1)}
 
 
 class GaussianActor(PerTaskLocScale):
