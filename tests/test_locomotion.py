@@ -21,7 +21,7 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 from armeta_rl.config import validate
 from armeta_rl.envs.ant_goal import AntGoalEnv
-from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
+from armeta_rl.envs.batched_mujoco import GYM_ASSETS, STAGE_POS, load_gym_model
 from armeta_rl.envs.locomotion import (
     AntDirEnv,
     HalfCheetahDirEnv,
@@ -116,6 +116,33 @@ def test_every_simulation_equals_a_hand_computation_with_its_own_task(name):
         assert td["next", "truncated"].all() == (step == 11)
         td = step_mdp(td)
     assert (td["params"] == tasks[:, None, None]).all()
+
+
+@pytest.mark.parametrize("make_env", [
+    lambda: HalfCheetahVelEnv((4, 3), max_steps=25, seed=3),
+    lambda: Walker2dVelEnv((4, 3), max_steps=25, seed=3),
+    lambda: physics_task_env(Walker2dVelEnv, [MASS_SCALE], batch_size=(4, 3), max_steps=25,
+                             seed=3),
+], ids=["half_cheetah_vel", "walker2d_vel", "walker2d_mass_vel"])
+def test_the_torso_position_is_mujocos_forward_kinematics_bit_for_bit(make_env):
+    """The torso position the observation carries, computed from the root sliders' qpos with no
+    kinematics pass after a step, is MuJoCo's forward kinematics of the batch at the same state
+    (``mj_kinematics``, through the batch's ``forward``) bit for bit, at every step of random
+    actions beyond the control range (the walkers fall) and through the resets of truncation."""
+    torch.manual_seed(0)
+    env = make_env()
+    runner = getattr(env, "base_env", env)
+    xpos = runner.sim.bind("xpos")
+    td = env.reset()
+    heights = []
+    for _ in range(60):
+        td["action"] = 3 * (2 * torch.rand(*env.batch_size, 6) - 1)
+        _, td = env.step_and_maybe_reset(td)
+        computed = runner._torso_position().copy()
+        runner.sim.forward(stage=STAGE_POS)
+        assert np.array_equal(computed, xpos[:, runner._torso])
+        heights.append(computed[:, 2])
+    assert np.ptp(np.concatenate(heights)) > 0.3  # the torsos rose and fell, not one pose
 
 
 @pytest.mark.parametrize(("name", "gym_id"), [("half_cheetah_dir", "HalfCheetah-v5"),
