@@ -204,6 +204,8 @@ def gaussian_rollouts(make_env, per_task: bool, fast: bool, steps: int = 12) -> 
     tasks = (0.75 + 0.25 * torch.rand(3, 1, width)).expand(3, 2, width)  # in every family's box
     net = GaussianMLP(env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1],
                       (16,))
+    with torch.no_grad():  # a scale other than 1, which the log-densities then carry
+        net.log_std.copy_(torch.linspace(-0.6, 0.3, net.log_std.numel()))
     params = None
     if per_task:
         params = TensorDict.from_module(net).detach().expand(3).clone()
