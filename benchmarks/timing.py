@@ -8,6 +8,9 @@ and writes its table into its section of the docs pages it names.
   taking turns in one session, so that a shared machine's slow spells fall on all alike: the way
   two forms are compared), with :func:`reference_product_ms`, a yardstick of the machine's speed,
   taken between turns;
+* what a row's time is made of: :func:`instrument` splits a meta-iteration into its
+  :data:`PHASES` (``phases: true``), :func:`replayed_physics` is a rollout's physics floor (the
+  ``physics`` rows) and :func:`products_ms` its matrix products' floor (``products: true``);
 * tables: :func:`markdown_table` and :func:`write_section`, which replaces a section of a page
   (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables, its command, the
   date and the machine (the studies in ``studies/`` write their pages with it too).
@@ -26,12 +29,17 @@ import sys
 import time
 import traceback
 from collections.abc import Callable, Iterable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
 
 if TYPE_CHECKING:
+    from tensordict import TensorDictBase
+
+    from armeta_rl.collectors.episodes import EpisodeCollector
+    from armeta_rl.rl.policy import GaussianMLP
     from armeta_rl.trainers.game import GameTrainer
     from armeta_rl.trainers.players import Players
 
@@ -80,33 +88,91 @@ def as_trained() -> None:
     torch.manual_seed(0)
 
 
+ROLLOUT_SEED = 0
+"""The seed of torch's generator at every ``rollout`` call (:func:`seeded_rollout`)."""
+
+
 def timed_call(call: str, trainer: GameTrainer, players: Players) -> Callable[[], object]:
     """What a row times: ``iteration``, a meta-iteration; ``rollout``, one collection of the
     meta-batch's tasks drawn from p0 with the leader's policy (the unit an iteration is made
-    of); ``physics``, the env's physics alone for an episode's steps (a MuJoCo Warp env's
-    ``sim.step``: no policy, no TorchRL, the ceiling of ``rollout``)."""
+    of), the same one at every call (:func:`seeded_rollout`); ``physics``, the physics of that
+    rollout alone (:func:`replayed_physics`), the floor of ``rollout``'s time."""
     if call == "iteration":
         return trainer.train_iteration
-    collector, tasks = players.leader.collector, trainer.options.meta_batch
-    if call == "rollout":
-        drawn = players.initial.sample(tasks)
-        return lambda: collector.collect(drawn, None, policy=players.leader.net)
-    env = collector.env(tasks)
-    return lambda: [env.sim.step(env.frame_skip) for _ in range(collector.max_steps)]
+    collector = players.leader.collector
+    collect = partial(seeded_rollout, collector, players.initial.sample(trainer.options.meta_batch),
+                      players.leader.net)
+    return collect if call == "rollout" else replayed_physics(collector, collect)
+
+
+def seeded_rollout(collector: EpisodeCollector, tasks: TensorDictBase, net: GaussianMLP
+                   ) -> TensorDictBase:
+    """``collector``'s collection of ``tasks`` with the policy ``net``, torch's generator seeded
+    with :data:`ROLLOUT_SEED` first: the same start states and actions at every call, so that
+    every call meets the same contacts (a MuJoCo step's cost depends on the state)."""
+    torch.manual_seed(ROLLOUT_SEED)
+    return collector.collect(tasks, None, policy=net)
+
+
+def replayed_physics(collector: EpisodeCollector, collect: Callable[[], TensorDictBase]
+                     ) -> Callable[[], None]:
+    """The physics of the rollout ``collect`` returns (:func:`seeded_rollout`) alone: the
+    collector's env (a batched MuJoCo env, or a MuJoCo Warp env) reset to that rollout's start
+    (the collector reseeds its env from torch's generator, then resets it on the tasks:
+    ``EpisodeCollector.collect``), then stepped with its actions, ``frame_skip`` bare
+    ``mj_step`` calls a step (``sim.step`` with no forward stage after them; on MuJoCo Warp its
+    kernels), on the same MjModels, simulations and threads: no policy, no observation, no
+    reward, no forward pass for the observation, no TorchRL. The simulations follow the
+    rollout's trajectories, so the floor meets the contacts the rollout meets; an episode that
+    ends early (a fall) is not reset as the rollout resets it, and goes on from where it ended
+    under the actions the rollout gave its restart."""
+    from tensordict import TensorDict
+
+    from armeta_rl.envs.batched_mujoco import STAGE_NONE
+    from armeta_rl.tasks.protocol import TASK_KEY
+
+    rollout = collect()
+    env = collector.env(rollout.batch_size[0])
+    shape, base = env.batch_size, getattr(env, "base_env", env)
+    torch.manual_seed(ROLLOUT_SEED)
+    env.set_seed(int(torch.randint(0, 2**62, ())))
+    identifiers = rollout[TASK_KEY][..., 0, :].to(env.device)
+    env.reset(TensorDict({TASK_KEY: identifiers}, shape, device=env.device))
+    sim = base.sim
+    qpos, qvel, ctrl = (sim.bind(name) for name in ("qpos", "qvel", "ctrl"))
+    state = base._snapshot(qpos), base._snapshot(qvel)
+    actions = [base._as_sim(action.reshape(base.n_sims, -1))
+               for action in rollout["action"].unbind(len(shape))]
+
+    def replay() -> None:
+        sim.reset(stage=STAGE_NONE)
+        qpos[:], qvel[:] = state
+        sim.forward(stage=base.stage)
+        for action in actions:
+            ctrl[:] = action
+            sim.step(nstep=base.frame_skip, stage=STAGE_NONE)
+
+    return replay
 
 
 # -- timing -------------------------------------------------------------------------------------
 
+CLOCK_SOURCE: list[Callable[[], float]] = [time.perf_counter]
+"""The clock every timing reads: wall seconds, or this process's CPU seconds
+(``time.process_time``, ``--cpu-time``: on a machine shared with other work, the time spent
+waiting for a core is left out)."""
+
+
 def wall_times(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
-    """Wall seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed
-    calls."""
+    """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls, on
+    :data:`CLOCK_SOURCE` (wall seconds unless ``--cpu-time``)."""
     for _ in range(warmup):
         fn()
     times: list[float] = []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start = CLOCK_SOURCE[0]()
         fn()
-        times.append(time.perf_counter() - start)
+        times.append(CLOCK_SOURCE[0]() - start)
     return times
 
 
@@ -149,6 +215,115 @@ def reference_product_ms(repeats: int = 5) -> float:
     (a shared machine has fast and slow spells)."""
     activations, weights = torch.randn(16, 190, 128), torch.randn(16, 128, 128)
     return 1000 * statistics.median(wall_times(lambda: torch.bmm(activations, weights), repeats))
+
+
+PRODUCTS = {"aten::mm": 2, "aten::bmm": 2, "aten::addmm": 3, "aten::baddbmm": 3,
+            "aten::addmv": 3, "aten::mv": 2, "aten::dot": 2}
+"""The matrix-product kernels and their number of tensor arguments."""
+
+
+def products_ms(fn: Callable[[], object], calls: int) -> float:
+    """Milliseconds per call of ``fn`` that its matrix products take when replayed alone: every
+    product kernel (:data:`PRODUCTS`) run by ``calls`` calls is recorded with its operand shapes
+    (``torch.profiler``), then each distinct one is timed by itself (the median of 20, after 3)
+    on fresh contiguous float32 operands of those shapes and counted as often as it ran. A floor
+    for the computation on this machine (the same products at the same sizes, nothing between
+    them); the profiler's own times are not used: recording inflates them."""
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as profiler:
+        for _ in range(calls):
+            fn()
+    seconds = 0.0
+    for event in profiler.key_averages(group_by_input_shape=True):
+        if event.key in PRODUCTS:
+            operands = [torch.randn(shape) for shape in event.input_shapes[:PRODUCTS[event.key]]]
+            product = getattr(torch.ops.aten, event.key.split("::")[1])
+            seconds += statistics.median(wall_times(lambda p=product, o=operands: p(*o), 20, 3)
+                                         ) * event.count
+    return 1000 * seconds / calls
+
+
+# -- phases: where a meta-iteration's time goes ------------------------------------------------
+
+PHASES = ("rollout", "GAE", "baseline fit", "inner step", "surrogate gradient", "TRPO HVP",
+          "line search", "adversary", "other")
+"""The phases of a meta-RL iteration a row's time is split into (:func:`instrument`)."""
+
+
+class PhaseClock:
+    """Exclusive wall time of nested phases: entering a phase pauses the phase it runs inside,
+    so that each second is charged to the innermost phase open."""
+
+    def __init__(self) -> None:
+        self.open: list[list] = []  # [seconds by phase, phase, since]
+
+    def enter(self, seconds: dict[str, float], phase: str) -> None:
+        now = CLOCK_SOURCE[0]()
+        if self.open:
+            outer = self.open[-1]
+            outer[0][outer[1]] += now - outer[2]
+        self.open.append([seconds, phase, now])
+
+    def leave(self) -> None:
+        now = CLOCK_SOURCE[0]()
+        seconds, phase, since = self.open.pop()
+        seconds[phase] += now - since
+        if self.open:
+            self.open[-1][2] = now
+
+
+CLOCK = PhaseClock()
+
+
+def in_phase(fn: Callable, phase: str, seconds: dict[str, float] | None = None) -> Callable:
+    """``fn`` charging its exclusive wall time to ``phase`` of ``seconds`` (by default: of the
+    row whose call is open; outside any row's call ``fn`` runs untimed)."""
+    def call(*args: object, **kwargs: object) -> object:
+        target = seconds if seconds is not None else CLOCK.open[-1][0] if CLOCK.open else None
+        if target is None:
+            return fn(*args, **kwargs)
+        CLOCK.enter(target, phase)
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            CLOCK.leave()
+
+    call.phase = phase
+    return call
+
+
+def instrument(trainer: GameTrainer, players: Players) -> None:
+    """Split a meta-RL row's time into :data:`PHASES`: the collector's ``collect`` (rollout),
+    the leader's ``advantages`` (GAE, the linear baseline's fit apart), ``inner_step``,
+    ``surrogate_gradient``, ``kl_hessian_product`` with the conjugate gradient's products
+    (TRPO HVP) and the line search, and the risk principle's ``propose``, ``weights`` and
+    ``update`` (adversary: the flow, the predictive model); the rest of the iteration is
+    ``other``. A method a leader lacks is left out (its time counts where it runs)."""
+    from armeta_rl.learners import maml_trpo
+    from armeta_rl.rl import baseline
+
+    leader = players.leader
+    methods = [(leader.collector, "collect", "rollout"), (leader, "advantages", "GAE"),
+               (leader, "inner_step", "inner step"),
+               (leader, "surrogate_gradient", "surrogate gradient"),
+               (leader, "kl_hessian_product", "TRPO HVP"),
+               *((trainer.principle, name, "adversary") for name in ("propose", "weights",
+                                                                      "update"))]
+    functions = [(baseline, "baseline_values", "baseline fit"),
+                 (maml_trpo, "trust_region_step", "TRPO HVP"),
+                 (maml_trpo, "backtracking_line_search", "line search")]
+    for owner, name, phase in [*methods, *functions]:
+        fn = getattr(owner, name, None)
+        if fn is not None and getattr(fn, "phase", None) is None:
+            setattr(owner, name, in_phase(fn, phase))
+
+
+def phase_cells(seconds: dict[str, float], calls: int) -> list[str]:
+    """A row's ms per call in each of :data:`PHASES` and its share of the row's time."""
+    total = sum(seconds.values()) or 1.0
+    return [f"{1000 * seconds[phase] / calls:.0f} ({100 * seconds[phase] / total:.0f} %)"
+            for phase in PHASES]
 
 
 # -- tables and sections ------------------------------------------------------------------------
@@ -208,7 +383,7 @@ def write_section(name: str, title: str, body: str, page: Path, command: str | N
 # -- a comparison: groups of rows in turns ------------------------------------------------------
 
 def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: str | None,
-               compiling: bool, warmup: int,
+               compiling: bool, warmup: int, phases: dict[str, dict[str, float]] | None = None,
                ) -> tuple[dict[str, Callable[[], object]], dict[str, tuple[float, str] | str]]:
     """A group's rows built and warmed up (``warmup`` calls), each with its warm-up's seconds and
     notes (its peak GPU memory on CUDA), or why it did not run: ``skipped: no CUDA`` for a row
@@ -216,7 +391,8 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
     still run). A row is a list of config overrides (a meta-iteration), or ``{call: ...,
     overrides: [...]}`` (:func:`timed_call`); its config is the comparison's ``base``, the
     group's size and base, the row's overrides and ``last``, with ``cuda`` read as ``cuda_as``
-    where given; rows that compile are left out unless ``compiling``."""
+    where given; rows that compile are left out unless ``compiling``. With ``phases``, each
+    row's calls after the warm-up are split into :data:`PHASES` there (:func:`instrument`)."""
     sized = [f"{key}={n}" for key, n in zip(SIZE_KEYS, group["size"].split("x"), strict=True)
              ] if "size" in group else []
     rows, warm = {}, {}
@@ -238,9 +414,15 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
             fn = timed_call(row.get("call", "iteration"), trainer, players)
             cuda = torch.cuda.is_initialized()
             rows[label] = (lambda fn=fn: (fn(), torch.cuda.synchronize())) if cuda else fn
+            if phases is not None:
+                instrument(trainer, players)
+                phases[label] = dict.fromkeys(PHASES, 0.0)
+                rows[label] = in_phase(rows[label], "other", phases[label])
             if cuda:
                 torch.cuda.reset_peak_memory_stats()
             seconds = sum(wall_times(rows[label], warmup, warmup=0))
+            if phases is not None:  # the warm-up's calls do not count
+                phases[label].update(dict.fromkeys(PHASES, 0.0))
             warm[label] = (seconds, f"peak GPU {torch.cuda.max_memory_allocated() / 2**20:,.0f} "
                            "MiB in the warm-up " if cuda else "")
         except Exception as error:  # noqa: BLE001 — one failed row must not stop the others
@@ -298,6 +480,13 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
                         "overrides; writes no section")
     parser.add_argument("--cuda-as", help="run the rows written for CUDA on this device instead")
     parser.add_argument("--no-doc", action="store_true", help="print the table only")
+    parser.add_argument("--label", help="write the table as a section of its own, NAME@LABEL, "
+                        "titled with LABEL (e.g. the code revision measured: a run of older "
+                        "code beside the current one)")
+    parser.add_argument("--cpu-time", action="store_true",
+                        help="time this process's CPU seconds instead of wall seconds")
+    parser.add_argument("--docs", type=Path, default=DOCS,
+                        help="the folder of the pages written (default: this checkout's docs/)")
     args, overrides = parser.parse_known_args(argv)
     if min(args.rounds, args.calls) < 1:
         parser.error(f"--rounds and --calls must be at least 1, got {args.rounds}, {args.calls}")
@@ -305,16 +494,18 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
         args.rounds = args.calls = args.warmup = 1
         args.no_doc = True
     compiling = args.compile or (spec.get("compile") != "opt-in" and not args.no_compile)
+    CLOCK_SOURCE[0] = time.process_time if args.cpu_time else time.perf_counter
     last = [*overrides, *(spec.get("tiny", []) if args.tiny else [])]
     as_trained()
     table, marks_seen, body = [], [], ""
     for group in spec["groups"]:
         if args.benchmarks and group["benchmark"] not in args.benchmarks:
             continue
+        phases: dict[str, dict[str, float]] | None = {} if spec.get("phases") else None
         built, warm = group_rows(group, spec.get("base", []), last, args.cuda_as, compiling,
-                                 args.warmup)
-        if len(warm) < min(2, len(group["rows"])):
-            continue  # a group left without a row to compare
+                                 args.warmup, phases)
+        if len(warm) < (1 if spec.get("products") else min(2, len(group["rows"]))):
+            continue  # a group left without a row to compare (or, timing products, to time)
         rows, grown = growth_tracked(built) if spec.get("memory") else (built, {})
         turns, marks = in_turns(rows, args.calls, args.rounds, reference_product_ms
                                 ) if rows else ({}, {})
@@ -325,8 +516,14 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
         first = next(iter(medians.values()), [])
         shown = group_label(group, args.tiny)
         for label, note in warm.items():
+            split = [] if phases is None else ["–"] * len(PHASES) if label not in rows else \
+                phase_cells(phases[label], args.rounds * args.calls)
+            if spec.get("products"):
+                floor = products_ms(built[label], args.calls) if label in rows else None
+                split.insert(0, "–" if floor is None else f"{floor:.1f} ("
+                             f"{100 * floor / (1000 * statistics.median(medians[label])):.0f} %)")
             if label not in rows:
-                table.append((shown, label, *["–"] * 5, note))
+                table.append((shown, label, *["–"] * 5, note, *split))
                 continue
             quick = [t for mark, turn in zip(marks[label], turns[label]) if mark <= fast
                      for t in turn]
@@ -335,11 +532,13 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
                           f"{1000 * statistics.median(quick):.1f}" if quick else "–",
                           ratio_cell(medians[label], first), f"{note[0]:.1f}", (note[1] + (
                               f"resident set {grown[label]:+,.0f} MiB over the turns"
-                              if label in grown else "")).strip() or "–"))
+                              if label in grown else "")).strip() or "–", *split))
             print(" | ".join(table[-1]), flush=True)
         body = turns_body(spec, args, marks_seen, table)
         for page in [] if args.no_doc else spec["pages"]:
-            write_section(name, spec["title"], body, DOCS / page)
+            write_section(f"{name}@{args.label}" if args.label else name,
+                          f"{spec['title']}, {args.label}" if args.label else spec["title"],
+                          body, args.docs / page)
     print(body)
     return body
 
@@ -348,15 +547,24 @@ def turns_body(spec: dict, args: argparse.Namespace, marks: list[float], table: 
     """A comparison's section body: what it times and how, and its table."""
     yardstick = (f", median {statistics.median(marks):.2f} ms, range {min(marks):.2f}–"
                  f"{max(marks):.2f} ms" if marks else "")
-    return (f"{spec['about']} Per row: {args.warmup} warm-up calls (their seconds in the "
+    clock = "this process's CPU time (`--cpu-time`)" if args.cpu_time else "wall time"
+    return (f"{spec['about']} Times are {clock}. Per row: {args.warmup} warm-up calls (their "
+            "seconds in the "
             f"last-but-one column, compiles included), then {args.rounds} rounds of {args.calls} "
             "calls, the rows of a benchmark taking turns (`timing.compare_in_turns`); ms: median "
             "of the turn medians; fast-spell: the turns whose machine yardstick "
             f"(`timing.reference_product_ms`{yardstick}) was at most the benchmark's lower "
-            "quartile; ratio: the row's turn over the first row's turn of the same round.\n\n"
+            "quartile; ratio: the row's turn over the first row's turn of the same round."
+            + (" Phases (`timing.instrument`): a row's ms per call in each phase of its timed "
+               "calls (each second charged to the innermost phase running) and its share of "
+               "the row's time." if spec.get("phases") else "")
+            + (" Products: the ms a call's matrix products take replayed alone "
+               "(`timing.products_ms`, one turn's calls recorded after the turns), and their "
+               "share of the row's median." if spec.get("products") else "") + "\n\n"
             + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
                               "× first row (median, range)", f"first {args.warmup} calls s",
-                              "notes"), table))
+                              "notes", *(["products ms (share)"] if spec.get("products") else []),
+                              *(PHASES if spec.get("phases") else ())), table))
 
 
 def main(argv: Sequence[str]) -> None:

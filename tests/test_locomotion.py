@@ -21,7 +21,7 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 from armeta_rl.config import validate
 from armeta_rl.envs.ant_goal import AntGoalEnv
-from armeta_rl.envs.batched_mujoco import GYM_ASSETS, load_gym_model
+from armeta_rl.envs.batched_mujoco import GYM_ASSETS, STAGE_POS, load_gym_model
 from armeta_rl.envs.locomotion import (
     AntDirEnv,
     HalfCheetahDirEnv,
@@ -118,6 +118,33 @@ def test_every_simulation_equals_a_hand_computation_with_its_own_task(name):
     assert (td["params"] == tasks[:, None, None]).all()
 
 
+@pytest.mark.parametrize("make_env", [
+    lambda: HalfCheetahVelEnv((4, 3), max_steps=25, seed=3),
+    lambda: Walker2dVelEnv((4, 3), max_steps=25, seed=3),
+    lambda: physics_task_env(Walker2dVelEnv, [MASS_SCALE], batch_size=(4, 3), max_steps=25,
+                             seed=3),
+], ids=["half_cheetah_vel", "walker2d_vel", "walker2d_mass_vel"])
+def test_the_torso_position_is_mujocos_forward_kinematics_bit_for_bit(make_env):
+    """The torso position the observation carries, computed from the root sliders' qpos with no
+    kinematics pass after a step, is MuJoCo's forward kinematics of the batch at the same state
+    (``mj_kinematics``, through the batch's ``forward``) bit for bit, at every step of random
+    actions beyond the control range (the walkers fall) and through the resets of truncation."""
+    torch.manual_seed(0)
+    env = make_env()
+    runner = getattr(env, "base_env", env)
+    xpos = runner.sim.bind("xpos")
+    td = env.reset()
+    heights = []
+    for _ in range(60):
+        td["action"] = 3 * (2 * torch.rand(*env.batch_size, 6) - 1)
+        _, td = env.step_and_maybe_reset(td)
+        computed = runner._torso_position().copy()
+        runner.sim.forward(stage=STAGE_POS)
+        assert np.array_equal(computed, xpos[:, runner._torso])
+        heights.append(computed[:, 2])
+    assert np.ptp(np.concatenate(heights)) > 0.3  # the torsos rose and fell, not one pose
+
+
 @pytest.mark.parametrize(("name", "gym_id"), [("half_cheetah_dir", "HalfCheetah-v5"),
                                               ("walker2d_vel", "Walker2d-v5")])
 def test_dynamics_equal_gymnasium_v5(name, gym_id):
@@ -177,6 +204,8 @@ def gaussian_rollouts(make_env, per_task: bool, fast: bool, steps: int = 12) -> 
     tasks = (0.75 + 0.25 * torch.rand(3, 1, width)).expand(3, 2, width)  # in every family's box
     net = GaussianMLP(env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1],
                       (16,))
+    with torch.no_grad():  # a scale other than 1, which the log-densities then carry
+        net.log_std.copy_(torch.linspace(-0.6, 0.3, net.log_std.numel()))
     params = None
     if per_task:
         params = TensorDict.from_module(net).detach().expand(3).clone()

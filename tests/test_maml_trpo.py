@@ -260,6 +260,8 @@ def test_gaussian_actor_equals_the_probabilistic_actor(batch, per_task) -> None:
     random: the same keys, the same values bit for bit from the same draws, and the same RNG
     state after."""
     net = GaussianMLP()
+    with torch.no_grad():
+        net.log_std.copy_(torch.tensor([-0.7, 0.4]))  # a scale other than 1 enters the density
     params = None
     if per_task:
         params = TensorDict.from_module(net).detach().expand(batch[0]).clone()

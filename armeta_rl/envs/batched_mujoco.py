@@ -45,8 +45,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from armeta_rl.errors import ConfigError
-from armeta_rl.rl.policy import GaussianMLP
-from armeta_rl.rl.policy import act as policy_act
+from armeta_rl.rl.policy import GaussianMLP, action_log_density, draw
 from armeta_rl.tasks.distributions import TaskEnvMixin
 from armeta_rl.tasks.protocol import FORWARD_REWARD, TASK_KEY
 
@@ -370,10 +369,12 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         machinery (a TensorDict built, checked and stepped through per step), which costs a
         large share of a small batch's physics.
 
-        Each step the policy acts (:func:`~armeta_rl.rl.policy.act`: the actor's draws from
-        torch's RNG) on the observation, :meth:`_advance` steps the simulations, and the
-        episodes that ended are reset between steps as TorchRL's automatic partial reset resets
-        them (:meth:`_reset` of the done entries, never after the last step).
+        Each step the policy draws its action (:func:`~armeta_rl.rl.policy.draw`: the actor's
+        draws from torch's RNG) on the observation, :meth:`_advance` steps the simulations, and
+        the episodes that ended are reset between steps as TorchRL's automatic partial reset
+        resets them (:meth:`_reset` of the done entries, never after the last step). The
+        actions' log-densities, elementwise arithmetic, are taken once over the whole rollout
+        (:func:`~armeta_rl.rl.policy.action_log_density`), the actor's values per step.
 
         Returns a TensorDict ``[*batch_size, steps]`` with ``"observation"``, ``"params"``,
         ``"loc"``, ``"scale"``, ``"action"``, ``"action_log_prob"`` and ``"next"``:
@@ -387,9 +388,10 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         observation = self._observation()
         acted, moved = [], []
         for t in range(n_steps):
-            acted.append({"observation": observation,
-                          **policy_act(net, named, observation, per_task)})
-            outputs = self._advance(acted[-1]["action"])
+            loc, scale, action = draw(net, named, observation, per_task)
+            acted.append({"observation": observation, "loc": loc, "scale": scale,
+                          "action": action})
+            outputs = self._advance(action)
             observation = outputs["observation"] = self._observation()
             moved.append(outputs)
             done = outputs["done"]
@@ -401,6 +403,10 @@ class BatchedMujocoEnv(TaskEnvMixin, EnvBase):
         task = task.expand(*batch, n_steps, task.shape[-1])
         rollout = TensorDict({key: torch.stack([step[key] for step in acted], dim)
                               for key in acted[0]}, [*batch, n_steps], device=self.device)
+        # the scale is the same at every step: its log too, taken once at a step's shape
+        log_scale = acted[0]["scale"].log().unsqueeze(dim)
+        rollout["action_log_prob"] = action_log_density(rollout["loc"], rollout["scale"],
+                                                        rollout["action"], log_scale)
         rollout["next"] = TensorDict({key: torch.stack([step[key] for step in moved], dim)
                                       for key in moved[0]}, [*batch, n_steps],
                                      device=self.device)

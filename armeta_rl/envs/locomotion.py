@@ -24,8 +24,9 @@ time limit).
 Observation (20 values), as the references' ``_get_obs``: ``qpos[1:]`` (root height, pitch and
 the 6 joint angles), ``qvel`` (Walker2d: clipped to ±10), and the torso position ``xpos`` (3).
 The references read ``xpos`` right after ``mj_step``, where it still describes the start of the
-last substep; here it is computed at the new state (forward kinematics after the step), as
-:class:`~armeta_rl.envs.ant_goal.AntGoalEnv` does. The dynamics are ``mj_step``'s exactly.
+last substep; here it is the torso's position at the new state, as forward kinematics after the
+step computes it (and as :class:`~armeta_rl.envs.ant_goal.AntGoalEnv` reads it), taken from the
+root sliders' qpos in MuJoCo's own operations. The dynamics are ``mj_step``'s exactly.
 
 Models: ``half_cheetah.xml`` (HalfCheetah-v5: time step 0.01 s, frame skip 5, dt = 0.05 s) and
 ``walker2d_v5.xml`` (Walker2d-v5, both feet of friction 1.9: time step 0.002 s, frame skip 4,
@@ -77,12 +78,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import mujoco
 import numpy as np
 import torch
 
 from armeta_rl.envs.ant_goal import AntTaskEnv
 from armeta_rl.envs.batched_mujoco import (
-    STAGE_POS,
+    STAGE_NONE,
     BatchedMujocoEnv,
     check_arguments,
     common_checks,
@@ -105,7 +107,11 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
 
     xml: str = ""
     velocity_clip: float = np.inf  # |qvel| observed at most (Walker2d: 10)
-    stage = STAGE_POS  # forward kinematics at the new state: the torso's xpos
+    stage = STAGE_NONE  # the torso's xpos is the root sliders' qpos (_torso_position)
+    torso_from_qpos = True
+    """The torso's position is computed from the root's qpos (:meth:`_torso_position`, with no
+    forward kinematics after a step), or, where ``False`` (MuJoCo Warp), read from the
+    simulations' ``xpos`` after forward kinematics at the new state (``stage = STAGE_POS``)."""
     alive_bonus: float = 0.0  # reward for every step (Walker2d: 1)
 
     def __init__(
@@ -127,6 +133,7 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         self.ctrl_cost_weight = float(ctrl_cost_weight)
         model = load_gym_model(self.xml)
         self._torso = model.body(TORSO).id
+        self._torso_origin, self._sliders = planar_root(model, self._torso)
         super().__init__(model, batch_size, max_steps, frame_skip, reset_noise_scale, threads,
                          seed, device, require_identifiers)
 
@@ -134,15 +141,30 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         return self.model.nq - 1 + self.model.nv + 3
 
     def _bind_outputs(self) -> None:
-        self._xpos = self.sim.bind("xpos")
+        if not self.torso_from_qpos:
+            self._xpos = self.sim.bind("xpos")
 
     def _observe(self) -> np.ndarray:
         """Fill the observation buffer ``[n_sims, 20]``: qpos[1:], clipped qvel, torso xpos."""
         nq, nv, obs = self.model.nq, self.model.nv, self._obs
         obs[:, : nq - 1] = self._qpos[:, 1:]
         obs[:, nq - 1 : nq - 1 + nv] = self._qvel.clip(-self.velocity_clip, self.velocity_clip)
-        obs[:, nq - 1 + nv :] = self._xpos[:, self._torso]
+        obs[:, nq - 1 + nv :] = (self._torso_position() if self.torso_from_qpos
+                                 else self._xpos[:, self._torso])
         return obs
+
+    def _torso_position(self) -> np.ndarray:
+        """The torso's world position ``[n_sims, 3]`` at the current qpos, as MuJoCo's forward
+        kinematics computes it (``mj_kinematics``): the torso's body position moved by the x
+        slider, then by the z slider, each along its unit axis by its qpos less its qpos0 (the
+        pitch hinge turns the torso about its own origin, which it leaves in place). The same
+        floating-point operations, so the same bits (``tests/test_locomotion.py``), without a
+        kinematics pass over every body after each step."""
+        qpos, qpos0 = self._qpos, self.model.qpos0
+        position = self._torso_origin
+        for address, axis in self._sliders:
+            position = position + axis * (qpos[:, address : address + 1] - qpos0[address])
+        return position
 
     def forward_velocity(self, qpos_before: np.ndarray) -> np.ndarray:
         """``(x' − x) / dt`` ``[n_sims]``: the root's mean forward velocity over the step."""
@@ -157,6 +179,26 @@ class PlanarRunnerEnv(BatchedMujocoEnv):
         """The task's term (the subclass's :meth:`_forward_reward`) − ``ctrl_cost_weight·‖a‖²`` +
         :attr:`alive_bonus`."""
         return self._forward_reward(qpos_before, task) - self.ctrl_cost(action) + self.alive_bonus
+
+
+def planar_root(model: mujoco.MjModel, torso: int
+                ) -> tuple[np.ndarray, list[tuple[int, np.ndarray]]]:
+    """The torso's body position and its root sliders (qpos address, unit axis), of a planar
+    runner whose torso hangs from the world by an x slider, a z slider and a pitch hinge at its
+    origin (the module docstring), the structure :meth:`PlanarRunnerEnv._torso_position` reads;
+    ``ValueError`` for a model of another."""
+    joints = range(model.body_jntadr[torso], model.body_jntadr[torso] + model.body_jntnum[torso])
+    kinds = [int(model.jnt_type[j]) for j in joints]
+    sliders = [(int(model.jnt_qposadr[j]), model.jnt_axis[j].copy()) for j in joints[:2]]
+    slide, hinge = mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE
+    unrotated = np.array_equal(model.body_quat[torso], [1, 0, 0, 0])
+    hinge_at_origin = not model.jnt_pos[joints[2]].any()
+    axes = [axis.tolist() for _, axis in sliders]
+    if (model.body_parentid[torso] != 0 or not unrotated or kinds != [slide, slide, hinge]
+            or not hinge_at_origin or axes != [[1, 0, 0], [0, 0, 1]]):
+        raise ValueError("the torso is not a planar runner's root (x slider, z slider, pitch "
+                         "hinge at its origin, hanging from the world unrotated)")
+    return model.body_pos[torso].copy(), sliders
 
 
 def constant_speed_goal_term(goal_velocity: torch.Tensor, steps: int) -> torch.Tensor:

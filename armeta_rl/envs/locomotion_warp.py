@@ -11,6 +11,7 @@ into its own world (``configs/benchmark/*_warp.yaml``). Arguments: the CPU env's
 take and return tensors on that GPU.
 """
 
+from armeta_rl.envs.batched_mujoco import STAGE_POS
 from armeta_rl.envs.locomotion import (
     AntDirEnv,
     HalfCheetahDirEnv,
@@ -23,13 +24,19 @@ from armeta_rl.envs.warp_physics import WarpSimulation
 class HalfCheetahVelWarpEnv(WarpSimulation, HalfCheetahVelEnv):
     """:class:`~armeta_rl.envs.locomotion.HalfCheetahVelEnv` on MuJoCo Warp."""
 
+    stage, torso_from_qpos = STAGE_POS, False  # the torso from the warp kinematics
+
 
 class HalfCheetahDirWarpEnv(WarpSimulation, HalfCheetahDirEnv):
     """:class:`~armeta_rl.envs.locomotion.HalfCheetahDirEnv` on MuJoCo Warp."""
 
+    stage, torso_from_qpos = STAGE_POS, False  # the torso from the warp kinematics
+
 
 class Walker2dVelWarpEnv(WarpSimulation, Walker2dVelEnv):
     """:class:`~armeta_rl.envs.locomotion.Walker2dVelEnv` on MuJoCo Warp."""
+
+    stage, torso_from_qpos = STAGE_POS, False  # the torso from the warp kinematics
 
 
 class AntDirWarpEnv(WarpSimulation, AntDirEnv):

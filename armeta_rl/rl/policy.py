@@ -161,18 +161,42 @@ def make_actor(net: GaussianMLP, params: TensorDictBase | None = None) -> Probab
     )
 
 
-def act(net: GaussianMLP, params: dict[str, Tensor], observation: Tensor, per_task: bool
-        ) -> dict[str, Tensor]:
-    """π's outputs at ``observation``, acting at random: ``"loc"``, ``"scale"``, ``"action"``
-    (drawn as ``loc + scale · ε``, ε from torch's RNG) and ``"action_log_prob"``, under per-task
-    ``params`` ``[K]`` (``per_task``, :func:`loc_scale`) or one set of parameters for all
+LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+"""ln √(2π), the normal density's constant, computed as ``torch.distributions.Normal`` does."""
+
+
+def draw(net: GaussianMLP, params: dict[str, Tensor], observation: Tensor, per_task: bool
+         ) -> tuple[Tensor, Tensor, Tensor]:
+    """π's (loc, scale) at ``observation`` and an action drawn as ``torch.distributions.Normal``'s
+    ``rsample`` draws it, ``loc + ε · scale`` with ε from torch's RNG, under per-task ``params``
+    ``[K]`` (``per_task``, :func:`loc_scale`) or one set of parameters for all
     (:meth:`GaussianMLP.forward_with`)."""
     loc, scale = (loc_scale(net, params, observation) if per_task
                   else net.forward_with(params, observation))
-    normal = torch.distributions.Normal(loc, scale, validate_args=False)
-    action = normal.rsample()
+    noise = torch.empty(loc.shape, dtype=loc.dtype, device=loc.device).normal_()
+    return loc, scale, loc + noise * scale
+
+
+def action_log_density(loc: Tensor, scale: Tensor, action: Tensor, log_scale: Tensor
+                       ) -> Tensor:
+    """ln π(a|s) of a diagonal Gaussian, summed over the action dimension:
+    ``torch.distributions.Normal``'s ``log_prob`` written out, the same operations in the same
+    order, with ``log_scale`` = ``scale.log()`` given (a rollout's is the same at every step)."""
+    return (-((action - loc) ** 2) / (2 * scale**2) - log_scale - LOG_SQRT_2PI).sum(-1)
+
+
+def act(net: GaussianMLP, params: dict[str, Tensor], observation: Tensor, per_task: bool
+        ) -> dict[str, Tensor]:
+    """π's outputs at ``observation``, acting at random: ``"loc"``, ``"scale"``, ``"action"``
+    (:func:`draw`) and ``"action_log_prob"`` (:func:`action_log_density`).
+
+    The draw and the log-density are ``torch.distributions.Normal``'s ``rsample`` and
+    ``log_prob`` written out, the same operations in the same order (the same values bit for
+    bit, ``tests/test_maml_trpo.py``), without building a distribution object at every env step
+    of a rollout, which costs more than the arithmetic."""
+    loc, scale, action = draw(net, params, observation, per_task)
     return {"loc": loc, "scale": scale, "action": action,
-            "action_log_prob": normal.log_prob(action).sum(-1)}
+            "action_log_prob": action_log_density(loc, scale, action, scale.log())}
 
 
 class GaussianActor(PerTaskLocScale):

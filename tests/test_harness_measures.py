@@ -1,0 +1,73 @@
+"""What the benchmark harness (``benchmarks/timing.py``) measures beside a row's time: the phases
+of a meta-iteration charge each second to the innermost phase running, the physics floor of a
+rollout replays that rollout's own trajectories, and the products floor finds the matrix-product
+kernels a call runs."""
+
+from __future__ import annotations
+
+import importlib.util
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+
+from armeta_rl.collectors.episodes import EpisodeCollector
+from armeta_rl.envs.locomotion import HalfCheetahVelEnv
+from armeta_rl.rl.policy import GaussianMLP
+from armeta_rl.tasks import TASK_KEY
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def timing():
+    spec = importlib.util.spec_from_file_location("timing", ROOT / "benchmarks" / "timing.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_each_second_is_charged_to_the_innermost_phase(timing, monkeypatch):
+    """On a clock that the calls advance by hand: a row's call of 1 + 3 + 2 units, whose inner
+    phase takes the 3 (with a nested phase of 1 inside it), splits into other 3, inner step 2,
+    baseline fit 1; outside a row's call an instrumented function runs untimed."""
+    now = [0.0]
+    monkeypatch.setattr(timing, "CLOCK_SOURCE", [lambda: now[0]])
+
+    def advance(units: float) -> None:
+        now[0] += units
+
+    fit = timing.in_phase(lambda: advance(1), "baseline fit")
+    inner = timing.in_phase(lambda: (advance(1), fit(), advance(1)), "inner step")
+    seconds = dict.fromkeys(timing.PHASES, 0.0)
+    row = timing.in_phase(lambda: (advance(1), inner(), advance(2)), "other", seconds)
+    row()
+    assert {phase: s for phase, s in seconds.items() if s} == {
+        "other": 3.0, "inner step": 2.0, "baseline fit": 1.0}
+    inner()
+    assert sum(seconds.values()) == 6.0 and not timing.CLOCK.open
+
+
+def test_the_physics_floor_replays_the_rollout_it_bounds(timing):
+    """The replay resets the simulations to the seeded rollout's start and steps them with its
+    actions: it ends where the rollout ended, bit for bit (no episode of HalfCheetah ends
+    early), and every seeded rollout is the same one."""
+    collector = EpisodeCollector(partial(HalfCheetahVelEnv, threads=1), episodes=3, max_steps=8)
+    tasks = TensorDict({TASK_KEY: torch.tensor([[0.5], [1.5]])}, [2])
+    collect = partial(timing.seeded_rollout, collector, tasks, GaussianMLP(20, 6, (8,)))
+    replay = timing.replayed_physics(collector, collect)
+    first = collect()
+    env = collector.env(2)
+    end = env._qpos.copy(), env._qvel.copy()
+    assert torch.equal(collect()["observation"], first["observation"])
+    replay()
+    assert np.array_equal(env._qpos, end[0]) and np.array_equal(env._qvel, end[1])
+
+
+def test_the_products_floor_finds_the_matrix_products_a_call_runs(timing):
+    a, b = torch.randn(64, 64), torch.randn(8, 64, 64)
+    assert timing.products_ms(lambda: (a + a).tanh().sum(), calls=2) == 0.0
+    assert timing.products_ms(lambda: (a @ a, b @ b), calls=2) > 0.0
