@@ -151,6 +151,8 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
         "[table1 train] done runs/sinusoid_uniform/ar_maml/seed1: 14/14 finished, 0 left"]
     jobs = (table1_dir / ".sweeps" / "table1-train.yaml").read_text()
     assert f"resume={run}" in jobs and jobs.count("overrides") == 1
+    # the resume takes the plan's keys that change no result, and only those
+    assert "trainer.progress=false" in jobs and "seed=" not in jobs
     assert _eval_files(table1_dir) == before
 
 

@@ -80,9 +80,16 @@ WORKER = "armeta_rl.reproduce.progress.SweepWorker"
 def train_job(results: Path, run: TrainRun) -> dict:
     """The sweeper's entry for ``run``: its overrides, or ``resume=`` for an interrupted run (its
     directory holds its config): it continues from its last checkpoint, or starts again from the
-    beginning if it had written none, bit-identical to an uninterrupted run either way."""
-    overrides = ([f"resume={results / run.subdir}"] if interrupted(results, run)
-                 else run.command(results))
+    beginning if it had written none, bit-identical to an uninterrupted run either way. A resume
+    takes the plan's keys that change no result (:data:`~armeta_rl.cli.jobs.NO_RESULT_KEYS`:
+    how often it checkpoints, its progress bar), so a run started before the plan changed them
+    follows the plan's from then on."""
+    from armeta_rl.cli.jobs import NO_RESULT_KEYS
+
+    overrides = run.command(results)
+    if interrupted(results, run):
+        overrides = [f"resume={results / run.subdir}", *(
+            o for o in overrides if o.split("=", 1)[0].lstrip("+") in NO_RESULT_KEYS)]
     return {"name": run.subdir, "overrides": [*overrides, f"hydra.sweep.subdir={run.subdir}"],
             "done": str(results / run.subdir / "eval.json")}
 
