@@ -143,9 +143,12 @@ class AcrobotEnv(IdentifiedSystemEnv):
     def _random_actions(self, steps: int) -> Tensor:
         return torch.randint(0, 3, (steps, *self.batch_size), device=self.device)
 
-    def _dynamics(self, state: Tensor, action: Tensor) -> Tensor:
-        torque = self.available_torque[action.reshape(self.n_envs)]
-        state = self._rk4(state, torque)
+    def _forcing(self, action: Tensor) -> Tensor:
+        """The torque of each action (gymnasium's ``AVAIL_TORQUE[action]``)."""
+        return self.available_torque[self._per_env(action)]
+
+    def _dynamics(self, state: Tensor, forcing: Tensor) -> Tensor:
+        state = self._rk4(state, forcing)
         self._wrap_angles_(state[:2])
         state[2:].clamp_(self.min_velocity, self.max_velocity)
         return state

@@ -166,6 +166,7 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
         )
         self.state_spec = Composite({TASK_KEY: params.clone()}, shape=batch)
         self.action_spec = self._make_action_spec()
+        self._action_rank = len(self.action_spec.shape)  # an action's dims, batch included
         self.reward_spec = Unbounded(shape=(*batch, 1), **kwargs)
         done = Categorical(n=2, shape=(*batch, 1), dtype=torch.bool, device=self.device)
         self.done_spec = Composite(done=done, terminated=done.clone(), shape=batch)
@@ -255,9 +256,23 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
             return rows
         return torch.where(reset.reshape(1, self.n_envs), rows, current)
 
-    def _dynamics(self, state: Tensor, action: Tensor) -> Tensor:
-        """The states after one step ``[state_dim, n_envs]`` from feature-major states and actions
-        (the action spec's shape), under the env's identifiers: the equations of motion."""
+    def _forcing(self, action: Tensor) -> Tensor:
+        """What actions put into the equations of motion, one number per env: ``[*steps,
+        n_envs]`` for actions ``[*steps, *action_shape]`` (the action spec's shape after any
+        leading step dimensions), under the env's identifiers. An elementwise function of each
+        action, so :meth:`transitions` takes the forcing of all its random actions in one call
+        instead of one per step (the same values)."""
+        raise NotImplementedError
+
+    def _per_env(self, action: Tensor) -> Tensor:
+        """Actions ``[*steps, *action_shape]`` as ``[*steps, n_envs]``: one number per env."""
+        steps = action.shape[: action.dim() - self._action_rank]
+        return action.reshape(*steps, self.n_envs)
+
+    def _dynamics(self, state: Tensor, forcing: Tensor) -> Tensor:
+        """The states after one step ``[state_dim, n_envs]`` from feature-major states and the
+        step's forcing ``[n_envs]`` (:meth:`_forcing` of its actions), under the env's
+        identifiers: the equations of motion."""
         raise NotImplementedError
 
     def _reward(self, state: Tensor, action: Tensor, new_state: Tensor) -> Tensor:
@@ -282,7 +297,7 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
         identifiers: the new states, their feature-major observations
         ``[observation_dim, n_envs]``, the rewards ``[n_envs]`` and the terminations
         ``[n_envs, 1]`` (bool)."""
-        new_state = self._physics(state, action)
+        new_state = self._physics(state, self._forcing(action))
         terminated = self._terminated(new_state)
         if terminated is None:
             terminated = torch.zeros((self.n_envs, 1), dtype=torch.bool, device=self.device)
@@ -309,8 +324,9 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
         taken at once), terminated
         entries reset between steps as TorchRL's automatic partial reset resets them (new initial
         states from the env's generator; never after the last step), and the same maths: only the
-        equations of motion (:meth:`_dynamics`) run step by step; the observations, rewards and
-        terminations, elementwise functions of the states, are computed for all steps at once.
+        equations of motion (:meth:`_dynamics`) run step by step; the random actions' forcing
+        (:meth:`_forcing`), and the observations, rewards and terminations, elementwise functions
+        of the actions and the states, are computed for all steps at once.
 
         Returns a TensorDict ``[*batch, steps]`` with ``"observation"``, ``"state"``,
         ``"action"``, ``"params"`` and ``"next"``: ``"observation"``, ``"state"``, ``"reward"``,
@@ -318,6 +334,7 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
         """
         batch, n_steps = self.batch_size, int(steps)
         random = self._random_actions(n_steps) if policy is None else None
+        random_forcing = None if random is None else self._forcing(random)
         state = self._state
         starts, ends, actions = [], [], []
         for t in range(n_steps):
@@ -325,9 +342,10 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
                 observation = self._observe_rows(state).T.reshape(*batch, self.observation_dim)
                 action = policy(TensorDict({"observation": observation}, batch,
                                            device=self.device)).get("action")
+                forcing = self._forcing(action)
             else:
-                action = random[t]
-            new_state = self._physics(state, action)
+                action, forcing = random[t], random_forcing[t]
+            new_state = self._physics(state, forcing)
             starts.append(state)
             ends.append(new_state)
             actions.append(action)

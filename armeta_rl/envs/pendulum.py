@@ -65,6 +65,8 @@ class PendulumEnv(IdentifiedSystemEnv):
 
     def _precompute(self) -> None:
         self.initial_scale = torch.tensor([math.pi, 1.0], dtype=self.dtype, device=self.device)
+        # dt as a 0-dim tensor, as the base class keeps π: cheaper ops than with a Python number
+        self.step_time = torch.tensor(self.dt, dtype=self.dtype, device=self.device)
 
     def _physical_constants(self, params: Tensor) -> Tensor:
         """Per env ``(3g / (2l) dt, 3 / (m l²) dt)``: the velocity change per unit of sin θ
@@ -95,12 +97,17 @@ class PendulumEnv(IdentifiedSystemEnv):
         """The clipped torques ``[n]`` of actions ``[n, 1]`` (or the batch's ``[*batch, 1]``)."""
         return self.torque(action.reshape(-1)).to(self.dtype)
 
-    def _dynamics(self, state: Tensor, action: Tensor) -> Tensor:
-        theta, theta_dot = state
-        gravity, inertia = self.constants  # 3g / (2l) dt and 3 / (m l²) dt
-        new_theta_dot = theta_dot + gravity * theta.sin() + inertia * self._torques(action)
+    def _forcing(self, action: Tensor) -> Tensor:
+        """The velocity change 3 / (m l²) · u · dt of each clipped torque u."""
+        inertia = self.constants[1]  # 3 / (m l²) dt
+        return inertia * self.torque(self._per_env(action)).to(self.dtype)
+
+    def _dynamics(self, state: Tensor, forcing: Tensor) -> Tensor:
+        theta, theta_dot = state.unbind()
+        gravity = self.constants[0]  # 3g / (2l) dt
+        new_theta_dot = theta_dot + gravity * theta.sin() + forcing
         new_theta_dot = new_theta_dot.clamp(-self.max_speed, self.max_speed)
-        new_theta = self._wrap_angles_(theta + new_theta_dot * self.dt)
+        new_theta = self._wrap_angles_(theta + new_theta_dot * self.step_time)
         return torch.stack([new_theta, new_theta_dot])
 
     def _reward(self, state: Tensor, action: Tensor, new_state: Tensor) -> Tensor:
