@@ -342,13 +342,13 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
                 observation = self._observe_rows(state).T.reshape(*batch, self.observation_dim)
                 action = policy(TensorDict({"observation": observation}, batch,
                                            device=self.device)).get("action")
+                actions.append(action)
                 forcing = self._forcing(action)
             else:
-                action, forcing = random[t], random_forcing[t]
+                forcing = random_forcing[t]
             new_state = self._physics(state, forcing)
             starts.append(state)
             ends.append(new_state)
-            actions.append(action)
             state = new_state
             if t < n_steps - 1:
                 terminated = self._terminated(new_state)
@@ -359,7 +359,7 @@ class IdentifiedSystemEnv(TaskEnvMixin, EnvBase):
         # [T, state_dim, n_envs] -> [state_dim, T * n_envs]: every step's states side by side
         start = torch.stack(starts, 1).reshape(self.state_dim, flat)
         end = torch.stack(ends, 1).reshape(self.state_dim, flat)
-        action = torch.stack(actions).reshape(flat, -1)
+        action = (torch.stack(actions) if random is None else random).reshape(flat, -1)
         terminated = self._terminated(end)
         if terminated is None:
             terminated = torch.zeros(flat, dtype=torch.bool, device=self.device)
