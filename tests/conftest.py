@@ -1,10 +1,14 @@
-"""Shared fixtures: one torch thread, and Hydra configs composed as the CLI composes them."""
+"""Shared fixtures: one torch thread, Hydra configs composed as the CLI composes them, and the
+benchmark harness as a module."""
 
 from __future__ import annotations
 
+import importlib.util
 import logging
 import os
 from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
 
 import mujoco
 import pytest
@@ -150,3 +154,14 @@ def moved_players(config: TrainConfig, run_dir) -> dict[str, bool]:
         moved[name] = any(not torch.equal(tensor, after[path])
                           for path, tensor in before.items() if path in after)
     return moved
+
+
+@pytest.fixture(scope="module")
+def timing() -> ModuleType:
+    """``benchmarks/timing.py``, the benchmark harness (a script folder, not a package), loaded
+    as a module for the tests of what it measures and writes."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "timing.py"
+    spec = importlib.util.spec_from_file_location("timing", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

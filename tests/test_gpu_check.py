@@ -15,13 +15,6 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(scope="module")
-def timing():
-    spec = importlib.util.spec_from_file_location("timing", ROOT / "benchmarks" / "timing.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
 
 def table_rows(body: str) -> dict[tuple[str, str], list[str]]:
     """The table's rows by (benchmark, row label): their remaining cells."""

@@ -5,12 +5,9 @@ kernels a call runs."""
 
 from __future__ import annotations
 
-import importlib.util
 from functools import partial
-from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 from tensordict import TensorDict
 
@@ -18,16 +15,6 @@ from armeta_rl.collectors.episodes import EpisodeCollector
 from armeta_rl.envs.locomotion import HalfCheetahVelEnv
 from armeta_rl.rl.policy import GaussianMLP
 from armeta_rl.tasks import TASK_KEY
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="module")
-def timing():
-    spec = importlib.util.spec_from_file_location("timing", ROOT / "benchmarks" / "timing.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_each_second_is_charged_to_the_innermost_phase(timing, monkeypatch):
