@@ -411,6 +411,28 @@ def test_a_pack_value_other_than_true_or_false_gets_one_line_and_exit_code_2(cap
                                        "allowed: true, false\n")
 
 
+def test_a_results_directory_is_claimed_whatever_its_runs_checkpointing(tmp_path):
+    """A results directory swept with ``+train.trainer.checkpoint_every=50`` (a key that changes
+    no result) is claimed by the same command without it, and its manifest keeps the record;
+    one swept with a key that changes results is refused without that key."""
+    from armeta_rl.errors import ConfigError
+    from armeta_rl.reproduce.cli import MANIFEST, claim
+    from armeta_rl.reproduce.plan import make_plan
+
+    plan = make_plan("table1", "tiny")
+    for train, claimed in ((["trainer.checkpoint_every=50"], True),
+                           (["trainer.iterations=3"], False)):
+        results = tmp_path / train[0]
+        results.mkdir()
+        (results / MANIFEST).write_text(
+            f"experiment: table1\nprofile: tiny\ntrain: {train}\nwall_seconds: {{}}\n")
+        if claimed:
+            assert claim(results, plan, ())["train"] == train
+        else:
+            with pytest.raises(ConfigError, match="with \\+train overrides"):
+                claim(results, plan, ())
+
+
 def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_path, monkeypatch,
                                                               capsys):
     code, err = _refusal(monkeypatch, capsys, "cnp_table", "profile=tiny", f"results={table1_dir}")

@@ -103,7 +103,9 @@ def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
     """The results directory's manifest (a new one for a new directory; nothing is written). A
     path that is a file or cannot be written, a manifest that cannot be read, a directory of
     another experiment (unless the plan shares its runs: ``shares_runs_with``), another profile
-    or other ``+train.`` overrides, or a non-empty directory without a manifest, is refused."""
+    or other ``+train.`` overrides of keys that change a result (one of
+    :data:`~armeta_rl.cli.jobs.NO_RESULT_KEYS`, such as how often the runs checkpointed, may be
+    left out or differ), or a non-empty directory without a manifest, is refused."""
     from armeta_rl.trainers.run_dir import check_run_dir
 
     check_run_dir(results, "results")
@@ -115,7 +117,8 @@ def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
             raise ConfigError("results", str(results),
                               f"holds the runs of experiment {manifest['experiment']}, not "
                               f"{plan.experiment}: choose another results directory")
-        if manifest["profile"] != plan.profile or manifest["train"] != list(extra):
+        if manifest["profile"] != plan.profile or (
+                _changing_results(manifest["train"]) != _changing_results(extra)):
             raise ConfigError("results", str(results),
                               f"holds profile {manifest['profile']} with +train overrides "
                               f"{manifest['train']}: choose another results directory")
@@ -125,6 +128,14 @@ def claim(results: Path, plan: Plan, extra: tuple[str, ...]) -> dict:
                           f"is not empty and has no {MANIFEST}: not an {PROG} results directory")
     return {"experiment": plan.experiment, "profile": plan.profile, "train": list(extra),
             "wall_seconds": {}}
+
+
+def _changing_results(train: list[str] | tuple[str, ...]) -> list[str]:
+    """The ``+train.`` overrides of ``train`` whose keys change a result (not one of
+    :data:`~armeta_rl.cli.jobs.NO_RESULT_KEYS`)."""
+    from armeta_rl.cli.jobs import NO_RESULT_KEYS
+
+    return [o for o in train if o.split("=", 1)[0].lstrip("+") not in NO_RESULT_KEYS]
 
 
 def read_manifest(results: Path) -> dict:
