@@ -66,6 +66,11 @@ class RunStopped(RuntimeError):
         return type(self), (str(self), self.code)
 
 
+class RunNotStarted(RunStopped):
+    """A run that never started: its process had been asked to stop before (a later job of a
+    sweep worker that received ``SIGTERM``); the same command starts it."""
+
+
 class CollectionFailed(RuntimeError):
     """A collection worker died or stopped answering; the run stops, keeping its last checkpoint."""
 
@@ -74,12 +79,14 @@ class JobFailed(CompactHydraException):
     """A job of a ``run_list`` sweep stopped with a user error, already printed as one line with
     its exit ``code``. Raised in place of ``SystemExit`` so that Hydra records the job as failed
     and the launcher runs the others (a ``SystemExit`` in a joblib worker aborts the jobs running
-    beside it, losing their work); the sweeper exits with the code once every job ran."""
+    beside it, losing their work); the sweeper exits with the code once every job ran. A job
+    that never started (:class:`RunNotStarted`) printed nothing (``started`` false)."""
 
-    def __init__(self, code: int) -> None:
-        self.code = code
+    def __init__(self, code: int, started: bool = True) -> None:
+        self.code, self.started = code, started
         super().__init__(f"a job of the sweep stopped with exit code {code}; its error is above")
 
-    def __reduce__(self) -> tuple[type, tuple[int]]:
-        """Pickle by the exit code, so that the error comes back from a worker process."""
-        return type(self), (self.code,)
+    def __reduce__(self) -> tuple[type, tuple[int, bool]]:
+        """Pickle by the exit code and whether the job started, so that the error comes back
+        from a worker process."""
+        return type(self), (self.code, self.started)

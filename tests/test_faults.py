@@ -606,15 +606,16 @@ def alive(pid):
 def test_a_stopped_or_killed_sweep_stops_its_workers_with_checkpoints(tmp_path, sig):
     """``armeta-reproduce launcher=local``: SIGTERM to the parent is forwarded to its joblib
     workers, whose runs checkpoint and stop (the parent exits 75); after a SIGKILL of the parent
-    the workers notice it is gone and do the same."""
-    results, err = tmp_path / "results", tmp_path / "stderr"
-    with err.open("w") as stderr:  # a file: the workers would hold a pipe open
+    the workers notice it is gone and do the same. The progress lines say which runs stopped;
+    the jobs the workers had not started yet print nothing (no "FAILED")."""
+    results, err, out = tmp_path / "results", tmp_path / "stderr", tmp_path / "stdout"
+    with err.open("w") as stderr, out.open("w") as stdout:  # files: workers would hold pipes open
         process = subprocess.Popen(
             [sys.executable, "-c", "from armeta_rl.reproduce.cli import main; main()", "noise",
              "profile=tiny", "benchmarks=sinusoid_uniform", "seeds=0", "launcher=local",
              "jobs=2", "+train.trainer.iterations=100000",
              "+train.trainer.checkpoint_every=100000", f"results={results}"],
-            stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True)
+            stdout=stdout, stderr=stderr, start_new_session=True)
     deadline = time.monotonic() + 300
     while len(list(results.glob("runs/*/*/*/config.yaml"))) < 2:  # two runs train
         assert process.poll() is None and time.monotonic() < deadline, err.read_text()
@@ -627,6 +628,10 @@ def test_a_stopped_or_killed_sweep_stops_its_workers_with_checkpoints(tmp_path, 
         assert err.read_text().strip().splitlines()[-1] == (
             "armeta-reproduce: stopped by SIGTERM: the runs in flight wrote checkpoints; the "
             "same command continues the sweep")
+        events = [line.split()[2] for line in out.read_text().splitlines()
+                  if line.startswith("[noise train]")]
+        assert sorted(events) == ["start", "start", "stopped", "stopped"], out.read_text()
+        assert "not started" not in err.read_text()
     else:
         process.wait(timeout=60)
     while any(alive(pid) for pid in workers):

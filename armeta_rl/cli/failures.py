@@ -15,6 +15,7 @@ from armeta_rl.errors import (
     ConfigError,
     JobFailed,
     RunDirectoryError,
+    RunNotStarted,
     RunStopped,
     TrainingDiverged,
 )
@@ -43,9 +44,12 @@ def report_errors(prog: str, task: Callable[[DictConfig], None]) -> Callable[[Di
             if status is None:
                 raise
             code, line = status
-            print(f"{prog}: {line}", file=sys.stderr)
-            if _in_run_list_sweep():
-                raise JobFailed(code) from None
+            in_sweep = _in_run_list_sweep()
+            started = not isinstance(error, RunNotStarted)
+            if started or not in_sweep:  # a sweep's progress says which jobs did not start
+                print(f"{prog}: {line}", file=sys.stderr)
+            if in_sweep:
+                raise JobFailed(code, started) from None
             sys.exit(code)
 
     return wrapped

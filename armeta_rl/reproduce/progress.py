@@ -21,7 +21,8 @@ from hydra.core.utils import JobReturn, JobStatus
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from armeta_rl.preemption import EXIT_PREEMPTED, PROCESS
+from armeta_rl.errors import JobFailed
+from armeta_rl.preemption import EXIT_INTERRUPTED, EXIT_PREEMPTED, PROCESS
 from armeta_rl.reproduce import read_jobs
 
 
@@ -32,7 +33,8 @@ def format_elapsed(seconds: float) -> str:
 
 
 class Progress(Callback):
-    """Print ``[<label>] <event> <job>: <done>/<total> finished, <left> left, <elapsed>``.
+    """Print ``[<label>] <event> <job>: <done>/<total> finished, <left> left, <elapsed>``
+    (events: ``start``, then :func:`job_event`'s).
 
     Args:
         jobs_file: the sweeper's jobs file (each job's ``done`` path).
@@ -58,11 +60,27 @@ class Progress(Callback):
                 f"{total - done} left, elapsed {elapsed}")
 
     def on_job_start(self, config: DictConfig, **kwargs: Any) -> None:
-        print(self.line("start", config), flush=True)
+        if not PROCESS.requested:  # a job of a worker asked to stop does not start
+            print(self.line("start", config), flush=True)
 
     def on_job_end(self, config: DictConfig, job_return: JobReturn, **kwargs: Any) -> None:
-        event = "done" if job_return.status == JobStatus.COMPLETED else "FAILED"
-        print(self.line(event, config), flush=True)
+        event = job_event(job_return)
+        if event is not None:
+            print(self.line(event, config), flush=True)
+
+
+def job_event(job_return: JobReturn) -> str | None:
+    """How a job ended: ``done``, ``stopped`` (a stop signal: it checkpointed, the same command
+    continues it), ``FAILED``, or ``None`` for a job that never started because its worker had
+    been asked to stop. Hydra keeps a failed job's exception as its return value."""
+    if job_return.status == JobStatus.COMPLETED:
+        return "done"
+    error = job_return._return_value
+    if isinstance(error, JobFailed) and not error.started:
+        return None
+    if getattr(error, "code", None) in (EXIT_PREEMPTED, EXIT_INTERRUPTED):
+        return "stopped"
+    return "FAILED"
 
 
 class SweepWorker(Callback):
