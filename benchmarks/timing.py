@@ -319,6 +319,21 @@ def instrument(trainer: GameTrainer, players: Players) -> None:
             setattr(owner, name, in_phase(fn, phase))
 
 
+def beyond_rollouts_cell(row_ms: float, first_ms: float, row_rollout_ms: float,
+                         first_rollout_ms: float) -> str:
+    """A row's cost against the first row's plus the rollouts the row runs beyond it:
+    row / (first + row's rollout − first's rollout). Against MAML this is a method's overhead
+    beside the rollouts its follower needs; against one rollout, an iteration's cost over the
+    rollouts it is made of (each ms per call; the rollouts from the row's phases).
+
+    Examples:
+        >>> from benchmarks.timing import beyond_rollouts_cell
+        >>> beyond_rollouts_cell(2500.0, 1500.0, 1900.0, 950.0)  # 950 ms of extra rollouts
+        '1.02×'
+    """
+    return f"{row_ms / (first_ms + row_rollout_ms - first_rollout_ms):.2f}×"
+
+
 def phase_cells(seconds: dict[str, float], calls: int) -> list[str]:
     """A row's ms per call in each of :data:`PHASES` and its share of the row's time."""
     total = sum(seconds.values()) or 1.0
@@ -515,9 +530,12 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
         medians = {label: [statistics.median(turn) for turn in turns[label]] for label in rows}
         first = next(iter(medians.values()), [])
         shown = group_label(group, args.tiny)
+        timed = args.rounds * args.calls
         for label, note in warm.items():
-            split = [] if phases is None else ["–"] * len(PHASES) if label not in rows else \
-                phase_cells(phases[label], args.rounds * args.calls)
+            split = [] if phases is None else ["–"] * (len(PHASES) + 1) if label not in rows \
+                else [*phase_cells(phases[label], timed), beyond_rollouts_cell(
+                    statistics.median(medians[label]), statistics.median(first),
+                    phases[label]["rollout"] / timed, phases[next(iter(rows))]["rollout"] / timed)]
             if spec.get("products"):
                 floor = products_ms(built[label], args.calls) if label in rows else None
                 split.insert(0, "–" if floor is None else f"{floor:.1f} ("
@@ -557,14 +575,17 @@ def turns_body(spec: dict, args: argparse.Namespace, marks: list[float], table: 
             "quartile; ratio: the row's turn over the first row's turn of the same round."
             + (" Phases (`timing.instrument`): a row's ms per call in each phase of its timed "
                "calls (each second charged to the innermost phase running) and its share of "
-               "the row's time." if spec.get("phases") else "")
+               "the row's time; beyond rollouts: the row's median over the first row's plus "
+               "the rollout time the row spends beyond the first row's "
+               "(`timing.beyond_rollouts_cell`)." if spec.get("phases") else "")
             + (" Products: the ms a call's matrix products take replayed alone "
                "(`timing.products_ms`, one turn's calls recorded after the turns), and their "
                "share of the row's median." if spec.get("products") else "") + "\n\n"
             + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
                               "× first row (median, range)", f"first {args.warmup} calls s",
                               "notes", *(["products ms (share)"] if spec.get("products") else []),
-                              *(PHASES if spec.get("phases") else ())), table))
+                              *((*PHASES, "× first row + its extra rollouts")
+                                if spec.get("phases") else ())), table))
 
 
 def main(argv: Sequence[str]) -> None:

@@ -38,6 +38,18 @@ def test_each_second_is_charged_to_the_innermost_phase(timing, monkeypatch):
     assert sum(seconds.values()) == 6.0 and not timing.CLOCK.open
 
 
+def test_a_row_beyond_its_extra_rollouts_is_its_overhead_over_the_first(timing):
+    """A method that runs the first row's iteration plus two more rollouts is 1.00× beyond its
+    extra rollouts however dear they are, one 10 % dearer than that 1.10×; against one rollout,
+    an iteration of two rollouts and as much arithmetic again reads 2.00×."""
+    maml, rollout = 1500.0, 450.0  # ms per call, MAML's iteration and one rollout
+    assert timing.beyond_rollouts_cell(maml + 2 * rollout, maml, 4 * rollout, 2 * rollout) == (
+        "1.00×")
+    assert timing.beyond_rollouts_cell(1.1 * (maml + 2 * rollout), maml, 4 * rollout,
+                                       2 * rollout) == "1.10×"
+    assert timing.beyond_rollouts_cell(4 * rollout, rollout, 2 * rollout, rollout) == "2.00×"
+
+
 def test_the_physics_floor_replays_the_rollout_it_bounds(timing):
     """The replay resets the simulations to the seeded rollout's start and steps them with its
     actions: it ends where the rollout ended, bit for bit (no episode of HalfCheetah ends
