@@ -28,6 +28,7 @@ import statistics
 import sys
 import time
 import traceback
+from collections import Counter
 from collections.abc import Callable, Iterable, Sequence
 from functools import partial
 from pathlib import Path
@@ -222,25 +223,42 @@ PRODUCTS = {"aten::mm": 2, "aten::bmm": 2, "aten::addmm": 3, "aten::baddbmm": 3,
 """The matrix-product kernels and their number of tensor arguments."""
 
 
-def products_ms(fn: Callable[[], object], calls: int) -> float:
-    """Milliseconds per call of ``fn`` that its matrix products take when replayed alone: every
-    product kernel (:data:`PRODUCTS`) run by ``calls`` calls is recorded with its operand shapes
-    (``torch.profiler``), then each distinct one is timed by itself (the median of 20, after 3)
-    on fresh contiguous float32 operands of those shapes and counted as often as it ran. A floor
-    for the computation on this machine (the same products at the same sizes, nothing between
-    them); the profiler's own times are not used: recording inflates them."""
+PROFILER_DTYPES = {"float": torch.float32, "double": torch.float64, "c10::Half": torch.float16,
+                   "c10::BFloat16": torch.bfloat16}
+"""The profiler's names of the floating dtypes a product may run in."""
+
+
+Product = tuple[str, tuple[tuple[int, ...], ...], tuple[torch.dtype, ...]]
+"""A product kernel's name, its operands' shapes and their dtypes."""
+
+
+def recorded_products(fn: Callable[[], object], calls: int) -> Counter[Product]:
+    """How often ``calls`` calls of ``fn`` run each matrix-product kernel (:data:`PRODUCTS`) at
+    each operand shape and dtype, recorded with ``torch.profiler``."""
     from torch.profiler import ProfilerActivity, profile
 
     with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as profiler:
         for _ in range(calls):
             fn()
+    return Counter(
+        (event.name, tuple(tuple(shape) for shape in event.input_shapes[:PRODUCTS[event.name]]),
+         tuple(PROFILER_DTYPES[dtype] for dtype in event.input_dtypes[:PRODUCTS[event.name]]))
+        for event in profiler.events() if event.name in PRODUCTS)
+
+
+def products_ms(fn: Callable[[], object], calls: int) -> float:
+    """Milliseconds per call of ``fn`` that its matrix products take when replayed alone: every
+    product kernel run by ``calls`` calls (:func:`recorded_products`), each distinct one timed by
+    itself (the median of 20, after 3) on fresh contiguous operands of its shapes and dtypes and
+    counted as often as it ran. A floor for the computation on this machine (the same products
+    at the same sizes and precisions, nothing between them); the profiler's own times are not
+    used: recording inflates them."""
     seconds = 0.0
-    for event in profiler.key_averages(group_by_input_shape=True):
-        if event.key in PRODUCTS:
-            operands = [torch.randn(shape) for shape in event.input_shapes[:PRODUCTS[event.key]]]
-            product = getattr(torch.ops.aten, event.key.split("::")[1])
-            seconds += statistics.median(wall_times(lambda p=product, o=operands: p(*o), 20, 3)
-                                         ) * event.count
+    for (name, shapes, dtypes), count in recorded_products(fn, calls).items():
+        operands = [torch.randn(shape, dtype=dtype) for shape, dtype in zip(shapes, dtypes)]
+        product = getattr(torch.ops.aten, name.split("::")[1])
+        seconds += statistics.median(wall_times(lambda p=product, o=operands: p(*o), 20, 3)
+                                     ) * count
     return 1000 * seconds / calls
 
 

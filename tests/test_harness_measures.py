@@ -67,6 +67,12 @@ def test_the_physics_floor_replays_the_rollout_it_bounds(timing):
 
 
 def test_the_products_floor_finds_the_matrix_products_a_call_runs(timing):
-    a, b = torch.randn(64, 64), torch.randn(8, 64, 64)
+    """Each product kernel with its shapes, its dtypes (the adversary's are float64) and how often
+    the calls ran it; a call without products has a floor of 0."""
+    a, b, c = torch.randn(64, 64), torch.randn(8, 64, 64), torch.randn(5, 3, dtype=torch.float64)
     assert timing.products_ms(lambda: (a + a).tanh().sum(), calls=2) == 0.0
+    assert timing.recorded_products(lambda: (a @ a, b @ b, c.T @ c), calls=2) == {
+        ("aten::mm", ((64, 64), (64, 64)), (torch.float32, torch.float32)): 2,
+        ("aten::bmm", ((8, 64, 64), (8, 64, 64)), (torch.float32, torch.float32)): 2,
+        ("aten::mm", ((3, 5), (5, 3)), (torch.float64, torch.float64)): 2}
     assert timing.products_ms(lambda: (a @ a, b @ b), calls=2) > 0.0
