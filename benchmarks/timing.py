@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 if TYPE_CHECKING:
     from tensordict import TensorDictBase
@@ -223,27 +224,36 @@ PRODUCTS = {"aten::mm": 2, "aten::bmm": 2, "aten::addmm": 3, "aten::baddbmm": 3,
 """The matrix-product kernels and their number of tensor arguments."""
 
 
-PROFILER_DTYPES = {"float": torch.float32, "double": torch.float64, "c10::Half": torch.float16,
-                   "c10::BFloat16": torch.bfloat16}
-"""The profiler's names of the floating dtypes a product may run in."""
-
-
 Product = tuple[str, tuple[tuple[int, ...], ...], tuple[torch.dtype, ...]]
 """A product kernel's name, its operands' shapes and their dtypes."""
 
 
+class ProductCounter(TorchDispatchMode):
+    """Counts the matrix-product kernels (:data:`PRODUCTS`) the ops run under it dispatch, with
+    their operands' shapes and dtypes, backward passes included (the autograd engine dispatches
+    them too). It keeps one counter, not a record per op as ``torch.profiler`` does (whose
+    record of five exact-curvature point-robot iterations outgrew 24 GB)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.seen: Counter[Product] = Counter()
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
+        name = f"aten::{func._overloadpacket.__name__}"
+        if name in PRODUCTS:
+            operands = args[:PRODUCTS[name]]
+            self.seen[name, tuple(tuple(t.shape) for t in operands),
+                      tuple(t.dtype for t in operands)] += 1
+        return func(*args, **(kwargs or {}))
+
+
 def recorded_products(fn: Callable[[], object], calls: int) -> Counter[Product]:
     """How often ``calls`` calls of ``fn`` run each matrix-product kernel (:data:`PRODUCTS`) at
-    each operand shape and dtype, recorded with ``torch.profiler``."""
-    from torch.profiler import ProfilerActivity, profile
-
-    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as profiler:
+    each operand shape and dtype (:class:`ProductCounter`)."""
+    with ProductCounter() as counter:
         for _ in range(calls):
             fn()
-    return Counter(
-        (event.name, tuple(tuple(shape) for shape in event.input_shapes[:PRODUCTS[event.name]]),
-         tuple(PROFILER_DTYPES[dtype] for dtype in event.input_dtypes[:PRODUCTS[event.name]]))
-        for event in profiler.events() if event.name in PRODUCTS)
+    return counter.seen
 
 
 def products_ms(fn: Callable[[], object], calls: int) -> float:
@@ -251,8 +261,8 @@ def products_ms(fn: Callable[[], object], calls: int) -> float:
     product kernel run by ``calls`` calls (:func:`recorded_products`), each distinct one timed by
     itself (the median of 20, after 3) on fresh contiguous operands of its shapes and dtypes and
     counted as often as it ran. A floor for the computation on this machine (the same products
-    at the same sizes and precisions, nothing between them); the profiler's own times are not
-    used: recording inflates them."""
+    at the same sizes and precisions, nothing between them); the recorded calls' own times are
+    not used: recording slows them."""
     seconds = 0.0
     for (name, shapes, dtypes), count in recorded_products(fn, calls).items():
         operands = [torch.randn(shape, dtype=dtype) for shape, dtype in zip(shapes, dtypes)]
@@ -265,7 +275,7 @@ def products_ms(fn: Callable[[], object], calls: int) -> float:
 # -- phases: where a meta-iteration's time goes ------------------------------------------------
 
 PHASES = ("rollout", "GAE", "baseline fit", "inner step", "surrogate gradient", "TRPO HVP",
-          "line search", "adversary", "other")
+          "line search", "leader step", "adversary", "other")
 """The phases of a meta-RL iteration a row's time is split into (:func:`instrument`)."""
 
 
@@ -312,12 +322,14 @@ def in_phase(fn: Callable, phase: str, seconds: dict[str, float] | None = None) 
 
 
 def instrument(trainer: GameTrainer, players: Players) -> None:
-    """Split a meta-RL row's time into :data:`PHASES`: the collector's ``collect`` (rollout),
-    the leader's ``advantages`` (GAE, the linear baseline's fit apart), ``inner_step``,
-    ``surrogate_gradient``, ``kl_hessian_product`` with the conjugate gradient's products
-    (TRPO HVP) and the line search, and the risk principle's ``propose``, ``weights`` and
-    ``update`` (adversary: the flow, the predictive model); the rest of the iteration is
-    ``other``. A method a leader lacks is left out (its time counts where it runs)."""
+    """Split a row's time into :data:`PHASES`: the collector's ``collect`` (rollout: a meta-RL
+    rollout, a regression benchmark's data), the leader's ``advantages`` (GAE, the linear
+    baseline's fit apart), ``inner_step``, ``surrogate_gradient``, ``kl_hessian_product`` with
+    the conjugate gradient's products (TRPO HVP) and the line search, the rest of the leader's
+    ``step`` (leader step: a regression leader's whole meta-update, forward, backward and Adam;
+    MAML-TRPO's scoring) and the risk principle's ``propose``, ``weights`` and ``update``
+    (adversary: the flow, the predictive model); the rest of the iteration is ``other``. A
+    method a leader lacks is left out (its time counts where it runs)."""
     from armeta_rl.learners import maml_trpo
     from armeta_rl.rl import baseline
 
@@ -325,7 +337,7 @@ def instrument(trainer: GameTrainer, players: Players) -> None:
     methods = [(leader.collector, "collect", "rollout"), (leader, "advantages", "GAE"),
                (leader, "inner_step", "inner step"),
                (leader, "surrogate_gradient", "surrogate gradient"),
-               (leader, "kl_hessian_product", "TRPO HVP"),
+               (leader, "kl_hessian_product", "TRPO HVP"), (leader, "step", "leader step"),
                *((trainer.principle, name, "adversary") for name in ("propose", "weights",
                                                                       "update"))]
     functions = [(baseline, "baseline_values", "baseline fit"),
