@@ -276,7 +276,7 @@ def products_ms(fn: Callable[[], object], calls: int) -> float:
 
 PHASES = ("rollout", "GAE", "baseline fit", "inner step", "surrogate gradient", "TRPO HVP",
           "line search", "leader step", "adversary", "other")
-"""The phases of a meta-RL iteration a row's time is split into (:func:`instrument`)."""
+"""The phases of an iteration a row's time is split into (:func:`instrument`)."""
 
 
 class PhaseClock:

@@ -153,8 +153,8 @@ def train_task(job: Job, held: HeldRunDir | None = None) -> None:
     if job.taken:
         print(f"resuming {job.run_dir} with {', '.join(job.taken)} (they change no result)")
     if PROCESS.requested:  # a later job of a sweep worker that was asked to stop
-        raise RunNotStarted(f"not started: this process received {PROCESS.name}; the same command "
-                         "starts it", PROCESS.exit_code)
+        raise RunNotStarted(f"not started: this process received {PROCESS.name}; the same "
+                            "command starts it", PROCESS.exit_code)
     trainer = job.config.trainer
     if trainer.keep_freed_memory:
         keep_freed_memory()
