@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import re
 from contextlib import AbstractContextManager
+from importlib import metadata
+from pathlib import Path
 
 import torch
 
@@ -19,6 +21,10 @@ from armeta_rl.errors import ConfigError
 CPU = torch.device("cpu")
 DEVICE_FORMS = "cpu, cuda, cuda:N"
 _NAME = re.compile(r"cpu|cuda(:\d+)?")
+CPUINFO = Path("/proc/cpuinfo")
+CPUINFO_BYTES = 1 << 16
+"""How much of ``/proc/cpuinfo`` :func:`cpu_model` reads: the first processor's block is at its
+start."""
 
 
 def is_device_name(name: str) -> bool:
@@ -57,3 +63,43 @@ def forked_rng(device: torch.device) -> AbstractContextManager[None]:
         return torch.random.fork_rng(devices=[])
     index = torch.cuda.current_device() if device.index is None else device.index
     return torch.random.fork_rng(devices=[index], device_type="cuda")
+
+
+def cpu_model(cpuinfo: Path = CPUINFO) -> str:
+    r"""The processor as Linux names it: ``model name``, then vendor family, model and stepping
+    (a model name such as "Intel(R) Xeon(R) Processor" can stand for several generations);
+    ``"unknown CPU"`` where ``cpuinfo`` cannot be read (another OS) or names no model.
+
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as d:
+    ...     info = Path(d) / "cpuinfo"
+    ...     _ = info.write_text("processor\t: 0\nvendor_id\t: GenuineIntel\ncpu family\t: 6\n"
+    ...                         "model\t\t: 207\nmodel name\t: Intel(R) Xeon(R) Processor\n"
+    ...                         "stepping\t: 2\n\nprocessor\t: 1\nmodel\t\t: 85\n")
+    ...     cpu_model(info)
+    'Intel(R) Xeon(R) Processor, family 6 model 207 stepping 2'
+    """
+    try:
+        with cpuinfo.open("rb") as file:
+            text = file.read(CPUINFO_BYTES).decode(errors="replace")
+    except OSError:
+        return "unknown CPU"
+    first = text.split("\n\n", 1)[0]
+    fields = dict(line.split(":", 1) for line in first.splitlines() if ":" in line)
+    fields = {key.strip(): value.strip() for key, value in fields.items()}
+    name = fields.get("model name", "unknown CPU")
+    ids = [f"{label} {fields[key]}" for key, label in
+           (("cpu family", "family"), ("model", "model"), ("stepping", "stepping"))
+           if key in fields]
+    return ", ".join([name, " ".join(ids)]) if ids else name
+
+
+def machine_name(device: torch.device) -> str:
+    """What a run's numbers depend on besides its seed and config: the processor (on the CPU,
+    torch's kernel level too: AVX2 and AVX512 kernels round differently, so one seed's results
+    differ between machines), the GPU a ``cuda`` device names, and the torch and MuJoCo versions.
+    Every evaluation report records it, so results from different machines are told apart."""
+    hardware = f"{cpu_model()} ({torch.backends.cpu.get_cpu_capability()})"
+    if device.type == "cuda":
+        hardware = f"{torch.cuda.get_device_name(device)} with {hardware}"
+    return f"{hardware}; torch {torch.__version__}, mujoco {metadata.version('mujoco')}"

@@ -22,7 +22,6 @@ import argparse
 import dataclasses
 import datetime
 import os
-import platform
 import shlex
 import statistics
 import sys
@@ -36,6 +35,8 @@ from typing import TYPE_CHECKING
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+
+from armeta_rl.devices import cpu_model
 
 if TYPE_CHECKING:
     from tensordict import TensorDictBase
@@ -399,10 +400,10 @@ def replace_section(page: str, name: str, section: str) -> str:
 
 
 def this_machine() -> str:
-    """This machine as the benchmark pages name it: architecture, CPUs, GPU, torch, its CPU
+    """This machine as the benchmark pages name it: processor, CPUs, GPU, torch, its CPU
     kernels and threads."""
     gpu = f", {torch.cuda.get_device_name()}" if torch.cuda.is_available() else ""
-    return (f"{platform.machine()}, {os.cpu_count()} logical CPUs{gpu}, torch "
+    return (f"{cpu_model()}, {os.cpu_count()} logical CPUs{gpu}, torch "
             f"{torch.__version__} ({torch.backends.cpu.get_cpu_capability()} kernels), "
             f"{torch.get_num_threads()} thread")
 

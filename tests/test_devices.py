@@ -14,7 +14,7 @@ from torchrl.checkpoint import GlobalRNGState
 
 from armeta_rl.cli import evaluate, train
 from armeta_rl.config import validate
-from armeta_rl.devices import resolve_device
+from armeta_rl.devices import cpu_model, machine_name, resolve_device
 from armeta_rl.envs.point_navigation import PAPER_SPARSE_REGIONS, PointNavigationEnv
 from armeta_rl.errors import ConfigError
 from armeta_rl.job import Job
@@ -110,6 +110,23 @@ def test_a_checkpoint_loads_onto_the_device_asked_for_and_scores_as_the_run_repo
     rescored = cross_evaluate(run, run, device="cpu")
     assert rescored["initial"] == report["initial"]
     assert rescored["adversarial"] == report["adversarial"]
+    assert report["machine"] == rescored["machine"] == machine_name(torch.device("cpu"))
+
+
+def test_the_machine_names_the_processor_its_kernels_and_the_versions(tmp_path):
+    """What one seed's numbers depend on besides the config: torch's CPU kernel level and the
+    torch and MuJoCo versions; the processor from its first block in cpuinfo (or "unknown CPU"
+    where there is none to read, as on another OS)."""
+    import mujoco
+
+    name = machine_name(torch.device("cpu"))
+    assert name.startswith(cpu_model())
+    assert f"({torch.backends.cpu.get_cpu_capability()}); torch {torch.__version__}, " in name
+    assert name.endswith(f"mujoco {mujoco.__version__}")
+    assert cpu_model(tmp_path / "absent") == "unknown CPU"
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel name\t: Neoverse\n\nprocessor\t: 1\nmodel\t: 9\n")
+    assert cpu_model(info) == "Neoverse"
 
 
 @pytest.mark.skipif(CUDA, reason="checks what a machine without CUDA does")

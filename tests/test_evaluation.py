@@ -205,6 +205,11 @@ def test_meta_rl_evaluation_reports_the_return_before_adaptation_of_the_same_epi
     with pytest.raises(ReportInvalid, match="adaptation.improved"):
         check_report({"metric": "return", "benchmark": "point_nav", "method": "maml",
                       "initial": {**report, "adaptation": {**adaptation, "improved": 7}}})
+    named = {"metric": "return", "benchmark": "point_nav", "method": "maml", "initial": report}
+    check_report({**named, "machine": "x86_64 (AVX2); torch 2.13.0"})
+    for machine in ({"cpu": "x"}, 3, "x" * 513):
+        with pytest.raises(ReportInvalid, match="'machine' is not a machine's name"):
+            check_report({**named, "machine": machine})
 
 
 def test_regression_reports_no_adaptation_gain():

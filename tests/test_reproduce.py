@@ -22,6 +22,7 @@ from omegaconf import OmegaConf
 import armeta_rl.reproduce.plan as plan_module
 from armeta_rl.cli.compose import config_dir
 from armeta_rl.config import validate
+from armeta_rl.devices import machine_name
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce.aggregate import (
     collect,
@@ -92,6 +93,8 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
             in text)
     assert "0.499 ± 0.01" in text  # the paper's MAML average beside ours
     assert "| Adversarial (p_φ trained against MAML) |" in text
+    machine = machine_name(torch.device("cpu"))
+    assert f" Training machines: {machine} (14 runs).\n" in text  # the learners' runs
     rows = (table1_dir / "table1.csv").read_text().splitlines()
     # p0 of every run, three adversaries and the 7 shifts of the sinusoid suite of every run
     assert len(rows) == 1 + 14 + 42 + 98
@@ -1262,3 +1265,19 @@ def test_a_section_evaluated_before_the_evidence_fields_keeps_its_csv_columns():
                        "quarter_scores_1": None, "quarter_scores_2": -3.0,
                        "quarter_scores_3": -4.0, "goal_achieved": -12.0, "goal_blind": -33.0,
                        "goal_oracle": -1.0, "gap_closed": 0.66, "gap_closed_sem": 0.02}
+
+
+def test_the_report_counts_the_machines_its_runs_trained_on():
+    """One count per machine over the runs (p0's clean record: one per run; the noisy and the
+    adversaries' records are the same runs), runs whose reports predate the record counted as
+    such; nothing when no report records one (a committed report rebuilt from old runs keeps its
+    text)."""
+    from armeta_rl.reproduce.cli import machines
+
+    def run(machine=None, distribution="initial", noisy=False):
+        return {"distribution": distribution, "noisy": noisy,
+                **({} if machine is None else {"machine": machine})}
+
+    records = [run("A"), run("A", noisy=True), run("A", "adversarial"), run("B"), run(), run("A")]
+    assert machines(records) == " Training machines: A (2 runs), B (1 run), not recorded (1 run)."
+    assert machines([run(), run(None, "adversarial")]) == ""

@@ -139,6 +139,8 @@ def section_records(report: dict[str, Any], section: str, distribution: str,
     adaptation = data.get("adaptation") or {}
     record.update({key: adaptation.get(key) for key in ADAPTATION_COLUMNS})
     record.update(evidence_columns(data))
+    if "machine" in report:  # reports written before it was recorded keep their CSV columns
+        record["machine"] = report["machine"]
     record["per_task"] = data.get("per_task")
     return [record]
 

@@ -246,6 +246,21 @@ def run_times(records: list[dict]) -> str:
         f"{display(b)} {sum(t) / len(t) / 60:.1f} min" for b, t in times.items())
 
 
+def machines(records: list[dict]) -> str:
+    """`` Training machines: <machine> (<n> runs), …, not recorded (<n> runs).`` over the
+    learners' finished runs (:func:`~armeta_rl.devices.machine_name`: one seed's numbers differ
+    between processors), or nothing when no run's report records one."""
+    counts: dict[str, int] = {}
+    for record in records:
+        if record["distribution"] == INITIAL and not record["noisy"]:
+            name = record.get("machine", "not recorded")
+            counts[name] = counts.get(name, 0) + 1
+    if set(counts) <= {"not recorded"}:
+        return ""
+    return " Training machines: " + ", ".join(
+        f"{name} ({n} run{'s' if n > 1 else ''})" for name, n in counts.items()) + "."
+
+
 def write_report(plan: Plan, results: Path, wall_seconds: float,
                  seconds: dict[str, float], packed: Packed = NOTHING_PACKED) -> Path:
     """``<experiment>.csv`` and ``<experiment>.md`` (with its figures) from the finished runs,
@@ -258,7 +273,7 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
     text = (f"# {plan.spec['title']}\n\n{plan.spec.get('description', '').strip()}\n\n"
             f"{progress_note(plan, results, packed)} Wall time of the sweeps so far: "
             f"{minutes:.1f} min"
-            f"{run_times(records)}.\n"
+            f"{run_times(records)}.{machines(records)}\n"
             f"Cells: mean ± std over seeds unless marked s.e.; every run's numbers are in "
             f"`{plan.experiment}.csv`.\n\n{body}\n")
     path = results / f"{plan.experiment}.md"

@@ -438,6 +438,10 @@ def _with_sem(value: float, sem: float | None) -> str:
     return f"{value:.4f}" if sem is None else f"{value:.4f} ± {sem:.4f}"
 
 
+MACHINE_CHARS = 512
+"""The longest ``machine`` (:func:`~armeta_rl.devices.machine_name`) a report may record."""
+
+
 class ReportInvalid(ValueError):
     """An evaluation report (``eval.json``, ``eval_vs_<name>.json``) that cannot be read or fails
     its schema (:func:`check_report`): the run or evaluation that wrote it is not finished."""
@@ -448,8 +452,9 @@ def check_report(report: Any, sections: tuple[str, ...] = ("initial",)) -> None:
     content) that no evaluation can have written.
 
     It must hold ``metric``, ``benchmark`` and ``method`` (strings) and the distributions
-    ``sections``; every distribution's ``mean``, ``cvar`` (α in (0, 1) → value), ``sem`` and
-    ``n_tasks`` must be what :func:`~armeta_rl.trainers.evaluation.summarize` makes of
+    ``sections``, and a ``machine`` it records must be a short string; every distribution's
+    ``mean``, ``cvar`` (α in (0, 1) → value), ``sem`` and ``n_tasks`` must be what
+    :func:`~armeta_rl.trainers.evaluation.summarize` makes of
     ``n_tasks`` finite values: finite numbers; each CVaR_α on the worse side of the mean and
     worsening as α grows; and ``sem`` at least the spread that the mean and the tails imply
     (:func:`spread_bound`). A hand-edited mean (``12345``) breaks those relations."""
@@ -467,6 +472,10 @@ def check_report(report: Any, sections: tuple[str, ...] = ("initial",)) -> None:
         raise ReportInvalid(f"'seed' = {report['seed']!r} is not an integer")
     if "config_sha256" in report and not isinstance(report["config_sha256"], str):
         raise ReportInvalid(f"'config_sha256' = {report['config_sha256']!r} is not a digest")
+    if "machine" in report and not (isinstance(report["machine"], str)
+                                    and len(report["machine"]) <= MACHINE_CHARS):
+        raise ReportInvalid(f"'machine' is not a machine's name (a string of at most "
+                            f"{MACHINE_CHARS} characters)")
     higher = higher_is_better(report["metric"])
     for name, section in report.items():
         if isinstance(section, dict):

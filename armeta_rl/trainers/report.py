@@ -13,7 +13,7 @@ import torch
 
 from armeta_rl.collectors.regression import NoisySupport
 from armeta_rl.config import TrainConfig
-from armeta_rl.devices import CPU, forked_rng
+from armeta_rl.devices import CPU, forked_rng, machine_name
 from armeta_rl.errors import ConfigError
 from armeta_rl.tasks import TaskDistribution
 from armeta_rl.tasks.shifts import shift_seed, suite_shifts
@@ -42,7 +42,7 @@ def evaluate_players(
     is given (``armeta-eval`` scores any learner on any saved adversary). Every section records
     the seed its tasks were drawn under: p0 ``eval.seed``, the adversary ``eval.seed + 1``, a
     shift :func:`~armeta_rl.tasks.shifts.shift_seed`, so two reports of the same benchmark pair
-    task by task.
+    task by task. ``machine`` names what computed it (:func:`~armeta_rl.devices.machine_name`).
     """
     ev = config.eval
     adversary = adversary if adversary is not None else players.adversary
@@ -56,6 +56,7 @@ def evaluate_players(
         "benchmark": config.benchmark.name,
         "method": config.method.name,
         "seed": config.seed,
+        "machine": machine_name(players.device),
     }
     for name, (distribution, seed) in distributions.items():
         report[name] = evaluate_on(

@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 
 from armeta_rl.cli import train
+from armeta_rl.devices import cpu_model
 from armeta_rl.errors import ConfigError
 from armeta_rl.plots import DensityPicture, density_picture, draw_density
 from armeta_rl.trainers.players import load_players
@@ -43,13 +44,8 @@ DEFAULT_RUN = {"benchmark": "sinusoid_uniform", "method": "ar_maml", "seed": 0,
 
 def this_machine() -> str:
     """The CPU model, its logical CPUs, the OS and torch: what sets a run's rounding."""
-    model = platform.processor() or platform.machine()
-    cpuinfo = Path("/proc/cpuinfo")
-    if cpuinfo.exists():
-        names = [line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines()
-                 if line.startswith("model name")]
-        model = names[0] if names else model
-    return f"{model}, {os.cpu_count()} logical CPUs, {platform.system()}, torch {torch.__version__}"
+    return (f"{cpu_model()}, {os.cpu_count()} logical CPUs, {platform.system()}, "
+            f"torch {torch.__version__}")
 
 
 def draw(run: Path, out: Path = FIGURE, check_default: bool = True, numbers: Path = NUMBERS,
