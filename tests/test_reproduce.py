@@ -1281,3 +1281,39 @@ def test_the_report_counts_the_machines_its_runs_trained_on():
     records = [run("A"), run("A", noisy=True), run("A", "adversarial"), run("B"), run(), run("A")]
     assert machines(records) == " Training machines: A (2 runs), B (1 run), not recorded (1 run)."
     assert machines([run(), run(None, "adversarial")]) == ""
+
+
+def test_the_precision_target_by_hand(tmp_path):
+    """Paired differences over 5 seeds of 1, 3, 1, 3, 2 on p0 (std 1, se 0.45) and 0, 4, 0, 4, 2
+    on the rim (std 2, se 0.89) against a target of 0.5: AR-MAML's largest error is the rim's,
+    not yet below it, and (2 / 0.5)² = 16 seeds would not be enough but 17 would; DR-MAML
+    (±0.1) and the option (−0.1 at every seed) are below it. A malformed target is refused
+    before anything runs."""
+    from dataclasses import replace
+
+    from armeta_rl.reproduce.reports import precision_line
+
+    plan = make_plan("meta_rl_point", "paper", ("eval.n_tasks=2", "eval.alphas=[0.5]"))
+    for seed, step in enumerate((1.0, 3.0, 1.0, 3.0, 2.0)):
+        for method, p0, rim in (("maml", 0.0, 0.0), ("ar_maml", step, 2 * step - 2),
+                                ("dr_maml", 0.1 * (-1) ** seed, 0.1 * (-1) ** seed),
+                                ("ar_maml-best", -0.1, -0.1)):
+            run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
+            run.mkdir(parents=True)
+            (run / "eval.json").write_text(_of(plan, run, _paired_report(
+                [-10.0 + p0, -12.0 + p0])))
+            (run / "eval_shifts.json").write_text(_of(plan, run, _paired_report(
+                [-11.0 + rim, -13.0 + rim], "shift/rim", seed=7)))
+    records = collect(plan, tmp_path, {})
+    target = replace(plan, spec={**plan.spec, "precision": {
+        "se_below": 0.5, "distributions": ["initial", "shift/rim"]}})
+    assert precision_line(target, records, ("maml", ""), 0.5) == (
+        "**Precision**, the protocol's target: the paired standard error over seeds below 0.5 "
+        "on p0, shift: rim. DR-MAML: largest 0.05 (p0, avg; 5 seeds), reached; AR-MAML: largest "
+        "0.89 (shift: rim, avg; 5 seeds), not yet; at this spread 17 seeds would reach it; "
+        "AR-MAML (std., λ 0.2): largest 0.00 (p0, avg; 5 seeds), reached.")
+    assert precision_line(plan, records, ("maml", ""), 0.5) == ""  # no target, no line
+    for bad in (2, {"se_below": 0, "distributions": ["initial"]},
+                {"se_below": 2, "distributions": []}, {"se_below": True, "distributions": ["x"]}):
+        with pytest.raises(ConfigError, match=r"'precision' = .*allowed: \{se_below"):
+            plan_module.precision_target({"precision": bad})

@@ -190,6 +190,7 @@ def make_plan(experiment: str, profile: str, extra: tuple[str, ...] = (),
                                  (*settings, *variant_overrides, *extra), config)
                         for seed in all_seeds
                     )
+    precision_target(spec)
     attacks = attack_runs(spec, runs)
     jobs = (eval_jobs(spec, runs, all_seeds) + attack_jobs(spec, runs, attacks)
             + shift_jobs(spec, runs))
@@ -275,6 +276,23 @@ def shift_jobs(spec: dict[str, Any], runs: list[TrainRun]) -> list[EvalJob]:
         raise ConfigError("shifts", chosen, "allowed: all, or a list of shift names")
     shifts = chosen if isinstance(chosen, str) else tuple(chosen)
     return [EvalJob(SHIFTS_JOB, run, None, shifts) for run in runs]
+
+
+def precision_target(spec: dict[str, Any]) -> tuple[float, tuple[str, ...]] | None:
+    """The experiment's precision target (``precision: {se_below: s, distributions: [...]}``):
+    the paired standard error over seeds its protocol asks to get below ``s`` on those
+    distributions (``initial``, an adversary's name, ``shift/<name>``); ``None`` without one."""
+    target = spec.get("precision")
+    if target is None:
+        return None
+    bound = target.get("se_below") if isinstance(target, dict) else None
+    names = target.get("distributions") if isinstance(target, dict) else None
+    if (not isinstance(bound, (int, float)) or isinstance(bound, bool) or not bound > 0
+            or not isinstance(names, list) or not names
+            or not all(isinstance(n, str) for n in names)):
+        raise ConfigError("precision", target, "allowed: {se_below: <a number > 0>, "
+                          "distributions: [<initial, an adversary or shift/<name>>, ...]}")
+    return float(bound), tuple(names)
 
 
 def report_sections(file: str) -> tuple[str, ...]:

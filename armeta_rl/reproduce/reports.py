@@ -6,6 +6,7 @@ paper's where its YAML holds them under ``paper``) and its PNGs into the results
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ from armeta_rl.reproduce.aggregate import (
     select,
     summary,
 )
-from armeta_rl.reproduce.plan import Plan
+from armeta_rl.reproduce.plan import Plan, precision_target
 from armeta_rl.trainers.run_dir import write_text_atomically
 
 
@@ -471,6 +472,7 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     verdicts = verdict_lines(plan, records, reference, alpha)
     write_text_atomically(verdicts_path(results, plan.experiment), "\n".join(verdicts) + "\n")
     adversaries = adversary_section(plan, records)
+    precision = precision_line(plan, records, reference, alpha)
     return ((adaptation + "\n\n" if adaptation else "")
             + markdown_table(level_header, level_rows)
             + f"\n\n![{plan.experiment}]({plan.experiment}.png)\n\nBars: mean over seeds, "
@@ -481,6 +483,7 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             f"standard error over tasks], (seeds where the learner is better / seeds). Bold: "
             "the mean is more than twice its standard error over seeds from 0.\n\n"
             + markdown_table(diff_header, diff_rows)
+            + (f"\n\n{precision}" if precision else "")
             + f"\n\n**In short, by the rule** (docs/meta-rl.md, \"Results\"): a learner "
             f"*helps* on a distribution when its paired difference to {reference_label} is "
             "on the better side, beyond twice its standard error over seeds and better on at "
@@ -488,6 +491,45 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             f"otherwise it *does not help* (average and {_cvar_label(plan)} each; also in "
             f"`{verdicts_path(results, plan.experiment).name}`):\n\n" + "\n".join(verdicts)
             + ("\n\n" + adversaries if adversaries else ""))
+
+
+def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner,
+                   alpha: float) -> str:
+    """The protocol's precision check (:func:`~armeta_rl.reproduce.plan.precision_target`): per
+    learner other than ``reference``, the largest standard error over seeds of its paired
+    differences (average and CVaR_α) on the target's distributions, whether it is below the
+    target, and otherwise how many seeds would bring it there at the spread so far (se = std/√n
+    < s once n > (std/s)²); empty for an experiment without a target."""
+    target = precision_target(plan.spec)
+    if target is None:
+        return ""
+    bound, names = target
+    labels = {**_distributions(plan, records), INITIAL: "p0"}
+    benchmarks = _benchmarks(plan)
+    columns = (("mean", "avg"), ("cvar", _cvar_label(plan)))
+    parts = []
+    for learner in _learners(plan):
+        if learner == reference:
+            continue
+        spreads = []
+        for benchmark, name in ((b, n) for b in benchmarks for n in names):
+            pairs = paired_seeds(records, learner, reference, alpha, benchmark=benchmark,
+                                 distribution=name, noisy=False)
+            where = labels.get(name, name) + (f" of {display(benchmark)}"
+                                              if len(benchmarks) > 1 else "")
+            spreads += [(over_seeds([p[column] for p in pairs]), f"{where}, {shown}")
+                        for column, shown in columns if len(pairs) > 1]
+        label = learner_label(plan, learner)
+        if not spreads:
+            parts.append(f"{label}: fewer than two seeds paired")
+            continue
+        spread, where = max(spreads, key=lambda item: item[0].se)
+        status = ("reached" if spread.se < bound else "not yet; at this spread "
+                  f"{math.floor((spread.std / bound) ** 2) + 1} seeds would reach it")
+        parts.append(f"{label}: largest {spread.se:.2f} ({where}; {spread.n} seeds), {status}")
+    shown = ", ".join(labels.get(name, name) for name in names)
+    return (f"**Precision**, the protocol's target: the paired standard error over seeds below "
+            f"{bound:g} on {shown}. " + "; ".join(parts) + ".")
 
 
 HELPS, HURTS, NO_HELP = "helps", "hurts", "does not help"
