@@ -331,6 +331,20 @@ def _paired_report(per_task: list[float], section: str = "initial", seed: int = 
         "per_task": per_task, "entropy": 1.0, "kl_p0": 0.0}}
 
 
+def _write_point_seeds(plan, root: Path, offsets: list[dict[str, tuple[float, float]]]) -> None:
+    """Per seed (the list's index) and learner, the point robot's ``eval.json`` on p0 (tasks
+    −10, −12) and ``eval_shifts.json`` on the rim (−11, −13), each task shifted by the learner's
+    ``(p0, rim)`` offsets."""
+    for seed, learners in enumerate(offsets):
+        for method, (p0, rim) in learners.items():
+            run = root / f"runs/point_nav/{method}/seed{seed}"
+            run.mkdir(parents=True)
+            (run / "eval.json").write_text(_of(plan, run, _paired_report(
+                [-10.0 + p0, -12.0 + p0])))
+            (run / "eval_shifts.json").write_text(_of(plan, run, _paired_report(
+                [-11.0 + rim, -13.0 + rim], "shift/rim", seed=7)))
+
+
 def test_paired_differences_over_seeds_by_hand(tmp_path):
     """Per seed, AR-MAML minus MAML on the same tasks, then mean ± std over seeds, the RMS of the
     per-seed paired standard errors over tasks and the seeds where AR-MAML is better."""
@@ -1114,18 +1128,10 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     from armeta_rl.reproduce.reports import verdicts_path
 
     plan = make_plan("meta_rl_point", "paper", ("eval.n_tasks=2", "eval.alphas=[0.5]"))
-    for seed in range(5):
-        gain = 1.0 + 0.1 * seed
-        rim = -0.5 - 0.1 * seed if seed else 0.1
-        for method, shift, p0 in (("maml", 0.0, 0.0), ("ar_maml", rim, gain),
-                                  ("dr_maml", 0.1 * (-1) ** seed, 0.1 * (-1) ** seed),
-                                  ("ar_maml-best", 0.0, -5.0 if seed == 3 else -0.1)):
-            run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
-            run.mkdir(parents=True)
-            (run / "eval.json").write_text(_of(plan, run, _paired_report(
-                [-10.0 + p0, -12.0 + p0])))
-            (run / "eval_shifts.json").write_text(_of(plan, run, _paired_report(
-                [-11.0 + shift, -13.0 + shift], "shift/rim", seed=7)))
+    _write_point_seeds(plan, tmp_path, [
+        {"maml": (0.0, 0.0), "ar_maml": (1.0 + 0.1 * seed, -0.5 - 0.1 * seed if seed else 0.1),
+         "dr_maml": (0.1 * (-1) ** seed, 0.1 * (-1) ** seed),
+         "ar_maml-best": (-5.0 if seed == 3 else -0.1, 0.0)} for seed in range(5)])
     text = paired(plan, collect(plan, tmp_path, {}), tmp_path)
     lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
     assert lines[0] == "- **DR-MAML** (5 seeds): does not help on any of the 2 distributions."
@@ -1294,16 +1300,10 @@ def test_the_precision_target_by_hand(tmp_path):
     from armeta_rl.reproduce.reports import precision_line
 
     plan = make_plan("meta_rl_point", "paper", ("eval.n_tasks=2", "eval.alphas=[0.5]"))
-    for seed, step in enumerate((1.0, 3.0, 1.0, 3.0, 2.0)):
-        for method, p0, rim in (("maml", 0.0, 0.0), ("ar_maml", step, 2 * step - 2),
-                                ("dr_maml", 0.1 * (-1) ** seed, 0.1 * (-1) ** seed),
-                                ("ar_maml-best", -0.1, -0.1)):
-            run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
-            run.mkdir(parents=True)
-            (run / "eval.json").write_text(_of(plan, run, _paired_report(
-                [-10.0 + p0, -12.0 + p0])))
-            (run / "eval_shifts.json").write_text(_of(plan, run, _paired_report(
-                [-11.0 + rim, -13.0 + rim], "shift/rim", seed=7)))
+    _write_point_seeds(plan, tmp_path, [
+        {"maml": (0.0, 0.0), "ar_maml": (step, 2 * step - 2),
+         "dr_maml": (0.1 * (-1) ** seed, 0.1 * (-1) ** seed), "ar_maml-best": (-0.1, -0.1)}
+        for seed, step in enumerate((1.0, 3.0, 1.0, 3.0, 2.0))])
     records = collect(plan, tmp_path, {})
     target = replace(plan, spec={**plan.spec, "precision": {
         "se_below": 0.5, "distributions": ["initial", "shift/rim"]}})
