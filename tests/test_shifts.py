@@ -138,7 +138,8 @@ def test_armeta_eval_scores_the_suite_on_the_same_tasks_in_every_report(sinusoid
     assert every["initial"] == json.loads((sinusoid_run / "eval.json").read_text())["initial"]
     scored("shifts=[high_amplitude]", "initial=false", f"out={sinusoid_run / 'one.json'}")
     one = json.loads((sinusoid_run / "one.json").read_text())
-    kept = {"metric", "benchmark", "method", "seed", "config_sha256", "learner", "adversary"}
+    kept = {"metric", "benchmark", "method", "seed", "machine", "config_sha256", "learner",
+            "adversary"}
     assert set(one) - kept == {
         "shift/high_amplitude"}
     assert one["shift/high_amplitude"] == every["shift/high_amplitude"]
