@@ -759,7 +759,7 @@ def test_a_run_saved_before_a_key_was_added_resumes_as_itself(tmp_path, whole, s
         ar < i < end and line.lstrip().startswith(("step:", "max_kl:"))))
     assert len(older) < len(config.read_text())
     config.write_text(older)
-    as_saved = identity_as_saved(older, config)
+    as_saved = identity_as_saved(older)
     merged = run_identity(OmegaConf.to_container(load_run_config(run_dir, "resume"), resolve=True))
     assert as_saved["config_sha256"] != merged["config_sha256"]
     for checkpoint in (run_dir / "checkpoints").glob("checkpoint-*"):

@@ -10,7 +10,6 @@ import re
 import shutil
 import subprocess
 import sys
-import textwrap
 import time
 from pathlib import Path
 
@@ -463,48 +462,6 @@ def test_a_results_directory_of_another_experiment_is_refused(table1_dir, tmp_pa
     code, err = _refusal(monkeypatch, capsys, "table1", "profile=tiny",
                          f"results={tmp_path / 'notes'}")
     assert code == 2 and "not an armeta-reproduce results" in err
-
-
-RAY_SWEEP = textwrap.dedent("""
-    import sys
-    from pathlib import Path
-    import ray
-    from armeta_rl.reproduce.cli import reproduce
-
-    ray.init(address="local", num_cpus=2, include_dashboard=False)
-    try:
-        nodes = [node["NodeManagerAddress"] for node in ray.nodes()]
-        assert nodes == ["127.0.0.1"], nodes
-        code = reproduce("noise", "tiny", Path(sys.argv[1]), launcher="ray",
-                         benchmarks=("sinusoid_uniform",))
-    finally:
-        ray.shutdown()
-    sys.exit(code)
-""")
-
-
-def test_a_ray_launched_sweep_equals_the_local_one(tmp_path):
-    pytest.importorskip("ray", reason="Ray is not installed: the Ray launcher cannot be tested")
-    pytest.importorskip("hydra_plugins.hydra_ray_launcher",
-                        reason="hydra-ray-launcher is not installed")
-    # Ray serves this machine on 127.0.0.1 only (no other address) when clusters are off.
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1",
-           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0"}
-    result = subprocess.run([sys.executable, "-c", RAY_SWEEP, str(tmp_path / "ray")],
-                            capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert "Ray Launcher is launching 5 jobs" in result.stderr + result.stdout
-    assert reproduce("noise", "tiny", tmp_path / "local", launcher="basic",
-                     benchmarks=("sinusoid_uniform",)) == 0
-    ray_files = {p.relative_to(tmp_path / "ray"): p for p in (tmp_path / "ray").glob(
-        "runs/**/eval*.json")}
-    assert len(ray_files) == 10
-    for relative, path in ray_files.items():
-        ours, theirs = json.loads(path.read_text()), json.loads(
-            (tmp_path / "local" / relative).read_text())
-        for key in ("initial", "initial_noisy", "adversarial", "adversarial_noisy"):
-            if key in ours:
-                assert ours[key] == theirs[key], (relative, key)
 
 
 def test_a_seed_restriction_keeps_the_evaluations_that_involve_its_seeds():
@@ -963,11 +920,50 @@ def test_a_report_written_before_a_key_existed_keeps_its_run(tmp_path, table1_di
     assert older != config.read_text()
     config.write_text(older)
     report = json.loads(report_file.read_text())
-    for digest, problem in ((identity_as_saved(older, config)["config_sha256"], None),
+    for digest, problem in ((identity_as_saved(older)["config_sha256"], None),
                             ("0" * 64, "it is the report of another config")):
         report_file.write_text(json.dumps({**report, "config_sha256": digest}))
         found = report_problem(results, maml)
         assert found is None if problem is None else found.startswith(problem)
+
+
+def test_what_a_report_check_remembers_is_what_a_fresh_reading_gives(table1_dir):
+    """A report check remembers, by their input, each run's composed config, planned values,
+    saved config and saved identity (it asks for each several times). After a whole check of a
+    sweep, each remembered value equals a fresh computation (no caller changed a shared one); a
+    saved identity is a fresh dict each call (a caller's change does not reach the next); texts
+    that differ in a result-changing key have different identities, and a refused text has none
+    every time it is asked for."""
+    import yaml
+
+    from armeta_rl.reproduce.plan import (
+        composed,
+        planned_values,
+        report_problem,
+        run_command,
+        saved_config,
+    )
+    from armeta_rl.trainers.checkpoint import identity_as_saved, run_identity
+
+    plan = make_plan("table1", "tiny", benchmarks=("sinusoid_uniform",))
+    assert [report_problem(table1_dir, run) for run in plan.runs] == [None] * len(plan.runs)
+    texts = {run: (table1_dir / run.subdir / "config.yaml").read_text() for run in plan.runs}
+    for run, text in texts.items():
+        assert composed(run_command(run)) == composed.__wrapped__(run_command(run))
+        assert planned_values(run) == planned_values.__wrapped__(run)
+        assert saved_config(text) == saved_config.__wrapped__(text)
+        identity = identity_as_saved(text)
+        assert identity == run_identity(yaml.safe_load(text))
+        identity["seed"] = -1
+        assert identity_as_saved(text)["seed"] == run.seed
+    digests = {identity_as_saved(text)["config_sha256"] for text in texts.values()}
+    assert len(digests) == len(texts)
+    text = next(iter(texts.values()))
+    assert "  meta_batch: " in text
+    batch = text.replace("  meta_batch: ", "  meta_batch: 1", 1)
+    assert identity_as_saved(batch)["config_sha256"] not in digests
+    aliased = f"{text}alias: &name 1\nagain: *name\n"
+    assert [identity_as_saved(aliased) for _ in range(2)] == [None, None]
 
 
 def test_a_run_checkpointed_otherwise_than_its_plan_says_keeps_its_report(tmp_path, table1_dir):

@@ -1,6 +1,14 @@
 """armeta-reproduce: every experiment end to end at the tiny profile, each on its first
-benchmark (table1's own run is ``tests/test_reproduce.py``'s ``table1_dir``); apart from that file
-so that the two halves run side by side under ``pytest -n 2 --dist loadfile``."""
+benchmark (table1's own run is ``tests/test_reproduce.py``'s ``table1_dir``), and the noise sweep
+again through the Ray launcher; apart from that file so that the two halves run side by side
+under ``pytest -n 2 --dist loadfile``."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -22,17 +30,36 @@ FIRST_BENCHMARK = {
 }
 
 
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def noise_dir(tmp_path_factory) -> Path:
+    """The noise experiment's tiny sweep, run once for the tests that read it."""
+    results = tmp_path_factory.mktemp("noise")
+    code = reproduce("noise", "tiny", results, launcher="basic",
+                     benchmarks=(FIRST_BENCHMARK["noise"],))
+    assert code == 0
+    return results
+
+
 @pytest.mark.parametrize("experiment", sorted(set(FIRST_BENCHMARK) - {"table1"}))
-def test_every_experiment_runs_at_tiny_size(tmp_path, experiment):
-    """(table1 runs in ``tests/test_reproduce.py``'s ``table1_dir`` fixture.)"""
+def test_every_experiment_runs_at_tiny_size(tmp_path, request, experiment):
+    """(table1 runs in ``tests/test_reproduce.py``'s ``table1_dir`` fixture, noise in
+    :func:`noise_dir`, which the Ray sweep's test compares with.)"""
     benchmark = FIRST_BENCHMARK[experiment]
-    assert reproduce(experiment, "tiny", tmp_path, launcher="basic", benchmarks=(benchmark,)) == 0
+    if experiment == "noise":
+        results = request.getfixturevalue("noise_dir")
+    else:
+        results = tmp_path
+        assert reproduce(experiment, "tiny", results, launcher="basic",
+                         benchmarks=(benchmark,)) == 0
     plan = make_plan(experiment, "tiny", benchmarks=(benchmark,))
-    assert all((tmp_path / run.subdir / "eval.json").is_file()
+    assert all((results / run.subdir / "eval.json").is_file()
                for run in (*plan.runs, *plan.attacks))
-    assert all((tmp_path / job.out).is_file() for job in plan.evals)
-    assert "complete" in (tmp_path / f"{experiment}.md").read_text()
-    assert list(tmp_path.glob("*.png"))
+    assert all((results / job.out).is_file() for job in plan.evals)
+    assert "complete" in (results / f"{experiment}.md").read_text()
+    assert list(results.glob("*.png"))
 
 
 SETTINGS_VARIANTS = {"meta_rl_cheetah_validation", "meta_rl_cheetah_fair",
@@ -54,3 +81,43 @@ def test_every_run_of_a_settings_variant_composes_and_validates(experiment):
 def test_every_experiment_is_covered():
     assert set(experiment_names()) == {*FIRST_BENCHMARK, *SETTINGS_VARIANTS, "cvar_curves",
                                        "scatter"}
+
+
+RAY_SWEEP = textwrap.dedent("""
+    import sys
+    from pathlib import Path
+    import ray
+    from armeta_rl.reproduce.cli import reproduce
+
+    ray.init(address="local", num_cpus=2, include_dashboard=False)
+    try:
+        nodes = [node["NodeManagerAddress"] for node in ray.nodes()]
+        assert nodes == ["127.0.0.1"], nodes
+        code = reproduce("noise", "tiny", Path(sys.argv[1]), launcher="ray",
+                         benchmarks=("sinusoid_uniform",))
+    finally:
+        ray.shutdown()
+    sys.exit(code)
+""")
+
+
+def test_a_ray_launched_sweep_equals_the_local_one(tmp_path, noise_dir):
+    pytest.importorskip("ray", reason="Ray is not installed: the Ray launcher cannot be tested")
+    pytest.importorskip("hydra_plugins.hydra_ray_launcher",
+                        reason="hydra-ray-launcher is not installed")
+    # Ray serves this machine on 127.0.0.1 only (no other address) when clusters are off.
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1",
+           "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER": "0", "RAY_USAGE_STATS_ENABLED": "0"}
+    result = subprocess.run([sys.executable, "-c", RAY_SWEEP, str(tmp_path / "ray")],
+                            capture_output=True, text=True, timeout=300, cwd=tmp_path, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "Ray Launcher is launching 5 jobs" in result.stderr + result.stdout
+    ray_files = {p.relative_to(tmp_path / "ray"): p for p in (tmp_path / "ray").glob(
+        "runs/**/eval*.json")}
+    assert len(ray_files) == 10
+    for relative, path in ray_files.items():
+        ours, theirs = json.loads(path.read_text()), json.loads(
+            (noise_dir / relative).read_text())
+        for key in ("initial", "initial_noisy", "adversarial", "adversarial_noisy"):
+            if key in ours:
+                assert ours[key] == theirs[key], (relative, key)

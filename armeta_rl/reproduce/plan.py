@@ -470,7 +470,7 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
         return str(error)
     except (ValueError, AttributeError, yaml.YAMLError, OmegaConfBaseException) as error:
         return f"its run's {CONFIG_FILE} cannot be read ({' '.join(str(error).split())})"
-    as_saved = identity_as_saved(text, CONFIG_FILE)
+    as_saved = identity_as_saved(text)
     if report["config_sha256"] not in (digest, as_saved and as_saved["config_sha256"]):
         return (f"it is the report of another config (config_sha256 "
                 f"{str(report['config_sha256'])[:12]}…, not this run's {digest[:12]}…)")

@@ -25,6 +25,7 @@ process with SIGBUS.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import json
@@ -192,19 +193,28 @@ def run_identity(values: Mapping[str, Any]) -> dict[str, Any]:
             "seed": int(resolved.seed), "config_sha256": _sha256(text.encode())}
 
 
-def identity_as_saved(text: str, where: str | Path) -> dict[str, Any] | None:
+def identity_as_saved(text: str) -> dict[str, Any] | None:
     """The identity (:func:`run_identity`) of a run whose ``config.yaml`` holds ``text``, from
     its values as written, not merged into this version's schema: what the run's own
     checkpoints and reports recorded, which a key added since (at a default that keeps the
-    run's behaviour) leaves unchanged. ``None`` for a text that is not a run's config (its
-    readers refuse it, naming ``where``)."""
+    run's behaviour) leaves unchanged. ``None`` for a text that is not a run's config (one its
+    readers refuse). A fresh dict each call, from a digest remembered by text: a report check
+    asks for every run's several times, and resolving a config is most of that check's time."""
+    identity = _identity_of_text(text)
+    return None if identity is None else dict(identity)
+
+
+@functools.lru_cache(maxsize=4096)
+def _identity_of_text(text: str) -> dict[str, Any] | None:
     from omegaconf import OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 
+    from armeta_rl.config import CONFIG_FILE
     from armeta_rl.run_files import plain_yaml
 
     try:
-        values = OmegaConf.to_container(OmegaConf.create(plain_yaml(text, where)), resolve=True)
+        values = OmegaConf.to_container(OmegaConf.create(plain_yaml(text, CONFIG_FILE)),
+                                        resolve=True)
         return run_identity(values)
     except (FileRefused, ValueError, TypeError, AttributeError, OmegaConfBaseException):
         return None
@@ -218,7 +228,7 @@ def saved_identity(run_dir: str | Path) -> dict[str, Any] | None:
 
     path = Path(run_dir) / CONFIG_FILE
     try:
-        return identity_as_saved(read_text(path, CONFIG_BYTES, run_dir), path)
+        return identity_as_saved(read_text(path, CONFIG_BYTES, run_dir))
     except (OSError, FileRefused, UnicodeDecodeError):
         return None
 
