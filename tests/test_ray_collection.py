@@ -70,16 +70,16 @@ def test_cli_unreachable_ray_address_is_one_line_and_exit_2(tmp_path):
 
 
 @pytest.fixture(scope="module")
-def local_cluster():
-    """A Ray instance of this machine alone, with 2 CPUs; its workers import armeta_rl from this
-    checkout."""
+def local_cluster() -> str:
+    """A Ray instance of this machine alone, with 2 CPUs, and its GCS address (where other
+    processes join it); its workers import armeta_rl from this checkout."""
     if ray.is_initialized():
         ray.shutdown()
     path = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
     ray.init(address="local", num_cpus=2, include_dashboard=False, logging_level="ERROR",
              log_to_driver=False,
              runtime_env={"env_vars": {"PYTHONPATH": path, "OMP_NUM_THREADS": "1"}})
-    yield
+    yield ray.get_runtime_context().gcs_address
     ray.shutdown()
 
 
@@ -182,10 +182,12 @@ def test_the_box_and_sizes_are_read_on_one_workers_env_without_actors(local_clus
     collector.close()
 
 
-def test_a_run_whose_workers_stop_answering_stops_with_one_line_keeping_its_checkpoint(tmp_path):
-    """End to end through the CLI: a run that wrote its first checkpoint resumes against actors
-    that cannot answer in time (``timeout_s`` set to 1 ms in its config.yaml); it stops soon with
-    exit code 1 and one line naming the late worker and the checkpoint kept."""
+def test_a_run_whose_workers_stop_answering_stops_with_one_line_keeping_its_checkpoint(
+        tmp_path, local_cluster):
+    """End to end through the CLI, joining a running cluster by its GCS address: a run that wrote
+    its first checkpoint resumes against actors that cannot answer in time (``timeout_s`` set to
+    1 ms in its config.yaml); it stops soon with exit code 1 and one line naming the late worker
+    and the checkpoint kept."""
     run = tmp_path / "run"
     train = [sys.executable, "-c", "from armeta_rl.cli import train; train()"]
     small = ["benchmark=ant_goal_ray", "method=maml", "trainer.iterations=3", "trainer.stop_at=1",
@@ -193,7 +195,7 @@ def test_a_run_whose_workers_stop_answering_stops_with_one_line_keeping_its_chec
              "benchmark.collector.workers=1", "benchmark.collector.cpus_per_worker=0",
              "benchmark.collector.episodes=2", "benchmark.collector.max_steps=5",
              "benchmark.collector.make_env.threads=1", "logger=none", "trainer.progress=false",
-             "trainer.density_every=0"]
+             "trainer.density_every=0", f"benchmark.collector.address={local_cluster}"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     first = subprocess.run([*train, *small, f"hydra.run.dir={run}"], cwd=ROOT, env=env,
                            capture_output=True, text=True, timeout=600)
