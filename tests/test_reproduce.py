@@ -684,43 +684,6 @@ def test_an_attack_by_a_method_without_an_adversary_is_refused(monkeypatch):
         check_runs(make_plan("table1", "tiny"))
 
 
-def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_path,
-                                                                          monkeypatch):
-    """With CSV logs, the report's curve file holds one row per run and logged iteration, the
-    gain is return after − before (an attack run trains no leader: no returns), the batch's
-    spread is MPTS's alone, the figure is drawn from the file's rows, and a run whose logs are
-    gone keeps its rows and the figure its bytes."""
-    from armeta_rl.reproduce import figures
-    from armeta_rl.reproduce.curves import curves_path, read_curves
-
-    drawn = []
-    draw = figures.learning_curves
-    monkeypatch.setattr(figures, "learning_curves",
-                        lambda rows, *args: drawn.append(rows) or draw(rows, *args))
-    experiment, extra = "meta_rl_cheetah_mass", ("logger=csv", "trainer.iterations=2",
-                                                 "trainer.log_every=1")
-    assert reproduce(experiment, "tiny", tmp_path, launcher="basic", extra=extra) == 0
-    plan = make_plan(experiment, "tiny", extra)
-    rows = read_curves(curves_path(tmp_path, experiment))
-    assert drawn[-1] == rows
-    assert sorted((r["run"], r["iteration"]) for r in rows) == sorted(
-        (run.name, i) for run in (*plan.runs, *plan.attacks) for i in (1, 2))
-    for row in rows:
-        attack = "-vs-" in row["run"]
-        assert (row["return_pre"] is None) == attack
-        if not attack:
-            assert row["gain"] == pytest.approx(row["return_post"] - row["return_pre"],
-                                                abs=1e-4)
-        assert (row["adversary_entropy"] is None) == (not row["run"].startswith("ar_maml"))
-        assert (row["task_spread"] is None) == (not row["run"].startswith("mpts_maml"))
-    figure = (tmp_path / f"{experiment}_curves.png").read_bytes()
-    assert "## Learning curves" in (tmp_path / f"{experiment}.md").read_text()
-    shutil.rmtree(tmp_path / plan.runs[0].subdir / "logs")
-    assert reproduce(experiment, "tiny", tmp_path, launcher="none", extra=extra) == 0
-    assert read_curves(curves_path(tmp_path, experiment)) == rows
-    assert (tmp_path / f"{experiment}_curves.png").read_bytes() == figure
-
-
 def test_a_curve_file_written_before_a_column_existed_reads_it_as_empty(tmp_path):
     """A committed curve file whose header predates a column (here the batch's spread) reads
     with that column ``None`` in every row, and is written back with it, empty."""

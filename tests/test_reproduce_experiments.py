@@ -1,10 +1,11 @@
 """armeta-reproduce: every experiment end to end at the tiny profile, each on its first
-benchmark (table1's own run is ``tests/test_reproduce.py``'s ``table1_dir``), and the noise sweep
-again through the Ray launcher; apart from that file so that the two halves run side by side
-under ``pytest -n 2 --dist loadfile``."""
+benchmark (table1's own run is ``tests/test_reproduce.py``'s ``table1_dir``), the learning curves
+of one, and the noise sweep again through the Ray launcher; apart from that file so that the two
+halves run side by side under ``pytest -n 2 --dist loadfile``."""
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -43,13 +44,31 @@ def noise_dir(tmp_path_factory) -> Path:
     return results
 
 
+CURVE_LOGS = ("logger=csv", "trainer.iterations=2", "trainer.log_every=1")
+"""Two iterations, each logged to CSV: what a learning curve is made of."""
+
+
+@pytest.fixture(scope="module")
+def mass_dir(tmp_path_factory) -> Path:
+    """meta_rl_cheetah_mass's tiny sweep with :data:`CURVE_LOGS`, run once for the tests that read
+    it (its learners and MPTS-MAML log every curve column there is)."""
+    results = tmp_path_factory.mktemp("mass")
+    assert reproduce("meta_rl_cheetah_mass", "tiny", results, launcher="basic",
+                     extra=CURVE_LOGS) == 0
+    return results
+
+
+SHARED = {"noise": "noise_dir", "meta_rl_cheetah_mass": "mass_dir"}
+"""The experiments whose tiny sweep is a fixture other tests read too."""
+
+
 @pytest.mark.parametrize("experiment", sorted(set(FIRST_BENCHMARK) - {"table1"}))
 def test_every_experiment_runs_at_tiny_size(tmp_path, request, experiment):
-    """(table1 runs in ``tests/test_reproduce.py``'s ``table1_dir`` fixture, noise in
-    :func:`noise_dir`, which the Ray sweep's test compares with.)"""
+    """(table1 runs in ``tests/test_reproduce.py``'s ``table1_dir`` fixture, those of
+    :data:`SHARED` in theirs.)"""
     benchmark = FIRST_BENCHMARK[experiment]
-    if experiment == "noise":
-        results = request.getfixturevalue("noise_dir")
+    if experiment in SHARED:
+        results = request.getfixturevalue(SHARED[experiment])
     else:
         results = tmp_path
         assert reproduce(experiment, "tiny", results, launcher="basic",
@@ -81,6 +100,42 @@ def test_every_run_of_a_settings_variant_composes_and_validates(experiment):
 def test_every_experiment_is_covered():
     assert set(experiment_names()) == {*FIRST_BENCHMARK, *SETTINGS_VARIANTS, "cvar_curves",
                                        "scatter"}
+
+
+def test_learning_curves_hold_every_runs_iterations_and_survive_lost_logs(tmp_path, mass_dir,
+                                                                          monkeypatch):
+    """With CSV logs, the report's curve file holds one row per run and logged iteration, the
+    gain is return after − before (an attack run trains no leader: no returns), the batch's
+    spread is MPTS's alone; a run whose logs are gone keeps its rows, the figure is drawn from
+    the file's rows and keeps its bytes."""
+    from armeta_rl.reproduce import figures
+    from armeta_rl.reproduce.curves import curves_path, read_curves
+
+    experiment, results = "meta_rl_cheetah_mass", tmp_path / "results"
+    shutil.copytree(mass_dir, results)
+    plan = make_plan(experiment, "tiny", CURVE_LOGS)
+    rows = read_curves(curves_path(results, experiment))
+    assert sorted((r["run"], r["iteration"]) for r in rows) == sorted(
+        (run.name, i) for run in (*plan.runs, *plan.attacks) for i in (1, 2))
+    for row in rows:
+        attack = "-vs-" in row["run"]
+        assert (row["return_pre"] is None) == attack
+        if not attack:
+            assert row["gain"] == pytest.approx(row["return_post"] - row["return_pre"],
+                                                abs=1e-4)
+        assert (row["adversary_entropy"] is None) == (not row["run"].startswith("ar_maml"))
+        assert (row["task_spread"] is None) == (not row["run"].startswith("mpts_maml"))
+    figure = (results / f"{experiment}_curves.png").read_bytes()
+    assert "## Learning curves" in (results / f"{experiment}.md").read_text()
+    shutil.rmtree(results / plan.runs[0].subdir / "logs")
+    drawn = []
+    draw = figures.learning_curves
+    monkeypatch.setattr(figures, "learning_curves",
+                        lambda rows, *args: drawn.append(rows) or draw(rows, *args))
+    assert reproduce(experiment, "tiny", results, launcher="none", extra=CURVE_LOGS) == 0
+    assert drawn == [rows]
+    assert read_curves(curves_path(results, experiment)) == rows
+    assert (results / f"{experiment}_curves.png").read_bytes() == figure
 
 
 RAY_SWEEP = textwrap.dedent("""
