@@ -14,6 +14,8 @@ docs/configuration.md.
 
 from __future__ import annotations
 
+import copy
+import functools
 import inspect
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -436,27 +438,40 @@ def read_run_config(text: str, key: str, where: str) -> DictConfig:
     merged into this version's schema, so keys added since take their defaults; ``key`` and
     ``where`` name it in a refusal: a text that does not parse, is not a mapping, lacks a section
     every run's config has (:data:`SAVED_SECTIONS`: an empty or truncated file) or does not fit
-    the schema, or uses YAML anchors or aliases (:func:`~armeta_rl.run_files.plain_yaml`)."""
+    the schema, or uses YAML anchors or aliases (:func:`~armeta_rl.run_files.plain_yaml`).
+    A copy of the reading remembered by text and the registered sections: a sweep's evaluations
+    read each run's config several times, and merging it into the schema is most of a small
+    evaluation's time."""
+    store = ConfigStore.instance()
+    registered = tuple(tuple(store.list(f"schema/{group}")) for group in ("learner", "risk"))
+    merged = _merged_into_schema(text, registered)
+    if isinstance(merged, str):
+        raise ConfigError(key, where, merged)
+    return copy.deepcopy(merged)
+
+
+@functools.lru_cache(maxsize=256)
+def _merged_into_schema(text: str, registered: tuple[tuple[str, ...], ...]) -> DictConfig | str:
+    """``text`` merged into :func:`schema` (whose sections are ``registered``), or why it
+    cannot be (:func:`read_run_config`'s refusals, without its key and place)."""
     try:
         saved = OmegaConf.create(plain_yaml(text, CONFIG_FILE))
     except FileRefused as error:
-        raise ConfigError(key, where, f"its {CONFIG_FILE} {error.reason}") from None
+        return f"its {CONFIG_FILE} {error.reason}"
     except yaml.YAMLError as error:
-        reason = " ".join(str(error).split())
-        raise ConfigError(key, where, f"its {CONFIG_FILE} cannot be read: {reason}") from None
+        return f"its {CONFIG_FILE} cannot be read: {' '.join(str(error).split())}"
     if not isinstance(saved, DictConfig):
-        raise ConfigError(key, where, f"its {CONFIG_FILE} is not a mapping of keys")
+        return f"its {CONFIG_FILE} is not a mapping of keys"
     missing = next((name for name in saved_sections(saved)
                     if OmegaConf.select(saved, name, default=_ABSENT) is _ABSENT), None)
     if missing is not None:
-        raise ConfigError(key, where, f"its {CONFIG_FILE} is incomplete (no '{missing}'; "
-                          "empty or cut short): restore it, or train the run again")
+        return (f"its {CONFIG_FILE} is incomplete (no '{missing}'; empty or cut short): "
+                "restore it, or train the run again")
     try:
         return OmegaConf.merge(schema(), saved)
     except OmegaConfBaseException as error:
-        line = config_error(error)
-        raise ConfigError(key, where, f"its {CONFIG_FILE} does not fit this version: "
-                                      f"{line}") from None
+        return f"its {CONFIG_FILE} does not fit this version: {config_error(error)}"
+
 
 _ABSENT = object()
 SAVED_SECTIONS = ("seed", "trainer", "trainer.iterations", "eval", "eval.n_tasks", "method",

@@ -170,3 +170,33 @@ def test_a_saved_config_with_a_key_this_version_lacks_is_refused_in_one_line(tmp
     with pytest.raises(ConfigError, match="'learner' = .*does not fit this version: .*"
                                           "'trainer.compile'"):
         load_run_config(tmp_path, "learner")
+
+
+def test_a_saved_config_read_twice_is_a_fresh_equal_reading(tmp_path, composed):
+    """A run's config is merged into the schema once per text and registered sections: every
+    reading equals a fresh merge, is a copy of its own (a change to one does not reach the
+    next), a refusal names each caller's key and place, and a section registered since is in
+    the next reading."""
+    from hydra.core.config_store import ConfigStore
+
+    from armeta_rl.config import read_run_config
+
+    text = OmegaConf.to_yaml(composed["pendulum_uniform/maml"], resolve=True)
+    first = read_run_config(text, "resume", "a")
+    fresh = OmegaConf.merge(schema(), OmegaConf.create(text))
+    assert first == fresh
+    first.trainer.meta_batch = -1
+    assert read_run_config(text, "resume", "a") == fresh
+    broken = text.replace("trainer:", "trainer: [", 1)
+    for key, where in (("resume", "a"), ("learner", "b")):
+        with pytest.raises(ConfigError, match=f"'{key}' = '{where}': its config.yaml cannot "
+                                              "be read"):
+            read_run_config(broken, key, where)
+    store = ConfigStore.instance()
+    node = store.load("schema/learner/maml.yaml").node
+    store.store(group="schema/learner", name="maml_copy", node=node)
+    try:
+        assert "maml_copy" in read_run_config(text, "resume", "a").learner
+    finally:
+        del store.repo["schema"]["learner"]["maml_copy.yaml"]
+    assert "maml_copy" not in read_run_config(text, "resume", "a").learner
