@@ -179,18 +179,21 @@ class JsonPayload(JSONCheckpointAdapter):
 
 def run_identity(values: Mapping[str, Any]) -> dict[str, Any]:
     """What makes a run this run: its benchmark, method and seed, and the SHA-256 of the values
-    of :data:`IDENTITY_KEYS` in its config's ``values`` (:meth:`TrainConfig.values
-    <armeta_rl.config.TrainConfig.values>`, or a saved ``config.yaml`` as loaded). A checkpoint
-    records it, and a resume or an evaluation refuses a checkpoint of another run
-    (:meth:`RunCheckpoint.restore`)."""
-    from omegaconf import OmegaConf
+    of :data:`IDENTITY_KEYS` in its config's resolved ``values`` (:meth:`TrainConfig.values
+    <armeta_rl.config.TrainConfig.values>`, or a saved ``config.yaml`` loaded and resolved), a
+    key a config lacks counting as ``null``. A checkpoint records it, and a resume or an
+    evaluation refuses a checkpoint of another run (:meth:`RunCheckpoint.restore`)."""
+    chosen = {key: _dotted(values, key) for key in IDENTITY_KEYS}
+    text = json.dumps(chosen, sort_keys=True, default=str)
+    return {"benchmark": str(values["benchmark"]["name"]), "method": str(values["method"]["name"]),
+            "seed": int(values["seed"]), "config_sha256": _sha256(text.encode())}
 
-    resolved = OmegaConf.create(OmegaConf.to_container(OmegaConf.create(values), resolve=True))
-    chosen = {key: OmegaConf.select(resolved, key) for key in IDENTITY_KEYS}
-    text = json.dumps({key: OmegaConf.to_container(value) if OmegaConf.is_config(value)
-                       else value for key, value in chosen.items()}, sort_keys=True, default=str)
-    return {"benchmark": str(resolved.benchmark.name), "method": str(resolved.method.name),
-            "seed": int(resolved.seed), "config_sha256": _sha256(text.encode())}
+
+def _dotted(values: Mapping[str, Any], key: str) -> Any:
+    node: Any = values
+    for part in key.split("."):
+        node = node.get(part) if isinstance(node, Mapping) else None
+    return node
 
 
 def identity_as_saved(text: str) -> dict[str, Any] | None:
