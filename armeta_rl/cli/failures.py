@@ -5,6 +5,7 @@ each prints (:func:`failure`), and the wrapper that ends a Hydra job with them
 from __future__ import annotations
 
 import errno
+import resource  # here, not where it is needed: under a memory limit it cannot be loaded then
 import sys
 from collections.abc import Callable
 
@@ -90,8 +91,6 @@ def out_of_memory(error: BaseException) -> bool:
     if isinstance(error, OSError):
         return error.errno == errno.ENOMEM
     if isinstance(error, SystemError):
-        import resource
-
         return resource.getrlimit(resource.RLIMIT_AS)[0] != resource.RLIM_INFINITY
     text = str(error)
     return isinstance(error, MemoryError) or "can't allocate memory" in text or (
