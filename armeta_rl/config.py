@@ -481,6 +481,24 @@ SAVED_SECTIONS = ("seed", "trainer", "trainer.iterations", "eval", "eval.n_tasks
 """The keys every saved run config holds."""
 
 
+def value_at(values: Mapping[str, Any], key: str) -> Any:
+    """The value at dotted ``key`` (``trainer.meta_batch``) in nested resolved ``values``
+    (:meth:`TrainConfig.values`, or a saved config loaded as plain YAML); ``None`` where they
+    have none.
+
+    Examples:
+        >>> from armeta_rl.config import value_at
+        >>> value_at({"trainer": {"meta_batch": 20}}, "trainer.meta_batch")
+        20
+        >>> value_at({"trainer": {"meta_batch": 20}}, "risk.ar.lr") is None
+        True
+    """
+    node: Any = values
+    for part in key.split("."):
+        node = node.get(part) if isinstance(node, Mapping) else None
+    return node
+
+
 def saved_sections(saved: DictConfig) -> list[str]:
     """The keys a run's saved config must hold: :data:`SAVED_SECTIONS` and the sections of its
     own learner and risk principle (``learner.maml``, ``risk.ar``; those registered, the file's

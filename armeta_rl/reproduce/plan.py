@@ -23,7 +23,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from armeta_rl.config import CONFIG_BYTES, CONFIG_FILE
+from armeta_rl.config import CONFIG_BYTES, CONFIG_FILE, value_at
 from armeta_rl.config_files import config_files
 from armeta_rl.errors import ConfigError
 from armeta_rl.reproduce import PROFILES_FILE, experiment_names
@@ -348,13 +348,6 @@ REPORT_IDENTITY = ("benchmark", "method", "seed", "config_sha256")
 finished."""
 
 
-def _select(values: dict[str, Any], dotted: str) -> Any:
-    node: Any = values
-    for part in dotted.split("."):
-        node = node.get(part) if isinstance(node, dict) else None
-    return node
-
-
 @functools.lru_cache(maxsize=256)
 def composed(command: tuple[str, ...]) -> DictConfig:
     """The ``armeta-train`` config of a run's ``command`` (its overrides but the seed), composed
@@ -400,7 +393,7 @@ def planned_values(run: TrainRun) -> dict[str, Any]:
         if not override.is_delete():
             name = override.key_or_group
             keys.append(f"{name}.name" if name in GROUPS and name != "logger" else name)
-    return {key: _select(values, key) for key in dict.fromkeys(keys)}
+    return {key: value_at(values, key) for key in dict.fromkeys(keys)}
 
 
 @functools.lru_cache(maxsize=4096)
@@ -479,9 +472,9 @@ def identity_problem(report: dict[str, Any], run: TrainRun | EvalJob,
     planned = planned_values(learner)
     differ = next((key for key, value in planned.items()
                    if key != "eval" and key not in NO_RESULT_KEYS
-                   and _select(saved, key) != value), None)
+                   and value_at(saved, key) != value), None)
     if differ is not None:
-        return (f"its run's config has {differ} = {_short(_select(saved, differ))}, not the "
+        return (f"its run's config has {differ} = {_short(value_at(saved, differ))}, not the "
                 f"{_short(planned[differ])} this experiment's plan gives it")
     return scored_problem(report, planned["eval"])
 

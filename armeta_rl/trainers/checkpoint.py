@@ -48,6 +48,7 @@ from torchrl.checkpoint import (
     StateDictCheckpointAdapter,
 )
 
+from armeta_rl.config import value_at
 from armeta_rl.devices import CPU
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError
 from armeta_rl.learners.base import Leader
@@ -183,17 +184,10 @@ def run_identity(values: Mapping[str, Any]) -> dict[str, Any]:
     <armeta_rl.config.TrainConfig.values>`, or a saved ``config.yaml`` loaded and resolved), a
     key a config lacks counting as ``null``. A checkpoint records it, and a resume or an
     evaluation refuses a checkpoint of another run (:meth:`RunCheckpoint.restore`)."""
-    chosen = {key: _dotted(values, key) for key in IDENTITY_KEYS}
+    chosen = {key: value_at(values, key) for key in IDENTITY_KEYS}
     text = json.dumps(chosen, sort_keys=True, default=str)
     return {"benchmark": str(values["benchmark"]["name"]), "method": str(values["method"]["name"]),
             "seed": int(values["seed"]), "config_sha256": _sha256(text.encode())}
-
-
-def _dotted(values: Mapping[str, Any], key: str) -> Any:
-    node: Any = values
-    for part in key.split("."):
-        node = node.get(part) if isinstance(node, Mapping) else None
-    return node
 
 
 def identity_as_saved(text: str) -> dict[str, Any] | None:

@@ -14,7 +14,7 @@ import torch
 from torchrl.record.loggers import Logger
 
 from armeta_rl.compiling import COMPILE_KEYS
-from armeta_rl.config import CONFIG_FILE, TrainConfig
+from armeta_rl.config import CONFIG_FILE, TrainConfig, value_at
 from armeta_rl.errors import (
     CollectionFailed,
     ConfigError,
@@ -172,7 +172,7 @@ def _train_locked(job: Job, progress: bool, stop: StopRequest) -> dict | None:
     start = _open_run(config, values, run_dir, checkpoint, job.saved,
                       evaluated=report is not None)
     with run_logger(config.logger, run_dir, values) as logger:
-        compiled = [key for key in COMPILE_KEYS if _selected(values, key)]
+        compiled = [key for key in COMPILE_KEYS if value_at(values, key)]
         if compiled:
             say(f"{', '.join(compiled)}: the first iterations wait for torch.compile "
                 "(about 2 minutes with an empty compile cache)")
@@ -207,13 +207,6 @@ def _train_locked(job: Job, progress: bool, stop: StopRequest) -> dict | None:
             say(f"{stop.name} arrived during the final evaluation: the run finished first "
                 f"({EVAL_FILE} written)")
         return report
-
-
-def _selected(values: dict[str, Any], key: str) -> Any:
-    """The value of dotted ``key`` in the nested ``values`` (``None`` where it has none)."""
-    for part in key.split("."):
-        values = values.get(part) if isinstance(values, dict) else None
-    return values
 
 
 def _log_scalars(logger: Logger | None, scalars: dict[str, Any], step: int) -> None:
