@@ -1234,7 +1234,7 @@ def test_a_section_evaluated_before_the_evidence_fields_keeps_its_csv_columns():
 
 def test_the_report_counts_the_machines_its_runs_trained_on():
     """One count per machine over the runs (p0's clean record: one per run; the noisy and the
-    adversaries' records are the same runs), runs whose reports predate the record counted as
+    adversaries' records are the same runs; an attack run's report: one per attack run), runs whose reports predate the record counted as
     such; nothing when no report records one (a committed report rebuilt from old runs keeps its
     text)."""
     from armeta_rl.reproduce.cli import machines
@@ -1246,6 +1246,9 @@ def test_the_report_counts_the_machines_its_runs_trained_on():
     records = [run("A"), run("A", noisy=True), run("A", "adversarial"), run("B"), run(), run("A")]
     assert machines(records) == " Training machines: A (2 runs), B (1 run), not recorded (1 run)."
     assert machines([run(), run(None, "adversarial")]) == ""
+    attacks = [{"machine": "B"}, {"machine": "C"}, {}]  # attack runs' reports count alike
+    assert machines(records, attacks) == (" Training machines: A (2 runs), B (2 runs), "
+                                          "not recorded (2 runs), C (1 run).")
 
 
 def test_the_precision_target_by_hand(tmp_path):

@@ -231,6 +231,21 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float],
     return records
 
 
+def finished_reports(runs: Iterable[TrainRun], results: Path,
+                     packed: Packed = NOTHING_PACKED) -> list[dict[str, Any]]:
+    """The ``eval.json`` of each of ``runs`` that has finished and is that run's
+    (:func:`~armeta_rl.reproduce.plan.identity_problem`), in its directory or ``packed``."""
+    reports = []
+    for run in runs:
+        try:
+            report = load_report(results, results / run.subdir / EVAL_FILE, packed)
+        except ReportInvalid:
+            continue
+        if identity_problem(report, run, results, packed) is None:
+            reports.append(report)
+    return reports
+
+
 def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:
     """The records as CSV, one column per key (CVaR columns in increasing α), written
     atomically."""

@@ -28,6 +28,7 @@ import os
 import sys
 import threading
 import time
+from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
 from typing import NoReturn
@@ -42,6 +43,7 @@ from armeta_rl.reproduce.aggregate import (
     INITIAL,
     collect,
     display,
+    finished_reports,
     progress_note,
     train_seconds,
     write_csv,
@@ -246,15 +248,15 @@ def run_times(records: list[dict]) -> str:
         f"{display(b)} {sum(t) / len(t) / 60:.1f} min" for b, t in times.items())
 
 
-def machines(records: list[dict]) -> str:
+def machines(records: list[dict], attack_reports: Iterable[dict] = ()) -> str:
     """`` Training machines: <machine> (<n> runs), …, not recorded (<n> runs).`` over the
-    learners' finished runs (:func:`~armeta_rl.devices.machine_name`: one seed's numbers differ
-    between processors), or nothing when no run's report records one."""
-    counts: dict[str, int] = {}
-    for record in records:
-        if record["distribution"] == INITIAL and not record["noisy"]:
-            name = record.get("machine", "not recorded")
-            counts[name] = counts.get(name, 0) + 1
+    finished runs, the learners' (their p0 records) and the attack runs' (their reports)
+    (:func:`~armeta_rl.devices.machine_name`: one seed's numbers differ between processors), or
+    nothing when no run's report records one."""
+    names = [record.get("machine", "not recorded") for record in records
+             if record["distribution"] == INITIAL and not record["noisy"]]
+    names += [report.get("machine", "not recorded") for report in attack_reports]
+    counts = {name: names.count(name) for name in names}
     if set(counts) <= {"not recorded"}:
         return ""
     return " Training machines: " + ", ".join(
@@ -273,7 +275,8 @@ def write_report(plan: Plan, results: Path, wall_seconds: float,
     text = (f"# {plan.spec['title']}\n\n{plan.spec.get('description', '').strip()}\n\n"
             f"{progress_note(plan, results, packed)} Wall time of the sweeps so far: "
             f"{minutes:.1f} min"
-            f"{run_times(records)}.{machines(records)}\n"
+            f"{run_times(records)}."
+            f"{machines(records, finished_reports(plan.attacks, results, packed))}\n"
             f"Cells: mean ± std over seeds unless marked s.e.; every run's numbers are in "
             f"`{plan.experiment}.csv`.\n\n{body}\n")
     path = results / f"{plan.experiment}.md"
