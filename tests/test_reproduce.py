@@ -1103,6 +1103,18 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
                         "-1.080 ± 2.191, 0/5 seeds better; CVaR0.5 -1.080 ± 2.191, 0/5 seeds "
                         "better), within the spread.")
     assert all(line in text for line in lines)
+    # MAML scored on the rim at seed 0 only: one pair there, no standard error, no verdict
+    for seed in range(1, 5):
+        (tmp_path / f"runs/point_nav/maml/seed{seed}/eval_shifts.json").unlink()
+    paired(plan, collect(plan, tmp_path, {}), tmp_path)
+    lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
+    single = "; no verdict yet on shift: rim, paired at one seed only."
+    assert lines[0] == "- **DR-MAML** (5 seeds): does not help on p0" + single
+    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.158, 5/5 seeds "
+                        "better; CVaR0.5 +1.200 ± 0.158, 5/5 seeds better)" + single)
+    assert lines[2].startswith("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on p0, "
+                               "though it is worse than MAML at every seed on p0 (")
+    assert lines[2].endswith("within the spread" + single)
 
 
 def _strength_records() -> list[dict]:
@@ -1234,9 +1246,9 @@ def test_a_section_evaluated_before_the_evidence_fields_keeps_its_csv_columns():
 
 def test_the_report_counts_the_machines_its_runs_trained_on():
     """One count per machine over the runs (p0's clean record: one per run; the noisy and the
-    adversaries' records are the same runs; an attack run's report: one per attack run), runs whose reports predate the record counted as
-    such; nothing when no report records one (a committed report rebuilt from old runs keeps its
-    text)."""
+    adversaries' records are the same runs; an attack run's report: one per attack run), runs
+    whose reports predate the record counted as such; nothing when no report records one (a
+    committed report rebuilt from old runs keeps its text)."""
     from armeta_rl.reproduce.cli import machines
 
     def run(machine=None, distribution="initial", noisy=False):

@@ -583,7 +583,8 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
     """One Markdown bullet per learner other than ``reference``: where it helps and where it
     hurts by :func:`verdict` (average and CVaR_α, with its paired difference over seeds and the
     seeds on which it is better), on how many distributions it does not help, which of those it
-    is better or worse on at every seed within the spread, and, for a learner that does not
+    is better or worse on at every seed within the spread, where it has no verdict yet (paired
+    at one seed only: no standard error over seeds), and, for a learner that does not
     adapt on p0 at every seed, that the comparison is no robustness result; generated from the
     records, so that prose and tables cannot drift."""
     higher = _higher_better(records)
@@ -593,17 +594,23 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
         if learner == reference:
             continue
         found: dict[str, list[str]] = {HELPS: [], HURTS: [], "better": [], "worse": []}
-        compared = neutral = seeds = 0
+        compared = seeds = 0
+        neutral: list[str] = []
+        single: list[str] = []  # paired at one seed: no standard error over seeds, no verdict
         for benchmark in benchmarks:
             for distribution, label in _distributions(plan, records, benchmark).items():
                 pairs = paired_seeds(records, learner, reference, alpha, benchmark=benchmark,
                                      distribution=distribution, noisy=False)
                 if not pairs:
                     continue
-                compared, seeds = compared + 1, max(seeds, len(pairs))
+                seeds = max(seeds, len(pairs))
                 where = "p0" if distribution == INITIAL else label
                 if len(benchmarks) > 1:
                     where = f"{display(benchmark)} {where}"
+                if len(pairs) < 2:
+                    single.append(where)
+                    continue
+                compared += 1
                 judged: dict[str, list[str]] = {key: [] for key in found}
                 for column, name in (("mean", "avg"), ("cvar", _cvar_label(plan))):
                     values = [p[column] for p in pairs]
@@ -617,7 +624,8 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
                 for outcome, findings in judged.items():
                     if findings and (is_neutral or outcome in (HELPS, HURTS)):
                         found[outcome].append(f"{where} ({'; '.join(findings)})")
-                neutral += is_neutral
+                if is_neutral:
+                    neutral.append(where)
         name = f"- **{learner_label(plan, learner)}**"
         if seeds < 2:
             lines.append(f"{name} ({seeds} seed{'s' if seeds != 1 else ''} paired with "
@@ -630,13 +638,24 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
             unanimous = [f"{side} than {learner_label(plan, reference)} at every seed on "
                          f"{', '.join(found[side])}" for side in ("better", "worse")
                          if found[side]]
-            parts.append((f"does not help on the other {neutral} distributions" if parts else
-                          f"does not help on any of the {compared} distributions")
+            parts.append((f"does not help on the other {_count(len(neutral), 'distribution')}"
+                          if parts else "does not help on "
+                          + (neutral[0] if compared == 1 else
+                             f"any of the {compared} distributions"))
                          + (f", though it is {' and '.join(unanimous)}, within the spread"
                             if unanimous else ""))
+        if single:
+            where = (" and ".join(single) if len(single) <= 2 else
+                     f"the other {_count(len(single), 'distribution')}")
+            parts.append(f"no verdict yet on {where}, paired at one seed only")
         text = f"{name} ({seeds} seeds): " + "; ".join(parts)
         lines.append(text + "." + _adaptation_caveat(plan, records, learner))
     return lines
+
+
+def _count(n: int, noun: str) -> str:
+    """``1 distribution``, ``3 distributions``."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _adaptation_caveat(plan: Plan, records: list[dict[str, Any]], learner: Learner) -> str:
