@@ -1163,7 +1163,16 @@ def test_the_adversaries_strength_and_the_attack_check_by_hand():
     cotrained_moved_as_far = [
         {**r, "kl_p0": 0.55} if r["distribution"] == "same_seed" else r
         for r in _strength_records()]
-    assert "It did not move clearly further" in adversary_section(plan, cotrained_moved_as_far)
+    text = adversary_section(plan, cotrained_moved_as_far)
+    assert "It did not move clearly further" in text and "Adam at 0.5 / iterations" in text
+    # natural steps (the fair test's attacks): no step rule to blame
+    fair = make_plan("meta_rl_cheetah_fair", "paper")
+    cheetah = [{**r, "benchmark": "half_cheetah_vel"} for r in cotrained_moved_as_far]
+    text = adversary_section(fair, cheetah)
+    assert "It did not move clearly further" in text and "Adam at 0.5" not in text
+    one_seed = [r for r in _strength_records() if r["seed"] == 0]  # 0.5 / 0.2
+    assert ("KL ratio 2.50 at one seed: no standard error over seeds, no verdict yet."
+            in adversary_section(plan, one_seed))
 
 
 def test_the_share_of_the_goal_blind_gap_is_a_column_only_where_recorded():

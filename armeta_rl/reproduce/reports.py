@@ -24,7 +24,7 @@ from armeta_rl.reproduce.aggregate import (
     select,
     summary,
 )
-from armeta_rl.reproduce.plan import Plan, precision_target
+from armeta_rl.reproduce.plan import Plan, composed, precision_target, run_command
 from armeta_rl.trainers.run_dir import write_text_atomically
 
 
@@ -807,7 +807,8 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> s
     but its step rule) moved clearly further from p0 than the co-trained adversary of its kind
     (the ``adversaries`` entry of the same method and variant at the same seed): the ratio of
     their KLs over the seeds both have (:func:`kl_ratio`) beyond 1 by more than twice its
-    standard error. If so, the game, not the step, holds the co-trained adversary."""
+    standard error (at one seed: no verdict yet). If so, the game, not the step, holds the
+    co-trained adversary; if not, and the attacks take Adam steps, the step rule may."""
     sentences = []
     adversaries = plan.spec.get("adversaries", {})
     labels = _distributions(plan)
@@ -840,19 +841,32 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> s
             sentences.append(f"{compared}: the co-trained adversary did not move from p0, so "
                              "there is no ratio.")
             continue
-        further = se is not None and ratio - 1 > 2 * se
-        error = "" if se is None else f" ± {se:.2f}"
+        if se is None:
+            sentences.append(f"{compared}: KL ratio {ratio:.2f} at one seed: no standard error "
+                             "over seeds, no verdict yet.")
+            continue
+        further = ratio - 1 > 2 * se
+        capped = ("" if _natural_steps(plan, benchmark, target) else
+                  " Where both sit where the step rule stops against any loss (Adam at 0.5 / "
+                  "iterations: near KL 0.3; [the adversary free to move](../../adversary.md)), "
+                  "the step rule, not the game, holds them.")
         sentences.append(
-            f"{compared}: KL ratio {ratio:.2f}{error} (ratio of the means over {len(seeds)} "
-            "seeds, standard error over seeds). "
+            f"{compared}: KL ratio {ratio:.2f} ± {se:.2f} (ratio of the means over "
+            f"{len(seeds)} seeds, standard error over seeds). "
             + ("It moved clearly further (beyond 1 by more than twice its error): the game, "
                "not the step rule, holds the co-trained adversary." if further else
                "It did not move clearly further (not beyond 1 by twice its error): training "
                "against the learner held the co-trained adversary back no more than a frozen "
-               "learner held the attack. Where both sit where the step rule stops against any "
-               "loss (Adam at 0.5 / iterations: near KL 0.3; [the adversary free to "
-               "move](../../adversary.md)), the step rule, not the game, holds them."))
+               "learner held the attack." + capped))
     return "\n\n".join(sentences)
+
+
+def _natural_steps(plan: Plan, benchmark: str, target: Learner) -> bool:
+    """Whether the attack runs against ``target`` on ``benchmark`` take natural steps
+    (``risk.ar.step=natural``: no step rule caps how far they move)."""
+    return any(composed(run_command(run)).risk.ar.step == "natural" for run in plan.attacks
+               if run.benchmark == benchmark and run.target is not None
+               and (run.target.method, run.target.variant) == target)
 
 
 LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {
