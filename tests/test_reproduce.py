@@ -93,7 +93,8 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
     assert "0.499 ± 0.01" in text  # the paper's MAML average beside ours
     assert "| Adversarial (p_φ trained against MAML) |" in text
     machine = machine_name(torch.device("cpu"))
-    assert f" Training machines: {machine} (14 runs).\n" in text  # the learners' runs
+    # the learners' 14 runs and the 2 attack runs
+    assert f" Training machines: {machine} (16 runs).\n" in text
     rows = (table1_dir / "table1.csv").read_text().splitlines()
     # p0 of every run, three adversaries and the 7 shifts of the sinusoid suite of every run
     assert len(rows) == 1 + 14 + 42 + 98
