@@ -28,6 +28,7 @@ import os
 import sys
 import threading
 import time
+from collections import Counter
 from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
@@ -256,7 +257,7 @@ def machines(records: list[dict], attack_reports: Iterable[dict] = ()) -> str:
     names = [record.get("machine", "not recorded") for record in records
              if record["distribution"] == INITIAL and not record["noisy"]]
     names += [report.get("machine", "not recorded") for report in attack_reports]
-    counts = {name: names.count(name) for name in names}
+    counts = Counter(names)  # in first-seen order
     if set(counts) <= {"not recorded"}:
         return ""
     return " Training machines: " + ", ".join(
