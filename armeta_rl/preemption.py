@@ -12,6 +12,9 @@ stops at once (``KeyboardInterrupt``), keeping the last checkpoint.
 
 The request belongs to the process, as signals do: a process that was asked to stop starts no
 further run (the later jobs of a joblib worker of a sweep stop before training).
+
+Work that keeps nothing until it ends (an evaluation, whose report is written whole at the end)
+has nothing to save: :func:`abandoning` stops it at once on such a signal.
 """
 
 from __future__ import annotations
@@ -23,6 +26,8 @@ import threading
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from types import FrameType
+
+from armeta_rl.errors import RunNotStarted, RunStopped
 
 STOP_SIGNALS = ("SIGTERM", "SIGUSR1", "SIGUSR2", "SIGHUP", "SIGXCPU")
 """The signals ``trainer.stop_signals`` may name (``SIGINT`` is always handled)."""
@@ -91,6 +96,37 @@ def listening(names: Iterable[str], request: StopRequest = PROCESS,
     previous = {sig: signal.signal(sig, handle) for sig in wanted}
     try:
         yield request
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+@contextmanager
+def abandoning(what: str, again: str, names: Iterable[str] = STOP_SIGNALS,
+               request: StopRequest = PROCESS) -> Iterator[None]:
+    """Within the block, ``what`` (work that keeps nothing until it ends) stops at once on one
+    of the signals ``names`` or ``SIGINT``: the signal becomes ``request`` and
+    :class:`~armeta_rl.errors.RunStopped` is raised where the work is, with the request's exit
+    code and a line saying that nothing was written and that ``again`` does it. A process asked
+    to stop before the block does none of it (:class:`~armeta_rl.errors.RunNotStarted`). The
+    handlers in place before are restored after; outside the main thread none is installed.
+    """
+    if request.requested:
+        raise RunNotStarted(f"not started: this process received {request.name}; {again}",
+                            request.exit_code)
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handle(signum: int, frame: FrameType | None) -> None:
+        request.request(signum)
+        raise RunStopped(f"{what} stopped by {signal.Signals(signum).name}: nothing written; "
+                         f"{again}", request.exit_code)
+
+    wanted = {signal.SIGINT, *(signal.Signals[name] for name in names)}
+    previous = {sig: signal.signal(sig, handle) for sig in wanted}
+    try:
+        yield
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

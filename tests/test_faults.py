@@ -641,6 +641,50 @@ def test_a_stopped_or_killed_sweep_stops_its_workers_with_checkpoints(tmp_path, 
     assert len(stopped) == 2 and all(verify(path) is None for path in stopped), stopped
 
 
+SCORED = """
+import os, signal, sys
+from armeta_rl.trainers import report
+sig, score = getattr(signal, sys.argv.pop(1)), report.evaluate_runs
+def signalled(*args, **kwargs):  # a stop signal while the learner is scored
+    os.kill(os.getpid(), sig)
+    return score(*args, **kwargs)
+report.evaluate_runs = signalled
+from armeta_rl.cli import evaluate
+evaluate()
+"""
+
+
+@pytest.mark.parametrize("sig,code", [("SIGTERM", 75), ("SIGUSR1", 75), ("SIGINT", 130)])
+def test_a_stop_signal_abandons_a_scoring_at_once_writing_nothing(tmp_path, whole, sig, code):
+    """A scoring keeps nothing until its report is written, so a stop signal ends it at once
+    (a sweep's evaluation job does not run on to its end): one line, the signal's exit code,
+    no report."""
+    out = tmp_path / "eval.json"
+    result = subprocess.run([sys.executable, "-c", SCORED, sig, f"learner={whole}",
+                             f"out={out}"], capture_output=True, text=True, timeout=300)
+    assert result.returncode == code, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"armeta-eval: scoring {whole} stopped by {sig}: nothing written; the same command "
+        "scores it"]
+    assert not out.exists()
+
+
+def test_a_process_asked_to_stop_starts_no_scoring_and_its_handlers_are_restored():
+    from armeta_rl.errors import RunNotStarted, RunStopped
+    from armeta_rl.preemption import EXIT_PREEMPTED, StopRequest, abandoning
+
+    before, request = signal.getsignal(signal.SIGTERM), StopRequest()
+    stopped = "^work stopped by SIGTERM: nothing written; again$"
+    with pytest.raises(RunStopped, match=stopped), abandoning("work", "again", request=request):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(5)  # the handler raises before this ends
+    assert signal.getsignal(signal.SIGTERM) is before and request.name == "SIGTERM"
+    refusal = "^not started: this process received SIGTERM; again$"
+    with pytest.raises(RunNotStarted, match=refusal) as refused, abandoning(
+            "work", "again", request=request):
+        pytest.fail("a process asked to stop started the work")
+    assert refused.value.code == EXIT_PREEMPTED
+
 # A finished run, damaged artefacts ------------------------------------------------------------
 
 FRAMES = (*RUN, "trainer.density_every=2")

@@ -201,7 +201,10 @@ def _remove_run_dir(run_dir: Path) -> None:
 def _eval_task(cfg: DictConfig) -> None:
     """Score the runs ``cfg`` names: each run's saved config, with the command line's ``device``
     and ``eval.*``, validated once (:func:`armeta_rl.trainers.players.saved_run`), the run
-    directories first, each named as itself, then the report's path derived from them."""
+    directories first, each named as itself, then the report's path derived from them. A stop
+    signal abandons the scoring at once (:func:`~armeta_rl.preemption.abandoning`): it keeps
+    nothing until its report is written."""
+    from armeta_rl.preemption import abandoning
     from armeta_rl.trainers.evaluation import format_table
     from armeta_rl.trainers.players import saved_run
     from armeta_rl.trainers.report import evaluate_runs
@@ -221,7 +224,9 @@ def _eval_task(cfg: DictConfig) -> None:
         "" if shifts is None else "_shifts")
     out = Path(cfg.out) if cfg.out else Path(cfg.learner) / f"eval{suffix}.json"
     check_writable(out, "out")
-    report = evaluate_runs(cfg.learner, learner, cfg.adversary, adversary, shifts, cfg.initial)
+    with abandoning(f"scoring {cfg.learner}", "the same command scores it"):
+        report = evaluate_runs(cfg.learner, learner, cfg.adversary, adversary, shifts,
+                               cfg.initial)
     write_text_atomically(out, json.dumps(report, indent=2) + "\n")
     print(format_table(report))
     print(f"written: {out}")

@@ -89,8 +89,9 @@ class SweepWorker(Callback):
 
     As a job starts in the worker, the worker's ``SIGTERM`` and ``SIGUSR1`` set its stop request
     for good (:data:`armeta_rl.preemption.PROCESS`): the run in flight checkpoints and stops
-    (while it trains, :func:`~armeta_rl.preemption.listening` handles them alike), and the
-    worker's later jobs stop before starting. The sweep's process forwards its own stop signals
+    (while it trains, :func:`~armeta_rl.preemption.listening` handles them alike), an evaluation
+    in flight stops at once (:func:`~armeta_rl.preemption.abandoning`), and the worker's later
+    jobs stop before starting. The sweep's process forwards its own stop signals
     to its workers. A thread watches the sweep's process: once it is gone (``SIGKILL``, say),
     the worker sends itself ``SIGTERM``, and exits as soon as no run of it is in flight.
     """
@@ -115,8 +116,8 @@ class SweepWorker(Callback):
             os._exit(EXIT_PREEMPTED)  # the run checkpointed; nobody reads its result
 
     def _stop(self, signum: int, frame: FrameType | None) -> None:
-        """Between runs (or in an evaluation job): a worker whose sweep is gone has nothing to
-        finish; otherwise no later job of it starts."""
+        """Between jobs: a worker whose sweep is gone has nothing to finish; otherwise no later
+        job of it starts."""
         PROCESS.request(signum)
         if self.orphaned():
             os._exit(EXIT_PREEMPTED)
