@@ -23,6 +23,7 @@ from armeta_rl.reproduce.plan import (
     Plan,
     TrainRun,
     finished,
+    finished_report,
     identity_problem,
     load_report,
 )
@@ -233,17 +234,10 @@ def collect(plan: Plan, results: Path, seconds: dict[str, float],
 
 def finished_reports(runs: Iterable[TrainRun], results: Path,
                      packed: Packed = NOTHING_PACKED) -> list[dict[str, Any]]:
-    """The ``eval.json`` of each of ``runs`` that has finished and is that run's
-    (:func:`~armeta_rl.reproduce.plan.identity_problem`), in its directory or ``packed``."""
-    reports = []
-    for run in runs:
-        try:
-            report = load_report(results, results / run.subdir / EVAL_FILE, packed)
-        except ReportInvalid:
-            continue
-        if identity_problem(report, run, results, packed) is None:
-            reports.append(report)
-    return reports
+    """The ``eval.json`` of each of ``runs`` that has finished
+    (:func:`~armeta_rl.reproduce.plan.finished_report`), in its directory or ``packed``."""
+    reports = (finished_report(results, run, packed) for run in runs)
+    return [report for report in reports if report is not None]
 
 
 def write_csv(records: Sequence[dict[str, Any]], path: Path) -> None:

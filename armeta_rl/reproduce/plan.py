@@ -316,13 +316,26 @@ def report_problem(results: Path, run: TrainRun | EvalJob,
     and from ``packed``), unreadable, fails its schema
     (:func:`~armeta_rl.trainers.evaluation.check_report`; a hand-edited mean or a NaN), or is
     not what the plan gives this run (:func:`identity_problem`)."""
+    return _checked_report(results, run, packed)[1]
+
+
+def finished_report(results: Path, run: TrainRun | EvalJob,
+                    packed: Packed = NOTHING_PACKED) -> dict[str, Any] | None:
+    """The report of ``run`` where it marks it finished (:func:`report_problem`), else ``None``."""
+    return _checked_report(results, run, packed)[0]
+
+
+def _checked_report(results: Path, run: TrainRun | EvalJob, packed: Packed
+                    ) -> tuple[dict[str, Any] | None, str | None]:
+    """The report of ``run`` and ``None``, or ``None`` and why it does not mark it finished."""
     from armeta_rl.trainers.evaluation import ReportInvalid
 
-    path = report_path(results, run)
     try:
-        return identity_problem(load_report(results, path, packed), run, results, packed)
+        report = load_report(results, report_path(results, run), packed)
     except ReportInvalid as error:
-        return str(error)
+        return None, str(error)
+    problem = identity_problem(report, run, results, packed)
+    return (report, None) if problem is None else (None, problem)
 
 
 def load_report(results: Path, path: Path, packed: Packed = NOTHING_PACKED) -> dict[str, Any]:
