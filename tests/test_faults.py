@@ -654,7 +654,7 @@ evaluate()
 """
 
 
-@pytest.mark.parametrize("sig,code", [("SIGTERM", 75), ("SIGUSR1", 75), ("SIGINT", 130)])
+@pytest.mark.parametrize("sig,code", [("SIGTERM", 75), ("SIGINT", 130)])
 def test_a_stop_signal_abandons_a_scoring_at_once_writing_nothing(tmp_path, whole, sig, code):
     """A scoring keeps nothing until its report is written, so a stop signal ends it at once
     (a sweep's evaluation job does not run on to its end): one line, the signal's exit code,
