@@ -1082,9 +1082,10 @@ def test_the_verdict_rule_on_hand_made_differences():
 def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     """Five seeds where AR-MAML beats MAML on every task of p0 by 1 to 1.4 and loses on the rim
     at 4 of 5 seeds: the report and the verdicts file say it helps on p0 and hurts on the rim,
-    with the differences over seeds and the seeds better; DR-MAML, level with MAML, does not
-    help anywhere; the option, worse on p0 at every seed but within the spread (one seed far
-    off) and level on the rim, does not help, worse at every seed on p0."""
+    with the differences over seeds (mean ± its standard error) and the seeds better; DR-MAML,
+    level with MAML, does not help anywhere; the option, worse on p0 at every seed but within
+    the spread (one seed far off) and level on the rim, does not help, worse at every seed on
+    p0."""
     from armeta_rl.reproduce.reports import verdicts_path
 
     plan = make_plan("meta_rl_point", "paper", ("eval.n_tasks=2", "eval.alphas=[0.5]"))
@@ -1095,13 +1096,13 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     text = paired(plan, collect(plan, tmp_path, {}), tmp_path)
     lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
     assert lines[0] == "- **DR-MAML** (5 seeds): does not help on any of the 2 distributions."
-    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.158, 5/5 seeds "
-                        "better; CVaR0.5 +1.200 ± 0.158, 5/5 seeds better); hurts on shift: rim "
-                        "(avg -0.580 ± 0.396, 1/5 seeds better; CVaR0.5 -0.580 ± 0.396, 1/5 "
+    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.071, 5/5 seeds "
+                        "better; CVaR0.5 +1.200 ± 0.071, 5/5 seeds better); hurts on shift: rim "
+                        "(avg -0.580 ± 0.177, 1/5 seeds better; CVaR0.5 -0.580 ± 0.177, 1/5 "
                         "seeds better).")
     assert lines[2] == ("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on any of the 2 "
                         "distributions, though it is worse than MAML at every seed on p0 (avg "
-                        "-1.080 ± 2.191, 0/5 seeds better; CVaR0.5 -1.080 ± 2.191, 0/5 seeds "
+                        "-1.080 ± 0.980, 0/5 seeds better; CVaR0.5 -1.080 ± 0.980, 0/5 seeds "
                         "better), within the spread.")
     assert all(line in text for line in lines)
     # MAML scored on the rim at seed 0 only: one pair there, no standard error, no verdict
@@ -1111,8 +1112,8 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
     single = "; no verdict yet on shift: rim, paired at one seed only."
     assert lines[0] == "- **DR-MAML** (5 seeds): does not help on p0" + single
-    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.158, 5/5 seeds "
-                        "better; CVaR0.5 +1.200 ± 0.158, 5/5 seeds better)" + single)
+    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.071, 5/5 seeds "
+                        "better; CVaR0.5 +1.200 ± 0.071, 5/5 seeds better)" + single)
     assert lines[2].startswith("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on p0, "
                                "though it is worse than MAML at every seed on p0 (")
     assert lines[2].endswith("within the spread" + single)

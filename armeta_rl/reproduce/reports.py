@@ -488,8 +488,10 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             f"*helps* on a distribution when its paired difference to {reference_label} is "
             "on the better side, beyond twice its standard error over seeds and better on at "
             "least 80 % of the seeds; it *hurts* when the same holds on the worse side; "
-            f"otherwise it *does not help* (average and {_cvar_label(plan)} each; also in "
-            f"`{verdicts_path(results, plan.experiment).name}`):\n\n" + "\n".join(verdicts)
+            f"otherwise it *does not help* (average and {_cvar_label(plan)} each: the mean "
+            "paired difference ± its standard error over seeds, and the seeds where the "
+            f"learner is better; also in `{verdicts_path(results, plan.experiment).name}`):\n\n"
+            + "\n".join(verdicts)
             + ("\n\n" + adversaries if adversaries else ""))
 
 
@@ -570,11 +572,12 @@ def verdicts_path(results: Path, experiment: str) -> Path:
 
 
 def _finding(values: Sequence[float], name: str, higher_better: bool) -> str:
-    """``avg +1.3 ± 1.1, 5/5 seeds better`` of paired differences over seeds."""
+    """``avg +1.3 ± 0.5, 5/5 seeds better`` of paired differences over seeds: their mean ± its
+    standard error over seeds (the error :func:`verdict` weighs, not the tables' std)."""
     spread = over_seeds(values)
     places = decimals(spread.mean)
     better, _ = seeds_on_each_side(values, higher_better)
-    return (f"{name} {spread.mean:+.{places}f} ± {spread.std:.{places}f}, "
+    return (f"{name} {spread.mean:+.{places}f} ± {spread.se:.{places}f}, "
             f"{better}/{len(values)} seeds better")
 
 
