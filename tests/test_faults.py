@@ -956,6 +956,7 @@ SWEPT = {"benchmarks": ("sinusoid_uniform",), "seeds": (0,)}
 @pytest.mark.parametrize("damage", ["mean_12345", "nan", "no_initial", "empty", "non_utf8"])
 def test_a_report_that_fails_its_schema_is_unfinished_and_made_again(
         tmp_path, swept, damage, capsys):
+    from armeta_rl.reproduce.aggregate import run_seconds
     from armeta_rl.reproduce.cli import reproduce
 
     results = tmp_path / "results"
@@ -987,6 +988,10 @@ def test_a_report_that_fails_its_schema_is_unfinished_and_made_again(
         for paths in ("learner", "adversary"):  # the copy's directories
             made.pop(paths, None), before.pop(paths, None)
         assert made == before  # made again, the same numbers bit for bit
+        if report.name == EVAL_FILE:  # its wall time is the run made again's, not the first's
+            manifest = OmegaConf.load(results / "reproduce.yaml")
+            assert manifest.train_seconds[str(run_dir.relative_to(results))] == run_seconds(
+                run_dir)
 
 
 @pytest.mark.parametrize("damage,words", [

@@ -179,8 +179,9 @@ def run_seconds(run_dir: Path) -> float | None:
 
 def train_seconds(plan: Plan, results: Path, known: dict[str, float]) -> dict[str, float]:
     """Each finished run's wall time, by its subdirectory: the value in ``known`` (the results
-    directory's manifest, which keeps it across checkouts that reset file times), else measured
-    from the run's files by :func:`run_seconds`."""
+    directory's manifest, which keeps it across checkouts that reset file times, and forgets it
+    when the run is to be trained again), else measured from the run's files by
+    :func:`run_seconds`."""
     seconds = dict(known)
     for run in plan.runs:
         if run.subdir not in seconds and (results / run.subdir / EVAL_FILE).is_file():

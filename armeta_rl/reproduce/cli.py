@@ -375,6 +375,9 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
                   "made again", file=sys.stderr)
     packed = packed_runs(results)
     runs = [r for r in plan.runs if not finished(results, r, packed)]
+    unfinished = {run.subdir for run in runs}  # a time kept for one is an earlier run's
+    manifest["train_seconds"] = {subdir: seconds for subdir, seconds in manifest.get(
+        "train_seconds", {}).items() if subdir not in unfinished}
     attack_note = (f", {len(plan.attacks)} attack runs" if plan.attacks else "")
     print(f"{PROG}: {experiment} ({profile}) in {results}: {len(plan.runs)} training runs "
           f"({len(runs)} to run){attack_note}, {len(plan.evals)} evaluations; launcher "
