@@ -23,7 +23,7 @@ import multiprocessing
 import os
 import signal
 import threading
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from types import FrameType
 
@@ -78,10 +78,6 @@ def listening(names: Iterable[str], request: StopRequest = PROCESS,
     whose runs stop alike. Outside the main thread (where Python cannot handle signals) nothing
     is installed and the block runs as it would without.
     """
-    wanted = {signal.SIGINT, *(signal.Signals[name] for name in names)}
-    if threading.current_thread() is not threading.main_thread():
-        yield request
-        return
 
     def handle(signum: int, frame: FrameType | None) -> None:
         first = not request.requested
@@ -93,12 +89,17 @@ def listening(names: Iterable[str], request: StopRequest = PROCESS,
                 if child.pid is not None:
                     os.kill(child.pid, signal.SIGTERM)
 
-    previous = {sig: signal.signal(sig, handle) for sig in wanted}
-    try:
+    with _handled(names, handle):
         yield request
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+
+
+def refuse_if_asked(again: str, request: StopRequest = PROCESS) -> None:
+    """Refuse to start work in a process asked to stop (a later job of a sweep worker that
+    received ``SIGTERM``): :class:`~armeta_rl.errors.RunNotStarted`, saying that ``again`` does
+    it, with the request's exit code."""
+    if request.requested:
+        raise RunNotStarted(f"not started: this process received {request.name}; {again}",
+                            request.exit_code)
 
 
 @contextmanager
@@ -108,21 +109,29 @@ def abandoning(what: str, again: str, names: Iterable[str] = STOP_SIGNALS,
     of the signals ``names`` or ``SIGINT``: the signal becomes ``request`` and
     :class:`~armeta_rl.errors.RunStopped` is raised where the work is, with the request's exit
     code and a line saying that nothing was written and that ``again`` does it. A process asked
-    to stop before the block does none of it (:class:`~armeta_rl.errors.RunNotStarted`). The
-    handlers in place before are restored after; outside the main thread none is installed.
+    to stop before the block does none of it (:func:`refuse_if_asked`). The handlers in place
+    before are restored after; outside the main thread none is installed.
     """
-    if request.requested:
-        raise RunNotStarted(f"not started: this process received {request.name}; {again}",
-                            request.exit_code)
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
+    refuse_if_asked(again, request)
 
     def handle(signum: int, frame: FrameType | None) -> None:
         request.request(signum)
         raise RunStopped(f"{what} stopped by {signal.Signals(signum).name}: nothing written; "
                          f"{again}", request.exit_code)
 
+    with _handled(names, handle):
+        yield
+
+
+@contextmanager
+def _handled(names: Iterable[str], handle: Callable[[int, FrameType | None], None]
+             ) -> Iterator[None]:
+    """Within the block, ``SIGINT`` and the signals ``names`` call ``handle``; the handlers in
+    place before are restored after. Outside the main thread (where Python cannot handle
+    signals) nothing is installed."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
     wanted = {signal.SIGINT, *(signal.Signals[name] for name in names)}
     previous = {sig: signal.signal(sig, handle) for sig in wanted}
     try:

@@ -146,15 +146,12 @@ def train_task(job: Job, held: HeldRunDir | None = None) -> None:
     loop reads. The keys a resume changed (:attr:`Job.taken`) are said first. ``held``: its run
     directory as the CLI checked and locked it (a ``-m`` job's run checks and locks its own)."""
     from armeta_rl.allocator import keep_freed_memory
-    from armeta_rl.errors import RunNotStarted
-    from armeta_rl.preemption import PROCESS, listening
+    from armeta_rl.preemption import listening, refuse_if_asked
     from armeta_rl.trainers.training import run_training
 
     if job.taken:
         print(f"resuming {job.run_dir} with {', '.join(job.taken)} (they change no result)")
-    if PROCESS.requested:  # a later job of a sweep worker that was asked to stop
-        raise RunNotStarted(f"not started: this process received {PROCESS.name}; the same "
-                            "command starts it", PROCESS.exit_code)
+    refuse_if_asked("the same command starts it")
     trainer = job.config.trainer
     if trainer.keep_freed_memory:
         keep_freed_memory()
