@@ -176,3 +176,42 @@ def test_a_ray_launched_sweep_equals_the_local_one(tmp_path, noise_dir):
         for key in ("initial", "initial_noisy", "adversarial", "adversarial_noisy"):
             if key in ours:
                 assert ours[key] == theirs[key], (relative, key)
+
+
+def test_a_sweep_stopped_while_it_scores_says_so_and_continues(tmp_path, noise_dir, capsys,
+                                                                monkeypatch):
+    """SIGTERM during the evaluations: the scoring in flight stops at once, writing nothing,
+    the sweep says its evaluations stopped (no run was in flight) and exits 75; the same
+    command then makes the missing report, equal to the one first made."""
+    import signal
+
+    from armeta_rl.preemption import PROCESS
+    from armeta_rl.trainers import report
+
+    results = tmp_path / "results"
+    shutil.copytree(noise_dir, results)
+    made = next(results.glob("runs/*/*/*/eval_vs_*.json"))
+    first = json.loads(made.read_text())
+    made.unlink()
+    monkeypatch.setattr(PROCESS, "signal", None)  # the request this test makes ends with it
+    score = report.evaluate_runs
+
+    def signalled(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+        return score(*args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(report, "evaluate_runs", signalled)
+        assert reproduce("noise", "tiny", results, launcher="basic",
+                         benchmarks=(FIRST_BENCHMARK["noise"],)) == 75
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        "armeta-reproduce: stopped by SIGTERM: the evaluations in flight stopped, keeping "
+        "nothing; the same command continues the sweep")
+    assert not made.exists()
+    PROCESS.signal = None
+    assert reproduce("noise", "tiny", results, launcher="basic",
+                     benchmarks=(FIRST_BENCHMARK["noise"],)) == 0
+    again = json.loads(made.read_text())
+    for paths in ("learner", "adversary"):  # the copy's directories
+        again.pop(paths, None), first.pop(paths, None)
+    assert again == first

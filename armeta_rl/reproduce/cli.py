@@ -423,8 +423,10 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     report = write_report(whole, results, wall.get(experiment, 0.0), seconds, packed)
     print(f"{PROG}: {progress_note(whole, results, packed)} Report: {report}")
     if stop.requested:
-        print(f"{PROG}: stopped by {stop.name}: the runs in flight wrote checkpoints; the same "
-              "command continues the sweep", file=sys.stderr)
+        in_flight = ("the evaluations in flight stopped, keeping nothing" if ready and (
+            launcher != "none") else "the runs in flight wrote checkpoints")
+        print(f"{PROG}: stopped by {stop.name}: {in_flight}; the same command continues the "
+              "sweep", file=sys.stderr)
         return stop.exit_code
     missing = [(item, missing_why(results, item, packed))
                for item in (*plan.runs, *plan.attacks, *plan.evals)]
