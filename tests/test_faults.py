@@ -41,7 +41,7 @@ from armeta_rl.trainers.players import load_players
 from armeta_rl.trainers.report import EVAL_FILE
 from armeta_rl.trainers.run_dir import CSV_LOG_DIR, LOCK_FILE
 from armeta_rl.trainers.training import run_training
-from conftest import SMALL_RUN, compose_train, cross_evaluate, train_config
+from conftest import SMALL_RUN, compose_train, cross_evaluate, in_process, train_config
 
 RUN = (*SMALL_RUN, "method=ar_maml", "trainer.meta_batch=5", "logger=csv",
        "trainer.log_every=1", "trainer.checkpoint_every=2", "trainer.density_every=0")
@@ -641,31 +641,27 @@ def test_a_stopped_or_killed_sweep_stops_its_workers_with_checkpoints(tmp_path, 
     assert len(stopped) == 2 and all(verify(path) is None for path in stopped), stopped
 
 
-SCORED = """
-import os, signal, sys
-from armeta_rl.trainers import report
-sig, score = getattr(signal, sys.argv.pop(1)), report.evaluate_runs
-def signalled(*args, **kwargs):  # a stop signal while the learner is scored
-    os.kill(os.getpid(), sig)
-    return score(*args, **kwargs)
-report.evaluate_runs = signalled
-from armeta_rl.cli import evaluate
-evaluate()
-"""
-
-
 @pytest.mark.parametrize("sig,code", [("SIGTERM", 75), ("SIGINT", 130)])
-def test_a_stop_signal_abandons_a_scoring_at_once_writing_nothing(tmp_path, whole, sig, code):
+def test_a_stop_signal_abandons_a_scoring_at_once_writing_nothing(tmp_path, whole, sig, code,
+                                                                   capsys, monkeypatch):
     """A scoring keeps nothing until its report is written, so a stop signal ends it at once
     (a sweep's evaluation job does not run on to its end): one line, the signal's exit code,
     no report."""
-    out = tmp_path / "eval.json"
-    result = subprocess.run([sys.executable, "-c", SCORED, sig, f"learner={whole}",
-                             f"out={out}"], capture_output=True, text=True, timeout=300)
-    assert result.returncode == code, result.stderr
-    assert result.stderr.strip().splitlines() == [
-        f"armeta-eval: scoring {whole} stopped by {sig}: nothing written; the same command "
-        "scores it"]
+    from armeta_rl.cli import evaluate
+    from armeta_rl.preemption import PROCESS
+    from armeta_rl.trainers import report
+
+    score, out = report.evaluate_runs, tmp_path / "eval.json"
+
+    def signalled(*args, **kwargs):  # a stop signal while the learner is scored
+        os.kill(os.getpid(), getattr(signal, sig))
+        return score(*args, **kwargs)
+
+    monkeypatch.setattr(report, "evaluate_runs", signalled)
+    monkeypatch.setattr(PROCESS, "signal", None)  # the request this test makes ends with it
+    assert in_process(evaluate, [f"learner={whole}", f"out={out}"], capsys) == (
+        code, "", f"armeta-eval: scoring {whole} stopped by {sig}: nothing written; the same "
+        "command scores it\n")
     assert not out.exists()
 
 
