@@ -681,6 +681,7 @@ def test_a_process_asked_to_stop_starts_no_scoring_and_its_handlers_are_restored
         pytest.fail("a process asked to stop started the work")
     assert refused.value.code == EXIT_PREEMPTED
 
+
 # A finished run, damaged artefacts ------------------------------------------------------------
 
 FRAMES = (*RUN, "trainer.density_every=2")

@@ -401,15 +401,15 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
                           sum(finished(results, a, packed) for a in plan.attacks),
                           (*selected, *hydra_args), local) or code
         evals = [e for e in plan.evals if not finished(results, e, packed)]
-        ready = [] if stop.requested else [
+        ready = [] if stop.requested or launcher == "none" else [
             e for e in evals if finished(results, e.learner)
             and (e.adversary is None or finished(results, e.adversary))]
-        if ready and launcher != "none":
+        if ready:
             code = launch(evaluate, [eval_job(results, e) for e in ready],
                           results, f"{experiment} eval", len(plan.evals) - len(evals),
                           (*selected, *hydra_args), local) or code
     wall = manifest["wall_seconds"]
-    if runs or attacks or (ready and launcher != "none"):  # aggregating adds no sweep time
+    if runs or attacks or ready:  # aggregating adds no sweep time
         wall[experiment] = clock.before + clock.seconds
     if pack:
         packed = pack_runs(results, packable(results, make_plan(experiment, profile, extra),
@@ -423,8 +423,8 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
     report = write_report(whole, results, wall.get(experiment, 0.0), seconds, packed)
     print(f"{PROG}: {progress_note(whole, results, packed)} Report: {report}")
     if stop.requested:
-        in_flight = ("the evaluations in flight stopped, keeping nothing" if ready and (
-            launcher != "none") else "the runs in flight wrote checkpoints")
+        in_flight = ("the evaluations in flight stopped, keeping nothing" if ready
+                     else "the runs in flight wrote checkpoints")
         print(f"{PROG}: stopped by {stop.name}: {in_flight}; the same command continues the "
               "sweep", file=sys.stderr)
         return stop.exit_code
