@@ -11,6 +11,7 @@ import typing
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from armeta_rl.cli.compose import compose_job, config_dir
 from armeta_rl.cli.failures import Refused
@@ -157,6 +158,19 @@ def test_a_section_made_in_python_refuses_what_composing_would_refuse_or_convert
         section(**options)
     value = next(iter(options.values()))
     assert str(error.value) == f"config key '{key}' = {value!r}: {words}"
+
+
+@pytest.mark.parametrize(("good", "bad"), [(0.5, "0.5"), (1.0, True), (1.0, "1")])
+def test_a_section_typed_once_refuses_a_value_that_reads_the_same(good, bad):
+    """A section's typed values are made once per type and values (:meth:`Section.typed`): a
+    value that reads or compares the same as one typed before (``'0.5'`` after ``0.5``) is
+    still refused, and what ``typed`` hands out cannot be changed."""
+    typed = MamlOptions(inner_lr=good).typed()
+    assert MamlOptions(inner_lr=good).typed() is typed
+    with pytest.raises(ConfigError, match="must be a number"):
+        MamlOptions(inner_lr=bad)
+    with pytest.raises(OmegaConfBaseException):
+        typed.inner_lr = 2.0
 
 
 def test_a_saved_config_with_a_key_this_version_lacks_is_refused_in_one_line(tmp_path, composed):

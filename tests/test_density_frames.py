@@ -15,7 +15,7 @@ from PIL import Image
 from armeta_rl.adversary.flow_adversary import FlowAdversary
 from armeta_rl.config import validate
 from armeta_rl.job import Job
-from armeta_rl.plots import density_norm, pairwise_marginals, plot_density
+from armeta_rl.plots import density_norm, pairwise_marginals, picture_norms, plot_density
 from armeta_rl.tasks import BoxUniform, TaskSpace, TruncatedNormal
 from armeta_rl.trainers.density import DensityFrames
 from armeta_rl.trainers.training import run_training
@@ -129,6 +129,39 @@ def test_an_animation_keeps_p0_in_one_colour_while_p_phi_sharpens(tmp_path):
     assert all(np.array_equal(pictures[0], other) for other in pictures[1:])
     with Image.open(tmp_path / "density.gif") as animation:
         assert animation.n_frames == 3
+
+
+@pytest.mark.parametrize("names", [["a"], ["a", "b"]])
+def test_finished_frames_are_their_numbers_on_the_common_scale_and_drawn_once_if_so(
+        tmp_path, monkeypatch, names):
+    """After :meth:`DensityFrames.finish` every frame is the drawing of its saved numbers on the
+    scales of all frames; the frames already drawn on them (a curve has none; a heat map whose
+    own scales are the common ones) are not drawn again."""
+    import armeta_rl.trainers.density as density
+
+    space = TaskSpace(names, [0.0] * len(names), [1.0] * len(names))
+    torch.manual_seed(0)
+    adversary = FlowAdversary(space, BoxUniform(space), "spline")
+    frames = DensityFrames(adversary, adversary.base, tmp_path, every=1, points_per_axis=24)
+    for iteration in range(3):
+        if iteration == 2:
+            with torch.no_grad():  # the last frame sharpens beyond the others: its scale is all's
+                for parameter in adversary.parameters():
+                    parameter.mul_(3.0)
+        frames.draw(iteration)
+    pictures = [DensityFrames._picture(frames.frame_path(i)) for i in range(3)]
+    common = picture_norms(pictures)
+    own = [density.same_scales(picture_norms([picture]), common) for picture in pictures]
+    assert own == ([True] * 3 if len(names) == 1 else [False, False, True])
+    drawn = []
+    draw = density.draw_density
+    monkeypatch.setattr(density, "draw_density", lambda *a, **k: drawn.append(a[2]) or draw(*a))
+    frames.finish(2)
+    assert drawn == [f"p_φ at meta-iteration {i}" for i in range(3) if not own[i]]
+    for iteration, picture in enumerate(pictures):
+        again = tmp_path / f"again_{iteration}.png"
+        draw(picture, again, f"p_φ at meta-iteration {iteration}", common, space.low, space.high)
+        assert frames.frame_path(iteration).read_bytes() == again.read_bytes()
 
 
 def test_each_pair_of_identifiers_gets_its_own_colour_scale(tmp_path):

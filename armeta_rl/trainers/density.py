@@ -26,6 +26,7 @@ import logging
 from pathlib import Path
 
 import torch
+from matplotlib.colors import Normalize
 from torchrl.record.loggers import Logger
 
 from armeta_rl.plots import (
@@ -103,7 +104,11 @@ class DensityFrames:
     def finish(self, iteration: int) -> Path:
         """Draw the final ``iteration`` if it has no frame yet, redraw every frame on the colour
         scales of all of them (:func:`~armeta_rl.plots.picture_norms`), then write the GIF of
-        every frame in the directory, in iteration order; returns the GIF's path."""
+        every frame in the directory, in iteration order; returns the GIF's path.
+
+        A readable frame whose own scales are those of all frames is not drawn again: it would
+        come out the same (curves have no scale; nor did any earlier set of these frames have
+        other scales, as each scale only widens with the frames it covers)."""
         if not readable(self.frame_path(iteration)):
             self.draw(iteration)
         frames = sorted(self.frames_dir.glob("iter_*.png"), key=lambda f: int(f.stem[5:]))
@@ -111,7 +116,8 @@ class DensityFrames:
         if all(picture is not None for picture in pictures):
             norms = picture_norms(pictures)
             for frame, picture in zip(frames, pictures, strict=True):
-                self._draw(picture, int(frame.stem[5:]), norms)
+                if not (same_scales(picture_norms([picture]), norms) and readable(frame)):
+                    self._draw(picture, int(frame.stem[5:]), norms)
         kept = []
         for frame in frames:
             if readable(frame):
@@ -132,6 +138,17 @@ class DensityFrames:
                 load_tensors(frame.with_suffix(".pt"), None, frame.parent))
         except (OSError, KeyError, TypeError, ValueError, RuntimeError):
             return None
+
+
+def same_scales(these: dict[tuple[int, int], Normalize],
+                those: dict[tuple[int, int], Normalize]) -> bool:
+    """Whether two pictures' colour scales per pair (:func:`~armeta_rl.plots.picture_norms`)
+    draw alike: the same kind of scale over the same range for every pair."""
+    def drawn(norm: Normalize) -> tuple:
+        return type(norm), norm.vmin, norm.vmax, norm.clip
+
+    return these.keys() == those.keys() and all(drawn(these[pair]) == drawn(those[pair])
+                                                 for pair in these)
 
 
 def readable(frame: Path) -> bool:
