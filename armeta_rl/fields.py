@@ -111,12 +111,13 @@ class Section:
         made once per section type and values (:data:`TYPED_KEPT`): a sweep, or a report that
         loads its runs, makes the same sections over and over, and OmegaConf's check costs
         milliseconds each time."""
-        own = copy.copy(self)
+        own, items = copy.copy(self), []
         for spec in dataclasses.fields(self):  # type: ignore[arg-type]
             if nested(value := getattr(self, spec.name)):
-                object.__setattr__(own, spec.name, {} if isinstance(value, dict) else MISSING)
-        values = repr([(spec.name, getattr(own, spec.name))
-                       for spec in dataclasses.fields(own)])  # type: ignore[arg-type]
+                value = {} if isinstance(value, dict) else MISSING
+                object.__setattr__(own, spec.name, value)
+            items.append((spec.name, value))
+        values = repr(items)
         made = _TYPED.get((type(self), values))
         if made is not None:
             return made
