@@ -88,7 +88,7 @@ def test_table1_runs_end_to_end_and_aggregates(table1_dir):
                        .read_text())
     assert again["adversarial"]["mean"] == own["adversarial"]["mean"]
     text = (table1_dir / "table1.md").read_text()
-    assert ("complete: 16/16 training runs (2 of them attack runs) and 56/56 evaluations"
+    assert ("complete: 16/16 training runs (attack runs 2/2) and 56/56 evaluations"
             in text)
     assert "0.499 ± 0.01" in text  # the paper's MAML average beside ours
     assert "| Adversarial (p_φ trained against MAML) |" in text
@@ -140,7 +140,7 @@ def test_finished_runs_are_skipped_and_an_interrupted_run_resumes(table1_dir, ca
         path.unlink()
     assert reproduce("table1", "tiny", table1_dir, launcher="none",
                      benchmarks=("sinusoid_uniform",)) == 1  # aggregates only: incomplete
-    assert ("**partial**: 15/16 training runs (2 of them attack runs) and 49/56 evaluations"
+    assert ("**partial**: 15/16 training runs (attack runs 2/2) and 49/56 evaluations"
             in (table1_dir / "table1.md").read_text())
     assert reproduce("table1", "tiny", table1_dir, launcher="basic",
                      benchmarks=("sinusoid_uniform",)) == 0
@@ -210,7 +210,7 @@ def test_a_sweep_restricted_to_another_benchmark_keeps_the_finished_rows(table1_
                      benchmarks=("sinusoid_normal",)) == 1  # aggregates only: nothing ran
     text = (results / "table1.md").read_text()
     assert "| Sinusoid-U | Initial |" in text
-    assert ("**partial**: 16/32 training runs (4 of them attack runs) and 56/112 evaluations"
+    assert ("**partial**: 16/32 training runs (attack runs 2/4) and 56/112 evaluations"
             in text)
     rows = (results / "table1.csv").read_text().splitlines()
     assert rows == (table1_dir / "table1.csv").read_text().splitlines()

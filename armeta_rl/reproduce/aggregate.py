@@ -288,8 +288,9 @@ def progress_note(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) ->
     runs = sum(finished(results, r, packed) for r in trained)
     evals = sum(finished(results, e, packed) for e in plan.evals)
     total = len(trained) + len(plan.evals)
+    attacks = sum(finished(results, r, packed) for r in plan.attacks)
     counts = (f"{runs}/{len(trained)} training runs"
-              + (f" ({len(plan.attacks)} of them attack runs)" if plan.attacks else "")
+              + (f" (attack runs {attacks}/{len(plan.attacks)})" if plan.attacks else "")
               + f" and {evals}/{len(plan.evals)} evaluations finished")
     if runs + evals == total:
         return f"Profile `{plan.profile}`, complete: {counts}."
