@@ -1079,6 +1079,52 @@ def test_the_verdict_rule_on_hand_made_differences():
     assert verdict([*eight_of_ten[:7], -0.1, -0.2, -0.1], higher_better=True) == NO_HELP
 
 
+
+def _curve_rows(run: str, seeds: int, iterations: int, **columns) -> list[dict]:
+    """Curve-file rows of ``run``: each column a function of (seed, iteration), others empty."""
+    from armeta_rl.reproduce.curves import CURVES
+
+    return [{"benchmark": "half_cheetah_vel", "run": run, "seed": seed, "iteration": i,
+             **dict.fromkeys(CURVES), **{k: f(seed, i) for k, f in columns.items()}}
+            for seed in range(seeds) for i in range(1, iterations + 1)]
+
+
+def test_the_late_trend_compares_the_last_fifth_of_a_curve_with_the_fifth_before():
+    """The change from iterations 301–400 to 401–500 of 500, per seed; rising or falling by the
+    verdicts' rule (a rise of 5, 6, 7, 8, 9 over the five seeds: +7 ± 0.707, rising), level
+    within the spread, a lone seed without a word, and '–' where a run lacks the column."""
+    from armeta_rl.reproduce.curves import late_changes
+    from armeta_rl.reproduce.reports import late_trend
+
+    step = {300: 0.0, 400: 1.0, 500: 3.0}  # the curve's value up to each of these iterations
+    rows = [
+        *_curve_rows("maml", 5, 500,
+                     return_post=lambda s, i: (0.05 + 0.01 * s) * i,
+                     gain=lambda s, i: (1.0 if i > 400 else 0.0) * (-1) ** s),
+        *_curve_rows("ar_maml", 1, 500,
+                     return_post=lambda s, i: next(v for end, v in step.items() if i <= end),
+                     adversary_kl_p0=lambda s, i: 2.0),
+        *_curve_rows("ar_maml-vs-maml", 5, 500, adversary_kl_p0=lambda s, i: -i / (s + 1)),
+    ]
+    assert late_changes(rows, "return_post")[("half_cheetah_vel", "ar_maml")] == [2.0]
+    assert late_changes(rows, "return_post")[("half_cheetah_vel", "maml")] == pytest.approx(
+        [5.0, 6.0, 7.0, 8.0, 9.0])
+    assert ("half_cheetah_vel", "ar_maml-vs-maml") not in late_changes(rows, "return_post")
+    labels = {"maml": "MAML", "ar_maml": "AR-MAML", "ar_maml-vs-maml": "attack"}
+    lines = late_trend(rows, labels).splitlines()
+    assert lines[-5] == ("| Benchmark | Run | return after adaptation | adaptation gain "
+                         "| adversary KL(p0 ‖ p_φ) |")
+    assert lines[-2:] == [
+        "| half_cheetah_vel | AR-MAML | +2.000 (1 seed) | – | +0.000 (1 seed) |",
+        "| half_cheetah_vel | attack | – | – | -45.7 ± 14.5 (0/5 up) falling |"]
+    maml = lines[-3].split(" | ")
+    assert maml[2:] == ["+7.000 ± 0.707 (5/5 up) rising", "+0.200 ± 0.490 (3/5 up) level",
+                        "– |"]
+    assert "(for 500 iterations: 401–500 against 301–400)" in late_trend(rows, labels)
+    shorter = _curve_rows("maml", 2, 400, gain=lambda s, i: float(i))
+    assert "(for 400 iterations: 321–400 against 241–320)" in late_trend(shorter, labels)
+    assert late_trend(_curve_rows("maml", 2, 500), labels) == ""  # no curve at all
+
 def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     """Five seeds where AR-MAML beats MAML on every task of p0 by 1 to 1.4 and loses on the rim
     at 4 of 5 seeds: the report and the verdicts file say it helps on p0 and hurts on the rim,

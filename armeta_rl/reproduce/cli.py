@@ -79,7 +79,7 @@ from armeta_rl.reproduce.plan import (
     report_problem,
     run_command,
 )
-from armeta_rl.reproduce.reports import LAYOUTS, learner_label
+from armeta_rl.reproduce.reports import LAYOUTS, late_trend, learner_label
 from armeta_rl.run_files import FileRefused, plain_yaml, read_text
 from armeta_rl.trainers.run_dir import (
     check_contents,
@@ -289,7 +289,8 @@ def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_
     """Every training run's learning curve into ``<experiment>_curves.csv.gz`` (rows of runs
     whose logs are gone kept from the file as it was) and their figure, drawn from rows at the
     file's precision (so that a checkout without the logs redraws it byte for byte); the report's
-    section that shows them, empty when no run has logged one."""
+    section that shows them with their late trend (:func:`~armeta_rl.reproduce.reports.late_trend`),
+    empty when no run has logged one."""
     path = curves_path(results, plan.experiment)
     try:
         kept = read_curves(path)
@@ -305,10 +306,11 @@ def learning_curves_section(plan: Plan, results: Path, packed: Packed = NOTHING_
                f"{learner_label(plan, (run.target.method, run.target.variant))} (attack)"
                for run in plan.attacks}
     figures.learning_curves(rows, labels, results / f"{plan.experiment}_curves.png")
+    trend = late_trend(rows, labels)
     return (f"\n\n## Learning curves\n\n![learning curves]({plan.experiment}_curves.png)\n\n"
             "Mean over seeds (their number in brackets) of 10-iteration means, band ± one "
             "standard deviation over seeds. Every run's value at every logged iteration is in "
-            f"`{path.name}`.")
+            f"`{path.name}`." + (f"\n\n{trend}" if trend else ""))
 
 
 def reported_plan(results: Path, experiment: str, profile: str, extra: tuple[str, ...],

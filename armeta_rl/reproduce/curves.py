@@ -164,3 +164,30 @@ def windowed(values: Sequence[tuple[int, float]], window: int) -> list[tuple[int
         by_window.setdefault((iteration - 1) // window, []).append(value)
     return [(min((k + 1) * window, max(i for i, _ in values)), math.fsum(v) / len(v))
             for k, v in sorted(by_window.items())]
+
+
+LATE_PARTS = 5
+"""A run's late change compares the mean over the last fifth of its iterations with the mean
+over the fifth before it (for 500 iterations: 401–500 against 301–400)."""
+
+
+def late_changes(rows: Sequence[dict[str, Any]],
+                 column: str) -> dict[tuple[str, str], list[float]]:
+    """(benchmark, run) → each seed's late change of ``column``: the mean over the last
+    1/:data:`LATE_PARTS` of the run's logged iterations minus the mean over the
+    1/:data:`LATE_PARTS` before it; a seed with no value of ``column`` in either part is left out.
+    Whether a learner still improves where it was compared (or an adversary still moves)."""
+    by_seed: dict[tuple[str, str, int], list[tuple[int, float]]] = {}
+    for row in rows:
+        if row[column] is not None:
+            by_seed.setdefault(_identity(row), []).append((row["iteration"], row[column]))
+    changes: dict[tuple[str, str], list[float]] = {}
+    for (benchmark, run, _), values in by_seed.items():
+        last = max(iteration for iteration, _ in values)
+        part = last / LATE_PARTS
+        late = [v for i, v in values if i > last - part]
+        before = [v for i, v in values if last - 2 * part < i <= last - part]
+        if late and before:
+            changes.setdefault((benchmark, run), []).append(
+                math.fsum(late) / len(late) - math.fsum(before) / len(before))
+    return changes

@@ -7,6 +7,7 @@ paper's where its YAML holds them under ``paper``) and its PNGs into the results
 from __future__ import annotations
 
 import math
+from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from armeta_rl.reproduce.aggregate import (
     select,
     summary,
 )
+from armeta_rl.reproduce.curves import LATE_PARTS, late_changes
 from armeta_rl.reproduce.plan import Plan, composed, precision_target, run_command
 from armeta_rl.trainers.run_dir import write_text_atomically
 
@@ -871,6 +873,60 @@ def _natural_steps(plan: Plan, benchmark: str, target: Learner) -> bool:
                if run.benchmark == benchmark and run.target is not None
                and (run.target.method, run.target.variant) == target)
 
+
+
+TREND_WORDS = {HELPS: "rising", HURTS: "falling", NO_HELP: "level"}
+"""A late change's direction by :func:`verdict`'s rule (taking a rise as the better side)."""
+
+
+def late_trend(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> str:
+    """The learning curves' late changes (:func:`~armeta_rl.reproduce.curves.late_changes`)
+    per benchmark and run of ``labels`` (name → label): the training score (the return after
+    adaptation, or the task loss where there is none), the adaptation gain and the adversary's
+    KL from p0, each as its mean ± standard error over seeds, the seeds where it rose, and
+    *rising* or *falling* by the docs' rule (beyond twice its error, the same way at 80 % of the
+    seeds), else *level*: whether the learners were compared at their plateau or still
+    improving, and whether an adversary still moved. Empty when no run has two late parts."""
+    returns = any(row["return_post"] is not None for row in rows)
+    columns = ["return_post" if returns else "task_loss_mean", "gain", "adversary_kl_p0"]
+    changes = {column: late_changes(rows, column) for column in columns}
+    columns = [column for column in columns if changes[column]]
+    keys = [(benchmark, name) for benchmark in dict.fromkeys(row["benchmark"] for row in rows)
+            for name in labels if any((benchmark, name) in changes[c] for c in columns)]
+    if not keys:
+        return ""
+
+    def cell(values: list[float] | None) -> str:
+        if not values:
+            return "–"
+        spread = over_seeds(values)
+        places = decimals(spread.mean)
+        up = sum(v > 0 for v in values)
+        if spread.n < 2:
+            return f"{spread.mean:+.{places}f} (1 seed)"
+        return (f"{spread.mean:+.{places}f} ± {spread.se:.{places}f} ({up}/{spread.n} up) "
+                f"{TREND_WORDS[verdict(values, higher_better=True)]}")
+
+    header = ["Benchmark", "Run", *(figures.CURVE_PANELS[column] for column in columns)]
+    table = markdown_table(header, [
+        [display(benchmark), labels[name], *(cell(changes[c].get((benchmark, name)))
+                                             for c in columns)]
+        for benchmark, name in keys])
+    ends: dict[tuple[str, str, int], int] = {}  # each run's and seed's last iteration
+    for row in rows:
+        run = (row["benchmark"], row["run"], row["seed"])
+        ends[run] = max(ends.get(run, 0), row["iteration"])
+    last = Counter(ends.values()).most_common(1)[0][0]
+    late, before = (math.floor(last - k * last / LATE_PARTS) + 1 for k in (1, 2))
+    part = f"1/{LATE_PARTS}"
+    return (f"**Still moving at the end?** Each run's mean over the last {part} of its "
+            f"iterations minus its mean over the {part} before (for {last} iterations: "
+            f"{late}–{last} against {before}–{late - 1}), mean ± standard error over seeds "
+            "(seeds where it rose / seeds): "
+            "*rising* or *falling* where the change is beyond twice its error and goes the same "
+            "way at 80 % of the seeds, else *level*. A learner still rising was compared before "
+            "its plateau. Training scores are on each learner's own training tasks (AR-MAML's "
+            "from its moving p_φ).\n\n" + table)
 
 LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {
     "table": table,
