@@ -925,8 +925,10 @@ def late_trend(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> str:
             "(seeds where it rose / seeds): "
             "*rising* or *falling* where the change is beyond twice its error and goes the same "
             "way at 80 % of the seeds, else *level*. A learner still rising was compared before "
-            "its plateau. Training scores are on each learner's own training tasks (AR-MAML's "
-            "from its moving p_φ).\n\n" + table)
+            "its plateau, an adversary still rising had not stopped moving (the attack check "
+            "compares adversaries at equal iterations). Training scores are on each learner's "
+            "own training tasks (AR-MAML's from its moving p_φ).\n\n" + table)
+
 
 LAYOUTS: dict[str, Callable[[Plan, list[dict[str, Any]], Path], str]] = {
     "table": table,
