@@ -1079,7 +1079,6 @@ def test_the_verdict_rule_on_hand_made_differences():
     assert verdict([*eight_of_ten[:7], -0.1, -0.2, -0.1], higher_better=True) == NO_HELP
 
 
-
 def _curve_rows(run: str, seeds: int, iterations: int, **columns) -> list[dict]:
     """Curve-file rows of ``run``: each column a function of (seed, iteration), others empty."""
     from armeta_rl.reproduce.curves import CURVES

@@ -168,25 +168,31 @@ def windowed(values: Sequence[tuple[int, float]], window: int) -> list[tuple[int
 
 LATE_PARTS = 5
 """A run's late change compares the mean over the last fifth of its iterations with the mean
-over the fifth before it (for 500 iterations: 401–500 against 301–400)."""
+over the fifth before it."""
+
+
+def late_parts(last: int) -> tuple[range, range]:
+    """The iterations of the last 1/:data:`LATE_PARTS` of a run that ends at ``last`` and of the
+    1/:data:`LATE_PARTS` before them (of 500: 401–500 and 301–400)."""
+    late, before = (math.floor(last - k * last / LATE_PARTS) + 1 for k in (1, 2))
+    return range(late, last + 1), range(before, late)
 
 
 def late_changes(rows: Sequence[dict[str, Any]],
                  column: str) -> dict[tuple[str, str], list[float]]:
-    """(benchmark, run) → each seed's late change of ``column``: the mean over the last
-    1/:data:`LATE_PARTS` of the run's logged iterations minus the mean over the
-    1/:data:`LATE_PARTS` before it; a seed with no value of ``column`` in either part is left out.
-    Whether a learner still improves where it was compared (or an adversary still moves)."""
+    """(benchmark, run) → each seed's late change of ``column``: its mean over the run's last
+    part minus its mean over the part before (:func:`late_parts` of the seed's last logged
+    iteration); a seed with no value of ``column`` in either part is left out. Whether a learner
+    still improves where it was compared (or an adversary still moves)."""
     by_seed: dict[tuple[str, str, int], list[tuple[int, float]]] = {}
     for row in rows:
         if row[column] is not None:
             by_seed.setdefault(_identity(row), []).append((row["iteration"], row[column]))
     changes: dict[tuple[str, str], list[float]] = {}
     for (benchmark, run, _), values in by_seed.items():
-        last = max(iteration for iteration, _ in values)
-        part = last / LATE_PARTS
-        late = [v for i, v in values if i > last - part]
-        before = [v for i, v in values if last - 2 * part < i <= last - part]
+        late_part, before_part = late_parts(max(iteration for iteration, _ in values))
+        late = [v for i, v in values if i in late_part]
+        before = [v for i, v in values if i in before_part]
         if late and before:
             changes.setdefault((benchmark, run), []).append(
                 math.fsum(late) / len(late) - math.fsum(before) / len(before))

@@ -25,7 +25,7 @@ from armeta_rl.reproduce.aggregate import (
     select,
     summary,
 )
-from armeta_rl.reproduce.curves import LATE_PARTS, late_changes
+from armeta_rl.reproduce.curves import LATE_PARTS, late_changes, late_parts
 from armeta_rl.reproduce.plan import Plan, composed, precision_target, run_command
 from armeta_rl.trainers.run_dir import write_text_atomically
 
@@ -874,7 +874,6 @@ def _natural_steps(plan: Plan, benchmark: str, target: Learner) -> bool:
                and (run.target.method, run.target.variant) == target)
 
 
-
 TREND_WORDS = {HELPS: "rising", HURTS: "falling", NO_HELP: "level"}
 """A late change's direction by :func:`verdict`'s rule (taking a rise as the better side)."""
 
@@ -916,15 +915,14 @@ def late_trend(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> str:
     for row in rows:
         run = (row["benchmark"], row["run"], row["seed"])
         ends[run] = max(ends.get(run, 0), row["iteration"])
-    last = Counter(ends.values()).most_common(1)[0][0]
-    late, before = (math.floor(last - k * last / LATE_PARTS) + 1 for k in (1, 2))
+    late, before = late_parts(Counter(ends.values()).most_common(1)[0][0])
     part = f"1/{LATE_PARTS}"
     return (f"**Still moving at the end?** Each run's mean over the last {part} of its "
-            f"iterations minus its mean over the {part} before (for {last} iterations: "
-            f"{late}–{last} against {before}–{late - 1}), mean ± standard error over seeds "
-            "(seeds where it rose / seeds): "
-            "*rising* or *falling* where the change is beyond twice its error and goes the same "
-            "way at 80 % of the seeds, else *level*. A learner still rising was compared before "
+            f"iterations minus its mean over the {part} before (for {late[-1]} iterations: "
+            f"{late[0]}–{late[-1]} against {before[0]}–{before[-1]}), mean ± standard error "
+            "over seeds (seeds where it rose / seeds): *rising* or *falling* where the change "
+            "is beyond twice its error and goes the same way at 80 % of the seeds, else "
+            "*level*. A learner still rising was compared before "
             "its plateau, an adversary still rising had not stopped moving (the attack check "
             "compares adversaries at equal iterations). Training scores are on each learner's "
             "own training tasks (AR-MAML's from its moving p_φ).\n\n" + table)
