@@ -285,10 +285,10 @@ def progress_note(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) ->
     """How many of the plan's runs (attack runs included) and evaluations have finished, in
     their directories or ``packed`` (a partial sweep says so)."""
     trained = (*plan.runs, *plan.attacks)
-    runs = sum(finished(results, r, packed) for r in trained)
+    attacks = sum(finished(results, r, packed) for r in plan.attacks)
+    runs = attacks + sum(finished(results, r, packed) for r in plan.runs)
     evals = sum(finished(results, e, packed) for e in plan.evals)
     total = len(trained) + len(plan.evals)
-    attacks = sum(finished(results, r, packed) for r in plan.attacks)
     counts = (f"{runs}/{len(trained)} training runs"
               + (f" (attack runs {attacks}/{len(plan.attacks)})" if plan.attacks else "")
               + f" and {evals}/{len(plan.evals)} evaluations finished")
