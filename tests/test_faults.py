@@ -953,8 +953,9 @@ SWEPT = {"benchmarks": ("sinusoid_uniform",), "seeds": (0,)}
 @pytest.mark.parametrize("damage", ["mean_12345", "nan", "no_initial", "empty", "non_utf8"])
 def test_a_report_that_fails_its_schema_is_unfinished_and_made_again(
         tmp_path, swept, damage, capsys):
-    from armeta_rl.reproduce.aggregate import run_seconds
+    from armeta_rl.reproduce.aggregate import train_seconds
     from armeta_rl.reproduce.cli import reproduce
+    from armeta_rl.reproduce.plan import make_plan
 
     results = tmp_path / "results"
     shutil.copytree(swept, results)
@@ -987,8 +988,10 @@ def test_a_report_that_fails_its_schema_is_unfinished_and_made_again(
         assert made == before  # made again, the same numbers bit for bit
         if report.name == EVAL_FILE:  # its wall time is the run made again's, not the first's
             manifest = OmegaConf.load(results / "reproduce.yaml")
-            assert manifest.train_seconds[str(run_dir.relative_to(results))] == run_seconds(
-                run_dir)
+            subdir = str(run_dir.relative_to(results))
+            measured = train_seconds(make_plan("table1", "tiny", benchmarks=SWEPT["benchmarks"],
+                                               seeds=SWEPT["seeds"]), results, {})
+            assert manifest.train_seconds[subdir] == measured[subdir]
 
 
 @pytest.mark.parametrize("damage,words", [

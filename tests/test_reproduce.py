@@ -41,6 +41,7 @@ from armeta_rl.reproduce.cli import (
 )
 from armeta_rl.reproduce.plan import PROFILES_FILE, experiment_names, make_plan
 from armeta_rl.reproduce.reports import paired, table
+from armeta_rl.trainers.run_dir import CSV_LOG_DIR
 
 ROOT = Path(__file__).resolve().parents[1]
 REPRODUCE = [sys.executable, "-c", "from armeta_rl.reproduce.cli import main; main()"]
@@ -494,6 +495,25 @@ def test_run_wall_times_come_from_the_manifest_before_file_times(tmp_path):
         os.utime(run / "eval.json", (end, end))
     assert train_seconds(plan, tmp_path, {}) == {first: 30.0, second: 12.5}
     assert train_seconds(plan, tmp_path, {first: 7.0}) == {first: 7.0, second: 12.5}
+
+
+def test_a_resumed_runs_wall_time_is_its_logged_iterations_without_its_pause(tmp_path):
+    """A run stopped after iteration 2 and resumed an hour later: its files span the hour, its
+    CSV log's iteration times (iteration 2 logged twice, by a run killed before its checkpoint
+    and by the resumed one: the last counts) do not, and they win over the manifest's value;
+    a log that misses an iteration (``log_every`` > 1) is no measure of the run."""
+    plan = make_plan("cnp_table", "quick")
+    first, second = plan.runs[0].subdir, plan.runs[1].subdir
+    for subdir, rows in ((first, "1,1000\n2,9999\n2,2000\n3,4000\n"),
+                         (second, "2,1000\n4,1000\n")):
+        run = tmp_path / subdir
+        (run / CSV_LOG_DIR / "scalars" / "time").mkdir(parents=True)
+        (run / CSV_LOG_DIR / "scalars" / "time" / "iteration_ms.csv").write_text(rows)
+        (run / "config.yaml").write_text("seed: 0\n")
+        (run / "eval.json").write_text("{}")
+        os.utime(run / "config.yaml", (1000.0, 1000.0))
+        os.utime(run / "eval.json", (4600.0, 4600.0))
+    assert train_seconds(plan, tmp_path, {first: 3600.0}) == {first: 7.0, second: 3600.0}
 
 
 def test_a_killed_sweep_keeps_its_wall_time_up_to_the_clocks_last_write(tmp_path):
@@ -1274,7 +1294,6 @@ def test_the_curve_file_holds_the_natural_steps_kl(tmp_path):
     """The follower's ``adversary/step_kl`` scalar (natural steps) is a column of the curve
     file."""
     from armeta_rl.reproduce.curves import run_curve
-    from armeta_rl.trainers.run_dir import CSV_LOG_DIR
 
     scalars = tmp_path / CSV_LOG_DIR / "scalars" / "adversary"
     scalars.mkdir(parents=True)

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from armeta_rl.config import CONFIG_FILE
+from armeta_rl.reproduce.curves import logged_scalar
 from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
 from armeta_rl.reproduce.plan import (
     EVAL_FILE,
@@ -28,6 +29,7 @@ from armeta_rl.reproduce.plan import (
     load_report,
 )
 from armeta_rl.trainers.evaluation import ReportInvalid, share_resolved
+from armeta_rl.trainers.game import ITERATION_TIME
 from armeta_rl.trainers.run_dir import write_text_atomically
 
 INITIAL = "initial"
@@ -169,25 +171,39 @@ def evidence_columns(section: dict[str, Any]) -> dict[str, Any]:
 
 
 def run_seconds(run_dir: Path) -> float | None:
-    """A finished run's wall time: from its ``config.yaml`` (written as it starts) to its
-    ``eval.json`` (written as it ends), interruptions of a resumed run included."""
+    """A finished run's wall time from its files: from its ``config.yaml`` (written as it starts)
+    to its ``eval.json`` (written as it ends), interruptions of a resumed run included."""
     config = run_dir / CONFIG_FILE
     if not config.is_file():
         return None
     return (run_dir / EVAL_FILE).stat().st_mtime - config.stat().st_mtime
 
 
+def logged_seconds(run_dir: Path) -> float | None:
+    """A run's time training as its CSV log holds it: the sum of its iterations' logged times
+    (:data:`ITERATION_TIME`), so that the pauses of a run stopped and resumed count nothing;
+    ``None`` unless the log holds every iteration from the first."""
+    times = logged_scalar(run_dir, ITERATION_TIME)
+    if not times or sorted(times) != list(range(1, len(times) + 1)):
+        return None
+    return sum(times.values()) / 1000.0
+
+
 def train_seconds(plan: Plan, results: Path, known: dict[str, float]) -> dict[str, float]:
-    """Each finished run's wall time, by its subdirectory: the value in ``known`` (the results
-    directory's manifest, which keeps it across checkouts that reset file times, and forgets it
-    when the run is to be trained again), else measured from the run's files by
-    :func:`run_seconds`."""
+    """Each finished run's wall time, by its subdirectory: :func:`logged_seconds` where the run
+    has its log, else the value in ``known`` (the results directory's manifest, which keeps it
+    across checkouts that carry no logs and reset file times, and forgets it when the run is to
+    be trained again), else :func:`run_seconds`."""
     seconds = dict(known)
     for run in plan.runs:
-        if run.subdir not in seconds and (results / run.subdir / EVAL_FILE).is_file():
-            measured = run_seconds(results / run.subdir)
-            if measured is not None:
-                seconds[run.subdir] = measured
+        run_dir = results / run.subdir
+        if not (run_dir / EVAL_FILE).is_file():
+            continue
+        measured = logged_seconds(run_dir)
+        if measured is None and run.subdir not in seconds:
+            measured = run_seconds(run_dir)
+        if measured is not None:
+            seconds[run.subdir] = measured
     return seconds
 
 

@@ -238,7 +238,8 @@ def check_runs(plan: Plan) -> None:
 
 def run_times(records: list[dict]) -> str:
     """``; a training run: <benchmark> <minutes>, …`` (the mean wall time of a benchmark's runs,
-    measured as they ran: parallel jobs share the cores)."""
+    :func:`~armeta_rl.reproduce.aggregate.train_seconds`: the pauses of a resumed run left out
+    where its log is at hand; measured as they ran: parallel jobs share the cores)."""
     times: dict[str, list[float]] = {}
     for record in records:
         if record["distribution"] == INITIAL and not record["noisy"] and record["train_seconds"]:

@@ -56,20 +56,25 @@ def curves_path(results: Path, experiment: str) -> Path:
 def run_curve(run_dir: Path) -> dict[int, dict[str, float]]:
     """Iteration → the run's logged scalars of :data:`CURVES` at that iteration; empty when the
     run has no CSV log. A run whose log has no gain scalar gets return_post − return_pre."""
-    scalars = run_dir / CSV_LOG_DIR / "scalars"
     rows: dict[int, dict[str, float]] = {}
     for column, name in CURVES.items():
-        try:
-            text = read_text(scalars / f"{name}.csv", LOG_BYTES, run_dir)
-        except (OSError, FileRefused):
-            continue
-        for line in csv.reader(text.splitlines()):
-            if len(line) == 2 and line[0].isdigit():
-                rows.setdefault(int(line[0]), {})[column] = float(line[1])
+        for iteration, value in logged_scalar(run_dir, name).items():
+            rows.setdefault(iteration, {})[column] = value
     for row in rows.values():
         if "gain" not in row and {"return_pre", "return_post"} <= row.keys():
             row["gain"] = row["return_post"] - row["return_pre"]
     return rows
+
+
+def logged_scalar(run_dir: Path, name: str) -> dict[int, float]:
+    """Iteration → the value of scalar ``name`` (``train/gain``, say) in the run's CSV log (the
+    last row of an iteration a resumed run logged twice); empty when the run has no such log."""
+    try:
+        text = read_text(run_dir / CSV_LOG_DIR / "scalars" / f"{name}.csv", LOG_BYTES, run_dir)
+    except (OSError, FileRefused):
+        return {}
+    return {int(line[0]): float(line[1]) for line in csv.reader(text.splitlines())
+            if len(line) == 2 and line[0].isdigit()}
 
 
 def read_curves(path: Path) -> list[dict[str, Any]]:

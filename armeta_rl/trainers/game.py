@@ -34,6 +34,8 @@ from armeta_rl.trainers.checkpoint import RunCheckpoint
 LogFn = Callable[[dict[str, float], int], None]
 
 
+ITERATION_TIME = "time/iteration_ms"
+"""The scalar under which every iteration logs its wall time in milliseconds."""
 BAR_SCALARS = {"train/leader_loss": "leader loss", "adversary/objective": "adversary objective"}
 """The scalars the progress bar shows, by the names it shows them under."""
 
@@ -138,7 +140,7 @@ class GameTrainer:
             follower = (self.follower_losses(tasks, data, out[self.principle.label])
                         if self.train_leader else losses)
             logs.update(self.principle.update(tasks, follower))
-        logs["time/iteration_ms"] = 1000.0 * (time.perf_counter() - start)
+        logs[ITERATION_TIME] = 1000.0 * (time.perf_counter() - start)
         return logs
 
     def follower_losses(self, tasks: TensorDict, data: Any, step_losses: Tensor) -> Tensor:
