@@ -1184,6 +1184,43 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     assert lines[2].endswith("within the spread" + single)
 
 
+def test_matched_progress_reads_each_learners_p0_gain_against_the_references_per_seed():
+    """AR-MAML's p0 gain 1.0 to 1.4 below MAML's at five seeds (−1.2 ± 0.071, 0/5 higher):
+    behind, so the comparison is at equal iterations only; DR-MAML's alternately 0.1 above and
+    below: level; a seed scored on other tasks pairs with nothing; with AR-MAML level too, the
+    comparison is also one at equal gain; fewer than two paired seeds: no line."""
+    from armeta_rl.reproduce.reports import progress_line
+
+    plan = make_plan("meta_rl_point", "paper")
+    base = {"benchmark": "point_nav", "distribution": "initial", "noisy": False,
+            "n_tasks": 2, "mean": -10.0}
+
+    def records(ar_offset):
+        out = []
+        for seed in range(5):
+            out += [{**base, "method": m, "variant": "", "seed": seed, "task_seed": 1234,
+                     "gain": 3.0 + seed + offset}
+                    for m, offset in (("maml", 0.0), ("dr_maml", 0.1 * (-1) ** seed),
+                                      ("ar_maml", ar_offset(seed)))]
+        out.append({**base, "method": "ar_maml", "variant": "", "seed": 5, "task_seed": 99,
+                    "gain": 50.0})  # MAML has no seed 5 on these tasks
+        return out
+
+    line = progress_line(plan, records(lambda seed: -1.0 - 0.1 * seed), ("maml", ""))
+    assert line == (
+        "- **Matched progress?** The adaptation gain on p0 at the compared iteration, each "
+        "learner's minus MAML's per seed on the same tasks (mean ± its standard error over "
+        "seeds; *ahead* or *behind* by the rule, else *level*): DR-MAML +0.0 ± 0.0 (3/5 seeds "
+        "higher), level; AR-MAML -1.2 ± 0.1 (0/5 seeds higher), behind. AR-MAML is behind, so "
+        "for it the comparison is at equal iterations, not at equal gain.")
+    level = progress_line(plan, records(lambda seed: 0.2 * (-1) ** seed), ("maml", ""))
+    assert level.endswith("AR-MAML +0.0 ± 0.1 (3/5 seeds higher), level. Every learner's "
+                          "gain is level with MAML's within the spread, so the learners "
+                          "compared at equal iterations are also compared at equal gain.")
+    assert progress_line(plan, [r for r in records(lambda seed: 0.0) if r["seed"] == 0],
+                         ("maml", "")) == ""
+
+
 def _strength_records() -> list[dict]:
     """MAML at two seeds: its worst quarter on p0 is 1 (returns −20 and −30), where the attack
     puts 0.6 and 0.7; the co-trained AR-MAML's worst is quarter 3; the attack's KL 0.5 and 0.6

@@ -471,7 +471,8 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     reference_label = learner_label(plan, reference)
     better = "higher" if higher else "lower"
     adaptation = adaptation_section(plan, records)
-    verdicts = verdict_lines(plan, records, reference, alpha)
+    progress = progress_line(plan, records, reference)
+    verdicts = verdict_lines(plan, records, reference, alpha) + ([progress] if progress else [])
     write_text_atomically(verdicts_path(results, plan.experiment), "\n".join(verdicts) + "\n")
     adversaries = adversary_section(plan, records)
     precision = precision_line(plan, records, reference, alpha)
@@ -656,6 +657,64 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
         text = f"{name} ({seeds} seeds): " + "; ".join(parts)
         lines.append(text + "." + _adaptation_caveat(plan, records, learner))
     return lines
+
+
+PROGRESS_WORDS = {HELPS: "ahead", HURTS: "behind", NO_HELP: "level"}
+"""A learner's p0 gain against the reference's by :func:`verdict`'s rule (higher is ahead)."""
+
+
+def progress_line(plan: Plan, records: list[dict[str, Any]], reference: Learner) -> str:
+    """Whether the learners were compared at matched progress (docs/meta-rl.md: at their
+    plateau, or at equal adaptation gain): per benchmark and learner other than ``reference``,
+    its adaptation gain on p0 minus the reference's, per seed on the same tasks, as mean ±
+    standard error over seeds and the seeds where it is higher; *ahead* or *behind* by
+    :func:`verdict`'s rule, else *level*. Where every learner is level, the comparison at equal
+    iterations is also one at equal gain; where one is not, the line says that for it the
+    comparison is at equal iterations only. Empty where no two seeds pair a gain."""
+    benchmarks = _benchmarks(plan)
+    findings: list[str] = []
+    unmatched: dict[str, list[str]] = {}  # ahead / behind → the learners
+    for benchmark in benchmarks:
+        where = {"benchmark": benchmark, "distribution": INITIAL, "noisy": False}
+        ours = [r for r in select(records, method=reference[0], variant=reference[1], **where)
+                if r.get("gain") is not None]
+        theirs = {(r["seed"], r["task_seed"], r["n_tasks"]): r["gain"] for r in ours}
+        for learner in _learners(plan):
+            if learner == reference:
+                continue
+            values = [r["gain"] - theirs[key] for r in select(
+                records, method=learner[0], variant=learner[1], **where)
+                if r.get("gain") is not None
+                and (key := (r["seed"], r["task_seed"], r["n_tasks"])) in theirs]
+            if len(values) < 2:
+                continue
+            spread = over_seeds(values)
+            places = decimals(over_seeds([r["mean"] for r in ours]).mean)  # as the gain table
+            word = PROGRESS_WORDS[verdict(values, higher_better=True)]
+            label = learner_label(plan, learner) + (
+                f" on {display(benchmark)}" if len(benchmarks) > 1 else "")
+            findings.append(f"{label} {spread.mean:+.{places}f} ± {spread.se:.{places}f} "
+                            f"({sum(v > 0 for v in values)}/{len(values)} seeds higher), "
+                            f"{word}")
+            if word != PROGRESS_WORDS[NO_HELP]:
+                unmatched.setdefault(word, []).append(label)
+    if not findings:
+        return ""
+    reference_label = learner_label(plan, reference)
+    if unmatched:
+        sides = [" and ".join(names) + (" is " if len(names) == 1 else " are ") + word
+                 for word, names in unmatched.items()]
+        whom = "it" if sum(map(len, unmatched.values())) == 1 else "them"
+        ending = (f"{'; '.join(sides)}, so for {whom} the comparison is at equal iterations, "
+                  "not at equal gain.")
+    else:
+        ending = (f"Every learner's gain is level with {reference_label}'s within the spread, "
+                  "so the learners compared at equal iterations are also compared at equal "
+                  "gain.")
+    return (f"- **Matched progress?** The adaptation gain on p0 at the compared iteration, "
+            f"each learner's minus {reference_label}'s per seed on the same tasks (mean ± its "
+            "standard error over seeds; *ahead* or *behind* by the rule, else *level*): "
+            + "; ".join(findings) + ". " + ending)
 
 
 def _count(n: int, noun: str) -> str:
