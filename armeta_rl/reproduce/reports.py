@@ -678,7 +678,10 @@ def progress_line(plan: Plan, records: list[dict[str, Any]], reference: Learner)
         where = {"benchmark": benchmark, "distribution": INITIAL, "noisy": False}
         ours = [r for r in select(records, method=reference[0], variant=reference[1], **where)
                 if r.get("gain") is not None]
+        if not ours:
+            continue
         theirs = {(r["seed"], r["task_seed"], r["n_tasks"]): r["gain"] for r in ours}
+        places = decimals(over_seeds([r["mean"] for r in ours]).mean)  # as the gain table
         for learner in _learners(plan):
             if learner == reference:
                 continue
@@ -689,7 +692,6 @@ def progress_line(plan: Plan, records: list[dict[str, Any]], reference: Learner)
             if len(values) < 2:
                 continue
             spread = over_seeds(values)
-            places = decimals(over_seeds([r["mean"] for r in ours]).mean)  # as the gain table
             word = PROGRESS_WORDS[verdict(values, higher_better=True)]
             label = learner_label(plan, learner) + (
                 f" on {display(benchmark)}" if len(benchmarks) > 1 else "")
