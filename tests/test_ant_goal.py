@@ -111,7 +111,8 @@ def test_ant_dir_every_simulation_equals_a_hand_computation_with_its_own_directi
     td = env.reset(TensorDict({"params": angles[:, None, None].expand(3, 2, 1)}, [3, 2]))
     model = load_ant_model(with_force_sensor=False)
     datas = raw_mjdata(model, env.sim)
-    directions = np.stack([np.cos(angles.double()), np.sin(angles.double())], -1).repeat(2, 0)
+    radians = angles.double().numpy()
+    directions = np.stack([np.cos(radians), np.sin(radians)], -1).repeat(2, 0)
     for _ in range(15):
         action = 1.2 * (2 * torch.rand(3, 2, 8) - 1)
         td["action"] = action

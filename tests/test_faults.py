@@ -1185,7 +1185,7 @@ def test_a_frame_a_kill_cut_off_after_its_checkpoint_is_drawn_on_resume(tmp_path
     for index in range(ours.n_frames):
         ours.seek(index)
         theirs.seek(index)
-        assert list(ours.getdata()) == list(theirs.getdata())
+        assert ours.convert("RGB").tobytes() == theirs.convert("RGB").tobytes()
 
 
 def test_a_memory_limit_at_start_is_one_line_and_exit_code_2(tmp_path):

@@ -1182,6 +1182,18 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     assert lines[2].startswith("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on p0, "
                                "though it is worse than MAML at every seed on p0 (")
     assert lines[2].endswith("within the spread" + single)
+    # the attacks' KL 0.5 and 0.6 against the co-trained 0.2 and 0.3: the check closes the file
+    for seed, (attack, cotrained) in enumerate(((0.5, 0.2), (0.6, 0.3))):
+        for method, name, kl in (("maml", "maml", attack), ("ar_maml", "same_seed", cotrained)):
+            report = _paired_report([-10.0, -12.0], "adversarial", seed=seed)
+            report["adversarial"]["kl_p0"] = kl
+            run = tmp_path / f"runs/point_nav/{method}/seed{seed}"
+            (run / f"eval_vs_{name}.json").write_text(_of(plan, run, report))
+    text = paired(plan, collect(plan, tmp_path, {}), tmp_path)
+    last = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()[-1]
+    assert last.startswith("- **The attack against MAML** (p_φ vs MAML, KL 0.55) against the "
+                           "co-trained adversary (p_φ same seed, KL 0.25): KL ratio 2.20 ± 0.24")
+    assert last[2:] in text
 
 
 def test_matched_progress_reads_each_learners_p0_gain_against_the_references_per_seed():
@@ -1252,7 +1264,7 @@ def test_the_adversaries_strength_and_the_attack_check_by_hand():
     ratio 18 / 12 = 1.5 and the KL ratio (0.5 + 0.6) / (0.2 + 0.3) = 2.2, whose delta-method
     influence values are ±0.24 (standard error 0.24): the attack moved clearly further. A
     section without masses (an evaluation before they were recorded) shows –."""
-    from armeta_rl.reproduce.reports import adversary_section, kl_ratio
+    from armeta_rl.reproduce.reports import adversary_section, attack_check, kl_ratio
 
     plan = make_plan("meta_rl_point", "paper")
     ratio, se = kl_ratio([0.5, 0.6], [0.2, 0.3])
@@ -1263,20 +1275,22 @@ def test_the_adversaries_strength_and_the_attack_check_by_hand():
                                     "0.65 ± 0.07 (p0: 0.25 ± 0.00)", "1.50 ± 0.00 |"]
     same = next(line for line in text.splitlines() if "| p_φ same seed |" in line)
     assert same.split(" | ")[4] == "–"  # no masses recorded: –, not a crash
-    assert "KL ratio 2.20 ± 0.24" in text and "It moved clearly further" in text
+    [check] = attack_check(plan, _strength_records(), "point_nav")
+    assert "KL ratio 2.20 ± 0.24" in check and "It moved clearly further" in check
     cotrained_moved_as_far = [
         {**r, "kl_p0": 0.55} if r["distribution"] == "same_seed" else r
         for r in _strength_records()]
-    text = adversary_section(plan, cotrained_moved_as_far)
-    assert "It did not move clearly further" in text and "Adam at 0.5 / iterations" in text
+    [check] = attack_check(plan, cotrained_moved_as_far, "point_nav")
+    assert "It did not move clearly further" in check and "Adam at 0.5 / iterations" in check
     # natural steps (the fair test's attacks): no step rule to blame
     fair = make_plan("meta_rl_cheetah_fair", "paper")
     cheetah = [{**r, "benchmark": "half_cheetah_vel"} for r in cotrained_moved_as_far]
-    text = adversary_section(fair, cheetah)
-    assert "It did not move clearly further" in text and "Adam at 0.5" not in text
+    [check] = attack_check(fair, cheetah, "half_cheetah_vel")
+    assert "It did not move clearly further" in check and "Adam at 0.5" not in check
     one_seed = [r for r in _strength_records() if r["seed"] == 0]  # 0.5 / 0.2
-    assert ("KL ratio 2.50 at one seed: no standard error over seeds, no verdict yet."
-            in adversary_section(plan, one_seed))
+    assert attack_check(plan, one_seed, "point_nav")[0].endswith(
+        "KL ratio 2.50 at one seed: no standard error over seeds, no verdict yet.")
+    assert attack_check(plan, _strength_records(), "half_cheetah_vel") == []  # not scored there
 
 
 def test_the_share_of_the_goal_blind_gap_is_a_column_only_where_recorded():

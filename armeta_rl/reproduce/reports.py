@@ -436,7 +436,9 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     and random streams, per seed, summarized over seeds; figures of both. Before them the
     adaptation gain and the share of the goal-blind gap closed (:func:`adaptation_section`);
     after them each learner's verdicts by the docs' rule (:func:`verdict_lines`, also written to
-    ``<experiment>_verdicts.md``) and the adversaries' strength (:func:`adversary_section`)."""
+    ``<experiment>_verdicts.md``, with each attack's check, :func:`attack_check`, so that pages
+    quoting them copy no number by hand) and the adversaries' strength
+    (:func:`adversary_section`)."""
     learners, cvar, alpha = _learners(plan), _cvar_key(plan), float(plan.spec.get("alpha", 0.5))
     reference = (plan.spec.get("paired", {}).get("against", learners[0][0]), "")
     distributions = _distributions(plan, records)
@@ -473,7 +475,10 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
     adaptation = adaptation_section(plan, records)
     progress = progress_line(plan, records, reference)
     verdicts = verdict_lines(plan, records, reference, alpha) + ([progress] if progress else [])
-    write_text_atomically(verdicts_path(results, plan.experiment), "\n".join(verdicts) + "\n")
+    checks = [check for benchmark in _benchmarks(plan)
+              for check in attack_check(plan, records, benchmark)]
+    write_text_atomically(verdicts_path(results, plan.experiment),
+                          "\n".join(verdicts + [f"- {check}" for check in checks]) + "\n")
     adversaries = adversary_section(plan, records)
     precision = precision_line(plan, records, reference, alpha)
     return ((adaptation + "\n\n" if adaptation else "")
@@ -495,7 +500,8 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             "paired difference ± its standard error over seeds, and the seeds where the "
             f"learner is better; also in `{verdicts_path(results, plan.experiment).name}`):\n\n"
             + "\n".join(verdicts)
-            + ("\n\n" + adversaries if adversaries else ""))
+            + ("\n\n" + adversaries if adversaries else "")
+            + "".join(f"\n\n{check}" for check in checks))
 
 
 def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner,
@@ -827,9 +833,8 @@ def adversary_section(plan: Plan, records: list[dict[str, Any]]) -> str:
     learner it was trained against (:func:`adversary_learners`): KL(p0 ‖ p_φ) (its non-negative
     estimate, mean ± std over seeds [root-mean-square Monte-Carlo standard error]), p_φ's mass
     on the quarter of the box where that learner does worst on p0
-    (:func:`worst_quarter_mass`), and E_{p_φ}[loss] / E_{p0}[loss] (:func:`loss_ratios`);
-    then, for each attack, whether it moved clearly further than the co-trained adversary of
-    its kind (:func:`attack_check`). Empty without adversaries."""
+    (:func:`worst_quarter_mass`), and E_{p_φ}[loss] / E_{p0}[loss] (:func:`loss_ratios`).
+    Empty without adversaries."""
     adversaries = adversary_learners(plan)
     if not adversaries:
         return ""
@@ -851,7 +856,6 @@ def adversary_section(plan: Plan, records: list[dict[str, Any]]) -> str:
     header = ["Benchmark", "Adversary", "trained against", "KL(p0 ‖ p_φ)",
               "mass on the learner's worst quarter", "E_{p_φ}[loss] / E_{p0}[loss]"]
     predictive = any(method.startswith(("mpts", "pdts")) for method, _ in _learners(plan))
-    checks = [attack_check(plan, records, benchmark) for benchmark in _benchmarks(plan)]
     return ("**The adversaries' strength**, each read against the learner it was trained "
             "against (for a p_φ of another seed: the learner of its method at the evaluating "
             "seed): KL(p0 ‖ p_φ), mean ± std over seeds [root-mean-square of its Monte-Carlo "
@@ -864,17 +868,17 @@ def adversary_section(plan: Plan, records: list[dict[str, Any]]) -> str:
             "where the mean loss on p0 is not positive). – where the evaluations predate the "
             "field.\n\n"
             + markdown_table(header, rows)
-            + "".join(f"\n\n{check}" for check in checks if check)
             + (f"\n\n{ADVERSARY_NOTE}" if predictive else ""))
 
 
-def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> str:
-    """Whether each attack adversary (trained against a finished learner, nothing holding it
-    but its step rule) moved clearly further from p0 than the co-trained adversary of its kind
-    (the ``adversaries`` entry of the same method and variant at the same seed): the ratio of
-    their KLs over the seeds both have (:func:`kl_ratio`) beyond 1 by more than twice its
-    standard error (at one seed: no verdict yet). If so, the game, not the step, holds the
-    co-trained adversary; if not, and the attacks take Adam steps, the step rule may."""
+def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> list[str]:
+    """A sentence per attack on ``benchmark``: whether the attack adversary (trained against a
+    finished learner, nothing holding it but its step rule) moved clearly further from p0 than
+    the co-trained adversary of its kind (the ``adversaries`` entry of the same method and
+    variant at the same seed): the ratio of their KLs over the seeds both have
+    (:func:`kl_ratio`) beyond 1 by more than twice its standard error (at one seed: no verdict
+    yet). If so, the game, not the step, holds the co-trained adversary; if not, and the attacks
+    take Adam steps, the step rule may."""
     sentences = []
     adversaries = plan.spec.get("adversaries", {})
     labels = _distributions(plan)
@@ -914,7 +918,7 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> s
         further = ratio - 1 > 2 * se
         capped = ("" if _natural_steps(plan, benchmark, target) else
                   " Where both sit where the step rule stops against any loss (Adam at 0.5 / "
-                  "iterations: near KL 0.3; [the adversary free to move](../../adversary.md)), "
+                  "iterations: near KL 0.3; docs/adversary.md), "
                   "the step rule, not the game, holds them.")
         sentences.append(
             f"{compared}: KL ratio {ratio:.2f} ± {se:.2f} (ratio of the means over "
@@ -924,7 +928,7 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> s
                "It did not move clearly further (not beyond 1 by twice its error): training "
                "against the learner held the co-trained adversary back no more than a frozen "
                "learner held the attack." + capped))
-    return "\n\n".join(sentences)
+    return sentences
 
 
 def _natural_steps(plan: Plan, benchmark: str, target: Learner) -> bool:
