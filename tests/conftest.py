@@ -38,6 +38,19 @@ SMALL_RUN = (
 """Overrides that make any benchmark/method run in a couple of seconds."""
 
 
+@pytest.fixture(autouse=True)
+def _no_log_file_left_open():
+    """After each test, the log files a Hydra job run in this process attached to the root logger
+    (``armeta-train.log``) are detached and closed, so that no later test's garbage collection
+    finds one open."""
+    yield
+    root = logging.getLogger()
+    for handler in root.handlers[:]:
+        if isinstance(handler, logging.FileHandler):
+            root.removeHandler(handler)
+            handler.close()
+
+
 def compose_train(*overrides: str) -> DictConfig:
     """The ``armeta-train`` config for ``overrides``."""
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
@@ -55,8 +68,9 @@ def in_process(command: Callable[[list[str]], int], args: list[str],
     command line ``args``: its exit code, stdout and stderr. A process of its own costs a second
     or more of imports per case; the tests that run the programs as processes check that their
     exit codes and streams are these. A command that got as far as Hydra's job set up logging to
-    the captured streams, which close with the test: the loggers are restored as they were, so
-    that a later test's logs do not go to a closed stream."""
+    the captured streams, which close with the test, and to the run's log file: the loggers are
+    restored as they were, so that a later test's logs do not go to a closed stream, and the
+    handlers the job attached are closed, so that no log file is left open."""
     known = logging.Logger.manager.loggerDict.values()
     loggers = [logging.getLogger(), *(lg for lg in known if isinstance(lg, logging.Logger))]
     saved = [(logger, logger.handlers[:], logger.level, logger.propagate) for logger in loggers]
@@ -64,6 +78,8 @@ def in_process(command: Callable[[list[str]], int], args: list[str],
         code = command(list(args))
     finally:
         for logger, handlers, level, propagate in saved:
+            for attached in set(logger.handlers) - set(handlers):
+                attached.close()
             logger.handlers[:] = handlers
             logger.setLevel(level)
             logger.propagate = propagate
