@@ -42,7 +42,9 @@ SMALL_RUN = (
 def _no_log_file_left_open():
     """After each test, the log files a Hydra job run in this process attached to the root logger
     (``armeta-train.log``) are detached and closed, so that no later test's garbage collection
-    finds one open."""
+    finds one open. Only file handlers: restoring the whole logging state here, as
+    :func:`in_process` does around one command, would also restore pytest's own capture handlers
+    of the setup phase into the teardown phase."""
     yield
     root = logging.getLogger()
     for handler in root.handlers[:]:
