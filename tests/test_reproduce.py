@@ -1277,6 +1277,10 @@ def test_the_adversaries_strength_and_the_attack_check_by_hand():
     assert same.split(" | ")[4] == "–"  # no masses recorded: –, not a crash
     [check] = attack_check(plan, _strength_records(), "point_nav")
     assert "KL ratio 2.20 ± 0.24" in check and "It moved clearly further" in check
+    # MAML's loss 18 / 12 = 1.5× on the attack, AR-MAML's 13 / 13 = 1× on its own p_φ
+    assert ("raised MAML's loss to 1.50× its loss on p0, the co-trained adversary AR-MAML's to "
+            "1.00×: difference +0.50 ± 0.00 (2/2 seeds higher), clearly stronger.") in check
+    assert "the learner's answer" not in check  # it moved further: the KL says it already
     cotrained_moved_as_far = [
         {**r, "kl_p0": 0.55} if r["distribution"] == "same_seed" else r
         for r in _strength_records()]
@@ -1287,6 +1291,13 @@ def test_the_adversaries_strength_and_the_attack_check_by_hand():
     cheetah = [{**r, "benchmark": "half_cheetah_vel"} for r in cotrained_moved_as_far]
     [check] = attack_check(fair, cheetah, "half_cheetah_vel")
     assert "It did not move clearly further" in check and "Adam at 0.5" not in check
+    assert check.endswith("clearly stronger. Both went equally far from p0, natural steps "
+                          "capping neither, and the co-trained adversary is clearly weaker "
+                          "against its learner than the attack against a frozen one: the "
+                          "learner's answer, not the step rule, is what holds it back.")
+    harder = [{**r, "mean": -26.0} if r["distribution"] == "same_seed" else r for r in cheetah]
+    [check] = attack_check(fair, harder, "half_cheetah_vel")  # 26 / 13 = 2× against 1.5×
+    assert check.endswith("(0/2 seeds higher), clearly weaker.")
     one_seed = [r for r in _strength_records() if r["seed"] == 0]  # 0.5 / 0.2
     assert attack_check(plan, one_seed, "point_nav")[0].endswith(
         "KL ratio 2.50 at one seed: no standard error over seeds, no verdict yet.")

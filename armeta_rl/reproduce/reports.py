@@ -788,8 +788,8 @@ def worst_quarter_mass(records: list[dict[str, Any]], learner: Learner, distribu
 
 
 def loss_ratios(records: list[dict[str, Any]], learner: Learner, distribution: str,
-                **where: Any) -> list[float]:
-    """Per seed, E_{p_φ}[loss] / E_{p0}[loss] of ``learner`` from its sections' means (for
+                **where: Any) -> dict[int, float]:
+    """Seed → E_{p_φ}[loss] / E_{p0}[loss] of ``learner`` from its sections' means (for
     returns the loss is −return): how much harder the adversary made the tasks. Seeds whose
     mean loss on p0 is not positive are left out: the ratio of a loss that changes sign
     measures nothing."""
@@ -797,10 +797,10 @@ def loss_ratios(records: list[dict[str, Any]], learner: Learner, distribution: s
     initial = {r["seed"]: r["mean"] for r in select(records, method=learner[0],
                                                      variant=learner[1], distribution=INITIAL,
                                                      **where)}
-    return [(sign * r["mean"]) / (sign * initial[r["seed"]])
+    return {r["seed"]: (sign * r["mean"]) / (sign * initial[r["seed"]])
             for r in select(records, method=learner[0], variant=learner[1],
                             distribution=distribution, **where)
-            if r["seed"] in initial and sign * initial[r["seed"]] > 0]
+            if r["seed"] in initial and sign * initial[r["seed"]] > 0}
 
 
 def kl_ratio(attack: Sequence[float],
@@ -852,7 +852,8 @@ def adversary_section(plan: Plan, records: list[dict[str, Any]]) -> str:
                          learner_label(plan, learner) + (" (attack)" if attack else ""),
                          _level(records, "kl_p0", "kl_p0_sem", method=learner[0],
                                 variant=learner[1], distribution=name, **where),
-                         mass, _spread(loss_ratios(records, learner, name, **where))])
+                         mass,
+                         _spread(list(loss_ratios(records, learner, name, **where).values()))])
     header = ["Benchmark", "Adversary", "trained against", "KL(p0 ‖ p_φ)",
               "mass on the learner's worst quarter", "E_{p_φ}[loss] / E_{p0}[loss]"]
     predictive = any(method.startswith(("mpts", "pdts")) for method, _ in _learners(plan))
@@ -878,7 +879,9 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> l
     variant at the same seed): the ratio of their KLs over the seeds both have
     (:func:`kl_ratio`) beyond 1 by more than twice its standard error (at one seed: no verdict
     yet). If so, the game, not the step, holds the co-trained adversary; if not, and the attacks
-    take Adam steps, the step rule may."""
+    take Adam steps, the step rule may. Then what each did to its own learner
+    (:func:`strength_comparison`): where natural steps (no cap) took both equally far and the
+    attack is clearly stronger, the learner's answer is what holds the co-trained adversary."""
     sentences = []
     adversaries = plan.spec.get("adversaries", {})
     labels = _distributions(plan)
@@ -916,19 +919,57 @@ def attack_check(plan: Plan, records: list[dict[str, Any]], benchmark: str) -> l
                              "over seeds, no verdict yet.")
             continue
         further = ratio - 1 > 2 * se
-        capped = ("" if _natural_steps(plan, benchmark, target) else
+        natural = _natural_steps(plan, benchmark, target)
+        capped = ("" if natural else
                   " Where both sit where the step rule stops against any loss (Adam at 0.5 / "
                   "iterations: near KL 0.3; docs/adversary.md), "
                   "the step rule, not the game, holds them.")
+        strength, stronger = strength_comparison(
+            loss_ratios(records, target, name, **where), loss_ratios(records, kind, twin, **where),
+            learner_label(plan, target), learner_label(plan, kind))
+        answered = (" Both went equally far from p0, natural steps capping neither, and the "
+                    "co-trained adversary is clearly weaker against its learner than the attack "
+                    "against a frozen one: the learner's answer, not the step rule, is what "
+                    "holds it back." if natural and not further and stronger else "")
         sentences.append(
             f"{compared}: KL ratio {ratio:.2f} ± {se:.2f} (ratio of the means over "
             f"{len(seeds)} seeds, standard error over seeds). "
             + ("It moved clearly further (beyond 1 by more than twice its error): the game, "
                "not the step rule, holds the co-trained adversary." if further else
-               "It did not move clearly further (not beyond 1 by twice its error): training "
-               "against the learner held the co-trained adversary back no more than a frozen "
-               "learner held the attack." + capped))
+               "It did not move clearly further (not beyond 1 by twice its error): in KL, "
+               "training against the learner held the co-trained adversary back no more than "
+               "a frozen learner held the attack." + capped)
+            + strength + answered)
     return sentences
+
+
+STRENGTH_WORDS = {HELPS: "clearly stronger", HURTS: "clearly weaker",
+                  NO_HELP: "not clearly stronger"}
+"""The attack's strength against the co-trained adversary's by :func:`verdict`'s rule."""
+
+
+def strength_comparison(attack: dict[int, float], cotrained: dict[int, float],
+                        target: str, learner: str) -> tuple[str, bool]:
+    """A sentence comparing how much harder each adversary made its own learner's tasks, seed →
+    E_{p_φ}[loss] / E_{p0}[loss] (:func:`loss_ratios`) of the attack against ``target`` and of
+    the co-trained adversary against ``learner``, paired by seed: the mean ratios, their
+    difference ± its standard error over seeds and the seeds where the attack's is higher, and
+    *clearly stronger* or *clearly weaker* by :func:`verdict`'s rule (else *not clearly
+    stronger*); whether it is clearly stronger. KL measures how far an adversary moved, this
+    what the move does to its learner: a co-trained adversary as far from p0 as the attack can
+    be weaker against its learner, which adapts to it. Empty below two paired seeds."""
+    seeds = sorted(attack.keys() & cotrained.keys())
+    if len(seeds) < 2:
+        return "", False
+    differences = [attack[s] - cotrained[s] for s in seeds]
+    spread = over_seeds(differences)
+    word = verdict(differences, higher_better=True)
+    return (f" By what it does to its learner, the attack raised {target}'s loss to "
+            f"{sum(attack[s] for s in seeds) / len(seeds):.2f}× its loss on p0, the co-trained "
+            f"adversary {learner}'s to {sum(cotrained[s] for s in seeds) / len(seeds):.2f}×: "
+            f"difference {spread.mean:+.2f} ± {spread.se:.2f} "
+            f"({sum(d > 0 for d in differences)}/{len(seeds)} seeds higher), "
+            f"{STRENGTH_WORDS[word]}.", word == HELPS)
 
 
 def _natural_steps(plan: Plan, benchmark: str, target: Learner) -> bool:
