@@ -1279,7 +1279,7 @@ def test_the_adversaries_strength_and_the_attack_check_by_hand():
     assert "KL ratio 2.20 ± 0.24" in check and "It moved clearly further" in check
     # MAML's loss 18 / 12 = 1.5× on the attack, AR-MAML's 13 / 13 = 1× on its own p_φ
     assert ("raised MAML's loss to 1.50× its loss on p0, the co-trained adversary AR-MAML's to "
-            "1.00×: difference +0.50 ± 0.00 (2/2 seeds higher), clearly stronger.") in check
+            "1.00×: difference +0.500 ± 0.000 (2/2 seeds higher), clearly stronger.") in check
     assert "the learner's answer" not in check  # it moved further: the KL says it already
     cotrained_moved_as_far = [
         {**r, "kl_p0": 0.55} if r["distribution"] == "same_seed" else r
