@@ -109,3 +109,25 @@ def test_benchmarks_import_only_the_harness():
                 imported.add(node.module.split(".")[0])
         local = imported & scripts
         assert local <= ({"timing"} if path.stem != "timing" else set()), (path.name, local)
+
+
+def test_the_curvature_profile_splits_a_product_into_its_operators():
+    """``profile_iteration.py --curvature`` at a tiny size: the median product, the matrix
+    products' share and the operator table; a leader without curvature products is one line."""
+    import subprocess
+
+    script = [sys.executable, str(BENCHMARKS / "profile_iteration.py"), "--iterations", "1",
+              "--warmup", "1", "--lines", "5"]
+    tiny = ["trainer.meta_batch=2", "benchmark.collector.episodes=2",
+            "benchmark.collector.max_steps=5"]
+    out = subprocess.run([*script, "--benchmark", "point_nav", "--method", "maml",
+                          "--curvature", *tiny], capture_output=True, text=True, check=True)
+    share = re.search(r"median KL curvature product [\d.]+ ms on 2×2×5 post-adaptation steps "
+                      r".*; matrix products (\d+) % of the operators' own time", out.stdout)
+    assert share and 0 < int(share.group(1)) < 100, out.stdout
+    assert "aten::bmm" in out.stdout
+    refused = subprocess.run([*script, "--benchmark", "sinusoid_uniform", "--method", "maml",
+                              "--curvature"], capture_output=True, text=True)
+    assert refused.returncode == 2
+    assert refused.stderr.strip().splitlines()[-1].endswith(
+        "--curvature needs a MAML-TRPO leader; sinusoid_uniform has MAMLLeader")
