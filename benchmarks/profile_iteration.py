@@ -105,8 +105,10 @@ def curvature_profile(trainer: GameTrainer, leader: MAMLTRPOLeader, products: in
     total = sum(e.self_cpu_time_total for e in operators)
     matrix = sum(e.self_cpu_time_total for e in operators if e.key in MATRIX_PRODUCTS)
     shape = "×".join(str(n) for n in batch.valid["mask"].shape)
-    return (f"median KL curvature product {1000 * statistics.median(times):.1f} ms on "
-            f"{shape} post-adaptation steps ({products} products after {warmup} warm-up; "
+    subset = ("" if leader.hvp_episodes is None
+              else f", the curvature on {leader.hvp_episodes} episodes a task")
+    return (f"median KL curvature product {1000 * statistics.median(times):.1f} ms on a "
+            f"{shape} meta-batch{subset} ({products} products after {warmup} warm-up; "
             f"{gradient.numel()} policy parameters); matrix products {100 * matrix / total:.0f} "
             f"% of the operators' own time, the rest elementwise and bookkeeping; "
             f"torch.profiler over {products} more:\n"

@@ -122,7 +122,7 @@ def test_the_curvature_profile_splits_a_product_into_its_operators():
             "benchmark.collector.max_steps=5"]
     out = subprocess.run([*script, "--benchmark", "point_nav", "--method", "maml",
                           "--curvature", *tiny], capture_output=True, text=True, check=True)
-    share = re.search(r"median KL curvature product [\d.]+ ms on 2×2×5 post-adaptation steps "
+    share = re.search(r"median KL curvature product [\d.]+ ms on a 2×2×5 meta-batch "
                       r".*; matrix products (\d+) % of the operators' own time", out.stdout)
     assert share and 0 < int(share.group(1)) < 100, out.stdout
     assert "aten::bmm" in out.stdout
