@@ -14,7 +14,7 @@ acrobot_uniform_paper --method ar_maml [override ...] [--iterations 20] [--lines
 gradient's Hessian-vector product, most of a meta-RL iteration beyond its rollouts) on a batch
 the leader collects on the trainer's first proposed tasks: the median product, then
 ``torch.profiler``'s operators by their own time over ``--iterations`` more, the matrix products
-(``bmm``, ``mm``, ``addmm``) against the elementwise rest. Keep ``--iterations`` small at large
+(:data:`MATRIX_PRODUCTS`) against the elementwise rest. Keep ``--iterations`` small at large
 sizes: the profiler keeps a record per operator call.
 """
 
