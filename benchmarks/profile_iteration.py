@@ -14,8 +14,8 @@ acrobot_uniform_paper --method ar_maml [override ...] [--iterations 20] [--lines
 gradient's Hessian-vector product, most of a meta-RL iteration beyond its rollouts) on a batch
 the leader collects on the trainer's first proposed tasks: the median product, then
 ``torch.profiler``'s operators by their own time over ``--iterations`` more, the matrix products
-(:data:`MATRIX_PRODUCTS`) against the elementwise rest. Keep ``--iterations`` small at large
-sizes: the profiler keeps a record per operator call.
+(``timing.PRODUCTS``, those ``products_ms`` replays) against the elementwise rest. Keep
+``--iterations`` small at large sizes: the profiler keeps a record per operator call.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import torch
-from timing import as_trained, trainer_for, wall_times
+from timing import PRODUCTS, as_trained, trainer_for, wall_times
 
 if TYPE_CHECKING:
     from armeta_rl.learners.maml_trpo import MAMLTRPOLeader
@@ -103,7 +103,7 @@ def curvature_profile(trainer: GameTrainer, leader: MAMLTRPOLeader, products: in
             product(vector)
     operators = [e for e in profiler.key_averages() if e.key.startswith("aten::")]
     total = sum(e.self_cpu_time_total for e in operators)
-    matrix = sum(e.self_cpu_time_total for e in operators if e.key in MATRIX_PRODUCTS)
+    matrix = sum(e.self_cpu_time_total for e in operators if e.key in PRODUCTS)
     shape = "×".join(str(n) for n in batch.valid["mask"].shape)
     subset = ("" if leader.hvp_episodes is None
               else f", the curvature on {leader.hvp_episodes} episodes a task")
@@ -113,10 +113,6 @@ def curvature_profile(trainer: GameTrainer, leader: MAMLTRPOLeader, products: in
             f"% of the operators' own time, the rest elementwise and bookkeeping; "
             f"torch.profiler over {products} more:\n"
             + profiler.key_averages().table(sort_by="self_cpu_time_total", row_limit=lines))
-
-
-MATRIX_PRODUCTS = ("aten::bmm", "aten::mm", "aten::addmm", "aten::baddbmm")
-"""The operators counted as matrix products in :func:`curvature_profile`."""
 
 
 if __name__ == "__main__":

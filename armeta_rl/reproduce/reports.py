@@ -966,8 +966,8 @@ def strength_comparison(attack: dict[int, float], cotrained: dict[int, float],
     places = decimals(spread.mean)
     word = verdict(differences, higher_better=True)
     return (f" By what it does to its learner, the attack raised {target}'s loss to "
-            f"{sum(attack[s] for s in seeds) / len(seeds):.2f}× its loss on p0, the co-trained "
-            f"adversary {learner}'s to {sum(cotrained[s] for s in seeds) / len(seeds):.2f}×: "
+            f"{over_seeds([attack[s] for s in seeds]).mean:.2f}× its loss on p0, the co-trained "
+            f"adversary {learner}'s to {over_seeds([cotrained[s] for s in seeds]).mean:.2f}×: "
             f"difference {spread.mean:+.{places}f} ± {spread.se:.{places}f} "
             f"({sum(d > 0 for d in differences)}/{len(seeds)} seeds higher), "
             f"{STRENGTH_WORDS[word]}.", word == HELPS)
