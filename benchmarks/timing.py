@@ -10,7 +10,8 @@ and writes its table into its section of the docs pages it names.
   taken between turns;
 * what a row's time is made of: :func:`instrument` splits a meta-iteration into its
   :data:`PHASES` (``phases: true``), :func:`replayed_physics` is a rollout's physics floor (the
-  ``physics`` rows) and :func:`products_ms` its matrix products' floor (``products: true``);
+  ``physics`` rows), :func:`products_ms` its matrix products' floor and :func:`floor_cells` the
+  kernels it dispatches around them (``products: true``);
 * tables: :func:`markdown_table` and :func:`write_section`, which replaces a section of a page
   (between ``<!-- name:start -->`` and ``<!-- name:end -->``) with its tables, its command, the
   date and the machine (the studies in ``studies/`` write their pages with it too).
@@ -229,48 +230,83 @@ Product = tuple[str, tuple[tuple[int, ...], ...], tuple[torch.dtype, ...]]
 """A product kernel's name, its operands' shapes and their dtypes."""
 
 
-class ProductCounter(TorchDispatchMode):
-    """Counts the matrix-product kernels (:data:`PRODUCTS`) the ops run under it dispatch, with
-    their operands' shapes and dtypes, backward passes included (the autograd engine dispatches
-    them too). It keeps one counter, not a record per op as ``torch.profiler`` does (whose
-    record of five exact-curvature point-robot iterations outgrew 24 GB)."""
+class KernelCounter(TorchDispatchMode):
+    """Counts the kernels the ops run under it dispatch, and the matrix-product ones
+    (:data:`PRODUCTS`) with their operands' shapes and dtypes, backward passes included (the
+    autograd engine dispatches them too). It keeps counters, not a record per op as
+    ``torch.profiler`` does (whose record of five exact-curvature point-robot iterations outgrew
+    24 GB)."""
 
     def __init__(self) -> None:
         super().__init__()
-        self.seen: Counter[Product] = Counter()
+        self.products: Counter[Product] = Counter()
+        self.kernels = 0
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):  # noqa: ANN001, ANN204
         name = f"aten::{func._overloadpacket.__name__}"
+        self.kernels += 1
         if name in PRODUCTS:
             operands = args[:PRODUCTS[name]]
-            self.seen[name, tuple(tuple(t.shape) for t in operands),
-                      tuple(t.dtype for t in operands)] += 1
+            self.products[name, tuple(tuple(t.shape) for t in operands),
+                          tuple(t.dtype for t in operands)] += 1
         return func(*args, **(kwargs or {}))
 
 
-def recorded_products(fn: Callable[[], object], calls: int) -> Counter[Product]:
+def recorded_kernels(fn: Callable[[], object], calls: int) -> tuple[Counter[Product], int]:
     """How often ``calls`` calls of ``fn`` run each matrix-product kernel (:data:`PRODUCTS`) at
-    each operand shape and dtype (:class:`ProductCounter`)."""
-    with ProductCounter() as counter:
+    each operand shape and dtype, and how many kernels they dispatch in all
+    (:class:`KernelCounter`)."""
+    with KernelCounter() as counter:
         for _ in range(calls):
             fn()
-    return counter.seen
+    return counter.products, counter.kernels
 
 
-def products_ms(fn: Callable[[], object], calls: int) -> float:
-    """Milliseconds per call of ``fn`` that its matrix products take when replayed alone: every
-    product kernel run by ``calls`` calls (:func:`recorded_products`), each distinct one timed by
-    itself (the median of 20, after 3) on fresh contiguous operands of its shapes and dtypes and
-    counted as often as it ran. A floor for the computation on this machine (the same products
-    at the same sizes and precisions, nothing between them); the recorded calls' own times are
-    not used: recording slows them."""
+def products_ms(products: Counter[Product]) -> float:
+    """Milliseconds the matrix products ``products`` (:func:`recorded_kernels`) take when
+    replayed alone: each distinct kernel timed by itself (the median of 20, after 3) on fresh
+    contiguous operands of its shapes and dtypes and counted as often as it ran. A floor for the
+    computation on this machine (the same products at the same sizes and precisions, nothing
+    between them); the recorded calls' own times are not used: recording slows them."""
     seconds = 0.0
-    for (name, shapes, dtypes), count in recorded_products(fn, calls).items():
+    for (name, shapes, dtypes), count in products.items():
         operands = [torch.randn(shape, dtype=dtype) for shape, dtype in zip(shapes, dtypes)]
         product = getattr(torch.ops.aten, name.split("::")[1])
         seconds += statistics.median(wall_times(lambda p=product, o=operands: p(*o), 20, 3)
                                      ) * count
-    return 1000 * seconds / calls
+    return 1000 * seconds
+
+
+def empty_kernel_us(repeats: int = 2000) -> float:
+    """Median µs of one call of a kernel with next to nothing to compute, a one-element float32
+    ``add`` called from Python: what dispatching a kernel costs on this machine, whatever it
+    computes (timed over ``repeats`` calls in blocks of 100)."""
+    a, b = torch.ones(1), torch.ones(1)
+
+    def block() -> None:
+        for _ in range(100):
+            torch.add(a, b)
+
+    return 1e4 * statistics.median(wall_times(block, repeats // 100, 3))
+
+
+FLOOR_COLUMNS = ("products ms (share)", "kernels", "rest per kernel µs (empty kernel µs)")
+"""The columns of :func:`floor_cells`."""
+
+
+def floor_cells(fn: Callable[[], object], calls: int, median_ms: float) -> list[str]:
+    """The cells of what a call of ``fn`` (``median_ms`` a call) is made of, from ``calls`` calls
+    recorded: its matrix products replayed alone (:func:`products_ms`) and their share of the
+    call; the kernels it dispatches; and the µs per kernel the rest of the call spends (the call
+    less its products, over its other kernels) beside what an empty kernel costs
+    (:func:`empty_kernel_us`): a rest near that cost is dispatch, which only fusing kernels
+    removes."""
+    products, kernels = recorded_kernels(fn, calls)
+    floor = products_ms(products) / calls
+    others = (kernels - sum(products.values())) / calls
+    rest = 1000 * (median_ms - floor) / others if others else float("nan")
+    return [f"{floor:.1f} ({100 * floor / median_ms:.0f} %)", f"{kernels / calls:,.0f}",
+            f"{rest:.1f} ({empty_kernel_us():.1f})"]
 
 
 # -- phases: where a meta-iteration's time goes ------------------------------------------------
@@ -568,9 +604,8 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
                     statistics.median(medians[label]), statistics.median(first),
                     phases[label]["rollout"] / timed, phases[next(iter(rows))]["rollout"] / timed)]
             if spec.get("products"):
-                floor = products_ms(built[label], args.calls) if label in rows else None
-                split.insert(0, "–" if floor is None else f"{floor:.1f} ("
-                             f"{100 * floor / (1000 * statistics.median(medians[label])):.0f} %)")
+                split[:0] = ["–"] * len(FLOOR_COLUMNS) if label not in rows else floor_cells(
+                    built[label], args.calls, 1000 * statistics.median(medians[label]))
             if label not in rows:
                 table.append((shown, label, *["–"] * 5, note, *split))
                 continue
@@ -611,10 +646,14 @@ def turns_body(spec: dict, args: argparse.Namespace, marks: list[float], table: 
                "(`timing.beyond_rollouts_cell`)." if spec.get("phases") else "")
             + (" Products: the ms a call's matrix products take replayed alone "
                "(`timing.products_ms`, one turn's calls recorded after the turns), and their "
-               "share of the row's median." if spec.get("products") else "") + "\n\n"
+               "share of the row's median; kernels: the kernels a call dispatches, backward "
+               "passes included (`timing.recorded_kernels`); rest per kernel: the row's median "
+               "less its products, over its other kernels, beside one empty kernel's cost "
+               "(`timing.empty_kernel_us`, a one-element add)." if spec.get("products") else "")
+            + "\n\n"
             + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
                               "× first row (median, range)", f"first {args.warmup} calls s",
-                              "notes", *(["products ms (share)"] if spec.get("products") else []),
+                              "notes", *(FLOOR_COLUMNS if spec.get("products") else ()),
                               *((*PHASES, "× first row + its extra rollouts")
                                 if spec.get("phases") else ())), table))
 

@@ -1,7 +1,7 @@
 """What the benchmark harness (``benchmarks/timing.py``) measures beside a row's time: the phases
 of a meta-iteration charge each second to the innermost phase running, the physics floor of a
 rollout replays that rollout's own trajectories, and the products floor finds the matrix-product
-kernels a call runs."""
+kernels a call runs among all the kernels it dispatches."""
 
 from __future__ import annotations
 
@@ -66,13 +66,37 @@ def test_the_physics_floor_replays_the_rollout_it_bounds(timing):
     assert np.array_equal(env._qpos, end[0]) and np.array_equal(env._qvel, end[1])
 
 
-def test_the_products_floor_finds_the_matrix_products_a_call_runs(timing):
+def test_the_products_floor_finds_the_matrix_products_and_kernels_a_call_runs(timing):
     """Each product kernel with its shapes, its dtypes (the adversary's are float64) and how often
-    the calls ran it; a call without products has a floor of 0."""
+    the calls ran it, and every kernel dispatched, backward passes included; a call without
+    products has a floor of 0."""
     a, b, c = torch.randn(64, 64), torch.randn(8, 64, 64), torch.randn(5, 3, dtype=torch.float64)
-    assert timing.products_ms(lambda: (a + a).tanh().sum(), calls=2) == 0.0
-    assert timing.recorded_products(lambda: (a @ a, b @ b, c.T @ c), calls=2) == {
+    products, kernels = timing.recorded_kernels(lambda: (a + a).tanh().sum(), calls=2)
+    assert (products, kernels) == ({}, 6) and timing.products_ms(products) == 0.0
+    products, kernels = timing.recorded_kernels(lambda: (a @ a, b @ b, c.T @ c), calls=2)
+    assert products == {
         ("aten::mm", ((64, 64), (64, 64)), (torch.float32, torch.float32)): 2,
         ("aten::bmm", ((8, 64, 64), (8, 64, 64)), (torch.float32, torch.float32)): 2,
         ("aten::mm", ((3, 5), (5, 3)), (torch.float64, torch.float64)): 2}
-    assert timing.products_ms(lambda: (a @ a, b @ b), calls=2) > 0.0
+    # batched matmul dispatches expand, view, bmm and _unsafe_view; c.T a permute: 9 a call
+    assert kernels == 18 and timing.products_ms(products) > 0.0
+    w = torch.randn(3, requires_grad=True)
+    assert timing.recorded_kernels(lambda: (w * w).sum().backward(), calls=1)[1] > 2
+    assert 0.0 < timing.empty_kernel_us(repeats=200) < 1000.0
+
+
+def test_the_products_table_splits_a_row_into_products_and_kernels(timing):
+    """``bench_products`` at its tiny size: a row's products are a share of its time between 0
+    and 100 %, it dispatches kernels (a sinusoid AR-MAML iteration, hundreds), and the rest of
+    its time per kernel and an empty kernel's cost are times."""
+    body = timing.compare_in_turns("bench_products", ["--tiny", "--no-doc", "--benchmarks",
+                                                      "sinusoid_uniform"])
+    header = next(line for line in body.splitlines() if line.startswith("| benchmark"))
+    columns = [cell.strip() for cell in header.strip("|").split(" | ")]
+    row = next(line for line in body.splitlines() if line.startswith("| sinusoid_uniform"))
+    cells = dict(zip(columns, (cell.strip() for cell in row.strip("|").split(" | "))))
+    share = float(cells["products ms (share)"].split("(")[1].rstrip(" %)"))
+    assert 0 < share < 100
+    assert int(cells["kernels"].replace(",", "")) > 100
+    rest, empty = cells["rest per kernel µs (empty kernel µs)"].rstrip(")").split(" (")
+    assert float(rest) > 0 and float(empty) > 0
