@@ -290,23 +290,42 @@ def empty_kernel_us(repeats: int = 2000) -> float:
     return 1e4 * statistics.median(wall_times(block, repeats // 100, 3))
 
 
-FLOOR_COLUMNS = ("products ms (share)", "kernels", "rest per kernel µs (empty kernel µs)")
+FLOOR_COLUMNS = ("products ms (share)", "kernels", "rest per kernel µs (empty kernel µs)",
+                 "eager ceiling of the share")
 """The columns of :func:`floor_cells`."""
 
 
 def floor_cells(fn: Callable[[], object], calls: int, median_ms: float) -> list[str]:
     """The cells of what a call of ``fn`` (``median_ms`` a call) is made of, from ``calls`` calls
     recorded: its matrix products replayed alone (:func:`products_ms`) and their share of the
-    call; the kernels it dispatches; and the µs per kernel the rest of the call spends (the call
-    less its products, over its other kernels) beside what an empty kernel costs
-    (:func:`empty_kernel_us`): a rest near that cost is dispatch, which only fusing kernels
-    removes."""
+    call; the kernels it dispatches; the µs per kernel the rest of the call spends (the call less
+    its products, over its other kernels) beside what an empty kernel costs
+    (:func:`empty_kernel_us`); and the largest share its products could have while it dispatches
+    these kernels one by one (:func:`eager_ceiling`): the share left if every other kernel
+    computed nothing and nothing ran between kernels. Only fewer kernels (fused by compiling, or
+    fewer operations) lift that ceiling."""
     products, kernels = recorded_kernels(fn, calls)
     floor = products_ms(products) / calls
     others = (kernels - sum(products.values())) / calls
+    empty = empty_kernel_us()
     rest = 1000 * (median_ms - floor) / others if others else float("nan")
     return [f"{floor:.1f} ({100 * floor / median_ms:.0f} %)", f"{kernels / calls:,.0f}",
-            f"{rest:.1f} ({empty_kernel_us():.1f})"]
+            f"{rest:.1f} ({empty:.1f})", f"{eager_ceiling(floor, others, empty):.0f} %"]
+
+
+def eager_ceiling(products_ms: float, other_kernels: float, empty_us: float) -> float:
+    """The largest share in % that ``products_ms`` of matrix products can have in a call that
+    also dispatches ``other_kernels`` kernels one by one, each costing at least ``empty_us``.
+
+    Examples:
+        >>> from benchmarks.timing import eager_ceiling
+        >>> eager_ceiling(1.0, 1000, 1.0)  # 1 ms of products beside 1 ms of dispatch
+        50.0
+        >>> eager_ceiling(0.0, 10, 1.0)  # no products
+        0.0
+    """
+    return 100 * products_ms / (products_ms + other_kernels * empty_us / 1000) if products_ms \
+        else 0.0
 
 
 # -- phases: where a meta-iteration's time goes ------------------------------------------------
@@ -649,7 +668,9 @@ def turns_body(spec: dict, args: argparse.Namespace, marks: list[float], table: 
                "share of the row's median; kernels: the kernels a call dispatches, backward "
                "passes included (`timing.recorded_kernels`); rest per kernel: the row's median "
                "less its products, over its other kernels, beside one empty kernel's cost "
-               "(`timing.empty_kernel_us`, a one-element add)." if spec.get("products") else "")
+               "(`timing.empty_kernel_us`, a one-element add); eager ceiling: the products' "
+               "share if every other kernel cost only that and nothing ran between kernels "
+               "(`timing.eager_ceiling`)." if spec.get("products") else "")
             + "\n\n"
             + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
                               "× first row (median, range)", f"first {args.warmup} calls s",

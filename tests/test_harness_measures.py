@@ -87,8 +87,8 @@ def test_the_products_floor_finds_the_matrix_products_and_kernels_a_call_runs(ti
 
 def test_the_products_table_splits_a_row_into_products_and_kernels(timing):
     """``bench_products`` at its tiny size: a row's products are a share of its time between 0
-    and 100 %, it dispatches kernels (a sinusoid AR-MAML iteration, hundreds), and the rest of
-    its time per kernel and an empty kernel's cost are times."""
+    and 100 %, it dispatches kernels (a sinusoid AR-MAML iteration, hundreds), the rest of its
+    time per kernel and an empty kernel's cost are times, and its eager ceiling is a share."""
     body = timing.compare_in_turns("bench_products", ["--tiny", "--no-doc", "--benchmarks",
                                                       "sinusoid_uniform"])
     header = next(line for line in body.splitlines() if line.startswith("| benchmark"))
@@ -100,3 +100,4 @@ def test_the_products_table_splits_a_row_into_products_and_kernels(timing):
     assert int(cells["kernels"].replace(",", "")) > 100
     rest, empty = cells["rest per kernel µs (empty kernel µs)"].rstrip(")").split(" (")
     assert float(rest) > 0 and float(empty) > 0
+    assert 0 < float(cells["eager ceiling of the share"].rstrip(" %")) <= 100
