@@ -617,11 +617,12 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
         first = next(iter(medians.values()), [])
         shown = group_label(group, args.tiny)
         timed = args.rounds * args.calls
-        for label, note in warm.items():
+        turned = {label: dict(phases[label]) for label in rows} if phases is not None else {}
+        for label, note in warm.items():  # recording a row's products calls it again: use turned
             split = [] if phases is None else ["–"] * (len(PHASES) + 1) if label not in rows \
-                else [*phase_cells(phases[label], timed), beyond_rollouts_cell(
+                else [*phase_cells(turned[label], timed), beyond_rollouts_cell(
                     statistics.median(medians[label]), statistics.median(first),
-                    phases[label]["rollout"] / timed, phases[next(iter(rows))]["rollout"] / timed)]
+                    turned[label]["rollout"] / timed, turned[next(iter(rows))]["rollout"] / timed)]
             if spec.get("products"):
                 split[:0] = ["–"] * len(FLOOR_COLUMNS) if label not in rows else floor_cells(
                     built[label], args.calls, 1000 * statistics.median(medians[label]))

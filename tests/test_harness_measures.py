@@ -8,6 +8,7 @@ from __future__ import annotations
 from functools import partial
 
 import numpy as np
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -85,19 +86,26 @@ def test_the_products_floor_finds_the_matrix_products_and_kernels_a_call_runs(ti
     assert 0.0 < timing.empty_kernel_us(repeats=200) < 1000.0
 
 
-def test_the_products_table_splits_a_row_into_products_and_kernels(timing):
-    """``bench_products`` at its tiny size: a row's products are a share of its time between 0
-    and 100 %, it dispatches kernels (a sinusoid AR-MAML iteration, hundreds), the rest of its
-    time per kernel and an empty kernel's cost are times, and its eager ceiling is a share."""
+def test_the_products_table_splits_a_row_into_products_kernels_and_rollouts(timing):
+    """``bench_products``'s HalfCheetah-Vel group at its tiny size: MAML-TRPO's products are a
+    share of its time between 0 and 100 %, it dispatches kernels, the rest of its time per kernel
+    and an empty kernel's cost are times, its eager ceiling is a share; and its cost over the
+    rollouts it is made of is computed from the turns' phases, not from the calls that recorded
+    the first row's products afterwards (which charged that row's rollouts twice)."""
     body = timing.compare_in_turns("bench_products", ["--tiny", "--no-doc", "--benchmarks",
-                                                      "sinusoid_uniform"])
-    header = next(line for line in body.splitlines() if line.startswith("| benchmark"))
-    columns = [cell.strip() for cell in header.strip("|").split(" | ")]
-    row = next(line for line in body.splitlines() if line.startswith("| sinusoid_uniform"))
-    cells = dict(zip(columns, (cell.strip() for cell in row.strip("|").split(" | "))))
-    share = float(cells["products ms (share)"].split("(")[1].rstrip(" %)"))
+                                                      "half_cheetah_vel"])
+    lines = [line for line in body.splitlines() if line.startswith("| ")]
+    columns = [cell.strip() for cell in lines[0].strip("|").split(" | ")]
+    rollout, maml = ({column: cell.strip() for column, cell in
+                      zip(columns, line.strip("|").split(" | "))} for line in lines[1:])
+    share = float(maml["products ms (share)"].split("(")[1].rstrip(" %)"))
     assert 0 < share < 100
-    assert int(cells["kernels"].replace(",", "")) > 100
-    rest, empty = cells["rest per kernel µs (empty kernel µs)"].rstrip(")").split(" (")
+    assert int(maml["kernels"].replace(",", "")) > 100
+    rest, empty = maml["rest per kernel µs (empty kernel µs)"].rstrip(")").split(" (")
     assert float(rest) > 0 and float(empty) > 0
-    assert 0 < float(cells["eager ceiling of the share"].rstrip(" %")) <= 100
+    assert 0 < float(maml["eager ceiling of the share"].rstrip(" %")) <= 100
+    ms = {row["row"]: float(row["median ms"]) for row in (rollout, maml)}
+    rolled = {row["row"]: float(row["rollout"].split(" (")[0]) for row in (rollout, maml)}
+    expected = ms["maml"] / (ms["one rollout"] + rolled["maml"] - rolled["one rollout"])
+    beyond = float(maml["× first row + its extra rollouts"].rstrip("×"))
+    assert beyond == pytest.approx(expected, rel=0.02, abs=0.01)  # the cells are rounded
