@@ -364,14 +364,15 @@ def test_paired_differences_over_seeds_by_hand(tmp_path):
     text = paired(plan, records, tmp_path)
     # differences per seed: (1, 0) → mean 0.5, sem 0.5; (1, 2) → mean 1.5, sem 0.5. Over seeds:
     # 1.0 ± 0.707, RMS sem 0.5, 2/2 better; 1.0 is not beyond 2 · 0.5 (the se over seeds): plain.
+    # Written with the decimals of the returns compared (MAML's −11.5: one), as the level table.
     initial = next(line for line in text.splitlines()
                    if line.startswith("| point_nav | initial |") and "Δ" not in line
-                   and "+1.000" in line)
-    assert "+1.000 ± 0.707 [0.500] (2/2)" in initial
+                   and "+1.0 " in line)
+    assert "+1.0 ± 0.7 [0.5] (2/2)" in initial
     # CVaR0.5 of two tasks is the lower one: (−12) − (−12) = 0 and (−11) − (−13) = 2; the
     # paired CVaR standard error is 1 at both seeds (influence values −9, −15 against −10, −14;
     # −10, −12 against −11, −15); no difference at seed 0, so 1 of 2 seeds better
-    assert "+1.000 ± 1.414 [1.000] (1/2)" in initial
+    assert "+1.0 ± 1.4 [1.0] (1/2)" in initial
     assert "| point_nav | shift: rim |" in text
     level = next(line for line in text.splitlines() if line.startswith("| point_nav | initial |"))
     assert "-11.5 ± 0.7 [1.0]" in level  # MAML's average: (−11, −12) over seeds, task s.e. 1.0
@@ -1147,7 +1148,8 @@ def test_the_late_trend_compares_the_last_fifth_of_a_curve_with_the_fifth_before
 def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     """Five seeds where AR-MAML beats MAML on every task of p0 by 1 to 1.4 and loses on the rim
     at 4 of 5 seeds: the report and the verdicts file say it helps on p0 and hurts on the rim,
-    with the differences over seeds (mean ± its standard error) and the seeds better; DR-MAML,
+    with the differences over seeds (mean ± its standard error, in the decimals of the returns
+    compared, −11 and −12: one, two where the error needs them) and the seeds better; DR-MAML,
     level with MAML, does not help anywhere; the option, worse on p0 at every seed but within
     the spread (one seed far off) and level on the rim, does not help, worse at every seed on
     p0."""
@@ -1161,13 +1163,13 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     text = paired(plan, collect(plan, tmp_path, {}), tmp_path)
     lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
     assert lines[0] == "- **DR-MAML** (5 seeds): does not help on any of the 2 distributions."
-    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.071, 5/5 seeds "
-                        "better; CVaR0.5 +1.200 ± 0.071, 5/5 seeds better); hurts on shift: rim "
-                        "(avg -0.580 ± 0.177, 1/5 seeds better; CVaR0.5 -0.580 ± 0.177, 1/5 "
+    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.20 ± 0.07, 5/5 seeds "
+                        "better; CVaR0.5 +1.20 ± 0.07, 5/5 seeds better); hurts on shift: rim "
+                        "(avg -0.6 ± 0.2, 1/5 seeds better; CVaR0.5 -0.6 ± 0.2, 1/5 "
                         "seeds better).")
     assert lines[2] == ("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on any of the 2 "
                         "distributions, though it is worse than MAML at every seed on p0 (avg "
-                        "-1.080 ± 0.980, 0/5 seeds better; CVaR0.5 -1.080 ± 0.980, 0/5 seeds "
+                        "-1.1 ± 1.0, 0/5 seeds better; CVaR0.5 -1.1 ± 1.0, 0/5 seeds "
                         "better), within the spread.")
     assert all(line in text for line in lines)
     # MAML scored on the rim at seed 0 only: one pair there, no standard error, no verdict
@@ -1177,8 +1179,8 @@ def test_the_reports_verdicts_come_from_its_paired_differences(tmp_path):
     lines = verdicts_path(tmp_path, "meta_rl_point").read_text().splitlines()
     single = "; no verdict yet on shift: rim, paired at one seed only."
     assert lines[0] == "- **DR-MAML** (5 seeds): does not help on p0" + single
-    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.200 ± 0.071, 5/5 seeds "
-                        "better; CVaR0.5 +1.200 ± 0.071, 5/5 seeds better)" + single)
+    assert lines[1] == ("- **AR-MAML** (5 seeds): helps on p0 (avg +1.20 ± 0.07, 5/5 seeds "
+                        "better; CVaR0.5 +1.20 ± 0.07, 5/5 seeds better)" + single)
     assert lines[2].startswith("- **AR-MAML (std., λ 0.2)** (5 seeds): does not help on p0, "
                                "though it is worse than MAML at every seed on p0 (")
     assert lines[2].endswith("within the spread" + single)

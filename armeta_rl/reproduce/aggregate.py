@@ -80,6 +80,25 @@ def decimals(value: float) -> int:
     return 2 - math.floor(math.log10(size))
 
 
+def difference_decimals(scale: float, error: float) -> int:
+    """Decimal places to show a difference between values of size ``scale`` with its ``error``:
+    :func:`decimals` of the values, so that a difference of returns reads like the returns it
+    compares (+5.3 ± 1.9 beside returns of −60), with more places only where the error would
+    round to zero at the values' own (then to the error's first significant digit).
+
+    Examples:
+        >>> from armeta_rl.reproduce.aggregate import difference_decimals
+        >>> difference_decimals(-60.2, 1.946), difference_decimals(-60.2, 0.04)
+        (1, 2)
+        >>> difference_decimals(2.05, 0.048)  # ratios near 2: the values' three places
+        3
+    """
+    places = decimals(scale)
+    if math.isfinite(error) and error > 0:
+        places = max(places, -math.floor(math.log10(error)))
+    return places
+
+
 def over_seeds(values: Sequence[float]) -> SeedSummary:
     """Mean, sample std (n − 1) and standard error of ``values`` (std and se NaN for one value)."""
     n = len(values)

@@ -18,6 +18,7 @@ from armeta_rl.reproduce.aggregate import (
     SHIFT_PREFIX,
     SeedSummary,
     decimals,
+    difference_decimals,
     display,
     markdown_table,
     method_curve,
@@ -310,20 +311,32 @@ def paired_seeds(records: list[dict[str, Any]], learner: Learner, reference: Lea
     return pairs
 
 
-def _difference(pairs: list[dict[str, Any]], column: str, higher_better: bool) -> str:
+def _reference_scale(records: list[dict[str, Any]], reference: Learner, **where: Any) -> float:
+    """``reference``'s average over seeds on ``where`` (NaN where it has no record there): the
+    size of the returns a paired difference to it compares, whose decimals the difference takes
+    (:func:`~armeta_rl.reproduce.aggregate.difference_decimals`)."""
+    values = [r["mean"] for r in select(records, method=reference[0], variant=reference[1],
+                                         **where)]
+    return over_seeds(values).mean if values else math.nan
+
+
+def _difference(pairs: list[dict[str, Any]], column: str, higher_better: bool,
+                scale: float) -> str:
     """Paired differences over seeds: ``mean ± std [RMS task s.e.] (k/S better)``, in bold when
-    the mean lies beyond twice its standard error over seeds."""
+    the mean lies beyond twice its standard error over seeds; with the decimals of the values of
+    size ``scale`` they compare (:func:`~armeta_rl.reproduce.aggregate.difference_decimals`)."""
     if not pairs:
         return "–"
     values = [p[column] for p in pairs]
     spread = over_seeds(values)
-    text = f"{spread.mean:+.{decimals(spread.mean)}f}"
+    places = difference_decimals(scale, spread.std if spread.n > 1 else math.nan)
+    text = f"{spread.mean:+.{places}f}"
     if spread.n > 1:
-        text += f" ± {spread.std:.{decimals(spread.mean)}f}"
+        text += f" ± {spread.std:.{places}f}"
     sems = [p[f"{column}_sem" if column == "cvar" else "sem"] for p in pairs]
     sems = [s for s in sems if s is not None]
     if sems:
-        text += f" [{(sum(s * s for s in sems) / len(sems)) ** 0.5:.{decimals(spread.mean)}f}]"
+        text += f" [{(sum(s * s for s in sems) / len(sems)) ** 0.5:.{places}f}]"
     better = sum((v > 0) == higher_better and v != 0 for v in values)
     text += f" ({better}/{len(values)})"
     beyond = spread.n > 1 and abs(spread.mean) > 2 * spread.se
@@ -455,8 +468,9 @@ def paired(plan: Plan, records: list[dict[str, Any]], results: Path) -> str:
             others = [learner for learner in learners if learner != reference]
             pairs = {learner: paired_seeds(records, learner, reference, alpha, **where)
                      for learner in others}
+            scale = _reference_scale(records, reference, **where)
             diff_rows.append([display(benchmark), label, *(
-                _difference(pairs[learner], column, higher)
+                _difference(pairs[learner], column, higher, scale)
                 for column in ("mean", "cvar") for learner in others)])
     cvar_label = _cvar_label(plan)
     level_header = ["Benchmark", "Distribution", *(f"{name} avg" for name in labels),
@@ -580,11 +594,12 @@ def verdicts_path(results: Path, experiment: str) -> Path:
     return results / f"{experiment}_verdicts.md"
 
 
-def _finding(values: Sequence[float], name: str, higher_better: bool) -> str:
+def _finding(values: Sequence[float], name: str, higher_better: bool, scale: float) -> str:
     """``avg +1.3 ± 0.5, 5/5 seeds better`` of paired differences over seeds: their mean ± its
-    standard error over seeds (the error :func:`verdict` weighs, not the tables' std)."""
+    standard error over seeds (the error :func:`verdict` weighs, not the tables' std), with the
+    decimals of the values of size ``scale`` they compare, as in the report's tables."""
     spread = over_seeds(values)
-    places = decimals(spread.mean)
+    places = difference_decimals(scale, spread.se)
     better, _ = seeds_on_each_side(values, higher_better)
     return (f"{name} {spread.mean:+.{places}f} ± {spread.se:.{places}f}, "
             f"{better}/{len(values)} seeds better")
@@ -623,6 +638,8 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
                     single.append(where)
                     continue
                 compared += 1
+                scale = _reference_scale(records, reference, benchmark=benchmark,
+                                         distribution=distribution, noisy=False)
                 judged: dict[str, list[str]] = {key: [] for key in found}
                 for column, name in (("mean", "avg"), ("cvar", _cvar_label(plan))):
                     values = [p[column] for p in pairs]
@@ -631,7 +648,7 @@ def verdict_lines(plan: Plan, records: list[dict[str, Any]], reference: Learner,
                     if outcome == NO_HELP and len(values) > 1 and len(values) in (better, worse):
                         outcome = "better" if better else "worse"  # unanimous, within spread
                     if outcome != NO_HELP:
-                        judged[outcome].append(_finding(values, name, higher))
+                        judged[outcome].append(_finding(values, name, higher, scale))
                 is_neutral = not (judged[HELPS] or judged[HURTS])
                 for outcome, findings in judged.items():
                     if findings and (is_neutral or outcome in (HELPS, HURTS)):
