@@ -1111,8 +1111,9 @@ def _curve_rows(run: str, seeds: int, iterations: int, **columns) -> list[dict]:
 
 def test_the_late_trend_compares_the_last_fifth_of_a_curve_with_the_fifth_before():
     """The change from iterations 301–400 to 401–500 of 500, per seed; rising or falling by the
-    verdicts' rule (a rise of 5, 6, 7, 8, 9 over the five seeds: +7 ± 0.707, rising), level
-    within the spread, a lone seed without a word, and '–' where a run lacks the column."""
+    verdicts' rule (a rise of 5, 6, 7, 8, 9 over the five seeds: +7 ± 0.707, rising, written
+    +7.0 ± 0.7 as the returns it is a change of, about 31), level within the spread, a lone seed
+    without a word, and '–' where a run lacks the column."""
     from armeta_rl.reproduce.curves import late_changes
     from armeta_rl.reproduce.reports import late_trend
 
@@ -1138,7 +1139,7 @@ def test_the_late_trend_compares_the_last_fifth_of_a_curve_with_the_fifth_before
         "| half_cheetah_vel | AR-MAML | +2.000 (1 seed) | – | +0.000 (1 seed) |",
         "| half_cheetah_vel | attack | – | – | -45.7 ± 14.5 (0/5 up) falling |"]
     maml = lines[-3].split(" | ")
-    assert maml[2:] == ["+7.000 ± 0.707 (5/5 up) rising", "+0.200 ± 0.490 (3/5 up) level",
+    assert maml[2:] == ["+7.0 ± 0.7 (5/5 up) rising", "+0.200 ± 0.490 (3/5 up) level",
                         "– |"]
     assert "(for 500 iterations: 401–500 against 301–400)" in late_trend(rows, labels)
     shorter = _curve_rows("maml", 2, 400, gain=lambda s, i: float(i))

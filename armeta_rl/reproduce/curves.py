@@ -183,22 +183,39 @@ def late_parts(last: int) -> tuple[range, range]:
     return range(late, last + 1), range(before, late)
 
 
+def _late_means(rows: Sequence[dict[str, Any]],
+                column: str) -> dict[tuple[str, str], list[tuple[float, float]]]:
+    """(benchmark, run) → each seed's mean of ``column`` over the run's last part and over the
+    part before (:func:`late_parts` of the seed's last logged iteration); a seed with no value
+    of ``column`` in either part is left out."""
+    by_seed: dict[tuple[str, str, int], list[tuple[int, float]]] = {}
+    for row in rows:
+        if row[column] is not None:
+            by_seed.setdefault(_identity(row), []).append((row["iteration"], row[column]))
+    means: dict[tuple[str, str], list[tuple[float, float]]] = {}
+    for (benchmark, run, _), values in by_seed.items():
+        late_part, before_part = late_parts(max(iteration for iteration, _ in values))
+        late = [v for i, v in values if i in late_part]
+        before = [v for i, v in values if i in before_part]
+        if late and before:
+            means.setdefault((benchmark, run), []).append(
+                (math.fsum(late) / len(late), math.fsum(before) / len(before)))
+    return means
+
+
 def late_changes(rows: Sequence[dict[str, Any]],
                  column: str) -> dict[tuple[str, str], list[float]]:
     """(benchmark, run) → each seed's late change of ``column``: its mean over the run's last
     part minus its mean over the part before (:func:`late_parts` of the seed's last logged
     iteration); a seed with no value of ``column`` in either part is left out. Whether a learner
     still improves where it was compared (or an adversary still moves)."""
-    by_seed: dict[tuple[str, str, int], list[tuple[int, float]]] = {}
-    for row in rows:
-        if row[column] is not None:
-            by_seed.setdefault(_identity(row), []).append((row["iteration"], row[column]))
-    changes: dict[tuple[str, str], list[float]] = {}
-    for (benchmark, run, _), values in by_seed.items():
-        late_part, before_part = late_parts(max(iteration for iteration, _ in values))
-        late = [v for i, v in values if i in late_part]
-        before = [v for i, v in values if i in before_part]
-        if late and before:
-            changes.setdefault((benchmark, run), []).append(
-                math.fsum(late) / len(late) - math.fsum(before) / len(before))
-    return changes
+    return {key: [late - before for late, before in seeds]
+            for key, seeds in _late_means(rows, column).items()}
+
+
+def late_levels(rows: Sequence[dict[str, Any]], column: str) -> dict[tuple[str, str], float]:
+    """(benchmark, run) → the mean over seeds of ``column`` over the run's last part: the level
+    a late change (:func:`late_changes`) is a change of, whose decimals the change is shown
+    with."""
+    return {key: math.fsum(late for late, _ in seeds) / len(seeds)
+            for key, seeds in _late_means(rows, column).items()}

@@ -26,7 +26,7 @@ from armeta_rl.reproduce.aggregate import (
     select,
     summary,
 )
-from armeta_rl.reproduce.curves import LATE_PARTS, late_changes, late_parts
+from armeta_rl.reproduce.curves import LATE_PARTS, late_changes, late_levels, late_parts
 from armeta_rl.reproduce.plan import Plan, composed, precision_target, run_command
 from armeta_rl.trainers.run_dir import write_text_atomically
 
@@ -1009,21 +1009,24 @@ def late_trend(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> str:
     KL from p0, each as its mean ± standard error over seeds, the seeds where it rose, and
     *rising* or *falling* by the docs' rule (beyond twice its error, the same way at 80 % of the
     seeds), else *level*: whether the learners were compared at their plateau or still
-    improving, and whether an adversary still moved. Empty when no run has two late parts."""
+    improving, and whether an adversary still moved. A change takes the decimals of the level it
+    is a change of (:func:`~armeta_rl.reproduce.curves.late_levels`). Empty when no run has two
+    late parts."""
     returns = any(row["return_post"] is not None for row in rows)
     columns = ["return_post" if returns else "task_loss_mean", "gain", "adversary_kl_p0"]
     changes = {column: late_changes(rows, column) for column in columns}
+    levels = {column: late_levels(rows, column) for column in columns}
     columns = [column for column in columns if changes[column]]
     keys = [(benchmark, name) for benchmark in dict.fromkeys(row["benchmark"] for row in rows)
             for name in labels if any((benchmark, name) in changes[c] for c in columns)]
     if not keys:
         return ""
 
-    def cell(values: list[float] | None) -> str:
+    def cell(values: list[float] | None, level: float) -> str:
         if not values:
             return "–"
         spread = over_seeds(values)
-        places = decimals(spread.mean)
+        places = difference_decimals(level, spread.se if spread.n > 1 else math.nan)
         up = sum(v > 0 for v in values)
         if spread.n < 2:
             return f"{spread.mean:+.{places}f} (1 seed)"
@@ -1032,8 +1035,9 @@ def late_trend(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> str:
 
     header = ["Benchmark", "Run", *(figures.CURVE_PANELS[column] for column in columns)]
     table = markdown_table(header, [
-        [display(benchmark), labels[name], *(cell(changes[c].get((benchmark, name)))
-                                             for c in columns)]
+        [display(benchmark), labels[name], *(
+            cell(changes[c].get((benchmark, name)), levels[c].get((benchmark, name), math.nan))
+            for c in columns)]
         for benchmark, name in keys])
     ends: dict[tuple[str, str, int], int] = {}  # each run's and seed's last iteration
     for row in rows:
