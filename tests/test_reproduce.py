@@ -1406,9 +1406,9 @@ def test_the_report_counts_the_machines_its_runs_trained_on():
 def test_the_precision_target_by_hand(tmp_path):
     """Paired differences over 5 seeds of 1, 3, 1, 3, 2 on p0 (std 1, se 0.45) and 0, 4, 0, 4, 2
     on the rim (std 2, se 0.89) against a target of 0.5: AR-MAML's largest error is the rim's,
-    not yet below it, and (2 / 0.5)² = 16 seeds would not be enough but 17 would; DR-MAML
-    (±0.1) and the option (−0.1 at every seed) are below it. A malformed target is refused
-    before anything runs."""
+    not below it at the plan's 5 seeds, and (2 / 0.5)² = 16 seeds would not be enough but 17
+    would; DR-MAML (±0.1) and the option (−0.1 at every seed) are below it. With a seed still to
+    come the line says "not yet". A malformed target is refused before anything runs."""
     from dataclasses import replace
 
     from armeta_rl.reproduce.reports import precision_line
@@ -1424,9 +1424,12 @@ def test_the_precision_target_by_hand(tmp_path):
     assert precision_line(target, records, ("maml", ""), 0.5) == (
         "**Precision**, the protocol's target: the paired standard error over seeds below 0.5 "
         "on p0, shift: rim. DR-MAML: largest 0.05 (p0, avg; 5 seeds), reached; AR-MAML: largest "
-        "0.89 (shift: rim, avg; 5 seeds), not yet; at this spread 17 seeds would reach it; "
-        "AR-MAML (std., λ 0.2): largest 0.00 (p0, avg; 5 seeds), reached.")
+        "0.89 (shift: rim, avg; 5 seeds), not met at the planned 5 seeds; at this spread 17 "
+        "seeds would reach it; AR-MAML (std., λ 0.2): largest 0.00 (p0, avg; 5 seeds), reached.")
     assert precision_line(plan, records, ("maml", ""), 0.5) == ""  # no target, no line
+    four = [r for r in records if r["seed"] != 4]
+    assert "0.89 (shift: rim, avg; 5 seeds)" not in precision_line(target, four, ("maml", ""), 0.5)
+    assert "seeds), not yet; at this spread" in precision_line(target, four, ("maml", ""), 0.5)
     for bad in (2, {"se_below": 0, "distributions": ["initial"]},
                 {"se_below": 2, "distributions": []}, {"se_below": True, "distributions": ["x"]}):
         with pytest.raises(ConfigError, match=r"'precision' = .*allowed: \{se_below"):

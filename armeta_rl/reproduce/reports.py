@@ -524,7 +524,8 @@ def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner
     learner other than ``reference``, the largest standard error over seeds of its paired
     differences (average and CVaR_α) on the target's distributions, whether it is below the
     target, and otherwise how many seeds would bring it there at the spread so far (se = std/√n
-    < s once n > (std/s)²); empty for an experiment without a target."""
+    < s once n > (std/s)²), saying whether the plan's seeds are all in (*not met*) or more are
+    to come (*not yet*); empty for an experiment without a target."""
     target = precision_target(plan.spec)
     if target is None:
         return ""
@@ -532,6 +533,7 @@ def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner
     labels = {**_distributions(plan, records), INITIAL: "p0"}
     benchmarks = _benchmarks(plan)
     columns = (("mean", "avg"), ("cvar", _cvar_label(plan)))
+    planned = len({run.seed for run in plan.runs})
     parts = []
     for learner in _learners(plan):
         if learner == reference:
@@ -549,8 +551,11 @@ def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner
             parts.append(f"{label}: fewer than two seeds paired")
             continue
         spread, where = max(spreads, key=lambda item: item[0].se)
-        status = ("reached" if spread.se < bound else "not yet; at this spread "
-                  f"{math.floor((spread.std / bound) ** 2) + 1} seeds would reach it")
+        wanted = math.floor((spread.std / bound) ** 2) + 1
+        status = ("reached" if spread.se < bound
+                  else f"not met at the planned {planned} seeds; at this spread {wanted} seeds "
+                  "would reach it" if spread.n >= planned
+                  else f"not yet; at this spread {wanted} seeds would reach it")
         parts.append(f"{label}: largest {spread.se:.2f} ({where}; {spread.n} seeds), {status}")
     shown = ", ".join(labels.get(name, name) for name in names)
     return (f"**Precision**, the protocol's target: the paired standard error over seeds below "
