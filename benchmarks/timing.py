@@ -295,7 +295,8 @@ FLOOR_COLUMNS = ("products ms (share)", "kernels", "rest per kernel µs (empty k
 """The columns of :func:`floor_cells`."""
 
 
-def floor_cells(fn: Callable[[], object], calls: int, median_ms: float) -> list[str]:
+def floor_cells(fn: Callable[[], object], calls: int, median_ms: float,
+                compiled: bool = False) -> list[str]:
     """The cells of what a call of ``fn`` (``median_ms`` a call) is made of, from ``calls`` calls
     recorded: its matrix products replayed alone (:func:`products_ms`) and their share of the
     call; the kernels it dispatches; the µs per kernel the rest of the call spends (the call less
@@ -303,9 +304,13 @@ def floor_cells(fn: Callable[[], object], calls: int, median_ms: float) -> list[
     (:func:`empty_kernel_us`); and the largest share its products could have while it dispatches
     these kernels one by one (:func:`eager_ceiling`): the share left if every other kernel
     computed nothing and nothing ran between kernels. Only fewer kernels (fused by compiling, or
-    fewer operations) lift that ceiling."""
+    fewer operations) lift that ceiling. A ``compiled`` call gets its products' cell alone: under
+    the recording dispatch mode its compiled code runs eagerly, so the kernels recorded would be
+    the eager path's, not the fused ones it runs."""
     products, kernels = recorded_kernels(fn, calls)
     floor = products_ms(products) / calls
+    if compiled:
+        return [f"{floor:.1f} ({100 * floor / median_ms:.0f} %)", "–", "–", "–"]
     others = (kernels - sum(products.values())) / calls
     empty = empty_kernel_us()
     rest = 1000 * (median_ms - floor) / others if others else float("nan")
@@ -485,9 +490,11 @@ def write_section(name: str, title: str, body: str, page: Path, command: str | N
 
 def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: str | None,
                compiling: bool, warmup: int, phases: dict[str, dict[str, float]] | None = None,
-               ) -> tuple[dict[str, Callable[[], object]], dict[str, tuple[float, str] | str]]:
+               ) -> tuple[dict[str, Callable[[], object]], dict[str, tuple[float, str] | str],
+                          set[str]]:
     """A group's rows built and warmed up (``warmup`` calls), each with its warm-up's seconds and
-    notes (its peak GPU memory on CUDA), or why it did not run: ``skipped: no CUDA`` for a row
+    notes (its peak GPU memory on CUDA), or why it did not run, and the labels of the rows that
+    compile: ``skipped: no CUDA`` for a row
     on CUDA without one, the error's line for a row that failed to build or warm up (the others
     still run). A row is a list of config overrides (a meta-iteration), or ``{call: ...,
     overrides: [...]}`` (:func:`timed_call`); its config is the comparison's ``base``, the
@@ -496,7 +503,7 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
     row's calls after the warm-up are split into :data:`PHASES` there (:func:`instrument`)."""
     sized = [f"{key}={n}" for key, n in zip(SIZE_KEYS, group["size"].split("x"), strict=True)
              ] if "size" in group else []
-    rows, warm = {}, {}
+    rows, warm, compiled = {}, {}, set()
     for label, row in group["rows"].items():
         row = {"overrides": row} if isinstance(row, list) else row
         every = [f"benchmark={group['benchmark']}", *base, *sized, *group.get("base", []),
@@ -504,8 +511,10 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
         if cuda_as:
             every = [o.removesuffix("=cuda") + f"={cuda_as}" if o.endswith("=cuda") else o
                      for o in every]
-        if any(o.endswith("compile=true") for o in every) and not compiling:
-            continue
+        if any(o.endswith("compile=true") for o in every):
+            if not compiling:
+                continue
+            compiled.add(label)
         if any(o.partition("=")[2].startswith("cuda") for o in every) \
                 and not torch.cuda.is_available():
             warm[label] = "skipped: no CUDA"
@@ -530,7 +539,7 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
             traceback.print_exc()
             rows.pop(label, None)
             warm[label] = " ".join(f"error: {type(error).__name__}: {error}".split())[:300]
-    return rows, warm
+    return rows, warm, compiled
 
 
 def group_label(group: dict, tiny: bool) -> str:
@@ -603,8 +612,8 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
         if args.benchmarks and group["benchmark"] not in args.benchmarks:
             continue
         phases: dict[str, dict[str, float]] | None = {} if spec.get("phases") else None
-        built, warm = group_rows(group, spec.get("base", []), last, args.cuda_as, compiling,
-                                 args.warmup, phases)
+        built, warm, compiled = group_rows(group, spec.get("base", []), last, args.cuda_as,
+                                           compiling, args.warmup, phases)
         if len(warm) < (1 if spec.get("products") else min(2, len(group["rows"]))):
             continue  # a group left without a row to compare (or, timing products, to time)
         rows, grown = growth_tracked(built) if spec.get("memory") else (built, {})
@@ -625,7 +634,8 @@ def compare_in_turns(name: str, argv: Sequence[str] | None = None) -> str:
                     turned[label]["rollout"] / timed, turned[next(iter(rows))]["rollout"] / timed)]
             if spec.get("products"):
                 split[:0] = ["–"] * len(FLOOR_COLUMNS) if label not in rows else floor_cells(
-                    built[label], args.calls, 1000 * statistics.median(medians[label]))
+                    built[label], args.calls, 1000 * statistics.median(medians[label]),
+                    label in compiled)
             if label not in rows:
                 table.append((shown, label, *["–"] * 5, note, *split))
                 continue
@@ -671,7 +681,8 @@ def turns_body(spec: dict, args: argparse.Namespace, marks: list[float], table: 
                "less its products, over its other kernels, beside one empty kernel's cost "
                "(`timing.empty_kernel_us`, a one-element add); eager ceiling: the products' "
                "share if every other kernel cost only that and nothing ran between kernels "
-               "(`timing.eager_ceiling`)." if spec.get("products") else "")
+               "(`timing.eager_ceiling`); a compiled row has its products' cell alone (the "
+               "recording runs its compiled code eagerly)." if spec.get("products") else "")
             + "\n\n"
             + markdown_table(("benchmark", "row", "median ms", "min ms", "fast-spell median ms",
                               "× first row (median, range)", f"first {args.warmup} calls s",

@@ -109,3 +109,20 @@ def test_the_products_table_splits_a_row_into_products_kernels_and_rollouts(timi
     expected = ms["maml"] / (ms["one rollout"] + rolled["maml"] - rolled["one rollout"])
     beyond = float(maml["× first row + its extra rollouts"].rstrip("×"))
     assert beyond == pytest.approx(expected, rel=0.02, abs=0.01)  # the cells are rounded
+
+
+def test_a_compiled_call_gets_its_products_cell_alone(timing):
+    """Under the recording dispatch mode a compiled function runs its ops eagerly: it dispatches
+    as many kernels as the eager function, not the fused few it runs unrecorded. So a compiled
+    row's kernel, rest-per-kernel and ceiling cells would describe the eager path; it gets its
+    products' cell alone."""
+    a = torch.randn(256, 256)
+
+    def eager() -> torch.Tensor:
+        return ((a @ a).tanh() * 2 + 1).sum()
+
+    compiled = torch.compile(eager)
+    compiled()
+    assert timing.recorded_kernels(compiled, 1)[1] == timing.recorded_kernels(eager, 1)[1] > 3
+    products, *rest = timing.floor_cells(compiled, 2, 1.0, compiled=True)
+    assert rest == ["–"] * 3 and float(products.split(" (")[0]) > 0 and products.endswith("%)")
