@@ -1058,6 +1058,31 @@ def test_a_partial_sweep_names_on_stderr_what_is_missing_and_why(tmp_path, table
             "it waits for runs/sinusoid_uniform/maml/seed0, not finished") in err
 
 
+def test_an_evaluation_whose_run_lost_its_checkpoints_is_named_as_one_that_cannot_run(
+        tmp_path, table1_dir, capsys):
+    """A finished run whose checkpoints are gone strands the evaluations still to make from it:
+    stderr and the report's first line say they cannot run and which run they need; while the
+    run still has a checkpoint, the same missing evaluation is only missing."""
+    results = tmp_path / "results"
+    shutil.copytree(table1_dir, results)
+    run = results / "runs/sinusoid_uniform/maml/seed0"
+    (run / "eval_vs_same_seed.json").unlink()
+    capsys.readouterr()
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1
+    assert "cannot run" not in capsys.readouterr().err + (results / "table1.md").read_text()
+    shutil.rmtree(run / "checkpoints")
+    assert reproduce("table1", "tiny", results, launcher="none",
+                     benchmarks=("sinusoid_uniform",)) == 1
+    assert ("armeta-reproduce: missing runs/sinusoid_uniform/maml/seed0/eval_vs_same_seed.json: "
+            "it cannot run: runs/sinusoid_uniform/maml/seed0 finished without a checkpoint to "
+            "load") in capsys.readouterr().err
+    assert ("and 55/56 evaluations finished (each cell summarizes the seeds finished so far, so "
+            "cells may rest on different numbers of seeds). The evaluation left cannot run: "
+            "runs/sinusoid_uniform/maml/seed0 finished without a checkpoint to load.") in (
+        results / "table1.md").read_text()
+
+
 def test_the_staging_files_a_killed_process_left_are_removed(tmp_path, table1_dir):
     """A kill while packing leaves ``.reports.jsonl.<pid>.gz``: the next run removes those of
     processes that are gone, and leaves a live process's own."""

@@ -21,6 +21,7 @@ from armeta_rl.reproduce.curves import logged_scalar
 from armeta_rl.reproduce.packed import NOTHING_PACKED, Packed
 from armeta_rl.reproduce.plan import (
     EVAL_FILE,
+    EvalJob,
     Plan,
     TrainRun,
     finished,
@@ -28,6 +29,7 @@ from armeta_rl.reproduce.plan import (
     identity_problem,
     load_report,
 )
+from armeta_rl.trainers.checkpoint import checkpoint_dirs
 from armeta_rl.trainers.evaluation import ReportInvalid, share_resolved
 from armeta_rl.trainers.game import ITERATION_TIME
 from armeta_rl.trainers.run_dir import write_text_atomically
@@ -329,8 +331,39 @@ def progress_note(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) ->
               + f" and {evals}/{len(plan.evals)} evaluations finished")
     if runs + evals == total:
         return f"Profile `{plan.profile}`, complete: {counts}."
+    blocked = stranded(plan, results, packed)
+    lost = sorted({run.subdir for needs in blocked.values() for run in needs})
     return (f"Profile `{plan.profile}`, **partial**: {counts} (each cell summarizes the seeds "
-            "finished so far, so cells may rest on different numbers of seeds).")
+            "finished so far, so cells may rest on different numbers of seeds)."
+            + (f" {cannot_run(len(blocked), len(plan.evals) - evals)}: {', '.join(lost)} "
+               "finished without a checkpoint to load." if blocked else ""))
+
+
+def cannot_run(blocked: int, left: int) -> str:
+    """How many of the ``left`` unfinished evaluations cannot run, in words."""
+    if blocked == left:
+        return ("The evaluation left cannot run" if left == 1
+                else f"The {left} evaluations left cannot run")
+    return f"{blocked} of the {left} evaluations left cannot run"
+
+
+def stranded(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED
+             ) -> dict[EvalJob, list[TrainRun]]:
+    """The plan's unfinished evaluations that can never run, each with the runs it needs whose
+    checkpoints are gone (:func:`lost_checkpoints`)."""
+    return {job: lost for job in plan.evals if not finished(results, job, packed)
+            and (lost := lost_checkpoints(results, job, packed))}
+
+
+def lost_checkpoints(results: Path, job: EvalJob, packed: Packed = NOTHING_PACKED
+                     ) -> list[TrainRun]:
+    """The runs ``job`` needs (its learner, the run whose adversary it draws from) that
+    finished, their reports in, without leaving a checkpoint to load: trained before their sweep
+    kept checkpoints, or deleted since. A run not yet finished is not among them: it will write
+    its checkpoints."""
+    return [run for run in (job.learner, job.adversary) if run is not None
+            and finished(results, run, packed)
+            and not checkpoint_dirs(results / run.subdir / "checkpoints")]
 
 
 def markdown_table(header: Sequence[str], rows: Iterable[Sequence[str]]) -> str:

@@ -45,6 +45,7 @@ from armeta_rl.reproduce.aggregate import (
     collect,
     display,
     finished_reports,
+    lost_checkpoints,
     progress_note,
     train_seconds,
     write_csv,
@@ -447,13 +448,17 @@ def reproduce(experiment: str, profile: str = "quick", results: Path | None = No
 
 def missing_why(results: Path, item: TrainRun | EvalJob, packed: Packed) -> str | None:
     """Why ``item`` has not finished (:func:`report_problem`; an evaluation that could not run
-    names the run it waits for), or ``None``."""
+    names the run it waits for, or the run whose checkpoints are gone), or ``None``."""
     problem = report_problem(results, item, packed)
     if problem is None or not isinstance(item, EvalJob):
         return problem
     waits = [run for run in (item.learner, item.adversary)
              if run is not None and not finished(results, run, packed)]
-    return f"it waits for {waits[0].subdir}, not finished" if waits else problem
+    if waits:
+        return f"it waits for {waits[0].subdir}, not finished"
+    lost = lost_checkpoints(results, item, packed)
+    return (f"it cannot run: {lost[0].subdir} finished without a checkpoint to load" if lost
+            else problem)
 
 
 def resolved_results(results: Path) -> Path:

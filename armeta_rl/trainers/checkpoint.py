@@ -77,6 +77,15 @@ BROKEN_SUFFIX = ".broken"
 _NAME = re.compile(rf"{PREFIX}-(\d{{12}})")
 
 
+def checkpoint_dirs(directory: Path) -> list[Path]:
+    """Every checkpoint directory in a run's ``checkpoints`` folder ``directory``, intact or not,
+    oldest first; none when the folder is missing."""
+    if not directory.is_dir():
+        return []
+    found = [p for p in directory.iterdir() if _NAME.fullmatch(p.name) and p.is_dir()]
+    return sorted(found, key=lambda p: p.name)
+
+
 def write_file(path: Path, data: bytes) -> None:
     """Write ``data`` to ``path`` with plain writes and fsync it: the one writer of checkpoint
     payloads and manifests (fault-injection tests replace it to simulate a full disk)."""
@@ -404,10 +413,7 @@ class RunCheckpoint:
 
     def checkpoints(self) -> list[Path]:
         """Every checkpoint directory on disk, intact or not, oldest first."""
-        if not self.directory.is_dir():
-            return []
-        found = [p for p in self.directory.iterdir() if _NAME.fullmatch(p.name) and p.is_dir()]
-        return sorted(found, key=lambda p: p.name)
+        return checkpoint_dirs(self.directory)
 
     def clean_staging(self) -> list[Path]:
         """Remove what interrupted writes left behind (hidden staging, backup and deletion
