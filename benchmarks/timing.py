@@ -492,15 +492,15 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
                compiling: bool, warmup: int, phases: dict[str, dict[str, float]] | None = None,
                ) -> tuple[dict[str, Callable[[], object]], dict[str, tuple[float, str] | str],
                           set[str]]:
-    """A group's rows built and warmed up (``warmup`` calls), each with its warm-up's seconds and
-    notes (its peak GPU memory on CUDA), or why it did not run, and the labels of the rows that
-    compile: ``skipped: no CUDA`` for a row
-    on CUDA without one, the error's line for a row that failed to build or warm up (the others
-    still run). A row is a list of config overrides (a meta-iteration), or ``{call: ...,
-    overrides: [...]}`` (:func:`timed_call`); its config is the comparison's ``base``, the
-    group's size and base, the row's overrides and ``last``, with ``cuda`` read as ``cuda_as``
-    where given; rows that compile are left out unless ``compiling``. With ``phases``, each
-    row's calls after the warm-up are split into :data:`PHASES` there (:func:`instrument`)."""
+    """A group's rows built and warmed up (``warmup`` calls); each row's warm-up seconds and
+    notes (its peak GPU memory on CUDA), or why it did not run (``skipped: no CUDA`` for a row on
+    CUDA without one, the error's line for a row that failed to build or warm up: the others
+    still run); and the labels of the rows that compile. A row is a list of config overrides
+    (a meta-iteration), or ``{call: ..., overrides: [...]}`` (:func:`timed_call`); its config
+    is the comparison's ``base``, the group's size and base, the row's overrides and ``last``,
+    with ``cuda`` read as ``cuda_as`` where given; rows that compile are left out unless
+    ``compiling``. With ``phases``, each row's calls after the warm-up are split into
+    :data:`PHASES` there (:func:`instrument`)."""
     sized = [f"{key}={n}" for key, n in zip(SIZE_KEYS, group["size"].split("x"), strict=True)
              ] if "size" in group else []
     rows, warm, compiled = {}, {}, set()
