@@ -11,7 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -320,23 +320,23 @@ def display(name: str) -> str:
 
 def progress_note(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) -> str:
     """How many of the plan's runs (attack runs included) and evaluations have finished, in
-    their directories or ``packed`` (a partial sweep says so)."""
+    their directories or ``packed`` (a partial sweep says so, and names the runs whose lost
+    checkpoints leave evaluations that can never run: :func:`lost_checkpoints`)."""
     trained = (*plan.runs, *plan.attacks)
-    attacks = sum(finished(results, r, packed) for r in plan.attacks)
-    runs = attacks + sum(finished(results, r, packed) for r in plan.runs)
-    evals = sum(finished(results, e, packed) for e in plan.evals)
-    total = len(trained) + len(plan.evals)
-    counts = (f"{runs}/{len(trained)} training runs"
+    done = {run for run in trained if finished(results, run, packed)}
+    attacks = sum(run in done for run in plan.attacks)
+    left = [job for job in plan.evals if not finished(results, job, packed)]
+    counts = (f"{len(done)}/{len(trained)} training runs"
               + (f" (attack runs {attacks}/{len(plan.attacks)})" if plan.attacks else "")
-              + f" and {evals}/{len(plan.evals)} evaluations finished")
-    if runs + evals == total:
+              + f" and {len(plan.evals) - len(left)}/{len(plan.evals)} evaluations finished")
+    if len(done) == len(trained) and not left:
         return f"Profile `{plan.profile}`, complete: {counts}."
-    blocked = stranded(plan, results, packed)
-    lost = sorted({run.subdir for needs in blocked.values() for run in needs})
+    blocked = [lost for job in left if (lost := lost_checkpoints(results, job, done))]
+    lost = sorted({run.subdir for needs in blocked for run in needs})
     return (f"Profile `{plan.profile}`, **partial**: {counts} (each cell summarizes the seeds "
             "finished so far, so cells may rest on different numbers of seeds)."
-            + (f" {cannot_run(len(blocked), len(plan.evals) - evals)}: {', '.join(lost)} "
-               "finished without a checkpoint to load." if blocked else ""))
+            + (f" {cannot_run(len(blocked), len(left))}: {', '.join(lost)} finished without a "
+               "checkpoint to load." if blocked else ""))
 
 
 def cannot_run(blocked: int, left: int) -> str:
@@ -347,22 +347,12 @@ def cannot_run(blocked: int, left: int) -> str:
     return f"{blocked} of the {left} evaluations left cannot run"
 
 
-def stranded(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED
-             ) -> dict[EvalJob, list[TrainRun]]:
-    """The plan's unfinished evaluations that can never run, each with the runs it needs whose
-    checkpoints are gone (:func:`lost_checkpoints`)."""
-    return {job: lost for job in plan.evals if not finished(results, job, packed)
-            and (lost := lost_checkpoints(results, job, packed))}
-
-
-def lost_checkpoints(results: Path, job: EvalJob, packed: Packed = NOTHING_PACKED
-                     ) -> list[TrainRun]:
-    """The runs ``job`` needs (its learner, the run whose adversary it draws from) that
-    finished, their reports in, without leaving a checkpoint to load: trained before their sweep
-    kept checkpoints, or deleted since. A run not yet finished is not among them: it will write
-    its checkpoints."""
-    return [run for run in (job.learner, job.adversary) if run is not None
-            and finished(results, run, packed)
+def lost_checkpoints(results: Path, job: EvalJob, done: Collection[TrainRun]) -> list[TrainRun]:
+    """The runs ``job`` needs (its learner, the run whose adversary it draws from) that are
+    ``done`` (finished, their reports in) without leaving a checkpoint to load: trained before
+    their sweep kept checkpoints, or deleted since. A run not yet finished is not among them: it
+    will write its checkpoints."""
+    return [run for run in (job.learner, job.adversary) if run in done
             and not checkpoint_dirs(results / run.subdir / "checkpoints")]
 
 

@@ -452,11 +452,11 @@ def missing_why(results: Path, item: TrainRun | EvalJob, packed: Packed) -> str 
     problem = report_problem(results, item, packed)
     if problem is None or not isinstance(item, EvalJob):
         return problem
-    waits = [run for run in (item.learner, item.adversary)
-             if run is not None and not finished(results, run, packed)]
+    needs = [run for run in (item.learner, item.adversary) if run is not None]
+    waits = [run for run in needs if not finished(results, run, packed)]
     if waits:
         return f"it waits for {waits[0].subdir}, not finished"
-    lost = lost_checkpoints(results, item, packed)
+    lost = lost_checkpoints(results, item, needs)
     return (f"it cannot run: {lost[0].subdir} finished without a checkpoint to load" if lost
             else problem)
 

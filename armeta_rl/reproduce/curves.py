@@ -183,8 +183,8 @@ def late_parts(last: int) -> tuple[range, range]:
     return range(late, last + 1), range(before, late)
 
 
-def _late_means(rows: Sequence[dict[str, Any]],
-                column: str) -> dict[tuple[str, str], list[tuple[float, float]]]:
+def late_means(rows: Sequence[dict[str, Any]],
+               column: str) -> dict[tuple[str, str], list[tuple[float, float]]]:
     """(benchmark, run) → each seed's mean of ``column`` over the run's last part and over the
     part before (:func:`late_parts` of the seed's last logged iteration); a seed with no value
     of ``column`` in either part is left out."""
@@ -203,19 +203,18 @@ def _late_means(rows: Sequence[dict[str, Any]],
     return means
 
 
-def late_changes(rows: Sequence[dict[str, Any]],
-                 column: str) -> dict[tuple[str, str], list[float]]:
-    """(benchmark, run) → each seed's late change of ``column``: its mean over the run's last
-    part minus its mean over the part before (:func:`late_parts` of the seed's last logged
-    iteration); a seed with no value of ``column`` in either part is left out. Whether a learner
-    still improves where it was compared (or an adversary still moves)."""
-    return {key: [late - before for late, before in seeds]
-            for key, seeds in _late_means(rows, column).items()}
+def late_changes(means: dict[tuple[str, str], list[tuple[float, float]]]
+                 ) -> dict[tuple[str, str], list[float]]:
+    """(benchmark, run) → each seed's late change, from its :func:`late_means`: its mean over
+    the run's last part minus its mean over the part before. Whether a learner still improves
+    where it was compared (or an adversary still moves)."""
+    return {key: [late - before for late, before in seeds] for key, seeds in means.items()}
 
 
-def late_levels(rows: Sequence[dict[str, Any]], column: str) -> dict[tuple[str, str], float]:
-    """(benchmark, run) → the mean over seeds of ``column`` over the run's last part: the level
-    a late change (:func:`late_changes`) is a change of, whose decimals the change is shown
-    with."""
+def late_levels(means: dict[tuple[str, str], list[tuple[float, float]]]
+                ) -> dict[tuple[str, str], float]:
+    """(benchmark, run) → the mean over seeds of the last part's means (:func:`late_means`): the
+    level a late change (:func:`late_changes`) is a change of, whose decimals the change is
+    shown with."""
     return {key: math.fsum(late for late, _ in seeds) / len(seeds)
-            for key, seeds in _late_means(rows, column).items()}
+            for key, seeds in means.items()}

@@ -26,7 +26,13 @@ from armeta_rl.reproduce.aggregate import (
     select,
     summary,
 )
-from armeta_rl.reproduce.curves import LATE_PARTS, late_changes, late_levels, late_parts
+from armeta_rl.reproduce.curves import (
+    LATE_PARTS,
+    late_changes,
+    late_levels,
+    late_means,
+    late_parts,
+)
 from armeta_rl.reproduce.plan import Plan, composed, precision_target, run_command
 from armeta_rl.trainers.run_dir import write_text_atomically
 
@@ -551,11 +557,13 @@ def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner
             parts.append(f"{label}: fewer than two seeds paired")
             continue
         spread, where = max(spreads, key=lambda item: item[0].se)
-        wanted = math.floor((spread.std / bound) ** 2) + 1
-        status = ("reached" if spread.se < bound
-                  else f"not met at the planned {planned} seeds; at this spread {wanted} seeds "
-                  "would reach it" if spread.n >= planned
-                  else f"not yet; at this spread {wanted} seeds would reach it")
+        if spread.se < bound:
+            status = "reached"
+        else:
+            missed = f"not met at the planned {planned} seeds" if spread.n >= planned \
+                else "not yet"
+            wanted = math.floor((spread.std / bound) ** 2) + 1
+            status = f"{missed}; at this spread {wanted} seeds would reach it"
         parts.append(f"{label}: largest {spread.se:.2f} ({where}; {spread.n} seeds), {status}")
     shown = ", ".join(labels.get(name, name) for name in names)
     return (f"**Precision**, the protocol's target: the paired standard error over seeds below "
@@ -1019,8 +1027,9 @@ def late_trend(rows: Sequence[dict[str, Any]], labels: dict[str, str]) -> str:
     late parts."""
     returns = any(row["return_post"] is not None for row in rows)
     columns = ["return_post" if returns else "task_loss_mean", "gain", "adversary_kl_p0"]
-    changes = {column: late_changes(rows, column) for column in columns}
-    levels = {column: late_levels(rows, column) for column in columns}
+    means = {column: late_means(rows, column) for column in columns}
+    changes = {column: late_changes(means[column]) for column in columns}
+    levels = {column: late_levels(means[column]) for column in columns}
     columns = [column for column in columns if changes[column]]
     keys = [(benchmark, name) for benchmark in dict.fromkeys(row["benchmark"] for row in rows)
             for name in labels if any((benchmark, name) in changes[c] for c in columns)]
