@@ -167,6 +167,22 @@ CLOCK_SOURCE: list[Callable[[], float]] = [time.perf_counter]
 waiting for a core is left out)."""
 
 
+def trimmed_above(fn: Callable[[], object], threshold: int) -> Callable[[], None]:
+    """``fn`` run with glibc's trim threshold at ``threshold`` bytes, the process's own setting
+    (:func:`as_trained`) restored after each call: a row that trims the heap as a process set so
+    would, taking turns with rows that keep it (the threshold applies from the next free on)."""
+    from armeta_rl.allocator import keep_freed_memory
+
+    def call() -> None:
+        keep_freed_memory(trim_threshold=threshold)
+        try:
+            fn()
+        finally:
+            keep_freed_memory()
+
+    return call
+
+
 def wall_times(fn: Callable[[], object], repeats: int, warmup: int = 1) -> list[float]:
     """Seconds taken by each of ``repeats`` calls of ``fn``, after ``warmup`` untimed calls, on
     :data:`CLOCK_SOURCE` (wall seconds unless ``--cpu-time``)."""
@@ -496,7 +512,8 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
     notes (its peak GPU memory on CUDA), or why it did not run (``skipped: no CUDA`` for a row on
     CUDA without one, the error's line for a row that failed to build or warm up: the others
     still run); and the labels of the rows that compile. A row is a list of config overrides
-    (a meta-iteration), or ``{call: ..., overrides: [...]}`` (:func:`timed_call`); its config
+    (a meta-iteration), or ``{call: ..., overrides: [...]}`` (:func:`timed_call`), with
+    ``trim_threshold: BYTES`` where its calls trim glibc's heap (:func:`trimmed_above`); its config
     is the comparison's ``base``, the group's size and base, the row's overrides and ``last``,
     with ``cuda`` read as ``cuda_as`` where given; rows that compile are left out unless
     ``compiling``. With ``phases``, each row's calls after the warm-up are split into
@@ -522,6 +539,8 @@ def group_rows(group: dict, base: Sequence[str], last: Sequence[str], cuda_as: s
         try:
             trainer, players = trainer_for(*every)
             fn = timed_call(row.get("call", "iteration"), trainer, players)
+            if "trim_threshold" in row:
+                fn = trimmed_above(fn, int(row["trim_threshold"]))
             cuda = torch.cuda.is_initialized()
             rows[label] = (lambda fn=fn: (fn(), torch.cuda.synchronize())) if cuda else fn
             if phases is not None:
