@@ -8,8 +8,6 @@ from pathlib import Path
 
 import pytest
 
-from armeta_rl.allocator import NEVER_TRIM
-
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,8 +52,7 @@ def test_freed_blocks_are_reused_instead_of_faulted_in_again():
 
 
 PEAK = """
-import resource, sys, torch
-from armeta_rl.allocator import keep_freed_memory
+import resource, torch
 from benchmarks.timing import as_trained, trimmed_above
 def faults():
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -69,44 +66,22 @@ def rounds(fn):  # after three warm-up rounds: the heap grows to the peak over t
     for _ in range(5):
         fn()
     return faults() - before
-if sys.argv[1] == "harness":  # a row that trims, then the process's own setting again
-    as_trained()
-    print(rounds(trimmed_above(peak, 256 << 20)), rounds(peak))
-else:
-    assert keep_freed_memory(trim_threshold=int(sys.argv[1]))
-    print(rounds(peak))
+as_trained()  # keep_freed_memory(), as armeta-train sets it
+print(rounds(trimmed_above(peak, 256 << 20)), rounds(peak))
 """
 
 
-def peak_faults(mode: str) -> list[int]:
-    """Minor page faults of 5 rounds that hold 8 blocks of 48 MiB at once and free them, after
-    three warm-up rounds: with glibc's trim threshold at ``mode`` bytes, or (``"harness"``) in a
-    benchmark row that trims above 256 MiB and then in the calls after it."""
-    result = subprocess.run([sys.executable, "-c", PEAK, mode], capture_output=True, text=True,
-                            check=True, cwd=ROOT)
-    return [int(n) for n in result.stdout.split()]
-
-
-def test_a_peak_freed_at_once_is_kept_for_the_next_iteration():
-    """Any finite trim threshold below what an iteration frees at once (here 256 MiB against
-    384 MiB) hands the excess back to the kernel at every round; the default keeps it. Relative,
-    and the least of up to three runs, as above."""
-    [trimmed] = peak_faults(str(256 << 20))
-    assert trimmed > 0
-    [kept] = peak_faults(str(NEVER_TRIM))
-    for _ in range(2):
-        if kept * 4 < trimmed:
-            break
-        kept = min(kept, *peak_faults(str(NEVER_TRIM)))
-    assert kept * 4 < trimmed
-
-
-def test_a_harness_row_trims_the_heap_for_its_own_calls_only():
-    """``timing.trimmed_above`` (a benchmark row with ``trim_threshold``): its calls fault their
-    peak in again as a process trimming at that threshold would, and the calls after them keep
-    it again, as :func:`keep_freed_memory` does."""
+def test_a_peak_freed_at_once_is_kept_and_a_harness_row_trims_it_for_its_own_calls():
+    """An iteration's peak freed at once (384 MiB): a finite trim threshold below it (256 MiB, a
+    benchmark row's ``trim_threshold``, ``timing.trimmed_above``) hands the excess back to the
+    kernel and faults it in again at every round, while :func:`keep_freed_memory`'s default
+    keeps it, in the calls after that row's too. Minor page faults of 5 rounds after three
+    warm-up rounds, in a process of its own; relative, and the least of up to three runs, as
+    above."""
     for _ in range(3):
-        trimmed, kept = peak_faults("harness")
+        result = subprocess.run([sys.executable, "-c", PEAK], capture_output=True, text=True,
+                                check=True, cwd=ROOT)
+        trimmed, kept = map(int, result.stdout.split())
         if kept * 4 < trimmed:
             break
     assert kept * 4 < trimmed
