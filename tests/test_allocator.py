@@ -76,8 +76,8 @@ def test_a_peak_freed_at_once_is_kept_and_a_harness_row_trims_it_for_its_own_cal
     benchmark row's ``trim_threshold``, ``timing.trimmed_above``) hands the excess back to the
     kernel and faults it in again at every round, while :func:`keep_freed_memory`'s default
     keeps it, in the calls after that row's too. Minor page faults of 5 rounds after three
-    warm-up rounds, in a process of its own; relative, and the least of up to three runs, as
-    above."""
+    warm-up rounds, in a process of its own; relative, and run again up to twice while memory
+    pressure from other processes blurs it, as above."""
     for _ in range(3):
         result = subprocess.run([sys.executable, "-c", PEAK], capture_output=True, text=True,
                                 check=True, cwd=ROOT)
@@ -101,4 +101,3 @@ def test_a_seeded_run_is_the_same_with_and_without_it(tmp_path):
         return json.loads((out / "eval.json").read_text())
 
     assert evaluation(True) == evaluation(False)
-
