@@ -29,7 +29,7 @@ from PIL import Image
 import armeta_rl.trainers.checkpoint as checkpoint_module
 from armeta_rl.cli import _eval_task, train
 from armeta_rl.cli.compose import config_dir
-from armeta_rl.cli.failures import Refused, report_errors
+from armeta_rl.cli.failures import OUT_OF_MEMORY, Refused, report_errors
 from armeta_rl.cli.jobs import make_job
 from armeta_rl.config import load_run_config, validate
 from armeta_rl.errors import CheckpointBroken, ConfigError, RunDirectoryError, TrainingDiverged
@@ -1188,21 +1188,52 @@ def test_a_frame_a_kill_cut_off_after_its_checkpoint_is_drawn_on_resume(tmp_path
         assert ours.convert("RGB").tobytes() == theirs.convert("RGB").tobytes()
 
 
-def test_a_memory_limit_at_start_is_one_line_and_exit_code_2(tmp_path):
-    """Under a 600 MB address-space limit torch cannot even be imported: one line, exit 2."""
+@pytest.mark.parametrize(("entry", "program"), [
+    ("from armeta_rl.cli import train as main", "armeta-train"),
+    ("from armeta_rl.cli import evaluate as main", "armeta-eval"),
+    ("from armeta_rl.reproduce.entry import main", "armeta-reproduce"),
+])
+def test_a_memory_limit_too_small_to_load_torch_is_one_line_and_exit_code_2(
+        tmp_path, entry, program):
+    """Under a 600 MiB address-space limit an import of torch, NumPy or MuJoCo may abort
+    (``std::bad_alloc``), exit from OpenBLAS or leave no memory to say why: each entry point
+    refuses before it imports them, naming the limit and the floor, and writes nothing."""
     import resource
 
     def limited():
         resource.setrlimit(resource.RLIMIT_AS, (600 * 2**20, 600 * 2**20))
 
     done = subprocess.run(
-        [sys.executable, "-c", "import sys; from armeta_rl.cli import train; sys.exit(train())",
-         *SMALL_RUN, f"hydra.run.dir={tmp_path / 'run'}"], preexec_fn=limited,
+        [sys.executable, "-c", f"import sys; {entry}; sys.exit(main())", *SMALL_RUN,
+         f"hydra.run.dir={tmp_path / 'run'}"], preexec_fn=limited, cwd=tmp_path,
         capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr[-2000:]
     assert done.stderr.strip().splitlines() == [
-        "armeta-train: error: out of memory: this process may not allocate what the run needs (a "
-        "memory limit, or sizes too large for this machine): smaller sizes, or more memory"]
+        f"{program}: error: out of memory: this process's address-space limit (ulimit -v) "
+        "is 600 MiB, below the 1024 MiB that loading torch and MuJoCo needs: raise it, or lift "
+        "it (ulimit -v unlimited)"], done.stderr
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_library_the_loader_cannot_map_is_out_of_memory_only_under_a_limit():
+    """The loader's "failed to map segment" under an address-space limit (where it means no
+    room), from an import or from a library Ray loads, is the out-of-memory line and exit code 2,
+    as MuJoCo's "Could not allocate memory" is anywhere; without a limit the ``ImportError`` is
+    a bug (no line: its traceback) and the ``OSError`` a file that could not be read."""
+    check = (
+        "import resource, sys; from armeta_rl.cli.failures import failure; "
+        "mapped = ImportError('ft2font.so: failed to map segment from shared object'); "
+        "loaded = OSError('_raylet.so: failed to map segment from shared object'); "
+        "mujoco = ValueError('Error: engine error: Could not allocate memory'); "
+        "print(failure(mapped), failure(loaded), failure(mujoco), sep='|'); "
+        "resource.setrlimit(resource.RLIMIT_AS, (64 * 2**30, resource.RLIM_INFINITY)); "
+        "print(failure(mapped), failure(loaded), failure(mujoco), sep='|')")
+    done = subprocess.run([sys.executable, "-c", check], capture_output=True, text=True,
+                          timeout=60, check=True)
+    oom = (2, f"error: {OUT_OF_MEMORY}")
+    assert done.stdout.splitlines() == [
+        f"None|{(1, 'error: _raylet.so: failed to map segment from shared object')}|{oom}",
+        f"{oom}|{oom}|{oom}"]
 
 
 def test_a_resume_into_another_hydra_run_dir_logs_into_its_own_directory(tmp_path, stopped):

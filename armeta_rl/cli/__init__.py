@@ -34,7 +34,13 @@ from armeta_rl.cli.compose import (
     hydra_words,
     job_overrides,
 )
-from armeta_rl.cli.failures import OUT_OF_MEMORY, Refused, failure, report_errors
+from armeta_rl.cli.failures import (
+    OUT_OF_MEMORY,
+    Refused,
+    address_space_refusal,
+    failure,
+    report_errors,
+)
 from armeta_rl.cli.help import print_help
 from armeta_rl.cli.jobs import make_job, sweep_task, train_task
 from armeta_rl.errors import ConfigError
@@ -67,12 +73,17 @@ def _run_hydra(argv: list[str], config_name: str, task: Callable[[DictConfig], N
 def _exit_code(main: Callable[[list[str]], None], prog: str, argv: list[str] | None) -> int:
     """``main``'s exit code on ``argv`` (``None``: ``sys.argv[1:]``): 0, the code of its
     ``SystemExit``, or the code of the error it raised, said in one line
-    (:func:`~armeta_rl.cli.failures.failure`)."""
+    (:func:`~armeta_rl.cli.failures.failure`). Under an address-space limit too small to load
+    torch it says so and runs nothing."""
+    refusal = address_space_refusal()
+    if refusal is not None:
+        sys.stderr.write(f"{prog}: error: {refusal}\n")
+        return 2
     try:
         main(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as stop:
         return stop.code if isinstance(stop.code, int) else (0 if stop.code is None else 1)
-    except MemoryError:  # e.g. importing torch under a memory limit: said with what is left
+    except MemoryError:  # e.g. an import that exhausted the heap: said with what is left
         sys.stderr.write(f"{prog}: error: {OUT_OF_MEMORY}\n")
         return 2
     except (Exception, KeyboardInterrupt) as error:

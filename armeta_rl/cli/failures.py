@@ -1,6 +1,7 @@
 """How ``armeta-train`` and ``armeta-eval`` end: the one table of their exit codes and the line
 each prints (:func:`failure`), and the wrapper that ends a Hydra job with them
-(:func:`report_errors`)."""
+(:func:`report_errors`), and the floor of the address space they start under
+(:func:`address_space_refusal`)."""
 
 from __future__ import annotations
 
@@ -72,8 +73,8 @@ def failure(error: BaseException) -> tuple[int, str] | None:
         return 1, f"error: {error}"
     if isinstance(error, KeyboardInterrupt):  # Ctrl-C where no run stops cleanly
         return EXIT_INTERRUPTED, "interrupted (SIGINT)"
-    if isinstance(error, (MemoryError, RuntimeError, OSError, SystemError)) and out_of_memory(
-            error):
+    if isinstance(error, (MemoryError, RuntimeError, OSError, SystemError, ImportError,
+                          ValueError)) and out_of_memory(error):
         return 2, f"error: {OUT_OF_MEMORY}"
     if isinstance(error, OSError):
         return 1, "error: " + f"{error.strerror or error}: {error.filename or ''}".rstrip(": ")
@@ -85,16 +86,39 @@ OUT_OF_MEMORY = ("out of memory: this process may not allocate what the run need
 
 
 def out_of_memory(error: BaseException) -> bool:
-    """Whether ``error`` is an allocation that failed (Python's ``MemoryError``, torch's CPU or
-    CUDA allocator, or the ``SystemError`` CPython raises when an import runs out of memory
-    under this process's address-space limit)."""
+    """Whether ``error`` is an allocation that failed: Python's ``MemoryError``, torch's CPU or
+    CUDA allocator, MuJoCo's, or, under this process's address-space limit, a library the
+    loader could not map or an import that ran out of memory (the ``SystemError`` CPython raises
+    then)."""
+    text = str(error).lower()
+    limited = resource.getrlimit(resource.RLIMIT_AS)[0] != resource.RLIM_INFINITY
+    if limited and "failed to map segment" in text:
+        return True
     if isinstance(error, OSError):
         return error.errno == errno.ENOMEM
     if isinstance(error, SystemError):
-        return resource.getrlimit(resource.RLIMIT_AS)[0] != resource.RLIM_INFINITY
-    text = str(error)
-    return isinstance(error, MemoryError) or "can't allocate memory" in text or (
-        "out of memory" in text.lower())
+        return limited
+    return isinstance(error, MemoryError) or any(
+        words in text for words in ("can't allocate memory", "could not allocate memory",
+                                    "out of memory"))
+
+
+ADDRESS_SPACE_FLOOR = 1 << 30
+"""The smallest address-space limit (``ulimit -v``) the entry points start under. Loading torch,
+NumPy, MuJoCo and Matplotlib under less fails in ways no handler catches: a C++
+``std::bad_alloc`` that aborts, OpenBLAS exiting with its own line (every limit from 300 to
+880 MiB failed on the reference machine, a tiny run finished under 900 MiB)."""
+
+
+def address_space_refusal() -> str | None:
+    """The line refusing to start under an address-space limit below
+    :data:`ADDRESS_SPACE_FLOOR`; ``None`` without a limit or above it."""
+    limit = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if limit == resource.RLIM_INFINITY or limit >= ADDRESS_SPACE_FLOOR:
+        return None
+    return (f"out of memory: this process's address-space limit (ulimit -v) is {limit >> 20} "
+            f"MiB, below the {ADDRESS_SPACE_FLOOR >> 20} MiB that loading torch and MuJoCo "
+            "needs: raise it, or lift it (ulimit -v unlimited)")
 
 
 def _in_run_list_sweep() -> bool:
