@@ -1221,7 +1221,7 @@ def test_a_library_the_loader_cannot_map_is_out_of_memory_only_under_a_limit():
     as MuJoCo's "Could not allocate memory" is anywhere; without a limit the ``ImportError`` is
     a bug (no line: its traceback) and the ``OSError`` a file that could not be read."""
     check = (
-        "import resource, sys; from armeta_rl.cli.failures import failure; "
+        "import resource; from armeta_rl.cli.failures import failure; "
         "mapped = ImportError('ft2font.so: failed to map segment from shared object'); "
         "loaded = OSError('_raylet.so: failed to map segment from shared object'); "
         "mujoco = ValueError('Error: engine error: Could not allocate memory'); "

@@ -104,10 +104,10 @@ def out_of_memory(error: BaseException) -> bool:
 
 
 ADDRESS_SPACE_FLOOR = 1 << 30
-"""The smallest address-space limit (``ulimit -v``) the entry points start under. Loading torch,
-NumPy, MuJoCo and Matplotlib under less fails in ways no handler catches: a C++
-``std::bad_alloc`` that aborts, OpenBLAS exiting with its own line (every limit from 300 to
-880 MiB failed on the reference machine, a tiny run finished under 900 MiB)."""
+"""The smallest address-space limit (``ulimit -v``) the entry points start under. A tiny run
+needs about 900 MiB of address space to load torch, NumPy, MuJoCo and Matplotlib; under less a
+library's loader fails in ways no handler catches (a C++ ``std::bad_alloc`` that aborts, OpenBLAS
+exiting with its own line)."""
 
 
 def address_space_refusal() -> str | None:
