@@ -331,7 +331,7 @@ def progress_note(plan: Plan, results: Path, packed: Packed = NOTHING_PACKED) ->
               + f" and {len(plan.evals) - len(left)}/{len(plan.evals)} evaluations finished")
     if len(done) == len(trained) and not left:
         return f"Profile `{plan.profile}`, complete: {counts}."
-    blocked = [lost for job in left if (lost := lost_checkpoints(results, job, done))]
+    blocked = [needs for job in left if (needs := lost_checkpoints(results, job, done))]
     lost = sorted({run.subdir for needs in blocked for run in needs})
     return (f"Profile `{plan.profile}`, **partial**: {counts} (each cell summarizes the seeds "
             "finished so far, so cells may rest on different numbers of seeds)."

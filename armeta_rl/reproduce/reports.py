@@ -560,8 +560,8 @@ def precision_line(plan: Plan, records: list[dict[str, Any]], reference: Learner
         if spread.se < bound:
             status = "reached"
         else:
-            missed = f"not met at the planned {planned} seeds" if spread.n >= planned \
-                else "not yet"
+            missed = (f"not met at the planned {planned} seeds" if spread.n >= planned
+                      else "not yet")
             wanted = math.floor((spread.std / bound) ** 2) + 1
             status = f"{missed}; at this spread {wanted} seeds would reach it"
         parts.append(f"{label}: largest {spread.se:.2f} ({where}; {spread.n} seeds), {status}")
